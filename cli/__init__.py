@@ -1,0 +1,1 @@
+"""heliocal.cli: the thin typer command line over :mod:`heliocal.pipeline`."""

@@ -1,0 +1,109 @@
+"""The typer application and the helpers every subcommand shares.
+
+The CLI is a thin skin over :mod:`heliocal.pipeline`: a command parses options, calls one
+library function, and formats the result. Results go to stdout (``--json`` for machines),
+progress and logs to stderr. A :class:`~heliocal.pipeline.errors.HeliocalError` becomes one line
+``Error: <message>`` on stderr with exit code 1; usage errors exit with 2 (typer's default).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Any, Callable
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+
+from heliocal.pipeline.errors import HeliocalError
+
+__all__ = [
+    "app",
+    "stderr",
+    "stdout",
+    "Workdir",
+    "JsonFlag",
+    "QuietFlag",
+    "Seed",
+    "command",
+    "emit",
+    "progress_enabled",
+]
+
+app = typer.Typer(
+    name="heliocal",
+    help="Calibrate heliostats from camera-target calibration logs (staged; artifacts in --workdir).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+)
+
+stderr = Console(stderr=True, highlight=False, soft_wrap=True)
+stdout = Console(highlight=False, soft_wrap=True)
+
+DEFAULT_WORKDIR = Path("runs/default")
+
+Workdir = Annotated[Path, typer.Option(
+    "--workdir", "-w", help="Work directory holding the stage artifacts.",
+    file_okay=False, dir_okay=True)]
+JsonFlag = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
+QuietFlag = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars or info logs.")]
+Seed = Annotated[int, typer.Option("--seed", help="Seed of every random step (same seed, same artifacts).")]
+
+
+def progress_enabled(quiet: bool) -> bool:
+    """Progress bars only on an interactive stderr and without ``--quiet``."""
+    return not quiet and stderr.is_terminal
+
+
+def _setup_logging(quiet: bool) -> None:
+    level = logging.WARNING if quiet else logging.INFO
+    root = logging.getLogger("heliocal")
+    root.handlers[:] = [RichHandler(console=stderr, show_time=False, show_path=False,
+                                    markup=False, rich_tracebacks=False)]
+    root.setLevel(level)
+    root.propagate = False
+
+
+def command(name: str, **kwargs) -> Callable:
+    """Register a subcommand that turns :class:`HeliocalError` into one stderr line and exit 1."""
+
+    def decorator(func: Callable) -> Callable:
+        @functools.wraps(func)
+        def wrapper(*args, **kw):
+            _setup_logging(bool(kw.get("quiet", False)))
+            try:
+                return func(*args, **kw)
+            except HeliocalError as exc:
+                fail(str(exc))
+
+        return app.command(name, **kwargs)(wrapper)
+
+    return decorator
+
+
+def fail(message: str, code: int = 1) -> None:
+    """Print ``Error: message`` (one line) on stderr and exit with ``code``."""
+    print(f"Error: {' '.join(str(message).split())}", file=sys.stderr)
+    raise typer.Exit(code)
+
+
+def emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict], None] | None = None) -> None:
+    """Print a stage's result: JSON on stdout with ``--json``, else a short human summary."""
+    if as_json:
+        sys.stdout.write(json.dumps(summary, indent=2, sort_keys=False, default=str) + "\n")
+    elif human is not None:
+        human(summary)
+    else:
+        for key, value in summary.items():
+            stdout.print(f"{key}: {value}")
+
+
+def debug_enabled() -> bool:
+    return os.environ.get("HELIOCAL_DEBUG", "") not in ("", "0")

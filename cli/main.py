@@ -1,0 +1,35 @@
+"""Entry point of the ``heliocal`` console script: registers every subcommand."""
+
+from __future__ import annotations
+
+import sys
+
+from heliocal.cli.app import app, debug_enabled
+
+# Each module registers its subcommand(s) on import.
+from heliocal.cli import ingest as _ingest  # noqa: F401,E402
+
+__all__ = ["app", "main"]
+
+
+def main() -> None:
+    """Run the CLI; an unexpected exception becomes one stderr line (traceback with HELIOCAL_DEBUG=1)."""
+    try:
+        app()
+    except SystemExit:
+        raise
+    except KeyboardInterrupt:
+        print("Error: interrupted; artifacts written so far are complete, the interrupted one "
+              "was not replaced", file=sys.stderr)
+        sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - the last line of defence against tracebacks
+        if debug_enabled():
+            raise
+        print(f"Error: internal error {type(exc).__name__}: {' '.join(str(exc).split())} "
+              "(a bug in heliocal: rerun with HELIOCAL_DEBUG=1 for the traceback and report it)",
+              file=sys.stderr)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()
