@@ -107,3 +107,19 @@ def emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict], None] |
 
 def debug_enabled() -> bool:
     return os.environ.get("HELIOCAL_DEBUG", "") not in ("", "0")
+
+
+@app.callback()
+def _root(
+    version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
+) -> None:
+    """Calibrate heliostats from camera-target calibration logs.
+
+    Stages read and write Parquet artifacts in --workdir (default runs/default):
+    ingest -> split-knn -> fit-coarse -> fit-hybrid -> sweep -> report.
+    """
+    if version:
+        from heliocal.pipeline import __version__
+
+        stdout.print(f"heliocal {__version__}")
+        raise typer.Exit(0)

@@ -1,0 +1,69 @@
+"""``heliocal ingest``: sources into measurements.parquet, heliostats.parquet, rejected.parquet."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, stdout
+from heliocal.pipeline.errors import ParameterError
+from heliocal.pipeline.ingest import IngestOptions, run_ingest
+
+
+def _parse_location(text: Optional[str]):
+    if text is None:
+        return None
+    try:
+        lat, lon, alt = (float(x) for x in text.split(","))
+    except ValueError as exc:
+        raise ParameterError(f"The 'location' parameter of ingest must be LAT,LON,ALT in degrees "
+                             f"and metres. Got {text!r} instead.") from exc
+    return (lat, lon, alt)
+
+
+def _human(summary: dict) -> None:
+    table = Table(title=f"ingest -> {summary['workdir']}", show_edge=False)
+    table.add_column("heliostat")
+    table.add_column("kept", justify="right")
+    for hid, n in summary["heliostats"].items():
+        table.add_row(hid, str(n))
+    stdout.print(table)
+    stdout.print(f"rows read {summary['rows_read']}, kept {summary['kept']}, "
+                 f"rejected {summary['rejected']}")
+    for reason, n in summary["rejected_by_reason"].items():
+        stdout.print(f"  rejected {reason}: {n}")
+
+
+@command("ingest")
+def ingest_cmd(
+    sources: Annotated[list[Path], typer.Argument(help="PAINT folders and/or CSV/Parquet logs.")],
+    workdir: Workdir = DEFAULT_WORKDIR,
+    tower: Annotated[Optional[Path], typer.Option(
+        help="Plant tower-measurements.json (default: found beside or above the source).")] = None,
+    properties: Annotated[Optional[Path], typer.Option(
+        help="Heliostat properties: a PAINT folder, or a CSV/TOML file (required for ENU logs).")] = None,
+    focal_spot: Annotated[str, typer.Option(
+        help="PAINT focal-spot detector: utis or helios (a row without it falls back to the other).")] = "utis",
+    max_spot_distance: Annotated[float, typer.Option(
+        help="Reject focal spots farther than this from their target centre [m].")] = 25.0,
+    sun_tolerance: Annotated[float, typer.Option(
+        help="Flag rows whose logged sun differs from NREL SPA by more than this [deg].")] = 0.1,
+    azimuth_convention: Annotated[str, typer.Option(
+        help="Logged sun azimuth convention: south (0 = south, + east) or north-clockwise.")] = "south",
+    timezone: Annotated[Optional[str], typer.Option(
+        help="Time zone of timestamps that carry none (e.g. Europe/Berlin).")] = None,
+    location: Annotated[Optional[str], typer.Option(
+        help="Plant location LAT,LON,ALT for ENU logs (for NREL SPA sun positions).")] = None,
+    json_: JsonFlag = False,
+    quiet: QuietFlag = False,
+) -> None:
+    """Read calibration logs into the canonical measurement table (nothing is dropped silently)."""
+    opts = IngestOptions(tower=tower, properties=properties, focal_spot=focal_spot,
+                         max_spot_distance_m=max_spot_distance, sun_tolerance_deg=sun_tolerance,
+                         azimuth_convention=azimuth_convention, timezone=timezone,
+                         location=_parse_location(location))
+    summary = run_ingest(sources, workdir, opts)
+    emit(summary, json_, _human)
