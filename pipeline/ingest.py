@@ -22,6 +22,8 @@ naming the file, the problem and the fix) before any artifact is written.
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import logging
 import math
@@ -147,23 +149,15 @@ def _read_header(path: Path) -> list[str]:
         except Exception as exc:  # noqa: BLE001 - pyarrow raises several types
             raise InputError(f"{path}: not a readable Parquet file ({_short(exc)}); export the log "
                              "again or give a CSV") from exc
-    raw = path.read_bytes()[:65536]
-    if not raw.strip():
-        raise InputError(f"{path}: the file is empty; give a calibration log with a header row "
-                         "and one row per measurement")
-    if b"\0" in raw:
-        raise InputError(f"{path}: binary data, not a CSV text file; give a CSV (comma-separated, "
-                         "UTF-8) or Parquet calibration log")
+    text = _decode_text(path, path.read_bytes())
     try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        if len(raw) == 65536 and exc.start > 65530:
-            text = raw[:exc.start].decode("utf-8-sig")
-        else:
-            raise InputError(f"{path}: not UTF-8 text (byte {exc.start}); re-save the log as UTF-8 "
-                             "CSV") from exc
-    header = text.splitlines()[0]
-    return [h.strip() for h in header.split(",")]
+        for cells in csv.reader(io.StringIO(text, newline=""), skipinitialspace=True):
+            if cells and any(c.strip() for c in cells):
+                return [c.strip() for c in cells]
+    except csv.Error as exc:
+        raise InputError(f"{path}: malformed CSV header ({_short(exc)}); fix the first line") from exc
+    raise InputError(f"{path}: the file is empty; give a calibration log with a header row "
+                     "and one row per measurement")
 
 
 def detect_source(path: str | os.PathLike) -> str:
@@ -494,7 +488,7 @@ def _stage_paint(folder: Path, opts: IngestOptions) -> _Staged:
     # focal spot WGS84 -> ENU (vectorised over the rows that have one)
     for col in ("focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"):
         frame[col] = np.nan
-    has = frame["_spot_wgs84"].map(lambda s: s is not None) if "_spot_wgs84" in frame else None
+    has = frame["_spot_wgs84"].map(lambda s: isinstance(s, tuple)) if "_spot_wgs84" in frame else None
     if has is not None and has.any():
         arr = np.array(frame.loc[has, "_spot_wgs84"].tolist(), float)
         e, n, u = wgs84_to_enu(arr[:, 0], arr[:, 1], arr[:, 2], tower.reference)
@@ -528,6 +522,57 @@ _LOG_RECOGNISED_IGNORED = ("tracking_error_lat", "tracking_error_lon", "tracking
                            "tracking_error_e_m", "tracking_error_n_m", "tracking_error_u_m")
 
 
+def _decode_text(path: Path, raw: bytes) -> str:
+    """Decode a CSV's bytes as UTF-8 (with or without BOM) or raise a one-line InputError."""
+    if not raw.strip():
+        raise InputError(f"{path}: the file is empty; give a calibration log with a header row "
+                         "and one row per measurement")
+    if b"\0" in raw[:65536]:
+        raise InputError(f"{path}: binary data, not a CSV text file; give a CSV (comma-separated, "
+                         "UTF-8) or Parquet calibration log")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise InputError(f"{path}: not UTF-8 text (line {line}, byte {exc.start}); re-save the log "
+                         "as UTF-8 CSV") from exc
+
+
+def _read_csv_records(path: Path) -> tuple[list[str], list[list[str]]]:
+    """Header and data rows of a comma-separated UTF-8 file, every cell a stripped string.
+
+    Blank lines are skipped; a short row is padded with empty cells (they become
+    ``missing_value`` rejections); a row with more non-empty cells than the header raises
+    :class:`InputError` naming the row, since its values cannot be assigned to columns.
+    """
+    text = _decode_text(path, path.read_bytes())
+    reader = csv.reader(io.StringIO(text, newline=""), skipinitialspace=True, strict=True)
+    rows: list[list[str]] = []
+    header: list[str] | None = None
+    try:
+        for cells in reader:
+            if not cells or (len(cells) == 1 and not cells[0].strip()):
+                continue
+            cells = [c.strip() for c in cells]
+            if header is None:
+                header = cells
+                continue
+            if len(cells) > len(header):
+                if any(cells[len(header):]):
+                    raise InputError(
+                        f"{path}: data row {len(rows) + 1} (line {reader.line_num}) has "
+                        f"{len(cells)} fields but the header has {len(header)}; remove the extra "
+                        "fields or quote values that contain commas")
+                cells = cells[:len(header)]
+            rows.append(cells + [""] * (len(header) - len(cells)))
+    except csv.Error as exc:
+        raise InputError(f"{path}: malformed CSV at line {reader.line_num} ({_short(exc)}); close "
+                         "the quote or re-export the log") from exc
+    if header is None:  # pragma: no cover - _decode_text refuses blank files
+        raise InputError(f"{path}: the file is empty; give a calibration log with a header row")
+    return header, rows
+
+
 def _read_log(path: Path) -> pd.DataFrame:
     if path.suffix.lower() in (".parquet", ".pq"):
         import pyarrow.parquet as pq
@@ -537,27 +582,27 @@ def _read_log(path: Path) -> pd.DataFrame:
         except Exception as exc:  # noqa: BLE001
             raise InputError(f"{path}: not a readable Parquet file ({_short(exc)}); export the log "
                              "again") from exc
+        df.columns = [str(c) for c in df.columns]
+        if len(set(df.columns)) != len(df.columns):
+            dup = next(c for c in df.columns if list(df.columns).count(c) > 1)
+            raise InputError(f"{path}: duplicated column {dup!r}; remove one of them so each field "
+                             "appears once")
         return df.astype(object).where(df.notna(), "")
-    try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False, na_filter=False,
-                         encoding="utf-8-sig", skipinitialspace=True, on_bad_lines="error")
-    except UnicodeDecodeError as exc:
-        raise InputError(f"{path}: not UTF-8 text; re-save the log as UTF-8 CSV") from exc
-    except pd.errors.ParserError as exc:
-        raise InputError(f"{path}: malformed CSV ({_short(exc)}); fix the rows with a wrong number "
-                         "of fields or re-export the log") from exc
-    except pd.errors.EmptyDataError as exc:
-        raise InputError(f"{path}: the file is empty; give a calibration log with a header row "
-                         "and one row per measurement") from exc
-    return df
+    header, rows = _read_csv_records(path)
+    seen = set()
+    for name in header:
+        if name in seen:
+            raise InputError(f"{path}: duplicated column {name!r}; remove one of them so each "
+                             "field appears once")
+        seen.add(name)
+    if "" in header:
+        raise InputError(f"{path}: column {header.index('') + 1} of the header has no name; name "
+                         "it or remove the column")
+    return pd.DataFrame(rows, columns=header, dtype=object)
 
 
 def _stage_log(path: Path, opts: IngestOptions, kind: str) -> _Staged:
     raw = _read_log(path)
-    dup = [c for c in raw.columns if re.search(r"\.\d+$", str(c)) and str(c).rsplit(".", 1)[0] in raw.columns]
-    if dup:
-        raise InputError(f"{path}: duplicated column {dup[0].rsplit('.', 1)[0]!r}; remove one of "
-                         "them so each field appears once")
     if raw.empty:
         raise InputError(f"{path}: header only, no data rows; give a log with at least one "
                          "measurement")
@@ -741,8 +786,11 @@ def _validate(st: _Staged, opts: IngestOptions) -> tuple[pd.DataFrame, pd.DataFr
             df[f"heliostat_{a}_m"] = df["heliostat_id"].map(
                 {h: r[f"heliostat_{a}_m"] for h, r in heliostats.items()})
 
+    # a WGS84 log's focal spot is judged on its logged lat/lon/alt (the ENU columns derive from them)
+    spot_raw = (["focal_spot_lat", "focal_spot_lon", "focal_spot_alt"] if st.kind == "wgs84-log"
+                else ["focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"])
     required = ["heliostat_id", "measurement_id", "axis_1_steps", "axis_2_steps", "target_name",
-                "focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"]
+                *spot_raw]
     for col in required:
         reject(blank(col), "missing_value", f"{col} is empty")
     sun_given = ~blank("sun_azimuth_deg") & ~blank("sun_elevation_deg")
@@ -751,8 +799,7 @@ def _validate(st: _Staged, opts: IngestOptions) -> tuple[pd.DataFrame, pd.DataFr
 
     # numbers
     numeric = {}
-    for col in ("axis_1_steps", "axis_2_steps", "sun_azimuth_deg", "sun_elevation_deg",
-                "focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"):
+    for col in ("axis_1_steps", "axis_2_steps", "sun_azimuth_deg", "sun_elevation_deg", *spot_raw):
         if col not in df:
             continue
         raw_col = df[col]
@@ -760,6 +807,14 @@ def _validate(st: _Staged, opts: IngestOptions) -> tuple[pd.DataFrame, pd.DataFr
         numeric[col] = val
         bad = val.isna() & ~blank(col)
         reject(bad, "unparsable_number", raw_col.map(lambda v, c=col: f"{c}={v!r} is not a finite number"))
+    if st.kind == "wgs84-log":
+        for col, limit in (("focal_spot_lat", 90.0), ("focal_spot_lon", 180.0)):
+            val = numeric[col]
+            reject(val.abs() > limit, "unparsable_number",
+                   val.map(lambda v, c=col, lim=limit: f"{c}={v!r} is outside [-{lim:g}, {lim:g}] deg"))
+        enu = _to_float_frame(df, ["focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"])
+        reject(enu.isna().any(axis=1), "unparsable_number",
+               "focal spot lat/lon/alt cannot be converted to ENU (not a point near the plant)")
     for col, val in numeric.items():
         df[col] = val
     env_cols = [c for c in df.columns if c.startswith("env_")]
@@ -817,8 +872,8 @@ def _validate(st: _Staged, opts: IngestOptions) -> tuple[pd.DataFrame, pd.DataFr
                "location to compute them (pass --location LAT,LON,ALT)")
     reject(az.isna() | el.isna(), "missing_value", "sun angles are empty and no timestamp")
     reject((el > 90) | (el < -90) | (az < -360) | (az > 360), "sun_angle_out_of_range",
-           pd.Series([f"sun azimuth {a!r} deg / elevation {e!r} deg out of range" for a, e in zip(az, el)],
-                     index=df.index))
+           pd.Series([f"sun azimuth {a:g} deg / elevation {e:g} deg outside [-360, 360] / [-90, 90]"
+                      for a, e in zip(az, el)], index=df.index))
     reject(el <= 0, "sun_below_horizon",
            el.map(lambda e: f"sun elevation {e:.3f} deg is not above the horizon"))
     az = pd.Series(wrap_deg(az.to_numpy()), index=df.index)
@@ -907,7 +962,7 @@ def _resolve_targets(df: pd.DataFrame, targets: dict[str, Target]) -> pd.Series:
                 "target_normal_u"):
         if col not in df:
             df[col] = np.nan
-        df[col] = _to_float(df[col].astype(object)) if df[col].dtype == object else df[col].astype(float)
+        df[col] = _to_float(df[col].astype(object))
     names = df["target_name"]
     for name, t in targets.items():
         sel = names == name
