@@ -1,0 +1,523 @@
+"""Training/validation/test splits of each heliostat's measurements (stage ``split-knn``).
+
+The default method is the kNN split of Lewen et al. (paper 000, section 3.2, after Pargmann et
+al. 2023): per heliostat, every measurement gets the mean distance to its ``k`` nearest other
+measurements in sun position (azimuth, elevation); sorted by that distance in descending order,
+the first ``n_test`` are the test set, the next ``n_val`` the validation set and the rest the
+training set. A training-size limit drops the training rows with the *smallest* kNN distance
+first, as the paper does. Test accuracies of such a split are conservative: the test points are
+the ones farthest from everything else.
+
+For comparison the module also implements a seeded random split, a chronological split (paper
+002 trains on the earlier part) and PAINT's four benchmark splits (``azimuth``, ``solstice``,
+``balanced``, ``high-variance``; ARTIST-Association/PAINT, ``paint/data/dataset_splits.py``).
+How their train/validation/test roles map onto ours is documented in ``docs/split.md``; in short,
+for every method the test set is the held-out block that is hardest under the method's own
+criterion, validation is the next block, and the rest trains.
+
+Whatever the method, every row gets its kNN distance (with the run's ``k`` and metric), its rank
+by that distance and its distance to the nearest training measurement, so splits made by
+different methods can be compared on the same scale. All distances are in degrees: either the
+Euclidean distance in the (azimuth, elevation) plane (``euclidean``, the paper's choice) or the
+great-circle angle between the two sun vectors (``great-circle``, free of the azimuth distortion
+near the zenith).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from sklearn.neighbors import NearestNeighbors
+
+from .artifacts import ArtifactSchema, Column, artifact_path, read_artifact, write_artifact
+from .errors import FitError, InputError, ParameterError, check_choice, check_int
+from .schemas import MEASUREMENTS
+
+__all__ = [
+    "SPLIT",
+    "SCHEMAS",
+    "METHODS",
+    "METRICS",
+    "SPLIT_LABELS",
+    "knn_distance_deg",
+    "split_measurements",
+    "restrict_training",
+    "required_measurements",
+    "summarize_split",
+    "run_split",
+]
+
+#: Split methods; ``knn`` is the default (paper 000, section 3.2).
+METHODS = ("knn", "random", "time", "azimuth", "solstice", "balanced", "high-variance")
+#: Distance metrics in sun position.
+METRICS = ("euclidean", "great-circle")
+#: Values of the ``split`` column.
+SPLIT_LABELS = ("train", "validation", "test", "unused")
+
+#: Fewest training rows a heliostat must keep: a training row's distance to the nearest *other*
+#: training row is defined only when there are two of them.
+MIN_TRAIN = 2
+
+_FUNC = "split_knn"
+
+log = logging.getLogger("heliocal.split")
+
+C = Column
+
+SPLIT = ArtifactSchema(
+    name="split",
+    filename="split.parquet",
+    producer="split-knn",
+    sort_by=("heliostat_id", "measurement_id"),
+    description="One row per measurement of every heliostat that was split: its set (train, "
+                "validation, test or unused) and the distances in sun position the split was "
+                "judged by. Heliostats with too few measurements are absent (the stage warns).",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat name."),
+        C("measurement_id", "string", "", "Measurement id (as in measurements.parquet)."),
+        C("split", "string", "", "`train`, `validation`, `test`, or `unused` (a training "
+          "candidate dropped by the training-size limit)."),
+        C("knn_distance_deg", "float64", "deg", "Mean distance in sun position to the k nearest "
+          "other measurements of the same heliostat (k and metric as recorded in the "
+          "provenance; computed for every method)."),
+        C("knn_rank", "int64", "", "Rank by knn_distance_deg within the heliostat, 0 = largest "
+          "distance; ties broken by measurement_id."),
+        C("nearest_train_distance_deg", "float64", "deg", "Distance in sun position to the "
+          "nearest training measurement of the same heliostat (for a training row: to the "
+          "nearest other training row)."),
+        C("method", "string", "", "Split method: `knn`, `random`, `time`, `azimuth`, "
+          "`solstice`, `balanced` or `high-variance`."),
+        C("metric", "string", "", "Distance metric of the distance columns: `euclidean` "
+          "(degrees in the azimuth-elevation plane) or `great-circle` (angle between sun "
+          "vectors)."),
+        C("sun_azimuth_deg", "float64", "deg", "Sun azimuth (copied from measurements.parquet, "
+          "so the split can be re-restricted and plotted on its own)."),
+        C("sun_elevation_deg", "float64", "deg", "Sun elevation (copied from "
+          "measurements.parquet)."),
+    ),
+)
+
+SCHEMAS = (SPLIT,)
+
+_INPUT_COLUMNS = ["heliostat_id", "measurement_id", "timestamp", "sun_azimuth_deg",
+                  "sun_elevation_deg"]
+
+
+# --------------------------------------------------------------------------------------------
+# distances
+# --------------------------------------------------------------------------------------------
+def _features(az_deg, el_deg, metric: str) -> tuple[np.ndarray, dict]:
+    az = np.asarray(az_deg, dtype=float).reshape(-1)
+    el = np.asarray(el_deg, dtype=float).reshape(-1)
+    if az.shape != el.shape:
+        raise ValueError(f"azimuth and elevation differ in length ({az.size} vs {el.size})")
+    if metric == "euclidean":
+        # kd-tree: exact sqrt of summed squares (no Gram-matrix rounding), independent of order.
+        return np.column_stack([az, el]), {"metric": "euclidean", "algorithm": "kd_tree"}
+    # The haversine metric takes (latitude, longitude) in radians: elevation is the latitude
+    # and azimuth the longitude of the sun on the unit sphere, so the haversine distance is the
+    # angle between the sun vectors whatever the azimuth's zero and sense.
+    return (np.column_stack([np.radians(el), np.radians(az)]),
+            {"metric": "haversine", "algorithm": "ball_tree"})
+
+
+def _to_deg(dist: np.ndarray, metric: str) -> np.ndarray:
+    return np.degrees(dist) if metric == "great-circle" else dist
+
+
+def knn_distance_deg(az_deg, el_deg, k: int = 3, metric: str = "euclidean") -> np.ndarray:
+    """Mean distance of each sun position to its ``k`` nearest *other* positions.
+
+    Paper 000, section 3.2: the kNN distance with k = 1, 2 or 3 in (azimuth, elevation).
+
+    Parameters
+    ----------
+    az_deg : sun azimuths [°].
+    el_deg : sun elevations [°], same length.
+    k : number of neighbours, 1, 2 or 3 [1].
+    metric : ``euclidean`` (distance in the azimuth-elevation plane [°], the paper's) or
+        ``great-circle`` (angle between the sun vectors [°]).
+
+    Returns
+    -------
+    Array of the mean distances [°], one per position. A position is never its own neighbour;
+    a duplicate position is (at distance 0).
+
+    Raises
+    ------
+    ParameterError : ``k`` or ``metric`` is not allowed, or there are not more than ``k``
+        positions.
+    """
+    k = check_int(k, "k", _FUNC, 1, 3)
+    metric = check_choice(metric, "metric", _FUNC, METRICS)
+    x, nn_kw = _features(az_deg, el_deg, metric)
+    if len(x) <= k:
+        raise ParameterError(f"the kNN distance with k={k} needs at least {k + 1} sun positions; "
+                             f"got {len(x)}")
+    nn = NearestNeighbors(n_neighbors=k, **nn_kw).fit(x)
+    dist, _ = nn.kneighbors()  # X=None: each point's neighbours without the point itself
+    return _to_deg(dist, metric).mean(axis=1)
+
+
+def _nearest_distance(x_from: np.ndarray, x_to: np.ndarray, nn_kw: dict, metric: str,
+                      same: np.ndarray | None) -> np.ndarray:
+    """Distance [°] from each row of ``x_from`` to the nearest row of ``x_to``.
+
+    ``same[i]`` is the index into ``x_to`` of row i itself (or -1): that row is skipped.
+    """
+    n_nb = min(2, len(x_to))
+    nn = NearestNeighbors(n_neighbors=n_nb, **nn_kw).fit(x_to)
+    dist, idx = nn.kneighbors(x_from)
+    out = dist[:, 0].copy()
+    if same is not None:
+        # A training row's first neighbour may be itself or a duplicate at distance 0: either
+        # way, the nearest *other* training row is at distance dist[:, 1] when idx[:, 0] is the
+        # row itself, and at dist[:, 0] (= 0, the duplicate) otherwise.
+        self_first = idx[:, 0] == same
+        out[self_first] = dist[self_first, 1]
+    return _to_deg(out, metric)
+
+
+def _nearest_train(az: np.ndarray, el: np.ndarray, is_train: np.ndarray, metric: str) -> np.ndarray:
+    x, nn_kw = _features(az, el, metric)
+    train_idx = np.flatnonzero(is_train)
+    same = np.full(len(x), -1)
+    same[train_idx] = np.arange(train_idx.size)
+    return _nearest_distance(x, x[train_idx], nn_kw, metric, same)
+
+
+# --------------------------------------------------------------------------------------------
+# orderings of the methods
+# --------------------------------------------------------------------------------------------
+def _order_by(key: np.ndarray, ids: np.ndarray, descending: bool) -> np.ndarray:
+    """Positions sorted by ``key`` (descending or ascending), ties by ascending id."""
+    frame = pd.DataFrame({"key": key, "id": ids})
+    return frame.sort_values(["key", "id"], ascending=[not descending, True],
+                             kind="mergesort").index.to_numpy()
+
+
+def _rng(seed: int, heliostat_id: str) -> np.random.Generator:
+    # One stream per heliostat, so a heliostat's split does not depend on which others exist.
+    return np.random.default_rng([seed, zlib.crc32(str(heliostat_id).encode())])
+
+
+def _summer_solstice_distance_s(ts: pd.Series) -> np.ndarray:
+    """Seconds to the nearest 21 June 12:00 UTC (PAINT's definition of the solstice)."""
+    ts = pd.to_datetime(pd.Series(ts).reset_index(drop=True), utc=True)
+    epoch = pd.Timestamp("1970-01-01", tz="UTC")
+    t = (ts - epoch).dt.total_seconds().to_numpy()
+    years = ts.dt.year.to_numpy()
+    best = np.full(len(ts), np.inf)
+    for dy in (-1, 0, 1):
+        sol = pd.to_datetime(pd.DataFrame({"year": years + dy, "month": 6, "day": 21,
+                                           "hour": 12}), utc=True)
+        best = np.minimum(best, np.abs(t - (sol - epoch).dt.total_seconds().to_numpy()))
+    return best
+
+
+def _stratified_draw(labels: np.ndarray, available: np.ndarray, count: int,
+                     rng: np.random.Generator) -> list[int]:
+    """Draw ``count`` rows round-robin over clusters: one per cluster per round, random order."""
+    picked: list[int] = []
+    available = available.copy()
+    clusters = np.unique(labels)
+    while len(picked) < count:
+        progressed = False
+        for c in rng.permutation(clusters):
+            members = np.flatnonzero(available & (labels == c))
+            if members.size == 0:
+                continue
+            i = int(rng.choice(members))
+            picked.append(i)
+            available[i] = False
+            progressed = True
+            if len(picked) == count:
+                break
+        if not progressed:
+            break
+    return picked
+
+
+def _held_out_order(g: pd.DataFrame, method: str, n_test: int, n_val: int, seed: int,
+                    knn_d: np.ndarray, knn3_euclid: np.ndarray | None) -> np.ndarray:
+    """Row positions in the order rows are held out: the first n_test are test, then n_val
+    validation; positions not listed (or after them) train."""
+    ids = g["measurement_id"].to_numpy(dtype=object)
+    hid = g["heliostat_id"].iloc[0]
+    if method == "knn":
+        return _order_by(knn_d, ids, descending=True)
+    if method == "high-variance":
+        return _order_by(knn3_euclid, ids, descending=True)
+    if method == "random":
+        return _rng(seed, hid).permutation(len(g))
+    if method == "time":
+        epoch = pd.Timestamp("1970-01-01", tz="UTC")
+        t = (pd.to_datetime(g["timestamp"], utc=True) - epoch).dt.total_seconds().to_numpy()
+        # latest first: the last n_test are test, the n_val before them validation
+        return _order_by(t, ids, descending=True)
+    if method == "azimuth":
+        return _order_by(g["sun_azimuth_deg"].to_numpy(float), ids, descending=True)
+    if method == "solstice":
+        return _order_by(_summer_solstice_distance_s(g["timestamp"]), ids, descending=False)
+    if method == "balanced":
+        n_clusters = max(n_test, n_val)
+        if n_clusters == 0:
+            return np.array([], dtype=int)
+        from sklearn.cluster import KMeans
+
+        rng = _rng(seed, hid)
+        x = g[["sun_azimuth_deg", "sun_elevation_deg"]].to_numpy(float)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # fewer distinct points than clusters: still valid
+            labels = KMeans(n_clusters=n_clusters, n_init=10,
+                            random_state=int(rng.integers(2**31 - 1))).fit_predict(x)
+        available = np.ones(len(g), dtype=bool)
+        test = _stratified_draw(labels, available, n_test, rng)
+        available[test] = False
+        val = _stratified_draw(labels, available, n_val, rng)
+        return np.array(test + val, dtype=int)
+    raise AssertionError(method)  # pragma: no cover - validated by check_choice
+
+
+# --------------------------------------------------------------------------------------------
+# public API
+# --------------------------------------------------------------------------------------------
+def required_measurements(k: int = 3, n_test: int = 30, n_val: int = 20,
+                          n_train: int | None = None) -> int:
+    """Fewest measurements a heliostat needs for a split with these sizes [1]."""
+    return max(n_test + n_val + (MIN_TRAIN if n_train is None else n_train), k + 1)
+
+
+def _requirement_text(k: int, n_test: int, n_val: int, n_train: int | None) -> str:
+    need = required_measurements(k, n_test, n_val, n_train)
+    train = MIN_TRAIN if n_train is None else n_train
+    if n_test + n_val + train >= k + 1:
+        return f"{need} ({n_test} test + {n_val} validation + {train} training)"
+    return f"{need} (k={k} neighbours plus the measurement itself)"
+
+
+def _check_options(method, k, n_test, n_val, n_train, metric, seed) -> tuple:
+    method = check_choice(method, "method", _FUNC, METHODS)
+    k = check_int(k, "k", _FUNC, 1, 3)
+    n_test = check_int(n_test, "n_test", _FUNC, 0)
+    n_val = check_int(n_val, "n_val", _FUNC, 0)
+    if n_train is not None:
+        n_train = check_int(n_train, "n_train", _FUNC, MIN_TRAIN)
+    metric = check_choice(metric, "metric", _FUNC, METRICS)
+    seed = check_int(seed, "seed", _FUNC, 0)
+    return method, k, n_test, n_val, n_train, metric, seed
+
+
+def split_measurements(measurements: pd.DataFrame, *, method: str = "knn", k: int = 3,
+                       n_test: int = 30, n_val: int = 20, n_train: int | None = None,
+                       metric: str = "euclidean", seed: int = 0
+                       ) -> tuple[pd.DataFrame, list[tuple[str, int]]]:
+    """Split each heliostat's measurements into train, validation, test (and unused) sets.
+
+    Parameters
+    ----------
+    measurements : table with ``heliostat_id``, ``measurement_id``, ``sun_azimuth_deg`` [°],
+        ``sun_elevation_deg`` [°], and ``timestamp`` (UTC) for methods ``time`` and
+        ``solstice``.
+    method : one of :data:`METHODS` (see the module docstring and docs/split.md).
+    k : neighbours of the kNN distance, 1, 2 or 3 (paper 000, section 3.2).
+    n_test : test rows per heliostat (paper: 30).
+    n_val : validation rows per heliostat (paper: 20).
+    n_train : keep only this many training rows, those with the largest kNN distance; the
+        others become ``unused`` (paper: smallest kNN distance dropped first). ``None``: all.
+    metric : ``euclidean`` or ``great-circle``, for every distance column.
+    seed : seed of the random steps (methods ``random`` and ``balanced``).
+
+    Returns
+    -------
+    (table matching :data:`SPLIT`, skipped) where ``skipped`` lists ``(heliostat_id, count)`` of
+    the heliostats with fewer than :func:`required_measurements` measurements, which are left
+    out of the table.
+
+    Raises
+    ------
+    ParameterError : an option is outside its allowed values.
+    InputError : required columns are missing, a measurement id repeats within a heliostat, or
+        a time-based method meets measurements without timestamp.
+    FitError : no heliostat has enough measurements.
+    """
+    method, k, n_test, n_val, n_train, metric, seed = _check_options(
+        method, k, n_test, n_val, n_train, metric, seed)
+    needed = ["heliostat_id", "measurement_id", "sun_azimuth_deg", "sun_elevation_deg"]
+    if method in ("time", "solstice"):
+        needed.append("timestamp")
+    absent = [c for c in needed if c not in measurements.columns]
+    if absent:
+        raise InputError(f"the measurements lack columns {absent}; rerun `heliocal ingest`")
+    if measurements.empty:
+        raise FitError("there are no measurements to split; check the output of `heliocal ingest`")
+
+    df = measurements[[c for c in _INPUT_COLUMNS if c in measurements.columns]].copy()
+    df["heliostat_id"] = df["heliostat_id"].astype(str).astype(object)
+    df["measurement_id"] = df["measurement_id"].astype(str).astype(object)
+    dup = df.duplicated(["heliostat_id", "measurement_id"])
+    if dup.any():
+        first = df.loc[dup].iloc[0]
+        raise InputError(f"measurement id {first['measurement_id']!r} occurs more than once for "
+                         f"heliostat {first['heliostat_id']}; rerun `heliocal ingest`")
+
+    need = required_measurements(k, n_test, n_val, n_train)
+    skipped: list[tuple[str, int]] = []
+    parts = []
+    for hid, g in df.groupby("heliostat_id", sort=True):
+        if len(g) < need:
+            skipped.append((str(hid), int(len(g))))
+            continue
+        g = g.sort_values("measurement_id", kind="mergesort").reset_index(drop=True)
+        if method in ("time", "solstice"):
+            untimed = int(g["timestamp"].isna().sum())
+            if len(g) - untimed < n_test + n_val:
+                raise InputError(
+                    f"method {method!r} needs timestamps for the {n_test} test and {n_val} "
+                    f"validation measurements, but only {len(g) - untimed} of heliostat {hid}'s "
+                    f"{len(g)} have one; choose another --method")
+            if untimed:
+                # NaN keys sort last, so these rows are never held out: they stay training
+                # candidates (their time is unknown, so they cannot be placed in a time split).
+                log.warning("heliostat %s: %d measurement(s) without timestamp (ids %s) cannot "
+                            "be held out by method %r and stay training candidates", hid,
+                            untimed, ", ".join(g.loc[g["timestamp"].isna(), "measurement_id"]),
+                            method)
+        az = g["sun_azimuth_deg"].to_numpy(float)
+        el = g["sun_elevation_deg"].to_numpy(float)
+        knn_d = knn_distance_deg(az, el, k, metric)
+        knn3 = knn_distance_deg(az, el, 3, "euclidean") if method == "high-variance" else None
+        order = _held_out_order(g, method, n_test, n_val, seed, knn_d, knn3)
+        label = np.full(len(g), "train", dtype=object)
+        label[order[:n_test]] = "test"
+        label[order[n_test:n_test + n_val]] = "validation"
+        rank = np.empty(len(g), dtype=np.int64)
+        rank[_order_by(knn_d, g["measurement_id"].to_numpy(dtype=object), True)] = np.arange(len(g))
+        parts.append(pd.DataFrame({
+            "heliostat_id": g["heliostat_id"], "measurement_id": g["measurement_id"],
+            "split": label, "knn_distance_deg": knn_d, "knn_rank": rank,
+            "nearest_train_distance_deg": np.nan, "method": method, "metric": metric,
+            "sun_azimuth_deg": az, "sun_elevation_deg": el,
+        }))
+
+    if not parts:
+        counts = ", ".join(f"{h} has {c}" for h, c in skipped)
+        raise FitError(
+            f"no heliostat has enough measurements for this split: each needs at least "
+            f"{_requirement_text(k, n_test, n_val, n_train)}, but {counts}; lower --n-test, "
+            "--n-val or --n-train")
+    table = pd.concat(parts, ignore_index=True)
+    return restrict_training(table, n_train), skipped
+
+
+def restrict_training(split_df: pd.DataFrame, n_train: int | None) -> pd.DataFrame:
+    """Keep ``n_train`` training rows per heliostat: those with the largest kNN distance.
+
+    The training candidates are the rows marked ``train`` or ``unused`` (``unused`` always
+    means "a training row dropped by a size limit"), so restricting is idempotent and a larger
+    ``n_train`` restores dropped rows. Candidates are ranked by ``knn_distance_deg``
+    (descending, ties by ``measurement_id``) and all but the first ``n_train`` become
+    ``unused`` (paper 000, section 3.2: "measurements with the smallest kNN were excluded from
+    training"). ``nearest_train_distance_deg`` is recomputed for every row with the table's
+    ``metric``. Used by ``split-knn --n-train`` and by the training-size sweep.
+
+    Parameters
+    ----------
+    split_df : a table matching :data:`SPLIT`.
+    n_train : training rows to keep per heliostat (at least 2), or ``None`` for all candidates.
+
+    Raises
+    ------
+    ParameterError : ``n_train`` is not an int >= 2.
+    FitError : a heliostat has fewer than ``n_train`` training candidates (message names them).
+    """
+    if n_train is not None:
+        n_train = check_int(n_train, "n_train", "restrict_training", MIN_TRAIN)
+    out = split_df.copy().reset_index(drop=True)
+    candidate = out["split"].isin(["train", "unused"]).to_numpy()
+    split = out["split"].to_numpy(dtype=object).copy()
+    split[candidate] = "train"
+    short = []
+    for _, idx in out.groupby("heliostat_id", sort=True).indices.items():
+        cand = idx[candidate[idx]]
+        if n_train is not None:
+            if cand.size < n_train:
+                short.append((out["heliostat_id"].iloc[idx[0]], int(cand.size)))
+                continue
+            sub = out.iloc[cand]
+            ranked = cand[_order_by(sub["knn_distance_deg"].to_numpy(float),
+                                    sub["measurement_id"].to_numpy(dtype=object), True)]
+            split[ranked[n_train:]] = "unused"
+    if short:
+        names = ", ".join(f"{h} has {c}" for h, c in short)
+        raise FitError(f"too few training candidates for n_train={n_train}: {names}; lower "
+                       "n_train or leave those heliostats out")
+    out["split"] = split
+    is_train = split == "train"
+    near = np.empty(len(out))
+    for _, idx in out.groupby("heliostat_id", sort=True).indices.items():
+        metric = out["metric"].iloc[idx[0]]
+        g = out.iloc[idx]
+        if is_train[idx].sum() < 2:
+            raise FitError(f"heliostat {g['heliostat_id'].iloc[0]} has fewer than 2 training rows; "
+                           "its nearest-training distances are undefined")
+        near[idx] = _nearest_train(g["sun_azimuth_deg"].to_numpy(float),
+                                   g["sun_elevation_deg"].to_numpy(float), is_train[idx], metric)
+    out["nearest_train_distance_deg"] = near
+    return out
+
+
+def _mean(values: pd.Series) -> float | None:
+    return float(values.mean()) if len(values) else None
+
+
+def summarize_split(split_df: pd.DataFrame) -> list[dict[str, Any]]:
+    """Per heliostat: counts per set, mean kNN distance per set [°], and mean distance from
+    the test rows to the nearest training row [°] (``None`` for an empty set)."""
+    rows = []
+    for hid, g in split_df.groupby("heliostat_id", sort=True):
+        by = {s: g[g["split"] == s] for s in SPLIT_LABELS}
+        rows.append({
+            "heliostat_id": str(hid),
+            "n_measurements": int(len(g)),
+            "counts": {s: int(len(by[s])) for s in SPLIT_LABELS},
+            "mean_knn_distance_deg": {s: _mean(by[s]["knn_distance_deg"])
+                                      for s in ("train", "validation", "test")},
+            "mean_test_to_train_distance_deg": _mean(by["test"]["nearest_train_distance_deg"]),
+            "mean_validation_to_train_distance_deg":
+                _mean(by["validation"]["nearest_train_distance_deg"]),
+        })
+    return rows
+
+
+def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: int = 30,
+              n_val: int = 20, n_train: int | None = None, metric: str = "euclidean",
+              seed: int = 0) -> dict[str, Any]:
+    """Stage ``split-knn``: read ``measurements.parquet``, split, write ``split.parquet``.
+
+    Returns a JSON-able summary: the options, the artifact path, per heliostat the output of
+    :func:`summarize_split`, and the skipped heliostats with their counts and the requirement.
+    """
+    method, k, n_test, n_val, n_train, metric, seed = _check_options(
+        method, k, n_test, n_val, n_train, metric, seed)
+    measurements = read_artifact(workdir, MEASUREMENTS, columns=_INPUT_COLUMNS)
+    table, skipped = split_measurements(measurements, method=method, k=k, n_test=n_test,
+                                        n_val=n_val, n_train=n_train, metric=metric, seed=seed)
+    options = {"method": method, "k": k, "n_test": n_test, "n_val": n_val, "n_train": n_train,
+               "metric": metric, "seed": seed}
+    path = write_artifact(table, workdir, SPLIT, stage="split-knn", options=options, seed=seed,
+                          inputs={"measurements": artifact_path(workdir, MEASUREMENTS)})
+    return {
+        "artifact": str(path),
+        **options,
+        "required_measurements": required_measurements(k, n_test, n_val, n_train),
+        "requirement": _requirement_text(k, n_test, n_val, n_train),
+        "heliostats": summarize_split(table),
+        "skipped": [{"heliostat_id": h, "n_measurements": c} for h, c in skipped],
+    }
