@@ -1,0 +1,94 @@
+"""Artifacts (pipeline/artifacts.py): schema checks, atomic writes, provenance, freshness."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from heliocal.pipeline.artifacts import (SCHEMA_VERSION, atomic_path, check_fresh,
+                                         read_artifact, read_provenance, write_artifact)
+from heliocal.pipeline.errors import SchemaError, StageInputError
+from heliocal.pipeline.schemas import MEASUREMENTS, REJECTED
+
+
+def _rejected(n=2) -> pd.DataFrame:
+    return pd.DataFrame({"source_file": ["b.csv", "a.csv"][:n], "source_row": [2, 1][:n],
+                         "heliostat_id": ["AA31", None][:n], "measurement_id": ["7", None][:n],
+                         "reason": ["missing_value"] * n, "detail": ["x is empty"] * n,
+                         "raw": ["{}"] * n})
+
+
+def test_write_read_round_trip_sorted(tmp_path):
+    src = tmp_path / "in.csv"
+    src.write_text("hello\n")
+    write_artifact(_rejected(), tmp_path, REJECTED, stage="ingest", options={"k": 1},
+                   inputs={"source": src})
+    df = read_artifact(tmp_path, REJECTED)
+    assert df["source_file"].tolist() == ["a.csv", "b.csv"]  # sort_by source_file, source_row
+    prov = read_provenance(tmp_path / "rejected.parquet")
+    assert prov["schema_version"] == SCHEMA_VERSION and prov["stage"] == "ingest"
+    # SHA-256 of b"hello\n" (sha256sum)
+    assert prov["inputs"]["source"] == "5891b5b522d5df086d0ff0b110fbd9d21bb4fc7163af34d08286a2e846f6be03"
+    assert prov["options"] == {"k": 1}
+
+
+def test_missing_column_is_refused_on_write(tmp_path):
+    with pytest.raises(SchemaError, match="required columns \\['raw'\\] are missing"):
+        write_artifact(_rejected().drop(columns=["raw"]), tmp_path, REJECTED, stage="ingest")
+    assert not (tmp_path / "rejected.parquet").exists()
+
+
+def test_null_in_non_nullable_column_is_refused(tmp_path):
+    df = _rejected()
+    df.loc[0, "reason"] = None
+    with pytest.raises(SchemaError, match="'reason' has 1 missing values"):
+        write_artifact(df, tmp_path, REJECTED, stage="ingest")
+
+
+def test_undeclared_column_is_refused(tmp_path):
+    with pytest.raises(SchemaError, match="undeclared columns \\['foo'\\]"):
+        write_artifact(_rejected().assign(foo=1), tmp_path, REJECTED, stage="ingest")
+
+
+def test_missing_artifact_names_the_stage(tmp_path):
+    with pytest.raises(StageInputError) as exc:
+        read_artifact(tmp_path, MEASUREMENTS)
+    assert str(exc.value) == (f"{tmp_path / 'measurements.parquet'} is missing: run "
+                              f"`heliocal ingest --workdir {tmp_path}` first")
+
+
+def test_wrong_schema_version_is_refused(tmp_path):
+    path = write_artifact(_rejected(), tmp_path, REJECTED, stage="ingest")
+    table = pq.read_table(path)
+    meta = json.loads(table.schema.metadata[b"heliocal"])
+    meta["schema_version"] = SCHEMA_VERSION + 1
+    pq.write_table(table.replace_schema_metadata({b"heliocal": json.dumps(meta).encode()}), path)
+    with pytest.raises(SchemaError, match="rerun `heliocal ingest"):
+        read_artifact(tmp_path, REJECTED)
+
+
+def test_atomic_path_keeps_old_content_on_failure(tmp_path):
+    target = tmp_path / "a.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert target.read_text() == "old"
+    assert os.listdir(tmp_path) == ["a.txt"]
+
+
+def test_check_fresh_detects_changed_upstream(tmp_path):
+    up = write_artifact(_rejected(), tmp_path, REJECTED, stage="ingest")
+    # an artifact in tmp_path recording the hash of rejected.parquet as its input "rejected"
+    from dataclasses import replace
+    down = replace(REJECTED, name="down", filename="down.parquet", producer="split-knn")
+    write_artifact(_rejected(1), tmp_path, down, stage="split-knn", inputs={"rejected": up})
+    check_fresh(tmp_path, down, {"rejected": REJECTED})  # fresh: no error
+    write_artifact(_rejected(1), tmp_path, REJECTED, stage="ingest")  # upstream changes
+    with pytest.raises(StageInputError, match="is stale: rejected.parquet changed"):
+        check_fresh(tmp_path, down, {"rejected": REJECTED})
