@@ -8,6 +8,7 @@ progress and logs to stderr. A :class:`~heliocal.pipeline.errors.HeliocalError` 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import logging
@@ -33,6 +34,7 @@ __all__ = [
     "command",
     "emit",
     "progress_enabled",
+    "progress_bar",
 ]
 
 app = typer.Typer(
@@ -103,6 +105,29 @@ def emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict], None] |
     else:
         for key, value in summary.items():
             stdout.print(f"{key}: {value}")
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, quiet: bool):
+    """A rich progress bar with ETA on stderr; yields ``advance(done, total, label)``.
+
+    Disabled (a no-op callable) with ``--quiet`` or when stderr is not a terminal.
+    """
+    if not progress_enabled(quiet):
+        yield lambda done, total, label=None: None
+        return
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                  TextColumn("{task.fields[label]}"), console=stderr, transient=True) as bar:
+        task = bar.add_task(description, total=None, label="")
+
+        def advance(done: int, total: int, label=None) -> None:
+            bar.update(task, completed=done, total=total, label=str(label or ""))
+
+        yield advance
 
 
 def debug_enabled() -> bool:

@@ -8,6 +8,8 @@ from heliocal.cli.app import app, debug_enabled
 
 # Each module registers its subcommand(s) on import.
 from heliocal.cli import ingest as _ingest  # noqa: F401,E402
+from heliocal.cli import split as _split  # noqa: F401,E402
+from heliocal.cli import coarse as _coarse  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 

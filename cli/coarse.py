@@ -1,0 +1,52 @@
+"""``heliocal fit-coarse``: the rigid-body coarse model per heliostat (Levenberg-Marquardt)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit,
+                              progress_bar, stdout)
+from heliocal.pipeline.coarse import run_fit_coarse
+
+
+def _fmt(x) -> str:
+    return "-" if x is None or x != x else f"{x:.3f}"
+
+
+def _human(summary: dict) -> None:
+    table = Table(title=f"fit-coarse ({summary['preset']}, loss {summary['loss']}) -> "
+                        f"{summary['workdir']}", show_edge=False)
+    for col in ("heliostat", "n_train", "nominal test", "selected", "train", "validation", "test"):
+        table.add_column(col, justify="left" if col in ("heliostat", "selected") else "right")
+    for h in summary["heliostats"]:
+        s = h["presets"][h["selected"]]
+        table.add_row(h["heliostat_id"], str(h["n_train"]), _fmt(h["nominal"]["test"]),
+                      h["selected"], _fmt(s["train"]), _fmt(s["validation"]), _fmt(s["test"]))
+    stdout.print(table)
+    stdout.print("mean error_mrad per split; the preset is chosen by validation error.")
+
+
+@command("fit-coarse")
+def fit_coarse_cmd(
+    workdir: Workdir = DEFAULT_WORKDIR,
+    preset: Annotated[str, typer.Option(
+        help="static-6, static-14, static-20, static-28, stone-8, or auto (all; the best on "
+             "validation is selected per heliostat).")] = "auto",
+    loss: Annotated[str, typer.Option(
+        help="linear (Levenberg-Marquardt), or a robust soft_l1 / huber (trust region).")] = "soft_l1",
+    f_scale: Annotated[float, typer.Option(help="Residual scale of a robust loss [mrad].")] = 1.0,
+    robust_start: Annotated[bool, typer.Option(
+        help="Search the actuator zero points on a grid before LM.")] = True,
+    heliostat: Annotated[Optional[list[str]], typer.Option(
+        help="Fit only these heliostats (repeat the option).")] = None,
+    json_: JsonFlag = False,
+    quiet: QuietFlag = False,
+) -> None:
+    """Fit the coarse (rigid-body) model on each heliostat's training rows."""
+    with progress_bar("fit-coarse", quiet) as advance:
+        summary = run_fit_coarse(workdir, preset=preset, loss=loss, f_scale_mrad=f_scale,
+                                 robust_start=robust_start, heliostats=heliostat, progress=advance)
+    emit(summary, json_, _human)

@@ -1,0 +1,593 @@
+"""``fit-coarse``: the rigid-body coarse model fitted by Levenberg-Marquardt.
+
+For every heliostat the free parameters of a preset (:data:`~heliocal.pipeline.kinematics.PRESETS`)
+are fitted on its training rows with :func:`scipy.optimize.least_squares`:
+
+* residuals: per measurement the three components of ``1000 * (n_pred - n_meas)`` [mrad], where
+  ``n_meas`` is the bisector of the sun direction and the direction from the predicted mirror
+  centre to the measured focal spot (:func:`heliocal.pipeline.metrics.measured_normal`); their
+  norm is ``2000 sin(error/2)``, i.e. the angular error in mrad to third order;
+* Jacobian: exact, from torch's forward-mode autodiff (:func:`torch.func.jacfwd`), no finite
+  differences;
+* a weak Gaussian prior toward the nominal geometry (one residual ``(p - p0) / sigma`` per free
+  parameter, sigma from :data:`PRIOR_SIGMA`) keeps parameters the data cannot determine at their
+  nominal values; it is weak enough that determined parameters are not biased measurably
+  (data curvature is 10^5 to 10^9 times larger);
+* method ``lm`` (MINPACK's Levenberg-Marquardt) for the plain least-squares loss; ``trf`` when a
+  robust loss (``soft_l1`` or ``huber``, scale ``f_scale_mrad``) is asked for, since MINPACK has
+  none;
+* a robust start: a grid search over both actuators' angle offsets (the parameters nominal
+  geometry gets most wrong; PAINT's BF41 is off by about a radian) picks the starting point with
+  the smallest median error before LM; a fit that moves any parameter by more than
+  :data:`PLAUSIBLE_CORRECTION` is reported.
+
+Standard errors come from the Jacobian at the solution: ``cov = s^2 (J^T J)^-1`` with ``s^2`` the
+data residual variance. A parameter whose standard error exceeds half its prior sigma is reported
+as *not determined by the data* (the prior, not the data, fixes it).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+from scipy.optimize import least_squares
+
+from .artifacts import (ArtifactSchema, Column as C, artifact_path, check_fresh, read_artifact,
+                        write_artifact)
+from .errors import FitError, check_choice, check_float
+from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
+                         HeliostatSpec, forward_kinematics, joint_angles, nominal_parameters,
+                         preset_mask)
+from .metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
+from .schemas import HELIOSTATS, MEASUREMENTS
+
+__all__ = [
+    "COARSE_PARAMS",
+    "COARSE_PREDICTIONS",
+    "SCHEMAS",
+    "AUTO_PRESETS",
+    "PRIOR_SIGMA",
+    "PLAUSIBLE_CORRECTION",
+    "MeasurementBatch",
+    "CoarseFit",
+    "fit_heliostat",
+    "predict",
+    "run_fit_coarse",
+    "load_selected_parameters",
+    "normal_errors_mrad",
+    "fit_one_heliostat",
+]
+
+log = logging.getLogger("heliocal.coarse")
+
+#: Presets tried by ``--preset auto``; the one with the lowest validation error is selected.
+AUTO_PRESETS = ("static-6", "stone-8", "static-14", "static-20", "static-28")
+
+LOSSES = ("linear", "soft_l1", "huber")
+
+
+def _kind(name: str) -> str:
+    if name.endswith("_increment"):
+        return "increment"
+    if "_tilt_" in name or name.endswith("_initial_angle_rad"):
+        return "angle"
+    if "_translation_" in name:
+        return "translation"
+    return "length"
+
+
+#: Prior sigma per parameter kind (angles [rad], lengths [m], increments relative to nominal).
+PRIOR_SIGMA = {"angle": 1.0, "translation": 0.1, "length": 1.0, "increment": 0.1}
+#: Corrections of the nominal geometry beyond which a fit is reported as implausible.
+PLAUSIBLE_CORRECTION = {"angle": 0.05, "translation": 0.05, "length": 0.05, "increment": 0.02}
+
+COARSE_PARAMS = ArtifactSchema(
+    name="coarse_params",
+    filename="coarse_params.parquet",
+    producer="fit-coarse",
+    sort_by=("heliostat_id", "preset", "parameter_index"),
+    description="Per heliostat, preset and kinematic parameter: nominal and fitted value, standard "
+                "error, free or fixed, plus the fit's diagnostics (repeated on each row of a fit).",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("preset", "string", "", "Parameter preset of the fit (static-6 ... static-28, stone-8)."),
+        C("selected", "bool", "", "True for the preset used downstream (chosen by validation error "
+          "with --preset auto)."),
+        C("parameter_index", "int64", "", "Position in the 28-parameter vector."),
+        C("parameter", "string", "", "Parameter name (unit in the name; see docs/kinematics.md)."),
+        C("unit", "string", "", "Unit of the parameter."),
+        C("nominal", "float64", "", "Nominal value from heliostats.parquet."),
+        C("fitted", "float64", "", "Fitted value (nominal where fixed)."),
+        C("std_error", "float64", "", "Standard error from the Jacobian (NaN where fixed).",
+          nullable=True),
+        C("free", "bool", "", "Freed by the preset."),
+        C("determined", "bool", "", "False where the data cannot determine it (std error > half "
+          "the prior sigma)."),
+        C("fit_iterations", "int64", "", "Jacobian evaluations of the LM solve (robust start excluded)."),
+        C("fit_cost", "float64", "mrad^2", "Final cost: half the sum of squared residuals."),
+        C("fit_condition_number", "float64", "", "Condition number of the scaled Jacobian."),
+        C("fit_status", "string", "", "Solver message."),
+        C("fit_implausible", "string", "", "Parameters corrected by more than a plausible amount "
+          "(empty if none)."),
+        C("n_train", "int64", "", "Training measurements."),
+        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows."),
+        C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows (NaN if none).",
+          nullable=True),
+        C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
+          nullable=True),
+        C("wall_time_s", "float64", "s", "Wall time of the fit (robust start included)."),
+    ),
+)
+
+COARSE_PREDICTIONS = ArtifactSchema(
+    name="coarse_predictions",
+    filename="coarse_predictions.parquet",
+    producer="fit-coarse",
+    sort_by=("heliostat_id", "model", "measurement_id"),
+    description="Per measurement and model (nominal geometry and each fitted preset): the errors "
+                "defined once in heliocal.pipeline.metrics.",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("measurement_id", "string", "", "Measurement."),
+        C("split", "string", "", "train, validation, test or unused (all train without split.parquet)."),
+        C("model", "string", "", "`nominal` or the preset name (hybrid stages add theirs)."),
+        C("selected", "bool", "", "True for the model used downstream."),
+        C("error_mrad", "float64", "mrad", "Angle between predicted and measured mirror normal."),
+        C("beam_error_mrad", "float64", "mrad", "Angle between the predicted reflected beam and the "
+          "direction to the measured spot."),
+        C("spot_offset_horizontal_m", "float64", "m", "Predicted minus measured spot on the target "
+          "plane, horizontal axis (east for a north-facing target)."),
+        C("spot_offset_vertical_m", "float64", "m", "Same, vertical axis (up)."),
+        C("spot_offset_m", "float64", "m", "Distance between predicted and measured spot on the "
+          "target plane."),
+    ),
+)
+
+SCHEMAS = (COARSE_PARAMS, COARSE_PREDICTIONS)
+
+
+# ------------------------------------------------------------------------------------------------
+# data of one heliostat as tensors
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class MeasurementBatch:
+    """Tensors of one heliostat's measurements (float64; positions ENU [m])."""
+
+    measurement_id: np.ndarray
+    steps: torch.Tensor  # (N, 2)
+    sun: torch.Tensor  # (N, 3)
+    focal_spot: torch.Tensor  # (N, 3)
+    target_center: torch.Tensor  # (N, 3)
+    target_normal: torch.Tensor  # (N, 3)
+
+    @classmethod
+    def from_frame(cls, df: pd.DataFrame) -> "MeasurementBatch":
+        t = lambda cols: torch.tensor(df[list(cols)].to_numpy(np.float64), dtype=torch.float64)
+        return cls(
+            measurement_id=df["measurement_id"].astype(str).to_numpy(),
+            steps=t(("axis_1_steps", "axis_2_steps")),
+            sun=t(("sun_e", "sun_n", "sun_u")),
+            focal_spot=t(("focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m")),
+            target_center=t(("target_e_m", "target_n_m", "target_u_m")),
+            target_normal=t(("target_normal_e", "target_normal_n", "target_normal_u")),
+        )
+
+    def subset(self, mask: np.ndarray) -> "MeasurementBatch":
+        m = torch.as_tensor(np.asarray(mask, bool))
+        return MeasurementBatch(self.measurement_id[np.asarray(mask, bool)], self.steps[m],
+                                self.sun[m], self.focal_spot[m], self.target_center[m],
+                                self.target_normal[m])
+
+    def __len__(self) -> int:
+        return int(self.steps.shape[0])
+
+
+def normal_errors_mrad(params: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch) -> torch.Tensor:
+    """error_mrad of every measurement for parameter vector(s) ``params`` (..., 28) -> (..., N)."""
+    normal, position = forward_kinematics(params, spec, data.steps)
+    meas = measured_normal(data.sun, position, data.focal_spot)
+    return error_mrad(normal, meas)
+
+
+def predict(params: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch) -> pd.DataFrame:
+    """All error metrics of every measurement for one parameter vector (28,)."""
+    with torch.no_grad():
+        normal, position = forward_kinematics(params, spec, data.steps)
+        meas = measured_normal(data.sun, position, data.focal_spot)
+        err = error_mrad(normal, meas)
+        beam = beam_error_mrad(data.sun, normal, position, data.focal_spot)
+        h, v, mag = spot_offset_m(data.sun, normal, position, data.focal_spot, data.target_center,
+                                  data.target_normal)
+    return pd.DataFrame({
+        "measurement_id": data.measurement_id,
+        "error_mrad": err.numpy(), "beam_error_mrad": beam.numpy(),
+        "spot_offset_horizontal_m": h.numpy(), "spot_offset_vertical_m": v.numpy(),
+        "spot_offset_m": mag.numpy()})
+
+
+# ------------------------------------------------------------------------------------------------
+# one heliostat, one preset
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class CoarseFit:
+    """Result of :func:`fit_heliostat`."""
+
+    preset: str
+    params: torch.Tensor  # (28,) fitted
+    nominal: torch.Tensor  # (28,)
+    free: np.ndarray  # bool (28,)
+    std_error: np.ndarray  # (28,) NaN where fixed
+    determined: np.ndarray  # bool (28,)
+    iterations: int
+    cost: float
+    condition_number: float
+    status: str
+    implausible: list[str]
+    wall_time_s: float
+
+
+def _prior_sigma(nominal: torch.Tensor) -> np.ndarray:
+    sig = np.empty(len(PARAMETER_NAMES))
+    for i, name in enumerate(PARAMETER_NAMES):
+        kind = _kind(name)
+        relative = (abs(float(nominal[i])) or 1.0) if kind == "increment" else 1.0
+        sig[i] = PRIOR_SIGMA[kind] * relative
+    return sig
+
+
+def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
+                  free: np.ndarray) -> torch.Tensor:
+    """A start for LM that survives a badly wrong nominal actuator geometry.
+
+    The measured normals are inverted to joint angles under the nominal geometry (closed-form
+    two-axis solution, both branches); then, per axis, the free actuator zero-point parameters
+    (``axis_i_initial_angle_rad`` and, for linear actuators, ``axis_i_initial_stroke_length_m``)
+    are chosen on a grid to minimise the median angle residual of ``steps -> angle``, followed by
+    a finer grid around the best. Axes decouple, so each search is 2-D and cheap. The result is
+    kept only if it lowers the median normal error of the start.
+    """
+    from .kinematics import _solve_angles  # the closed-form inverse of the chain
+
+    with torch.no_grad():
+        _, position = forward_kinematics(p0, spec, data.steps)
+        meas = measured_normal(data.sun, position, data.focal_spot)
+        linear = spec.actuator_type == "linear"
+        candidates = []
+        for branch in (0, 1):  # both axes must come from the same branch of the inverse
+            target_both = _solve_angles(p0, spec, meas, branch)  # (N, 2)
+            cand_p, total = p0.clone(), 0.0
+            for axis in (1, 2):
+                i_ang = PARAMETER_INDEX[f"axis_{axis}_initial_angle_rad"]
+                i_str = PARAMETER_INDEX[f"axis_{axis}_initial_stroke_length_m"]
+                search_stroke = linear and bool(free[i_str])
+                if not free[i_ang] and not search_stroke:
+                    continue
+                target = target_both[..., axis - 1]
+                ok = torch.isfinite(target)
+                if int(ok.sum()) < 3:
+                    total = math.inf
+                    break
+                angles = (torch.linspace(-math.pi, math.pi, 181, dtype=torch.float64)[:-1]
+                          if free[i_ang] else p0[i_ang:i_ang + 1])
+                if search_stroke:
+                    reach = float(p0[PARAMETER_INDEX[f"axis_{axis}_offset_m"]]
+                                  + p0[PARAMETER_INDEX[f"axis_{axis}_pivot_radius_m"]])
+                    strokes = torch.linspace(0.0, max(reach, 0.05), 61, dtype=torch.float64)
+                else:
+                    strokes = p0[i_str:i_str + 1]
+                for _ in range(3):  # global grid, then two finer grids around the best
+                    ga, gs = torch.meshgrid(angles, strokes, indexing="ij")
+                    cand = p0.unsqueeze(0).repeat(ga.numel(), 1)
+                    cand[:, i_ang] = ga.reshape(-1)
+                    cand[:, i_str] = gs.reshape(-1)
+                    pred = joint_angles(cand, spec, data.steps[ok])[..., axis - 1]  # (G, n)
+                    diff = torch.remainder(pred - target[ok] + math.pi, 2 * math.pi) - math.pi
+                    score = torch.nan_to_num(diff.abs(), nan=10.0).median(dim=-1).values
+                    k = int(torch.argmin(score))
+                    a0, s0 = float(ga.reshape(-1)[k]), float(gs.reshape(-1)[k])
+                    da = float(angles[1] - angles[0]) if len(angles) > 1 else 0.0
+                    ds = float(strokes[1] - strokes[0]) if len(strokes) > 1 else 0.0
+                    if da:
+                        angles = torch.linspace(a0 - da, a0 + da, 21, dtype=torch.float64)
+                    if ds:
+                        strokes = torch.linspace(max(s0 - ds, 0.0), s0 + ds, 21, dtype=torch.float64)
+                cand_p[i_ang], cand_p[i_str] = a0, s0
+                total += float(score[k])
+            candidates.append((total, cand_p))
+        best_p = min(candidates, key=lambda c: c[0])[1]
+        before = torch.nan_to_num(normal_errors_mrad(p0, spec, data), nan=1e6).median()
+        after = torch.nan_to_num(normal_errors_mrad(best_p, spec, data), nan=1e6).median()
+    return best_p if after < before else p0
+
+
+def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: MeasurementBatch, preset: str,
+                  *, loss: str = "linear", f_scale_mrad: float = 1.0, robust_start: bool = True,
+                  max_nfev: int = 200, start: torch.Tensor | None = None,
+                  prior_weight: float = 1.0) -> CoarseFit:
+    """Fit one heliostat's free parameters (preset) on its training measurements.
+
+    Parameters
+    ----------
+    spec : the heliostat's fixed description.
+    nominal : (28,) nominal parameters (prior mean and default start).
+    train : training measurements.
+    preset : one of :data:`~heliocal.pipeline.kinematics.PRESET_NAMES`.
+    loss : ``linear`` (MINPACK LM), ``soft_l1`` or ``huber`` (trust-region reflective).
+    f_scale_mrad : residual scale of the robust loss [mrad].
+    robust_start : grid-search the actuator angle offsets first.
+    start : explicit start (28,) instead of the nominal/grid start.
+    prior_weight : multiplier of the prior's curvature (1 = :data:`PRIOR_SIGMA`; 0 = no prior,
+        plain least squares, as in the noiseless recovery tests).
+    """
+    check_choice(preset, "preset", "fit_heliostat", PRESET_NAMES)
+    check_choice(loss, "loss", "fit_heliostat", LOSSES)
+    t0 = time.perf_counter()
+    nominal = nominal.to(torch.float64)
+    free = preset_mask(preset, spec.actuator_type, spec.kinematic_type).numpy()
+    free_idx = np.flatnonzero(free)
+    free_idx_t = torch.as_tensor(free_idx)
+    sigma = _prior_sigma(nominal)
+    x0_full = start.clone() if start is not None else nominal.clone()
+    if robust_start and start is None and len(train):
+        x0_full = _robust_start(x0_full, spec, train, free)
+    sig_free = torch.as_tensor(sigma[free_idx]) / math.sqrt(max(prior_weight, 1e-300))
+    nom_free = nominal[free_idx_t]
+    n_data = 3 * len(train)
+
+    def full(x_free: torch.Tensor) -> torch.Tensor:
+        return x0_full.index_put((free_idx_t,), x_free)
+
+    def residual_t(x_free: torch.Tensor) -> torch.Tensor:
+        p = full(x_free)
+        normal, position = forward_kinematics(p, spec, train.steps)
+        meas = measured_normal(train.sun, position, train.focal_spot)
+        # NaN where an actuator leaves its geometric range (law of cosines): a large, flat residual
+        r_data = torch.nan_to_num(1000.0 * (normal - meas).reshape(-1), nan=1e4)
+        if prior_weight <= 0:
+            return r_data
+        r_prior = (x_free - nom_free) / sig_free
+        return torch.cat([r_data, r_prior])
+
+    jac_fn = torch.func.jacfwd(residual_t)
+
+    def fun(x):
+        with torch.no_grad():
+            return residual_t(torch.as_tensor(x, dtype=torch.float64)).numpy()
+
+    def jac(x):
+        j = jac_fn(torch.as_tensor(x, dtype=torch.float64)).detach()
+        return torch.nan_to_num(j, nan=0.0, posinf=0.0, neginf=0.0).numpy()
+
+    x0 = x0_full[free_idx_t].numpy()
+    if len(free_idx) == 0 or len(train) == 0:
+        res_x, nfev, cost, status, J = x0, 0, float(0.5 * (fun(x0) ** 2).sum()), "nothing to fit", None
+    else:
+        method = "lm" if loss == "linear" else "trf"
+        kwargs = dict(x_scale=sigma[free_idx], jac=jac, method=method, max_nfev=max_nfev,
+                      xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        if method == "trf":
+            kwargs.update(loss=loss, f_scale=f_scale_mrad)
+        if method == "lm" and n_data + len(free_idx) < len(free_idx):  # pragma: no cover
+            method = "trf"
+        res = least_squares(fun, x0, **kwargs)
+        res_x, nfev, cost, status = res.x, int(res.njev or res.nfev), float(res.cost), str(res.message)
+        J = jac(res_x)
+    fitted = full(torch.as_tensor(res_x, dtype=torch.float64)).detach()
+
+    std = np.full(len(PARAMETER_NAMES), np.nan)
+    determined = np.ones(len(PARAMETER_NAMES), bool)
+    cond = float("nan")
+    if J is not None:
+        r = fun(res_x)
+        dof = max(n_data - len(free_idx), 1)
+        s2 = float((r[:n_data] ** 2).sum() / dof)
+        scale = sigma[free_idx]
+        Js = J * scale  # scaled columns: comparable units
+        try:
+            sv = np.linalg.svd(Js[:n_data], compute_uv=False)
+            cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+        except np.linalg.LinAlgError:
+            cond = float("inf")
+        JtJ = Js.T @ Js
+        try:
+            cov_scaled = np.linalg.inv(JtJ)
+        except np.linalg.LinAlgError:
+            cov_scaled = np.linalg.pinv(JtJ)
+        # data-noise covariance; the prior rows stay in (they keep it invertible)
+        std_free = np.sqrt(np.clip(np.diag(cov_scaled), 0, None) * max(s2, 1e-300)) * scale
+        std[free_idx] = std_free
+        # "determined": the data alone pin the parameter to well within its prior sigma, for a
+        # unit (1 mrad) measurement noise; otherwise the prior, not the data, fixes it.
+        Jd = Js[:n_data]
+        try:
+            eig, vec = np.linalg.eigh(Jd.T @ Jd)
+            tol = max(eig.max(), 1e-300) * 1e-12
+            inv = (vec / np.where(eig > tol, eig, np.inf)) @ vec.T
+            data_only = np.sqrt(np.clip(np.diag(inv), 0, None))
+            null = (vec[:, eig <= tol] ** 2).sum(axis=1) > 1e-6
+        except np.linalg.LinAlgError:  # pragma: no cover
+            data_only, null = np.full(len(free_idx), np.inf), np.ones(len(free_idx), bool)
+        determined[free_idx] = (data_only < 0.5) & ~null
+    implausible = []
+    for i in free_idx:
+        name = PARAMETER_NAMES[i]
+        kind = _kind(name)
+        delta = float(fitted[i] - nominal[i])
+        bound = PLAUSIBLE_CORRECTION[kind] * (abs(float(nominal[i])) if kind == "increment" else 1.0)
+        if abs(delta) > bound:
+            unit = PARAMETER_UNITS[name].split(" ")[0]
+            implausible.append(f"{name} {delta:+.4g} {unit}")
+    return CoarseFit(preset, fitted, nominal, free, std, determined, nfev, cost, cond, status,
+                     implausible, time.perf_counter() - t0)
+
+
+# ------------------------------------------------------------------------------------------------
+# the stage
+# ------------------------------------------------------------------------------------------------
+def _load_split(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
+    """Split label per measurement row: split.parquet's if present, else all ``train``."""
+    from .split import SPLIT  # local: split.py is optional at import time
+
+    path = artifact_path(workdir, SPLIT)
+    if not path.exists():
+        log.warning("no %s: fitting on all measurements (run `heliocal split-knn` for honest "
+                    "validation and test errors)", path)
+        return pd.Series("train", index=measurements.index)
+    check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})
+    split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", "split"])
+    key = measurements["heliostat_id"] + "\0" + measurements["measurement_id"]
+    lookup = dict(zip(split["heliostat_id"] + "\0" + split["measurement_id"], split["split"]))
+    labels = key.map(lookup)
+    # heliostats the split left out (too few rows) are not fitted: mark them
+    return labels.fillna("excluded")
+
+
+def _mean(values: np.ndarray) -> float:
+    return float(np.mean(values)) if len(values) else float("nan")
+
+
+def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
+                      loss: str, f_scale_mrad: float, robust_start: bool):
+    """Fit every preset for one heliostat; returns (param rows, prediction rows, summary)."""
+    spec = HeliostatSpec.from_row(hrow)
+    nominal = nominal_parameters(hrow)
+    data = MeasurementBatch.from_frame(rows)
+    labels = rows["split"].to_numpy()
+    train = data.subset(labels == "train")
+    hid = str(hrow["heliostat_id"])
+    fits = []
+    for preset in presets:
+        fits.append(fit_heliostat(spec, nominal, train, preset, loss=loss, f_scale_mrad=f_scale_mrad,
+                                  robust_start=robust_start))
+    preds, summaries = [], []
+    nominal_pred = predict(nominal, spec, data).assign(model="nominal")
+    preds.append(nominal_pred)
+    for fit in fits:
+        p = predict(fit.params, spec, data).assign(model=fit.preset)
+        preds.append(p)
+        err = p["error_mrad"].to_numpy()
+        summaries.append({"preset": fit.preset, "train": _mean(err[labels == "train"]),
+                          "validation": _mean(err[labels == "validation"]),
+                          "test": _mean(err[labels == "test"])})
+    # selection: lowest validation error; without validation rows the largest preset asked
+    vals = [s["validation"] for s in summaries]
+    if all(math.isnan(v) for v in vals):
+        chosen = len(fits) - 1
+    else:
+        chosen = int(np.nanargmin(vals))
+    param_rows = []
+    for k, (fit, s) in enumerate(zip(fits, summaries)):
+        for i, name in enumerate(PARAMETER_NAMES):
+            param_rows.append({
+                "heliostat_id": hid, "preset": fit.preset, "selected": k == chosen,
+                "parameter_index": i, "parameter": name, "unit": PARAMETER_UNITS[name],
+                "nominal": float(fit.nominal[i]), "fitted": float(fit.params[i]),
+                "std_error": float(fit.std_error[i]), "free": bool(fit.free[i]),
+                "determined": bool(fit.determined[i]), "fit_iterations": fit.iterations,
+                "fit_cost": fit.cost, "fit_condition_number": fit.condition_number,
+                "fit_status": fit.status, "fit_implausible": "; ".join(fit.implausible),
+                "n_train": len(train), "train_error_mrad": s["train"],
+                "val_error_mrad": s["validation"], "test_error_mrad": s["test"],
+                "wall_time_s": fit.wall_time_s})
+    pred = pd.concat(preds, ignore_index=True)
+    pred["heliostat_id"] = hid
+    pred["split"] = np.tile(labels, len(preds))
+    pred["selected"] = pred["model"] == fits[chosen].preset
+    summary = {
+        "heliostat_id": hid, "n_train": len(train), "selected": fits[chosen].preset,
+        "nominal": {sp: _mean(nominal_pred["error_mrad"].to_numpy()[labels == sp])
+                    for sp in ("train", "validation", "test")},
+        "presets": {s["preset"]: {k: s[k] for k in ("train", "validation", "test")} for s in summaries},
+        "implausible": {f.preset: f.implausible for f in fits if f.implausible},
+        "wall_time_s": float(sum(f.wall_time_s for f in fits)),
+    }
+    return param_rows, pred, summary
+
+
+def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | None = None) -> dict:
+    """The selected coarse fit per heliostat from ``coarse_params.parquet``.
+
+    Returns
+    -------
+    dict heliostat_id -> {"preset": str, "params": torch.Tensor (28,), "free": torch.BoolTensor
+    (28,), "nominal": torch.Tensor (28,), "std_error": torch.Tensor (28,)}
+    """
+    df = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats)
+    df = df[df["selected"]].sort_values(["heliostat_id", "parameter_index"])
+    out = {}
+    for hid, g in df.groupby("heliostat_id", sort=True):
+        out[str(hid)] = {
+            "preset": str(g["preset"].iloc[0]),
+            "params": torch.tensor(g["fitted"].to_numpy(np.float64)),
+            "free": torch.tensor(g["free"].to_numpy(bool)),
+            "nominal": torch.tensor(g["nominal"].to_numpy(np.float64)),
+            "std_error": torch.tensor(g["std_error"].to_numpy(np.float64)),
+        }
+    return out
+
+
+def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "linear",
+                   f_scale_mrad: float = 1.0, robust_start: bool = True,
+                   heliostats: Sequence[str] | None = None, progress=None) -> dict:
+    """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
+
+    Parameters
+    ----------
+    preset : a preset name, or ``auto`` (all of :data:`AUTO_PRESETS`, the best on validation is
+        selected per heliostat).
+    loss, f_scale_mrad, robust_start : see :func:`fit_heliostat`.
+    heliostats : restrict to these ids.
+    progress : optional callable ``progress(done, total, heliostat_id)``.
+    """
+    check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
+    check_choice(loss, "loss", "fit_coarse", LOSSES)
+    check_float(f_scale_mrad, "f_scale_mrad", "fit_coarse", 0.0, None, low_inclusive=False)
+    workdir = Path(workdir)
+    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
+    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
+    measurements["split"] = _load_split(workdir, measurements).to_numpy()
+    presets = AUTO_PRESETS if preset == "auto" else (preset,)
+    helio = helio.set_index("heliostat_id", drop=False)
+    ids = [h for h in helio.index if ((measurements["heliostat_id"] == h)
+                                      & (measurements["split"] == "train")).any()]
+    if not ids:
+        raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
+                       "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")
+    all_params, all_preds, summaries = [], [], []
+    groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
+    for k, hid in enumerate(ids):
+        rows = groups[hid]
+        rows = rows[rows["split"] != "excluded"]
+        params, preds, summary = fit_one_heliostat(helio.loc[hid], rows, presets, loss=loss,
+                                                   f_scale_mrad=f_scale_mrad,
+                                                   robust_start=robust_start)
+        for name, items in summary["implausible"].items():
+            if name == summary["selected"]:
+                log.warning("%s: the nominal geometry needed a large correction (%s)", hid,
+                            "; ".join(items))
+        all_params += params
+        all_preds.append(preds)
+        summaries.append(summary)
+        if progress:
+            progress(k + 1, len(ids), hid)
+    opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
+            "robust_start": robust_start, "heliostats": list(heliostats) if heliostats else None}
+    inputs = {"measurements": artifact_path(workdir, MEASUREMENTS),
+              "heliostats": artifact_path(workdir, HELIOSTATS)}
+    from .split import SPLIT
+
+    if artifact_path(workdir, SPLIT).exists():
+        inputs["split"] = artifact_path(workdir, SPLIT)
+    write_artifact(pd.DataFrame(all_params), workdir, COARSE_PARAMS, stage="fit-coarse",
+                   options=opts, inputs=inputs)
+    write_artifact(pd.concat(all_preds, ignore_index=True), workdir, COARSE_PREDICTIONS,
+                   stage="fit-coarse", options=opts, inputs=inputs)
+    return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries}
