@@ -1,0 +1,772 @@
+"""Rigid-body heliostat kinematics: motor steps -> mirror normal and mirror centre, and back.
+
+The model is the "universal" 28-parameter rigid-body chain of Pargmann et al. (paper 000,
+section 3.1), laid out like ARTIST's ``RigidBody`` kinematics
+(``artist/field/kinematic_rigid_body.py`` in ARTIST-Association/ARTIST). In homogeneous form::
+
+    M(steps) = T(heliostat position) . B
+               . Tilt(joint_1) . T(joint_1 translation) . R_axis1(angle_1)
+               . Tilt(joint_2) . T(joint_2 translation) . R_axis2(angle_2)
+               . T(concentrator translation) . Tilt(concentrator)
+
+    Tilt(x) = R_e(x_tilt_e) . R_n(x_tilt_n) . R_u(x_tilt_u)
+    normal   = M . (reference normal, 0)       (unit vector, ENU)
+    position = M . (0, 0, 0, 1)                (mirror centre, ENU metres)
+
+``R_e``, ``R_n``, ``R_u`` are *right-handed* rotations about the east, north and up axes of the
+parent frame (positive angle = counter-clockwise looking down the axis toward the origin). Angles
+come from the actuators (:mod:`heliocal.pipeline.actuators`). ``B`` is the identity except for the
+target-aligned type. Everything is batched over heliostats and measurements, float64 and
+differentiable, and free of in-place operations so that :mod:`torch.func` (``vmap``, ``jacrev``,
+``jacfwd``) works on :func:`forward_kinematics`.
+
+Kinematic types (details, degeneracies and presets in ``docs/kinematics.md``):
+
+``juelich``
+    PAINT/ARTIST heliostats of the solar tower Juelich: two linear actuators, joint 1 turns about
+    east, joint 2 about (its own) up axis, reference normal south ``(0, -1, 0)``. Identical to
+    ARTIST's chain (with ARTIST's ``rotate_n`` sign flipped for our tilt_n, see below).
+``az-el``
+    Azimuth-elevation heliostat with ideal geared drives. Joint 1 = azimuth about up (0 = mirror
+    facing south, positive toward east, like the sun azimuth); joint 2 = elevation of the normal
+    above the horizon, i.e. a rotation by ``-angle_2`` about the (azimuth-turned) east axis.
+    Reference normal south ``(0, -1, 0)``. With no tilts the normal is exactly
+    ``(cos el sin az, -cos el cos az, sin el)``.
+``target-aligned``
+    Spinning-elevation heliostat (paper 003, section 2.1): the primary axis points from the
+    heliostat at the target (spec column ``primary_axis_e/n/u``). ``B`` maps the local frame
+    ``(e', n', u') = (unit(p x up), p x e', p)`` to ENU. Joint 1 spins about ``u' = p``; joint 2
+    tilts the normal away from ``p`` about ``e'`` (for a horizontal ``p`` positive tilt lifts
+    the normal). Reference normal ``u' = p``. If ``p`` is vertical, ``e'`` falls back to east.
+
+Tilt sign convention: all tilts are right-handed about the parent-frame axis named in the
+parameter. ARTIST's ``rotate_n`` is ``[[c, 0, -s], [0, 1, 0], [s, 0, c]]``, i.e. left-handed, so an
+ARTIST ``*_tilt_n`` equals minus our ``*_tilt_n_rad``; ARTIST's ``rotate_e`` and ``rotate_u`` match
+ours. ARTIST applies no concentrator tilts; ours act about the mirror centre (they do not move
+it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+import torch
+
+from .actuators import (
+    ACTUATOR_TYPES,
+    ideal_angle_to_steps,
+    ideal_steps_to_angle,
+    linear_angle_to_steps,
+    linear_steps_to_angle,
+)
+from .errors import ParameterError, check_choice
+
+__all__ = [
+    "PARAMETER_NAMES",
+    "PARAMETER_INDEX",
+    "PARAMETER_UNITS",
+    "KINEMATIC_TYPES",
+    "ACTUATOR_TYPES",
+    "REFERENCE_NORMALS",
+    "IDEAL_UNUSED_PARAMETERS",
+    "PRESET_NAMES",
+    "PRESETS",
+    "KINEMATIC_PRESETS",
+    "STONE_MAPPING",
+    "HeliostatSpec",
+    "nominal_parameters",
+    "preset_mask",
+    "preset_parameters",
+    "rotation_e",
+    "rotation_n",
+    "rotation_u",
+    "joint_angles",
+    "forward_kinematics",
+    "orientation_matrices",
+    "inverse_kinematics",
+]
+
+# ---------------------------------------------------------------------------------------------
+# Parameter vector
+# ---------------------------------------------------------------------------------------------
+
+_BODIES = ("joint_1", "joint_2", "concentrator")
+_ENU = ("e", "n", "u")
+_ACTUATOR_FIELDS = ("increment", "initial_stroke_length_m", "offset_m", "pivot_radius_m",
+                    "initial_angle_rad")
+
+PARAMETER_NAMES: tuple[str, ...] = tuple(
+    [f"{b}_{kind}_{d}_{unit}" for b in _BODIES for kind, unit in (("translation", "m"), ("tilt", "rad"))
+     for d in _ENU]
+    + [f"axis_{i}_{f}" for i in (1, 2) for f in _ACTUATOR_FIELDS]
+)
+"""The 28 kinematic parameters in their fixed order (units in the names).
+
+``axis_i_increment`` is [steps/m] of stroke for linear actuators and the gear ratio [steps/rad]
+for ideal ones; ``axis_i_initial_angle_rad`` is the joint angle at 0 steps (for ideal actuators:
+the angle offset). ``axis_i_initial_stroke_length_m``, ``axis_i_offset_m`` and
+``axis_i_pivot_radius_m`` are unused (and never freed) for ideal actuators.
+"""
+
+PARAMETER_INDEX: dict[str, int] = {name: i for i, name in enumerate(PARAMETER_NAMES)}
+"""Position of each parameter name in the vector."""
+
+PARAMETER_UNITS: dict[str, str] = {
+    name: ("m" if name.endswith("_m") else "rad" if name.endswith("_rad")
+           else "steps/m (linear) | steps/rad (ideal)")
+    for name in PARAMETER_NAMES
+}
+"""Unit of each parameter."""
+
+KINEMATIC_TYPES = ("juelich", "az-el", "target-aligned")
+"""Kinematic types understood by :func:`forward_kinematics`."""
+
+# Joint axes per type: (axis index in the parent frame 0=e 1=n 2=u, sense +1/-1).
+_JOINT_AXES = {
+    "juelich": ((0, 1.0), (2, 1.0)),
+    "az-el": ((2, 1.0), (0, -1.0)),
+    "target-aligned": ((2, 1.0), (0, 1.0)),
+}
+
+REFERENCE_NORMALS: dict[str, tuple[float, float, float]] = {
+    "juelich": (0.0, -1.0, 0.0),
+    "az-el": (0.0, -1.0, 0.0),
+    "target-aligned": (0.0, 0.0, 1.0),
+}
+"""Mirror normal at zero joint angles, in the local frame of each kinematic type."""
+
+IDEAL_UNUSED_PARAMETERS: tuple[str, ...] = tuple(
+    f"axis_{i}_{f}" for i in (1, 2) for f in ("initial_stroke_length_m", "offset_m", "pivot_radius_m")
+)
+"""Parameters without meaning for ideal actuators (always fixed, nominal value 0)."""
+
+# ---------------------------------------------------------------------------------------------
+# Presets
+# ---------------------------------------------------------------------------------------------
+
+PRESET_NAMES = ("static-6", "static-14", "static-20", "static-28", "stone-8")
+"""Names of the parameter presets (see ``docs/kinematics.md``)."""
+
+# Stone's (paper 002, eq. 2) tilt angles alpha, beta (tilt of axis 1), gamma (non-orthogonality of
+# the two axes) and delta (mirror tilt) as our parameter names, per kinematic type. They are the
+# four tilts that are neither about a joint's own rotation axis nor about the reference normal.
+_STONE_TILTS = {
+    "juelich": ("joint_1_tilt_n_rad", "joint_1_tilt_u_rad", "joint_2_tilt_n_rad",
+                "concentrator_tilt_e_rad"),
+    "az-el": ("joint_1_tilt_e_rad", "joint_1_tilt_n_rad", "joint_2_tilt_n_rad",
+              "concentrator_tilt_u_rad"),
+    "target-aligned": ("joint_1_tilt_e_rad", "joint_1_tilt_n_rad", "joint_2_tilt_n_rad",
+                       "concentrator_tilt_n_rad"),
+}
+
+STONE_MAPPING: dict[str, dict[str, str]] = {
+    kt: {
+        "alpha": tilts[0], "beta": tilts[1], "gamma": tilts[2], "delta": tilts[3],
+        "theta_k": "axis_1_initial_angle_rad", "tau_k": "axis_2_initial_angle_rad",
+        "GR1": "axis_1_increment", "GR2": "axis_2_increment",
+    }
+    for kt, tilts in _STONE_TILTS.items()
+}
+"""Paper 002 (eq. 2) symbols -> our parameter names, per kinematic type."""
+
+
+def _presets_for(kinematic_type: str) -> dict[str, tuple[str, ...]]:
+    stone_tilts = _STONE_TILTS[kinematic_type]
+    offsets = ("axis_1_initial_angle_rad", "axis_2_initial_angle_rad")
+    increments = ("axis_1_increment", "axis_2_increment")
+    static_6 = stone_tilts + offsets
+    translations_14 = tuple(f"{b}_translation_{d}_m" for b in ("joint_1", "concentrator") for d in _ENU)
+    static_14 = static_6 + increments + translations_14
+    geometry = tuple(f"axis_{i}_{f}" for i in (1, 2)
+                     for f in ("initial_stroke_length_m", "offset_m", "pivot_radius_m"))
+    static_20 = static_14 + geometry
+    rest = tuple(n for n in PARAMETER_NAMES if n not in static_20)
+    static_28 = static_20 + rest
+    return {
+        "static-6": static_6,
+        "static-14": static_14,
+        "static-20": static_20,
+        "static-28": static_28,
+        "stone-8": static_6 + increments,
+    }
+
+
+KINEMATIC_PRESETS: dict[str, dict[str, tuple[str, ...]]] = {
+    kt: _presets_for(kt) for kt in KINEMATIC_TYPES
+}
+"""Preset name -> freed parameter names, per kinematic type (ideal-actuator filtering is done
+by :func:`preset_mask`)."""
+
+PRESETS: dict[str, tuple[str, ...]] = KINEMATIC_PRESETS["juelich"]
+"""Presets of the Juelich (PAINT/ARTIST) kinematic type."""
+
+
+def preset_parameters(name: str, actuator_type: str, kinematic_type: str = "juelich") -> tuple[str, ...]:
+    """Names of the parameters a preset frees, in :data:`PARAMETER_NAMES` order.
+
+    Parameters
+    ----------
+    name : one of :data:`PRESET_NAMES`.
+    actuator_type : ``"linear"`` or ``"ideal"``; for ideal actuators the three unused actuator
+        slots per axis (:data:`IDEAL_UNUSED_PARAMETERS`) are never freed.
+    kinematic_type : one of :data:`KINEMATIC_TYPES` (the tilts that are observable depend on it).
+    """
+    check_choice(name, "name", "preset_parameters", PRESET_NAMES)
+    check_choice(actuator_type, "actuator_type", "preset_parameters", ACTUATOR_TYPES)
+    check_choice(kinematic_type, "kinematic_type", "preset_parameters", KINEMATIC_TYPES)
+    chosen = set(KINEMATIC_PRESETS[kinematic_type][name])
+    if actuator_type == "ideal":
+        chosen -= set(IDEAL_UNUSED_PARAMETERS)
+    return tuple(n for n in PARAMETER_NAMES if n in chosen)
+
+
+def preset_mask(name: str, actuator_type: str, kinematic_type: str = "juelich") -> torch.Tensor:
+    """Boolean mask over the 28 parameters: True = freed (fitted) by preset ``name``.
+
+    Parameters are those of :func:`preset_parameters`.
+
+    Returns
+    -------
+    torch.Tensor
+        Bool tensor of shape (28,).
+    """
+    chosen = set(preset_parameters(name, actuator_type, kinematic_type))
+    return torch.tensor([n in chosen for n in PARAMETER_NAMES], dtype=torch.bool)
+
+
+# ---------------------------------------------------------------------------------------------
+# Heliostat specification (what is not fitted)
+# ---------------------------------------------------------------------------------------------
+
+def _f64(x) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x, dtype=np.float64), dtype=torch.float64)
+
+
+def _get(row, key, default=float("nan")):
+    try:
+        value = row[key]
+    except (KeyError, IndexError):
+        return default
+    if value is None:
+        return default
+    return value
+
+
+def _as_bool(value) -> bool:
+    if value is None:
+        return False
+    if isinstance(value, float) and math.isnan(value):
+        return False
+    return bool(value)
+
+
+@dataclass(frozen=True)
+class HeliostatSpec:
+    """Fixed (not fitted) description of one heliostat or of a batch of heliostats of one type.
+
+    Tensor fields carry a batch shape ``S`` (empty for one heliostat) that must broadcast with
+    the batch shape of the parameter vectors passed to :func:`forward_kinematics`.
+
+    Attributes
+    ----------
+    kinematic_type : one of :data:`KINEMATIC_TYPES` (one per spec; group heliostats by type).
+    actuator_type : ``"linear"`` or ``"ideal"``.
+    clockwise : bool tensor (S, 2): linear actuators' ``clockwise_axis_movement`` per axis
+        (ignored for ideal actuators, whose sense is the sign of the gear ratio).
+    min_steps, max_steps : float64 (S, 2): actuator limits [steps] (NaN = unbounded).
+    position_enu : float64 (S, 3): heliostat position (the chain's origin) [m] ENU relative to
+        the plant reference point.
+    initial_orientation : float64 (S, 3): PAINT's ``initial_orientation``. It only names the
+        frame the surface model is given in; like ARTIST (which rotates the surface from it onto
+        its standard south orientation before the chain) the kinematics does not use it.
+    primary_axis : float64 (S, 3): unit primary-axis direction in ENU (target-aligned only, NaN
+        otherwise).
+    heliostat_id : the id(s), for bookkeeping only.
+    """
+
+    kinematic_type: str
+    actuator_type: str
+    clockwise: torch.Tensor
+    min_steps: torch.Tensor
+    max_steps: torch.Tensor
+    position_enu: torch.Tensor
+    initial_orientation: torch.Tensor = field(
+        default_factory=lambda: torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64))
+    primary_axis: torch.Tensor = field(
+        default_factory=lambda: torch.full((3,), float("nan"), dtype=torch.float64))
+    heliostat_id: object = None
+
+    def __post_init__(self):
+        check_choice(self.kinematic_type, "kinematic_type", "HeliostatSpec", KINEMATIC_TYPES)
+        check_choice(self.actuator_type, "actuator_type", "HeliostatSpec", ACTUATOR_TYPES)
+        object.__setattr__(self, "clockwise", torch.as_tensor(self.clockwise).to(torch.bool))
+        for name in ("min_steps", "max_steps", "position_enu", "initial_orientation", "primary_axis"):
+            object.__setattr__(self, name, torch.as_tensor(getattr(self, name), dtype=torch.float64))
+        if self.kinematic_type == "target-aligned":
+            p = self.primary_axis
+            norm = torch.linalg.vector_norm(p, dim=-1, keepdim=True)
+            if not bool(torch.all(torch.isfinite(p))) or bool(torch.any(norm < 1e-12)):
+                raise ParameterError(
+                    "The 'primary_axis' parameter of HeliostatSpec must be a finite non-zero ENU "
+                    f"vector for kinematic_type 'target-aligned'. Got {p.tolist()!r} instead.")
+            object.__setattr__(self, "primary_axis", p / norm)
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Batch shape ``S`` of the tensor fields."""
+        return self.position_enu.shape[:-1]
+
+    @classmethod
+    def from_row(cls, row) -> "HeliostatSpec":
+        """Build the spec of one heliostat from one row of ``heliostats.parquet``.
+
+        Parameters
+        ----------
+        row : pandas Series or mapping with the columns of ``heliostats.parquet`` (missing
+            optional columns are treated as NaN / False).
+        """
+        kinematic_type = str(_get(row, "kinematic_type", "juelich"))
+        actuator_type = str(_get(row, "actuator_type", "linear"))
+        return cls(
+            kinematic_type=kinematic_type,
+            actuator_type=actuator_type,
+            clockwise=torch.tensor([_as_bool(_get(row, f"axis_{i}_clockwise", False)) for i in (1, 2)]),
+            min_steps=_f64([_get(row, f"axis_{i}_min_steps") for i in (1, 2)]),
+            max_steps=_f64([_get(row, f"axis_{i}_max_steps") for i in (1, 2)]),
+            position_enu=_f64([_get(row, f"heliostat_{d}_m", 0.0) for d in _ENU]),
+            initial_orientation=_f64([_get(row, f"initial_orientation_{d}", v)
+                                      for d, v in zip(_ENU, (0.0, -1.0, 0.0))]),
+            primary_axis=_f64([_get(row, f"primary_axis_{d}") for d in _ENU]),
+            heliostat_id=_get(row, "heliostat_id", None),
+        )
+
+    @classmethod
+    def from_frame(cls, frame) -> "HeliostatSpec":
+        """Build one batched spec (batch shape (H,)) from several rows of ``heliostats.parquet``.
+
+        All rows must share ``kinematic_type`` and ``actuator_type`` (group by them first).
+        """
+        specs = [cls.from_row(row) for _, row in frame.iterrows()]
+        if not specs:
+            raise ParameterError("The 'frame' parameter of HeliostatSpec.from_frame must have at "
+                                 "least one row. Got 0 rows instead.")
+        types = {(s.kinematic_type, s.actuator_type) for s in specs}
+        if len(types) != 1:
+            raise ParameterError(
+                "The 'frame' parameter of HeliostatSpec.from_frame must hold one kinematic_type "
+                f"and actuator_type; group the rows by them first. Got {sorted(types)!r} instead.")
+        return cls(
+            kinematic_type=specs[0].kinematic_type,
+            actuator_type=specs[0].actuator_type,
+            clockwise=torch.stack([s.clockwise for s in specs]),
+            min_steps=torch.stack([s.min_steps for s in specs]),
+            max_steps=torch.stack([s.max_steps for s in specs]),
+            position_enu=torch.stack([s.position_enu for s in specs]),
+            initial_orientation=torch.stack([s.initial_orientation for s in specs]),
+            primary_axis=torch.stack([s.primary_axis for s in specs]),
+            heliostat_id=tuple(s.heliostat_id for s in specs),
+        )
+
+
+def _finite_or(value, default: float) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return default
+    return v if math.isfinite(v) else default
+
+
+def _nominal_row(row) -> list[float]:
+    actuator_type = str(_get(row, "actuator_type", "linear"))
+    values = {name: 0.0 for name in PARAMETER_NAMES}
+    for body in _BODIES:
+        for d in _ENU:
+            name = f"{body}_translation_{d}_m"
+            values[name] = _finite_or(_get(row, name), 0.0)
+            tilt = f"{body}_tilt_{d}_rad"
+            values[tilt] = _finite_or(_get(row, tilt), 0.0)
+    for i in (1, 2):
+        if actuator_type == "ideal":
+            gear = _finite_or(_get(row, f"axis_{i}_gear_ratio_steps_per_rad"),
+                              _finite_or(_get(row, f"axis_{i}_increment"), float("nan")))
+            offset = _finite_or(_get(row, f"axis_{i}_angle_offset_rad"),
+                                _finite_or(_get(row, f"axis_{i}_initial_angle_rad"), 0.0))
+            values[f"axis_{i}_increment"] = gear
+            values[f"axis_{i}_initial_angle_rad"] = offset
+        else:
+            for f in _ACTUATOR_FIELDS:
+                values[f"axis_{i}_{f}"] = _finite_or(_get(row, f"axis_{i}_{f}"), float("nan"))
+    return [values[n] for n in PARAMETER_NAMES]
+
+
+def nominal_parameters(row) -> torch.Tensor:
+    """Nominal 28-parameter vector from ``heliostats.parquet`` row(s).
+
+    Translations and actuator values are copied from the columns of the same name; tilts are 0
+    (not in ``heliostats.parquet``). For ideal actuators ``axis_i_increment`` is the gear ratio
+    ``axis_i_gear_ratio_steps_per_rad`` [steps/rad] and ``axis_i_initial_angle_rad`` the
+    ``axis_i_angle_offset_rad`` [rad]; the three unused actuator slots are 0.
+
+    Parameters
+    ----------
+    row : pandas Series / mapping (one heliostat) or DataFrame (several).
+
+    Returns
+    -------
+    torch.Tensor
+        float64, shape (28,) for one row or (H, 28) for a DataFrame, in :data:`PARAMETER_NAMES`
+        order.
+    """
+    if hasattr(row, "iterrows"):
+        return _f64([_nominal_row(r) for _, r in row.iterrows()]).reshape(-1, len(PARAMETER_NAMES))
+    return _f64(_nominal_row(row))
+
+
+# ---------------------------------------------------------------------------------------------
+# Rotations (right-handed about e, n, u)
+# ---------------------------------------------------------------------------------------------
+
+def _rotation_matrix(axis: int, angle) -> torch.Tensor:
+    angle = torch.as_tensor(angle, dtype=torch.float64)
+    c, s = torch.cos(angle), torch.sin(angle)
+    one, zero = torch.ones_like(c), torch.zeros_like(c)
+    if axis == 0:
+        rows = ((one, zero, zero), (zero, c, -s), (zero, s, c))
+    elif axis == 1:
+        rows = ((c, zero, s), (zero, one, zero), (-s, zero, c))
+    else:
+        rows = ((c, -s, zero), (s, c, zero), (zero, zero, one))
+    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
+
+
+def rotation_e(angle_rad) -> torch.Tensor:
+    """Right-handed rotation about east, shape (..., 3, 3): ``[[1,0,0],[0,c,-s],[0,s,c]]``."""
+    return _rotation_matrix(0, angle_rad)
+
+
+def rotation_n(angle_rad) -> torch.Tensor:
+    """Right-handed rotation about north, shape (..., 3, 3): ``[[c,0,s],[0,1,0],[-s,0,c]]``.
+
+    ARTIST's ``rotate_n(x)`` equals ``rotation_n(-x)``.
+    """
+    return _rotation_matrix(1, angle_rad)
+
+
+def rotation_u(angle_rad) -> torch.Tensor:
+    """Right-handed rotation about up, shape (..., 3, 3): ``[[c,-s,0],[s,c,0],[0,0,1]]``."""
+    return _rotation_matrix(2, angle_rad)
+
+
+def _rotate_columns(m: torch.Tensor, axis: int, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Rotate the column vectors of ``m`` (..., 3, K) right-handedly about basis axis ``axis``.
+
+    ``c``, ``s`` are the cosine and sine of the angle, shape (...) broadcastable with
+    ``m.shape[:-2]``.
+    """
+    c = c.unsqueeze(-1)
+    s = s.unsqueeze(-1)
+    x, y, z = m.unbind(-2)
+    if axis == 0:
+        rows = (x, c * y - s * z, s * y + c * z)
+    elif axis == 1:
+        rows = (c * x + s * z, y, c * z - s * x)
+    else:
+        rows = (c * x - s * y, s * x + c * y, z)
+    return torch.stack(torch.broadcast_tensors(*rows), dim=-2)
+
+
+# ---------------------------------------------------------------------------------------------
+# Forward kinematics
+# ---------------------------------------------------------------------------------------------
+
+_TRANSLATION_INDEX = torch.tensor(
+    [[PARAMETER_INDEX[f"{b}_translation_{d}_m"] for d in _ENU] for b in _BODIES])
+_TILT_INDEX = torch.tensor([[PARAMETER_INDEX[f"{b}_tilt_{d}_rad"] for d in _ENU] for b in _BODIES])
+_ACTUATOR_INDEX = torch.tensor(
+    [[PARAMETER_INDEX[f"axis_{i}_{f}"] for i in (1, 2)] for f in _ACTUATOR_FIELDS])
+_SENSES = {kt: torch.tensor([axes[0][1], axes[1][1]], dtype=torch.float64)
+           for kt, axes in _JOINT_AXES.items()}
+_N0 = {kt: torch.tensor(v, dtype=torch.float64) for kt, v in REFERENCE_NORMALS.items()}
+
+
+def _check_params(params) -> torch.Tensor:
+    if not isinstance(params, torch.Tensor):
+        params = torch.as_tensor(np.asarray(params, dtype=np.float64))
+    if params.shape[-1:] != (len(PARAMETER_NAMES),):
+        raise ParameterError("The 'params' parameter of the kinematics must have a last "
+                             f"dimension of 28. Got shape {tuple(params.shape)!r} instead.")
+    return params
+
+
+def _tilt_matrices(params: torch.Tensor) -> torch.Tensor:
+    """``R_e(te) R_n(tn) R_u(tu)`` for joint_1, joint_2, concentrator: (..., 3, 3, 3)."""
+    angles = params[..., _TILT_INDEX]                                   # (..., body, e/n/u)
+    c, s = torch.cos(angles), torch.sin(angles)
+    ca, cb, cg = c.unbind(-1)
+    sa, sb, sg = s.unbind(-1)
+    sasb, casb = sa * sb, ca * sb
+    entries = (cb * cg, -cb * sg, sb,
+               ca * sg + sasb * cg, ca * cg - sasb * sg, -sa * cb,
+               sa * sg - casb * cg, sa * cg + casb * sg, ca * cb)
+    return torch.stack(entries, dim=-1).unflatten(-1, (3, 3))
+
+
+def _actuator_values(params: torch.Tensor):
+    """(increment, initial_stroke, offset, pivot_radius, initial_angle), each (..., 1, 2)."""
+    return params[..., _ACTUATOR_INDEX].unsqueeze(-3).unbind(-2)
+
+
+def _clockwise(spec: HeliostatSpec) -> torch.Tensor:
+    return spec.clockwise.unsqueeze(-2)
+
+
+def joint_angles(params, spec: HeliostatSpec, steps) -> torch.Tensor:
+    """Joint angles from motor steps through the actuator laws.
+
+    Parameters
+    ----------
+    params : float64 (..., 28) parameter vectors.
+    spec : :class:`HeliostatSpec` (batch shape broadcastable with ``params[..., 0]``).
+    steps : (..., N, 2) motor positions of axis 1 and axis 2 [steps].
+
+    Returns
+    -------
+    torch.Tensor
+        (..., N, 2) joint angles [rad].
+    """
+    params = _check_params(params)
+    steps = torch.as_tensor(steps, dtype=torch.float64)
+    increment, stroke0, offset, radius, angle0 = _actuator_values(params)
+    if spec.actuator_type == "ideal":
+        return ideal_steps_to_angle(steps, increment, angle0)
+    return linear_steps_to_angle(steps, increment, stroke0, offset, radius, angle0, _clockwise(spec))
+
+
+def _angles_to_steps(params, spec: HeliostatSpec, angles) -> torch.Tensor:
+    """Inverse of :func:`joint_angles` (no wrapping, no limit check)."""
+    increment, stroke0, offset, radius, angle0 = _actuator_values(params)
+    if spec.actuator_type == "ideal":
+        return ideal_angle_to_steps(angles, increment, angle0)
+    return linear_angle_to_steps(angles, increment, stroke0, offset, radius, angle0, _clockwise(spec))
+
+
+def _base_frame(spec: HeliostatSpec):
+    """Matrix (S, 3, 3) with columns (e', n', u') of the local frame in ENU; None = identity."""
+    if spec.kinematic_type != "target-aligned":
+        return None
+    p = spec.primary_axis
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand_as(p)
+    east = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64).expand_as(p)
+    e = torch.linalg.cross(p, up, dim=-1)
+    norm = torch.linalg.vector_norm(e, dim=-1, keepdim=True)
+    e = torch.where(norm > 1e-9, e / norm.clamp_min(1e-300), east)
+    n = torch.linalg.cross(p, e, dim=-1)
+    return torch.stack([e, n, p], dim=-1)
+
+
+def _chain(params, spec: HeliostatSpec, angles, directions=None):
+    """Directions and mirror-centre positions (ENU) for joint ``angles`` (..., N, 2).
+
+    ``directions``: local direction vectors as columns (3, K), default the reference normal.
+    Returns ((..., N, 3, K) directions, (..., N, 3) positions).
+    """
+    (ax1, _), (ax2, _) = _JOINT_AXES[spec.kinematic_type]
+    phi = angles * _SENSES[spec.kinematic_type]
+    cos, sin = torch.cos(phi), torch.sin(phi)
+    c1, c2 = cos.unbind(-1)
+    s1, s2 = sin.unbind(-1)
+    tilt = _tilt_matrices(params)
+    tilt_1, tilt_2, tilt_c = tilt.unbind(-3)
+    translation = params[..., _TRANSLATION_INDEX].unsqueeze(-1)        # (..., body, 3, 1)
+    t_1, t_2, t_c = translation.unbind(-3)
+    if directions is None:
+        directions = _N0[spec.kinematic_type].unsqueeze(-1)
+    k = directions.shape[-1]
+    m = torch.cat([tilt_c @ directions, t_c], dim=-1)                 # (..., 3, K + 1)
+    m = m.unsqueeze(-3)                                                 # (..., 1, 3, K + 1)
+    m = _rotate_columns(m, ax2, c2, s2) + torch.nn.functional.pad(t_2, (k, 0)).unsqueeze(-3)
+    m = tilt_2.unsqueeze(-3) @ m
+    m = _rotate_columns(m, ax1, c1, s1) + torch.nn.functional.pad(t_1, (k, 0)).unsqueeze(-3)
+    frame = _base_frame(spec)
+    outer = tilt_1 if frame is None else frame @ tilt_1
+    m = outer.unsqueeze(-3) @ m
+    position = spec.position_enu.unsqueeze(-2) + m[..., k]
+    return m[..., :k], position
+
+
+def forward_kinematics(params, spec: HeliostatSpec, steps) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mirror normals and mirror-centre positions for motor steps.
+
+    Parameters
+    ----------
+    params : float64 (..., 28) parameter vectors (:data:`PARAMETER_NAMES` order); leading
+        dimensions batch heliostats (or parameter candidates).
+    spec : :class:`HeliostatSpec` whose batch shape broadcasts with ``params.shape[:-1]``.
+    steps : (..., N, 2) motor positions [steps] of axis 1 and axis 2.
+
+    Returns
+    -------
+    normals : torch.Tensor
+        (..., N, 3) unit mirror normals, ENU.
+    positions : torch.Tensor
+        (..., N, 3) mirror-centre (concentrator origin) positions [m], ENU relative to the plant
+        reference point.
+
+    Notes
+    -----
+    Reference (ARTIST ``tests/field/test_kinematic_rigid_body.py``): Juelich type, all
+    translations 0 except concentrator n = 0.175 m, clockwise (0, 1), increment 154166.666,
+    offset (0.34061, 0.3479), pivot radius (0.3204, 0.309), initial angle (-1.570796, 0.959931),
+    initial stroke length 0.075: steps (0, 0) give normal (0.81915, 0, 0.57358) and mirror
+    centre (-0.14335, 0, -0.10038).
+    """
+    params = _check_params(params)
+    angles = joint_angles(params, spec, steps)
+    normals, positions = _chain(params, spec, angles)
+    return normals.squeeze(-1), positions
+
+
+def orientation_matrices(params, spec: HeliostatSpec, steps) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotation matrices (local frame -> ENU) and mirror-centre positions for motor steps.
+
+    Returns
+    -------
+    rotations : torch.Tensor
+        (..., N, 3, 3); ``rotations @ REFERENCE_NORMALS[kinematic_type]`` is the mirror normal.
+    positions : torch.Tensor
+        (..., N, 3) [m], as in :func:`forward_kinematics`.
+    """
+    params = _check_params(params)
+    angles = joint_angles(params, spec, steps)
+    return _chain(params, spec, angles, directions=torch.eye(3, dtype=torch.float64))
+
+
+# ---------------------------------------------------------------------------------------------
+# Inverse kinematics
+# ---------------------------------------------------------------------------------------------
+
+def _unit(v):
+    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+
+
+def _solve_angles(params, spec: HeliostatSpec, normal_enu, branch: int) -> torch.Tensor:
+    """Closed-form joint angles (..., N, 2) that turn the reference normal onto ``normal_enu``.
+
+    Two-axis (Paden-Kahan) sub-problem: a rotation about axis 1 keeps the component along
+    axis 1, which fixes angle 2 up to two solutions (``branch`` 0 or 1); angle 1 then follows
+    from the remaining rotation about axis 1. Exact for any tilts (translations do not turn
+    normals). Rows without a solution are NaN.
+    """
+    (ax1, sense1), (ax2, sense2) = _JOINT_AXES[spec.kinematic_type]
+    tilt_1, tilt_2, tilt_c = _tilt_matrices(params).unbind(-3)
+    frame = _base_frame(spec)
+    outer = tilt_1 if frame is None else frame @ tilt_1
+    v = (outer.unsqueeze(-3).transpose(-1, -2) @ normal_enu.unsqueeze(-1)).squeeze(-1)
+    c = (tilt_c @ _N0[spec.kinematic_type]).unsqueeze(-2)              # (..., 1, 3)
+    eye = torch.eye(3, dtype=torch.float64)
+    k1, k2 = eye[ax1], eye[ax2]
+    k1p = (tilt_2.transpose(-1, -2) @ k1).unsqueeze(-2)                 # axis 1 in joint-2 frame
+    c_par = c[..., ax2:ax2 + 1] * k2
+    c_perp = c - c_par
+    c_cross = torch.linalg.cross(k2.expand_as(c), c, dim=-1)
+    a = (k1p * c_perp).sum(-1)
+    b = (k1p * c_cross).sum(-1)
+    d = v[..., ax1] - (k1p * c_par).sum(-1)
+    ratio = d / torch.sqrt(a**2 + b**2)
+    ratio = torch.where(ratio.abs() <= 1.0 + 1e-12, ratio.clamp(-1.0, 1.0), torch.nan)
+    phi2 = torch.atan2(b, a) + (1.0 if branch == 0 else -1.0) * torch.arccos(ratio)
+    rotated = _rotate_columns(c.unsqueeze(-1), ax2, torch.cos(phi2), torch.sin(phi2))
+    w = (tilt_2.unsqueeze(-3) @ rotated).squeeze(-1)                    # (..., N, 3)
+    k1w = k1.expand_as(w)
+    phi1 = torch.atan2((k1w * torch.linalg.cross(w, v, dim=-1)).sum(-1),
+                       (w * v).sum(-1) - w[..., ax1] * v[..., ax1])
+    return torch.stack([phi1 / sense1, phi2 / sense2], dim=-1)
+
+
+def _wrap_to(angle, centre):
+    """``angle`` plus a multiple of 2 pi, within pi of ``centre``."""
+    return angle + 2.0 * math.pi * torch.round((centre - angle) / (2.0 * math.pi))
+
+
+def inverse_kinematics(params, spec: HeliostatSpec, sun_vector_enu, aim_point_enu, *,
+                       return_both: bool = False, max_iterations: int = 100,
+                       tolerance_m: float = 1e-12):
+    """Motor steps that reflect the sun from the mirror centre onto the aim point.
+
+    The wanted normal is the bisector of the sun direction and the direction from the mirror
+    centre to the aim point; the mirror centre moves with the orientation, so the closed-form
+    two-axis solution is iterated (fixed point on the mirror centre, contraction ~ lever arm /
+    distance to the aim point) until the centre moves less than ``tolerance_m``. Each of the two
+    solution branches is iterated on its own. Not differentiable (runs under ``no_grad``).
+
+    Parameters
+    ----------
+    params : float64 (..., 28) parameter vectors.
+    spec : :class:`HeliostatSpec`.
+    sun_vector_enu : (..., N, 3) unit vectors from the heliostat toward the sun (normalised
+        here).
+    aim_point_enu : (..., N, 3) or (3,) aim points [m] ENU.
+    return_both : if True return both branches and their validity instead of one choice.
+    max_iterations : cap on the fixed-point iterations.
+    tolerance_m : convergence threshold on the mirror-centre update [m].
+
+    Returns
+    -------
+    steps : torch.Tensor
+        (..., N, 2) motor steps (real-valued). Where both branches are within the actuator limits
+        the one nearest the middle of the step ranges is returned (smallest sum of squared
+        distances to the range centres, each in units of the half range); where exactly one is,
+        that one; where none is (no solution, unreachable linear-actuator angle, or outside the
+        limits) the row is NaN.
+    If ``return_both``: ``(steps_both, within_limits)`` with shapes (..., N, 2 branches, 2 axes)
+    and (..., N, 2 branches) instead.
+    """
+    params = _check_params(params)
+    with torch.no_grad():
+        params = params.detach()
+        sun = _unit(torch.as_tensor(sun_vector_enu, dtype=torch.float64))
+        aim = torch.as_tensor(aim_point_enu, dtype=torch.float64)
+        sun, aim = torch.broadcast_tensors(sun, aim)
+        low = torch.nan_to_num(spec.min_steps, nan=-math.inf)
+        high = torch.nan_to_num(spec.max_steps, nan=math.inf)
+        bounded = torch.isfinite(low) & torch.isfinite(high)
+        centre = torch.where(bounded, 0.5 * (low + high), torch.zeros_like(low))
+        half = torch.where(bounded, (0.5 * (high - low)).clamp_min(1.0), torch.full_like(low, 1e12))
+        centre_angles = joint_angles(params, spec, centre.unsqueeze(-2))     # (..., 1, 2)
+        _, start = _chain(params, spec, centre_angles)
+        start = start.expand_as(sun)
+
+        results, valid = [], []
+        for branch in (0, 1):
+            position = start
+            angles = None
+            for _ in range(max_iterations):
+                wanted = _unit(sun + _unit(aim - position))
+                angles = _solve_angles(params, spec, wanted, branch)
+                _, new_position = _chain(params, spec, angles)
+                step = torch.linalg.vector_norm(new_position - position, dim=-1)
+                position = new_position
+                if not bool(torch.any(step > tolerance_m)):
+                    break
+            angles = _wrap_to(angles, centre_angles)
+            steps = _angles_to_steps(params, spec, angles)
+            back = joint_angles(params, spec, steps)
+            ok = (torch.isfinite(steps).all(-1)
+                  & ((back - angles).abs() < 1e-9).all(-1)
+                  & (steps >= low.unsqueeze(-2) - 1e-6).all(-1)
+                  & (steps <= high.unsqueeze(-2) + 1e-6).all(-1))
+            results.append(steps)
+            valid.append(ok)
+        both = torch.stack(results, dim=-2)
+        within = torch.stack(valid, dim=-1)
+        if return_both:
+            return both, within
+        score = (((both - centre.unsqueeze(-2).unsqueeze(-2)) / half.unsqueeze(-2).unsqueeze(-2)) ** 2).sum(-1)
+        score = torch.where(within, torch.nan_to_num(score, nan=math.inf), math.inf)
+        pick = torch.argmin(score, dim=-1, keepdim=True)                    # (..., N, 1)
+        chosen = torch.gather(both, -2, pick.unsqueeze(-1).expand(*pick.shape, 2)).squeeze(-2)
+        any_ok = within.any(-1, keepdim=True)
+        return torch.where(any_ok, chosen, torch.nan)
