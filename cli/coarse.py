@@ -38,8 +38,9 @@ def fit_coarse_cmd(
     loss: Annotated[str, typer.Option(
         help="linear (Levenberg-Marquardt), or a robust soft_l1 / huber (trust region).")] = "soft_l1",
     f_scale: Annotated[float, typer.Option(help="Residual scale of a robust loss [mrad].")] = 1.0,
-    robust_start: Annotated[bool, typer.Option(
-        help="Search the actuator zero points on a grid before LM.")] = True,
+    robust_start: Annotated[str, typer.Option(
+        help="Grid-search the actuator zero points before LM: auto (when the nominal geometry's "
+             "median error exceeds 50 mrad), always or never.")] = "auto",
     heliostat: Annotated[Optional[list[str]], typer.Option(
         help="Fit only these heliostats (repeat the option).")] = None,
     json_: JsonFlag = False,

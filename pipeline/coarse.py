@@ -43,6 +43,7 @@ from scipy.optimize import least_squares
 from .artifacts import (ArtifactSchema, Column as C, artifact_path, check_fresh, read_artifact,
                         write_artifact)
 from .errors import FitError, check_choice, check_float
+from .jacobian import residual_and_jacobian
 from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
                          HeliostatSpec, forward_kinematics, joint_angles, nominal_parameters,
                          preset_mask)
@@ -85,7 +86,10 @@ def _kind(name: str) -> str:
 
 
 #: Prior sigma per parameter kind (angles [rad], lengths [m], increments relative to nominal).
-PRIOR_SIGMA = {"angle": 1.0, "translation": 0.1, "length": 1.0, "increment": 0.1}
+PRIOR_SIGMA = {"angle": 0.1, "translation": 0.05, "length": 0.01, "increment": 0.01}
+#: Median nominal error above which ``robust_start="auto"`` searches the zero points [mrad].
+ROBUST_START_THRESHOLD_MRAD = 50.0
+
 #: Corrections of the nominal geometry beyond which a fit is reported as implausible.
 PLAUSIBLE_CORRECTION = {"angle": 0.05, "translation": 0.05, "length": 0.05, "increment": 0.02}
 
@@ -311,7 +315,8 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
 def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: MeasurementBatch, preset: str,
                   *, loss: str = "linear", f_scale_mrad: float = 1.0, robust_start: bool = True,
                   max_nfev: int = 200, start: torch.Tensor | None = None,
-                  prior_weight: float = 1.0) -> CoarseFit:
+                  prior_weight: float = 1.0, tolerance: float = 1e-10,
+                  jacobian: str = "exact", start_cache: dict | None = None) -> CoarseFit:
     """Fit one heliostat's free parameters (preset) on its training measurements.
 
     Parameters
@@ -322,8 +327,16 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     preset : one of :data:`~heliocal.pipeline.kinematics.PRESET_NAMES`.
     loss : ``linear`` (MINPACK LM), ``soft_l1`` or ``huber`` (trust-region reflective).
     f_scale_mrad : residual scale of the robust loss [mrad].
-    robust_start : grid-search the actuator angle offsets first.
+    robust_start : ``True``/``"always"`` grid-searches the actuator zero points first (see
+        :func:`_robust_start`); ``"auto"`` only when the nominal geometry's median error exceeds
+        :data:`ROBUST_START_THRESHOLD_MRAD` (a wrong nominal geometry); ``False``/``"never"``
+        starts LM from the nominal values.
     start : explicit start (28,) instead of the nominal/grid start.
+    jacobian : ``exact`` (geometric Jacobian, :mod:`heliocal.pipeline.jacobian`) or scipy's
+        ``2-point`` finite differences (only for the benchmark's comparison).
+    start_cache : dict shared between the presets of one heliostat, so the robust start is
+        searched once per set of free zero-point parameters.
+    tolerance : xtol = ftol = gtol of the solver (relative changes of step, cost, gradient).
     prior_weight : multiplier of the prior's curvature (1 = :data:`PRIOR_SIGMA`; 0 = no prior,
         plain least squares, as in the noiseless recovery tests).
     """
@@ -336,43 +349,66 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     free_idx_t = torch.as_tensor(free_idx)
     sigma = _prior_sigma(nominal)
     x0_full = start.clone() if start is not None else nominal.clone()
-    if robust_start and start is None and len(train):
-        x0_full = _robust_start(x0_full, spec, train, free)
+    mode = {True: "always", False: "never"}.get(robust_start, robust_start)
+    check_choice(mode, "robust_start", "fit_heliostat", ("always", "auto", "never"))
+    if mode != "never" and start is None and len(train):
+        zero_point = tuple(bool(free[PARAMETER_INDEX[f"axis_{i}_{f}"]]) for i in (1, 2)
+                           for f in ("initial_angle_rad", "initial_stroke_length_m"))
+        cache = start_cache if start_cache is not None else {}
+        if zero_point not in cache:
+            needed = mode == "always"
+            if not needed:
+                with torch.no_grad():
+                    med = torch.nan_to_num(normal_errors_mrad(nominal, spec, train), nan=1e9).median()
+                needed = float(med) > ROBUST_START_THRESHOLD_MRAD
+            cache[zero_point] = _robust_start(x0_full, spec, train, free) if needed else x0_full
+        x0_full = cache[zero_point].clone()
     sig_free = torch.as_tensor(sigma[free_idx]) / math.sqrt(max(prior_weight, 1e-300))
-    nom_free = nominal[free_idx_t]
+    # the prior's mean is the start: the nominal geometry, with the actuator zero points the
+    # robust start corrected from the data
+    nom_free = x0_full[free_idx_t]
     n_data = 3 * len(train)
 
     def full(x_free: torch.Tensor) -> torch.Tensor:
         return x0_full.index_put((free_idx_t,), x_free)
 
-    def residual_t(x_free: torch.Tensor) -> torch.Tensor:
-        p = full(x_free)
-        normal, position = forward_kinematics(p, spec, train.steps)
-        meas = measured_normal(train.sun, position, train.focal_spot)
-        # NaN where an actuator leaves its geometric range (law of cosines): a large, flat residual
-        r_data = torch.nan_to_num(1000.0 * (normal - meas).reshape(-1), nan=1e4)
-        if prior_weight <= 0:
-            return r_data
-        r_prior = (x_free - nom_free) / sig_free
-        return torch.cat([r_data, r_prior])
+    use_prior = prior_weight > 0
+    prior_scale = (1.0 / sig_free).numpy()
+    cache: dict = {}
 
-    jac_fn = torch.func.jacfwd(residual_t)
+    def evaluate(x) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals and exact Jacobian at x (cached: MINPACK asks for both at the same x)."""
+        key = np.asarray(x, dtype=np.float64).tobytes()
+        if key not in cache:
+            cache.clear()
+            p = full(torch.as_tensor(x, dtype=torch.float64))
+            r, jac_full = residual_and_jacobian(p, spec, train.steps, train.sun, train.focal_spot)
+            # NaN where an actuator leaves its geometric range (law of cosines): a large, flat
+            # residual that LM backs away from
+            r = torch.nan_to_num(r.reshape(-1), nan=1e4).numpy()
+            jf = torch.nan_to_num(jac_full[:, :, free_idx_t].reshape(-1, len(free_idx)),
+                                  nan=0.0, posinf=0.0, neginf=0.0).numpy()
+            if use_prior:
+                r = np.concatenate([r, (np.asarray(x) - nom_free.numpy()) * prior_scale])
+                jf = np.vstack([jf, np.diag(prior_scale)])
+            cache[key] = (r, jf)
+        return cache[key]
 
     def fun(x):
-        with torch.no_grad():
-            return residual_t(torch.as_tensor(x, dtype=torch.float64)).numpy()
+        return evaluate(x)[0]
 
     def jac(x):
-        j = jac_fn(torch.as_tensor(x, dtype=torch.float64)).detach()
-        return torch.nan_to_num(j, nan=0.0, posinf=0.0, neginf=0.0).numpy()
+        return evaluate(x)[1]
 
     x0 = x0_full[free_idx_t].numpy()
     if len(free_idx) == 0 or len(train) == 0:
         res_x, nfev, cost, status, J = x0, 0, float(0.5 * (fun(x0) ** 2).sum()), "nothing to fit", None
     else:
         method = "lm" if loss == "linear" else "trf"
-        kwargs = dict(x_scale=sigma[free_idx], jac=jac, method=method, max_nfev=max_nfev,
-                      xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        check_choice(jacobian, "jacobian", "fit_heliostat", ("exact", "2-point"))
+        kwargs = dict(x_scale=sigma[free_idx], jac=jac if jacobian == "exact" else "2-point",
+                      method=method, max_nfev=max_nfev,
+                      xtol=tolerance, ftol=tolerance, gtol=tolerance)
         if method == "trf":
             kwargs.update(loss=loss, f_scale=f_scale_mrad)
         if method == "lm" and n_data + len(free_idx) < len(free_idx):  # pragma: no cover
@@ -463,10 +499,10 @@ def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str
     labels = rows["split"].to_numpy()
     train = data.subset(labels == "train")
     hid = str(hrow["heliostat_id"])
-    fits = []
+    fits, start_cache = [], {}
     for preset in presets:
         fits.append(fit_heliostat(spec, nominal, train, preset, loss=loss, f_scale_mrad=f_scale_mrad,
-                                  robust_start=robust_start))
+                                  robust_start=robust_start, start_cache=start_cache))
     preds, summaries = [], []
     nominal_pred = predict(nominal, spec, data).assign(model="nominal")
     preds.append(nominal_pred)
@@ -534,8 +570,8 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
     return out
 
 
-def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "linear",
-                   f_scale_mrad: float = 1.0, robust_start: bool = True,
+def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
+                   f_scale_mrad: float = 1.0, robust_start: str = "auto",
                    heliostats: Sequence[str] | None = None, progress=None) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
