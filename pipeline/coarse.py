@@ -427,9 +427,11 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         s2 = float((r[:n_data] ** 2).sum() / dof)
         scale = sigma[free_idx]
         Js = J * scale  # scaled columns: comparable units
+        # singular values of the scaled data Jacobian from the small normal matrix (a tall SVD
+        # is slow with a multithreaded BLAS under load)
         try:
-            sv = np.linalg.svd(Js[:n_data], compute_uv=False)
-            cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+            ev = np.linalg.eigvalsh(Js[:n_data].T @ Js[:n_data])
+            cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
         except np.linalg.LinAlgError:
             cond = float("inf")
         JtJ = Js.T @ Js
