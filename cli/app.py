@@ -15,7 +15,7 @@ import logging
 import os
 import sys
 from pathlib import Path
-from typing import Annotated, Any, Callable
+from typing import Annotated, Any, Callable, Optional
 
 import typer
 from rich.console import Console
@@ -31,6 +31,9 @@ __all__ = [
     "JsonFlag",
     "QuietFlag",
     "Seed",
+    "Workers",
+    "Scheduler",
+    "DaskAddress",
     "command",
     "emit",
     "progress_enabled",
@@ -56,6 +59,12 @@ Workdir = Annotated[Path, typer.Option(
     file_okay=False, dir_okay=True)]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
 QuietFlag = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars or info logs.")]
+Workers = Annotated[Optional[int], typer.Option(
+    "--workers", help="Local worker processes for per-heliostat work (default: the machine's cores).")]
+Scheduler = Annotated[str, typer.Option(
+    "--scheduler", help="local (processes on this machine) or dask (a Dask cluster).")]
+DaskAddress = Annotated[Optional[str], typer.Option(
+    "--dask-address", help="Run per-heliostat work on this Dask scheduler (tcp://HOST:PORT).")]
 Seed = Annotated[int, typer.Option("--seed", help="Seed of every random step (same seed, same artifacts).")]
 
 

@@ -7,8 +7,8 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit,
-                              progress_bar, stdout)
+from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
+                              Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.coarse import run_fit_coarse
 
 
@@ -43,11 +43,15 @@ def fit_coarse_cmd(
              "median error exceeds 50 mrad), always or never.")] = "auto",
     heliostat: Annotated[Optional[list[str]], typer.Option(
         help="Fit only these heliostats (repeat the option).")] = None,
+    workers: Workers = None,
+    scheduler: Scheduler = "local",
+    dask_address: DaskAddress = None,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
     """Fit the coarse (rigid-body) model on each heliostat's training rows."""
     with progress_bar("fit-coarse", quiet) as advance:
         summary = run_fit_coarse(workdir, preset=preset, loss=loss, f_scale_mrad=f_scale,
-                                 robust_start=robust_start, heliostats=heliostat, progress=advance)
+                                 robust_start=robust_start, heliostats=heliostat, progress=advance,
+                                 workers=workers, scheduler=scheduler, dask_address=dask_address)
     emit(summary, json_, _human)

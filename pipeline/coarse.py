@@ -44,6 +44,7 @@ from .artifacts import (ArtifactSchema, Column as C, artifact_path, check_fresh,
                         write_artifact)
 from .errors import FitError, check_choice, check_float
 from .jacobian import residual_and_jacobian
+from .parallel import map_tasks
 from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
                          HeliostatSpec, forward_kinematics, joint_angles, nominal_parameters,
                          preset_mask)
@@ -572,9 +573,17 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
     return out
 
 
+def _fit_task(task) -> tuple:
+    """One heliostat's fits (a picklable task for :func:`~heliocal.pipeline.parallel.map_tasks`)."""
+    hrow, rows, presets, kwargs = task
+    return fit_one_heliostat(pd.Series(hrow), rows, presets, **kwargs)
+
+
 def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
                    f_scale_mrad: float = 1.0, robust_start: str = "auto",
-                   heliostats: Sequence[str] | None = None, progress=None) -> dict:
+                   heliostats: Sequence[str] | None = None, progress=None,
+                   workers: int | None = 1, scheduler: str = "local",
+                   dask_address: str | None = None) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -584,6 +593,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     loss, f_scale_mrad, robust_start : see :func:`fit_heliostat`.
     heliostats : restrict to these ids.
     progress : optional callable ``progress(done, total, heliostat_id)``.
+    workers, scheduler, dask_address : where the per-heliostat fits run
+        (:func:`heliocal.pipeline.parallel.map_tasks`); results do not depend on it.
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
@@ -599,23 +610,24 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     if not ids:
         raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
                        "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")
-    all_params, all_preds, summaries = [], [], []
     groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
-    for k, hid in enumerate(ids):
+    tasks = []
+    for hid in ids:
         rows = groups[hid]
-        rows = rows[rows["split"] != "excluded"]
-        params, preds, summary = fit_one_heliostat(helio.loc[hid], rows, presets, loss=loss,
-                                                   f_scale_mrad=f_scale_mrad,
-                                                   robust_start=robust_start)
+        tasks.append((helio.loc[hid].to_dict(), rows[rows["split"] != "excluded"], presets,
+                      {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}))
+    results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
+                        dask_address=dask_address,
+                        progress=(lambda done, total: progress(done, total, None)) if progress else None)
+    all_params, all_preds, summaries = [], [], []
+    for params, preds, summary in results:
         for name, items in summary["implausible"].items():
             if name == summary["selected"]:
-                log.warning("%s: the nominal geometry needed a large correction (%s)", hid,
-                            "; ".join(items))
+                log.warning("%s: the nominal geometry needed a large correction (%s)",
+                            summary["heliostat_id"], "; ".join(items))
         all_params += params
         all_preds.append(preds)
         summaries.append(summary)
-        if progress:
-            progress(k + 1, len(ids), hid)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "heliostats": list(heliostats) if heliostats else None}
     inputs = {"measurements": artifact_path(workdir, MEASUREMENTS),
