@@ -731,7 +731,8 @@ def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, 
     top = float(np.nanpercentile(d["error_mrad"], 99)) if d["error_mrad"].notna().any() else 1.0
     if d["error_mrad"].max() > 1.5 * top:  # keep a few wild points from flattening the rest
         ax.set_ylim(0, 1.3 * top)
-        ax.text(0.99, 0.97, f"{int((d['error_mrad'] > 1.3 * top).sum())} points above the axis",
+        n_above = int((d["error_mrad"] > 1.3 * top).sum())
+        ax.text(0.99, 0.97, f"{n_above} point{'s' if n_above != 1 else ''} above the axis",
                 transform=ax.transAxes, ha="right", va="top", fontsize="x-small")
     ax.grid(alpha=0.3)
     title = f"{heliostat}: error of {model} over time"
