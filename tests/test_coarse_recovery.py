@@ -97,7 +97,7 @@ def test_noiseless_static_6_recovers_every_parameter(tmp_path, kinematic_type):
 
 @pytest.mark.parametrize("kinematic_type", ["juelich", "az-el"])
 def test_noiseless_static_20_recovers_the_determined_combinations(tmp_path, kinematic_type):
-    sim, spec, nominal, data = _ingested(tmp_path, kinematic_type, "static-20", seed=3)
+    sim, spec, nominal, data = _ingested(tmp_path, kinematic_type, "static-20", seed=3, n=60)
     # max_nfev: with the exact null direction of the linear actuators (condition number ~1e17)
     # MINPACK needs ~180 Jacobians to reach xtol; the default 200 evaluations stop it short
     fit = _check_recovery(sim, spec, nominal, data, "static-20", max_nfev=2000)
