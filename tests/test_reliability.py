@@ -1,0 +1,340 @@
+"""Reliability of the staged pipeline: stage inputs are checked, writes are atomic, runs reproduce.
+
+* Stage inputs: a stage on a work directory with a missing, stale or incompatible input artifact
+  exits with code 1 and one line ``Error: ...`` naming the stage to run (pipeline/artifacts.py:
+  ``read_artifact`` and ``check_fresh``; freshness compares SHA-256 content hashes, not mtimes).
+* Atomic writes: a stage killed (SIGKILL) inside a Parquet write leaves the previous artifact
+  byte-identical and only a hidden ``.<name>.tmp-*`` leftover; an exception inside the write
+  removes the temporary file. The kill is synchronised, not timed: the child process writes half
+  of the real Parquet bytes to the temporary file, reports through a pipe, and sleeps until killed.
+* Reproducibility: ingest -> split-knn -> fit-coarse twice, in two work directories, on the same
+  sample data and seed give equal tables and equal provenance.
+
+Data: ``sample_data/juelich/paint`` (BE36 177, BF41 170, BH35 149 measurements; see
+sample_data/README.md) and ``tests/data/good/paint_small`` (BE36: 3 measurements; 118671 has both
+focal-spot detectors, 118750 only HeliOS, 118826 only UTIS).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import select
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from heliocal.cli.main import app
+from heliocal.pipeline import __version__
+from heliocal.pipeline.artifacts import SCHEMA_VERSION, check_fresh, read_artifact, read_provenance
+from heliocal.pipeline.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
+from heliocal.pipeline.split import SPLIT
+
+REPO = Path(__file__).resolve().parents[1]
+PAINT = REPO / "sample_data" / "juelich" / "paint"
+PAINT_SMALL = REPO / "tests" / "data" / "good" / "paint_small"
+INGEST_ARTIFACTS = ("measurements.parquet", "heliostats.parquet", "rejected.parquet")
+#: Small and quick coarse fit: 6 parameters, one heliostat (about 1 s).
+COARSE_ARGS = ["--preset", "static-6", "--heliostat", "BE36"]
+
+
+def _registered() -> set[str]:
+    return {c.name or c.callback.__name__ for c in app.registered_commands}
+
+
+def _run(runner, *args: str):
+    return runner.invoke(app, [*map(str, args), "--quiet"])
+
+
+def _one_line_error(result) -> str:
+    """The single stderr line of a refused run (exit code 1, no traceback)."""
+    assert result.exit_code == 1, (result.exit_code, result.stdout, result.stderr)
+    assert "Traceback" not in result.output + result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    return lines[0]
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _set_schema_version(path: Path, version: int) -> None:
+    """Rewrite ``path`` with provenance claiming another schema version (all else unchanged)."""
+    table = pq.read_table(path)
+    meta = dict(table.schema.metadata)
+    prov = json.loads(meta[b"heliocal"])
+    prov["schema_version"] = version
+    meta[b"heliocal"] = json.dumps(prov, sort_keys=True).encode()
+    pq.write_table(table.replace_schema_metadata(meta), path, compression="zstd")
+
+
+@pytest.fixture(scope="module")
+def split_workdir(tmp_path_factory) -> Path:
+    """ingest sample_data/juelich/paint + split-knn (defaults, seed 0); tests work on copies."""
+    from typer.testing import CliRunner
+
+    workdir = tmp_path_factory.mktemp("split")
+    runner = CliRunner()
+    for args in (["ingest", PAINT, "--workdir", workdir], ["split-knn", "--workdir", workdir]):
+        result = _run(runner, *args)
+        assert result.exit_code == 0, result.stderr
+    return workdir
+
+
+@pytest.fixture
+def workdir(split_workdir, tmp_path) -> Path:
+    """A private copy of the ingested and split work directory."""
+    return Path(shutil.copytree(split_workdir, tmp_path / "run"))
+
+
+# ------------------------------------------------------------------------------------------------
+# stage inputs: missing, stale, incompatible
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("stage", ["split-knn", "fit-coarse"])
+def test_missing_measurements_names_ingest(stage, runner, tmp_path):
+    line = _one_line_error(_run(runner, stage, "--workdir", tmp_path))
+    assert line == (f"Error: {tmp_path}/measurements.parquet is missing: run "
+                    f"`heliocal ingest --workdir {tmp_path}` first")
+    assert os.listdir(tmp_path) == []  # nothing written
+
+
+def test_missing_measurements_report(runner, tmp_path):
+    if "report" not in _registered():
+        pytest.skip("`heliocal report` is not registered in cli/main.py")
+    line = _one_line_error(_run(runner, "report", "--workdir", tmp_path))
+    assert line == (f"Error: {tmp_path}/measurements.parquet is missing: run "
+                    f"`heliocal ingest SOURCE --workdir {tmp_path}` first")
+
+
+def test_fit_hybrid_without_coarse_fit_names_fit_coarse(runner, workdir):
+    if "fit-hybrid" not in _registered():
+        pytest.skip("`heliocal fit-hybrid` is not registered in cli/main.py")
+    line = _one_line_error(_run(runner, "fit-hybrid", "--workdir", workdir))
+    assert line == (f"Error: {workdir}/coarse_params.parquet is missing: run "
+                    f"`heliocal fit-coarse --workdir {workdir}` first")
+
+
+def test_stale_split_is_refused_by_fit_coarse(runner, workdir):
+    # ingest again with other data: HeliOS instead of UTIS focal spots changes measurements.parquet
+    before = _sha(workdir / "measurements.parquet")
+    assert _run(runner, "ingest", PAINT, "--focal-spot", "helios", "--workdir", workdir).exit_code == 0
+    assert _sha(workdir / "measurements.parquet") != before
+    line = _one_line_error(_run(runner, "fit-coarse", "--workdir", workdir, *COARSE_ARGS))
+    assert line == (f"Error: {workdir}/split.parquet is stale: measurements.parquet changed after "
+                    f"it was written; rerun `heliocal split-knn --workdir {workdir}` first")
+    assert not (workdir / "coarse_params.parquet").exists()
+    # the fix the message names works
+    assert _run(runner, "split-knn", "--workdir", workdir).exit_code == 0
+    check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})
+
+
+def test_reingest_of_same_data_keeps_split_fresh(runner, workdir):
+    # freshness is by content: rewriting identical measurements must not make split.parquet stale
+    before = {name: _sha(workdir / name) for name in INGEST_ARTIFACTS}
+    assert _run(runner, "ingest", PAINT, "--workdir", workdir).exit_code == 0
+    assert {name: _sha(workdir / name) for name in INGEST_ARTIFACTS} == before
+    check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})  # no error
+
+
+@pytest.mark.parametrize("artifact, stage, producer", [
+    ("measurements.parquet", "split-knn", "ingest"),
+    ("measurements.parquet", "fit-coarse", "ingest"),
+    ("heliostats.parquet", "fit-coarse", "ingest"),
+    ("split.parquet", "fit-coarse", "split-knn"),
+])
+def test_artifact_of_other_schema_version_is_refused(artifact, stage, producer, runner, workdir):
+    _set_schema_version(workdir / artifact, 999)
+    line = _one_line_error(_run(runner, stage, "--workdir", workdir, *(
+        COARSE_ARGS if stage == "fit-coarse" else [])))
+    assert line == (f"Error: {workdir}/{artifact} was written by heliocal {__version__} with schema "
+                    f"version 999, but this heliocal reads version {SCHEMA_VERSION}: rerun "
+                    f"`heliocal {producer} --workdir {workdir}`")
+
+
+# ------------------------------------------------------------------------------------------------
+# atomic writes
+# ------------------------------------------------------------------------------------------------
+#: Runs `heliocal ingest` in a child process whose pyarrow.parquet.write_table, for the file
+#: named in HELIOCAL_TEST_STOP_IN, writes the first half of the real Parquet bytes to the temporary
+#: file, reports on the pipe HELIOCAL_TEST_FD and sleeps: the parent kills it inside the write.
+#: Only the ingest command is imported (no torch), so the child starts in about a second.
+_CHILD = textwrap.dedent("""
+    import io, os, sys, time
+    import pyarrow.parquet as pq
+
+    real_write_table = pq.write_table
+    stop_in = "." + os.environ["HELIOCAL_TEST_STOP_IN"] + ".tmp-"
+    fd = int(os.environ["HELIOCAL_TEST_FD"])
+
+    def write_table(table, where, *args, **kwargs):
+        if not os.path.basename(str(where)).startswith(stop_in):
+            return real_write_table(table, where, *args, **kwargs)
+        buffer = io.BytesIO()
+        real_write_table(table, buffer, *args, **kwargs)
+        data = buffer.getvalue()
+        with open(where, "wb") as fh:
+            fh.write(data[: len(data) // 2])
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.write(fd, str(where).encode())  # inside the write now
+        time.sleep(300)
+
+    pq.write_table = write_table
+    from heliocal.cli.app import app
+    import heliocal.cli.ingest  # noqa: F401 - registers `ingest`
+    app(args=sys.argv[1:], prog_name="heliocal")
+""")
+
+
+def _ingest_killed_inside_write(workdir: Path, stop_in: str, *args: str) -> Path:
+    """Run ``heliocal ingest ARGS`` in a child, SIGKILL it inside ``stop_in``'s write.
+
+    Returns the temporary file the child was writing.
+    """
+    read_fd, write_fd = os.pipe()
+    env = {**os.environ, "HELIOCAL_TEST_STOP_IN": stop_in, "HELIOCAL_TEST_FD": str(write_fd)}
+    child = subprocess.Popen([sys.executable, "-c", _CHILD, "ingest", *args, "--workdir",
+                              str(workdir), "--quiet"], env=env, pass_fds=(write_fd,),
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    os.close(write_fd)  # the child's copy is the only writer: EOF if it exits without reporting
+    try:
+        ready, _, _ = select.select([read_fd], [], [], 120)
+        message = os.read(read_fd, 4096).decode() if ready else ""
+        if not message:
+            child.kill()
+            pytest.fail(f"the child never reached the write of {stop_in}: "
+                        f"{child.communicate()[1].decode()}")
+        child.send_signal(signal.SIGKILL)
+        assert child.wait(30) == -signal.SIGKILL
+        child.stderr.close()
+    finally:
+        os.close(read_fd)
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    return Path(message)
+
+
+@pytest.mark.parametrize("stop_in", ["rejected.parquet", "measurements.parquet"])
+def test_kill_inside_a_write_leaves_previous_artifact_intact(stop_in, runner, tmp_path):
+    workdir = tmp_path / "run"
+    # previous complete run: UTIS spots. The killed run would write HeliOS spots (other bytes).
+    assert _run(runner, "ingest", PAINT_SMALL, "--workdir", workdir).exit_code == 0
+    previous = {name: (workdir / name).read_bytes() for name in INGEST_ARTIFACTS}
+    tmp = _ingest_killed_inside_write(workdir, stop_in, str(PAINT_SMALL), "--focal-spot", "helios")
+
+    # the only leftover is the hidden temporary file of the interrupted write, and it is partial
+    assert tmp.parent == workdir and tmp.name.startswith(f".{stop_in}.tmp-")
+    leftovers = sorted(p.name for p in workdir.iterdir() if p.name not in INGEST_ARTIFACTS)
+    assert leftovers == [tmp.name]
+    assert tmp.stat().st_size > 0
+    with pytest.raises(Exception):
+        pq.read_table(tmp)  # half a Parquet file: no footer
+    # the interrupted artifact is byte-identical to the previous run's
+    assert (workdir / stop_in).read_bytes() == previous[stop_in]
+    # ingest writes rejected, heliostats, measurements in this order: the ones before the
+    # interrupted write are complete new files, the ones after it are the previous ones
+    order = ["rejected.parquet", "heliostats.parquet", "measurements.parquet"]
+    for name in order[order.index(stop_in) + 1:]:
+        assert (workdir / name).read_bytes() == previous[name], name
+    for name in order[: order.index(stop_in)]:
+        assert (workdir / name).read_bytes() != previous[name], name
+        assert read_provenance(workdir / name)["options"]["focal_spot"] == "helios"
+    for schema in (MEASUREMENTS, HELIOSTATS, REJECTED):  # every artifact is whole and readable
+        read_artifact(workdir, schema)
+    # no stage reads the leftover: the next run of the stage replaces the artifacts normally
+    assert _run(runner, "ingest", PAINT_SMALL, "--workdir", workdir).exit_code == 0
+    assert {name: (workdir / name).read_bytes() for name in INGEST_ARTIFACTS} == previous
+
+
+@pytest.mark.parametrize("crash, code, message", [
+    (OSError(28, "No space left on device"), 1,
+     "Error: internal error OSError: [Errno 28] No space left on device (a bug in heliocal: "
+     "rerun with HELIOCAL_DEBUG=1 for the traceback and report it)"),
+    (KeyboardInterrupt(), 130, None),
+])
+def test_crash_inside_a_write_removes_the_temporary_file(crash, code, message, runner, tmp_path,
+                                                         monkeypatch, capsys):
+    from heliocal.cli.main import main
+
+    workdir = tmp_path / "run"
+    assert _run(runner, "ingest", PAINT_SMALL, "--workdir", workdir).exit_code == 0
+    previous = {name: (workdir / name).read_bytes() for name in INGEST_ARTIFACTS}
+    real_write_table = pq.write_table
+    seen = []
+
+    def half_then_crash(table, where, *args, **kwargs):
+        real_write_table(table, where, *args, **kwargs)
+        Path(where).write_bytes(Path(where).read_bytes()[:100])  # a partial file on disk
+        seen.append(Path(where))
+        raise crash
+
+    monkeypatch.setattr(pq, "write_table", half_then_crash)
+    monkeypatch.setattr(sys, "argv", ["heliocal", "ingest", str(PAINT_SMALL), "--focal-spot",
+                                      "helios", "--workdir", str(workdir), "--quiet"])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    assert exc.value.code == code
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    if message is not None:
+        assert err.splitlines() == [message]
+    assert seen and seen[0].name.startswith(".rejected.parquet.tmp-")  # the first write crashed
+    assert sorted(os.listdir(workdir)) == sorted(INGEST_ARTIFACTS)  # temporary file removed
+    assert {name: (workdir / name).read_bytes() for name in INGEST_ARTIFACTS} == previous
+
+
+# ------------------------------------------------------------------------------------------------
+# reproducibility
+# ------------------------------------------------------------------------------------------------
+#: Columns that measure the run, not the result (wall-clock seconds): left out of the comparison.
+TIMING_COLUMNS = {"wall_time_s"}
+
+
+def _pipeline(runner, workdir: Path) -> None:
+    for args in (["ingest", PAINT], ["split-knn", "--seed", "0"], ["fit-coarse", *COARSE_ARGS]):
+        result = _run(runner, *args, "--workdir", workdir)
+        assert result.exit_code == 0, (args, result.stderr)
+
+
+def _normalized_provenance(path: Path, workdir: Path) -> dict:
+    """Provenance with the work directory's path (the only legitimate difference) replaced."""
+    text = json.dumps(read_provenance(path), sort_keys=True)
+    return json.loads(text.replace(str(workdir), "<workdir>"))
+
+
+def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
+    first, second = tmp_path / "first", tmp_path / "second"
+    _pipeline(runner, first)
+    _pipeline(runner, second)
+    names = sorted(p.name for p in first.iterdir())
+    assert names == sorted(p.name for p in second.iterdir())
+    assert names == ["coarse_params.parquet", "coarse_predictions.parquet", "heliostats.parquet",
+                     "measurements.parquet", "rejected.parquet", "split.parquet"]
+    for name in names:
+        a, b = pd.read_parquet(first / name), pd.read_parquet(second / name)
+        assert len(a) > 0 or name == "rejected.parquet", name  # the sample keeps all 496 rows
+        a, b = a.drop(columns=TIMING_COLUMNS & set(a.columns)), b.drop(columns=TIMING_COLUMNS
+                                                                        & set(b.columns))
+        floats = [c for c in a.columns if a[c].dtype.kind == "f"]
+        other = [c for c in a.columns if c not in floats]
+        # strings, ints, bools, timestamps exactly; floats to 1e-12 (threads may reorder sums)
+        pd.testing.assert_frame_equal(a[other], b[other], check_exact=True, obj=name)
+        pd.testing.assert_frame_equal(a[floats], b[floats], check_exact=False, rtol=1e-12,
+                                      atol=0.0, obj=name)
+        assert _normalized_provenance(first / name, first) == \
+            _normalized_provenance(second / name, second), name
+    # the fit did something: BE36's selected static-6 fit has a finite test error
+    params = pd.read_parquet(first / "coarse_params.parquet")
+    assert set(params["heliostat_id"]) == {"BE36"} and params["selected"].all()
+    assert np.isfinite(params["test_error_mrad"]).all()
