@@ -74,7 +74,8 @@ def simulate_cmd(
     disturbances: Annotated[str, typer.Option(
         "--disturbances", help="Disturbances of dynamic heliostats, comma-separated: "
                                + ", ".join(DISTURBANCE_KINDS) + ".")] = ",".join(DISTURBANCE_KINDS),
-    start: Annotated[str, typer.Option("--start", help="First day of the calibration period (UTC).")] = "2023-01-01",
+    start: Annotated[str, typer.Option(
+        "--start", help="First day of the calibration period (UTC).")] = "2023-01-01",
     end: Annotated[str, typer.Option("--end", help="Day after the period (UTC).")] = "2024-01-01",
     overwrite: Annotated[bool, typer.Option(
         "--overwrite", help="Replace a previous simulation in --out (only its files are removed).")] = False,

@@ -43,10 +43,9 @@ import io
 import json
 import math
 import os
-import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 import pandas as pd
@@ -57,7 +56,7 @@ from .artifacts import atomic_write_text
 from .errors import InputError, ParameterError, check_choice, check_float, check_int
 from .geodesy import enu_to_wgs84, wgs84_to_enu
 from .ingest import PAINT_AXIS_1_INITIAL_ANGLE_SHIFT_RAD
-from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
+from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PRESET_NAMES,
                          STONE_MAPPING, HeliostatSpec, forward_kinematics, inverse_kinematics,
                          nominal_parameters, preset_parameters)
 from .metrics import error_mrad, measured_normal, reflect
@@ -633,7 +632,7 @@ def _simulate_measurements(rng, h: SimulatedHeliostat, count: int, slots, t0, ta
     spec = h.spec
     rows = []
     have = 0
-    for attempt in range(6):  # unreachable rows (NaN steps) are replaced by new times
+    for _ in range(6):  # unreachable rows (NaN steps) are replaced by new times
         need = count - have
         if need <= 0:
             break

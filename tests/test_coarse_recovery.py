@@ -25,8 +25,8 @@ from heliocal.pipeline.artifacts import read_artifact
 from heliocal.pipeline.coarse import (COARSE_PARAMS, MeasurementBatch, fit_heliostat,
                                       normal_errors_mrad, run_fit_coarse)
 from heliocal.pipeline.ingest import IngestOptions, ingest, run_ingest
-from heliocal.pipeline.kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, HeliostatSpec,
-                                          joint_angles, nominal_parameters)
+from heliocal.pipeline.kinematics import (PARAMETER_NAMES, HeliostatSpec, joint_angles,
+                                          nominal_parameters)
 from heliocal.pipeline.simulate import simulate_field, write_field
 from heliocal.pipeline.split import run_split
 
@@ -36,7 +36,7 @@ _ACTUATOR_FIELDS = ("increment", "initial_stroke_length_m", "offset_m", "pivot_r
 
 def _ingested(tmp_path, kinematic_type: str, deviations: str, seed: int, n: int = 120,
               noise_mrad: float = 0.0):
-    """Simulate one static heliostat, write it, ingest it; return (sim heliostat, spec, nominal, data)."""
+    """Simulate one static heliostat, write and ingest it: (simulated heliostat, spec, nominal, data)."""
     field = simulate_field(1, seed=seed, measurements=(n, n), kinematic_types=(kinematic_type,),
                            dynamic_fraction=0.0, noise_mrad=noise_mrad, deviations=deviations)
     out = tmp_path / "sim"

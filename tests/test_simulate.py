@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-import torch
 from typer.testing import CliRunner
 
 import heliocal.cli.simulate  # noqa: F401  (registers simulate on the app)
