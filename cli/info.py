@@ -1,0 +1,297 @@
+"""``heliocal info PATH``: the provenance of an artifact, or the artifacts of a work directory.
+
+For a Parquet artifact it prints what pipeline/artifacts.py recorded in the file's metadata
+(schema version, stage, heliocal version and git revision, command, resolved options, seed and
+the SHA-256 of every input), its rows and columns, and whether each input is still the file it was
+made from (*freshness*). For a work directory it lists every artifact with its stage, rows and
+freshness, and the hidden ``.<name>.tmp-*`` leftovers of interrupted writes (no stage reads them).
+
+``--json`` prints the same as one JSON document. A file that is not a heliocal artifact gives one
+line ``Error: ...`` and exit code 1.
+
+The gathering functions (:func:`describe_artifact`, :func:`describe_workdir`) return plain
+dictionaries; only :func:`info_cmd` and the ``_print_*`` helpers format them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+import typer
+from rich import box
+from rich.table import Table
+from rich.text import Text
+
+from heliocal.cli.app import JsonFlag, command, emit, stdout
+from heliocal.pipeline.artifacts import SCHEMA_VERSION, file_sha256
+from heliocal.pipeline.errors import InputError, SchemaError
+
+__all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
+
+_META_KEY = b"heliocal"  # the key pipeline/artifacts.py writes the provenance under
+_SOURCE_PREFIX = "source:"  # ingest records each source as "source:<path as given>"
+
+#: Status of one artifact, best first: fresh, then the reasons it may not be.
+STATUSES = {
+    "fresh": "every recorded input hash equals the current input file's hash",
+    "stale": "an input changed after the artifact was written: rerun its stage",
+    "unknown": "an input cannot be found to compare (moved source, or none recorded)",
+    "incompatible": "written with another schema version: rerun its stage",
+}
+
+
+# ------------------------------------------------------------------------------------------------
+# gathering (plain data)
+# ------------------------------------------------------------------------------------------------
+def _schemas_by_name() -> dict:
+    from heliocal.pipeline.schemas import all_schemas
+
+    return {s.name: s for s in all_schemas()}
+
+
+class _HashCache:
+    """SHA-256 of input files, each computed once per ``info`` call (sources can be large)."""
+
+    def __init__(self) -> None:
+        self._cache: dict[Path, str] = {}
+
+    def __call__(self, path: Path) -> str:
+        key = path.resolve()
+        if key not in self._cache:
+            self._cache[key] = file_sha256(key)
+        return self._cache[key]
+
+
+def _read_metadata(path: Path) -> tuple[pq.FileMetaData, dict]:
+    """The Parquet footer and the heliocal provenance of ``path`` (one-line errors otherwise)."""
+    if not path.exists():
+        raise InputError(f"{path}: no such file or folder; check the path")
+    try:
+        meta = pq.ParquetFile(path).metadata
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise SchemaError(f"{path} is not a readable Parquet file ({' '.join(str(exc).split())}); "
+                          "give a heliocal artifact or a work directory") from exc
+    kv = meta.metadata or {}
+    if _META_KEY not in kv:
+        raise SchemaError(f"{path} is a Parquet file but not a heliocal artifact (it has no "
+                          "heliocal provenance metadata)")
+    try:
+        prov = json.loads(kv[_META_KEY])
+        if not isinstance(prov, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as exc:
+        raise SchemaError(f"{path} has unreadable heliocal provenance metadata ({exc}); rerun the "
+                          "stage that writes it") from exc
+    return meta, prov
+
+
+def _input_path(label: str, prov: dict, folder: Path, schemas: dict) -> Path | None:
+    """The file an input label of ``prov`` refers to now (``None`` if it cannot be told)."""
+    if label.startswith(_SOURCE_PREFIX):
+        return Path(label[len(_SOURCE_PREFIX):])
+    if label in schemas:  # an upstream artifact in the same work directory
+        return folder / schemas[label].filename
+    value = (prov.get("options") or {}).get(label)  # e.g. ingest's tower/properties
+    if isinstance(value, str) and value:
+        return Path(value)
+    return None
+
+
+def _inputs_freshness(prov: dict, folder: Path, schemas: dict, sha: _HashCache) -> dict:
+    """Per recorded input: its path now, the recorded and the current hash, and a status."""
+    out = {}
+    for label, recorded in sorted((prov.get("inputs") or {}).items()):
+        path = _input_path(label, prov, folder, schemas)
+        current = sha(path) if path is not None and path.exists() else None
+        if recorded is None or current is None:
+            status = "unknown"
+        else:
+            status = "fresh" if current == recorded else "stale"
+        out[label] = {"path": None if path is None else str(path), "recorded_sha256": recorded,
+                      "current_sha256": current, "status": status}
+    return out
+
+
+def _status(prov: dict, inputs: dict) -> str:
+    if prov.get("schema_version") != SCHEMA_VERSION:
+        return "incompatible"
+    states = {i["status"] for i in inputs.values()}
+    for status in ("stale", "unknown"):
+        if status in states:
+            return status
+    return "fresh"
+
+
+def _hint(status: str, prov: dict, folder: Path) -> str | None:
+    if status in ("stale", "incompatible"):
+        return f"rerun `heliocal {prov.get('stage', '?')} --workdir {folder}`"
+    return None
+
+
+def describe_artifact(path: str | Path, *, _sha: _HashCache | None = None,
+                      _schemas: dict | None = None) -> dict:
+    """Provenance, shape and freshness of one heliocal Parquet artifact.
+
+    Raises
+    ------
+    InputError : ``path`` does not exist.
+    SchemaError : it is not a Parquet file, or not a heliocal artifact.
+    """
+    path = Path(path)
+    meta, prov = _read_metadata(path)
+    schemas = _schemas if _schemas is not None else _schemas_by_name()
+    inputs = _inputs_freshness(prov, path.parent, schemas, _sha or _HashCache())
+    status = _status(prov, inputs)
+    arrow = meta.schema.to_arrow_schema()
+    return {
+        "path": str(path),
+        "artifact": prov.get("artifact"),
+        "stage": prov.get("stage"),
+        "rows": int(meta.num_rows),
+        "row_groups": int(meta.num_row_groups),
+        "size_bytes": path.stat().st_size,
+        "columns": [{"name": f.name, "type": str(f.type)} for f in arrow],
+        "status": status,
+        "hint": _hint(status, prov, path.parent),
+        "reads_schema_version": SCHEMA_VERSION,
+        "inputs": inputs,
+        "provenance": prov,
+    }
+
+
+def describe_workdir(workdir: str | Path) -> dict:
+    """Every artifact of ``workdir`` (stage, rows, freshness), foreign files and leftovers."""
+    workdir = Path(workdir)
+    sha, schemas = _HashCache(), _schemas_by_name()
+    artifacts, foreign = [], []
+    for path in sorted(workdir.glob("*.parquet")):
+        if path.name.startswith("."):
+            continue
+        try:
+            d = describe_artifact(path, _sha=sha, _schemas=schemas)
+        except SchemaError as exc:
+            foreign.append({"path": str(path), "reason": str(exc)})
+            continue
+        artifacts.append({k: d[k] for k in ("path", "artifact", "stage", "rows", "status", "hint",
+                                             "inputs")}
+                         | {"schema_version": d["provenance"].get("schema_version")})
+    leftovers = sorted(str(p) for p in workdir.glob(".*.tmp-*"))
+    return {
+        "workdir": str(workdir),
+        "artifacts": artifacts,
+        "fresh": all(a["status"] == "fresh" for a in artifacts),
+        "not_artifacts": foreign,
+        "leftovers": leftovers,
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# formatting
+# ------------------------------------------------------------------------------------------------
+_STYLE = {"fresh": "green", "stale": "bold red", "unknown": "yellow", "incompatible": "bold red"}
+
+
+def _short(sha: str | None) -> str:
+    return "-" if sha is None else sha[:12]
+
+
+def _inputs_table(inputs: dict) -> Table:
+    table = Table(box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
+    for col in ("input", "path", "recorded sha256", "current sha256", "status"):
+        table.add_column(col, overflow="fold")
+    for label, i in inputs.items():
+        table.add_row(Text(label), Text(i["path"] or "-"), Text(_short(i["recorded_sha256"])),
+                      Text(_short(i["current_sha256"])),
+                      Text(i["status"], style=_STYLE.get(i["status"], "")))
+    return table
+
+
+def _print_artifact(d: dict) -> None:
+    prov = d["provenance"]
+    head = Table(box=None, show_header=False, pad_edge=False)
+    head.add_column(style="bold", no_wrap=True)
+    head.add_column(overflow="fold")
+    version = str(prov.get("schema_version"))
+    if prov.get("schema_version") != SCHEMA_VERSION:
+        version += f" (this heliocal reads {SCHEMA_VERSION})"
+    rows = [
+        ("file", d["path"]),
+        ("artifact", str(prov.get("artifact"))),
+        ("stage", f"heliocal {prov.get('stage')}"),
+        ("rows", f"{d['rows']} in {d['row_groups']} row group(s), {len(d['columns'])} columns, "
+                 f"{d['size_bytes']} bytes"),
+        ("schema version", version),
+        ("heliocal", f"{prov.get('heliocal_version')} (git {prov.get('git_revision')})"),
+        ("command", str(prov.get("command"))),
+        ("seed", "-" if prov.get("seed") is None else str(prov.get("seed"))),
+    ]
+    for key, value in rows:
+        head.add_row(Text(key), Text(value))
+    status = Text(d["status"], style=_STYLE.get(d["status"], ""))
+    if d["hint"]:
+        status.append(f": {d['hint']}")
+    head.add_row(Text("status"), status)
+    stdout.print(head)
+    options = prov.get("options") or {}
+    stdout.print(Text("options", style="bold"))
+    if not options:
+        stdout.print(Text("  (none)"))
+    for key, value in sorted(options.items()):
+        stdout.print(Text(f"  {key} = {json.dumps(value)}"))
+    stdout.print(Text("inputs", style="bold"))
+    if d["inputs"]:
+        stdout.print(_inputs_table(d["inputs"]))
+    else:
+        stdout.print(Text("  (none recorded)"))
+    stdout.print(Text("columns", style="bold"))
+    stdout.print(Text("  " + ", ".join(f"{c['name']} ({c['type']})" for c in d["columns"])))
+
+
+def _print_workdir(d: dict) -> None:
+    if not d["artifacts"] and not d["not_artifacts"]:
+        stdout.print(Text(f"{d['workdir']}: no heliocal artifacts (run `heliocal ingest SOURCE "
+                          f"--workdir {d['workdir']}` first)"))
+    else:
+        table = Table(title=Text(f"artifacts in {d['workdir']}"), box=box.SIMPLE_HEAD,
+                      pad_edge=False)
+        for col in ("file", "stage", "rows", "status", "changed inputs"):
+            table.add_column(col, justify="right" if col == "rows" else "left",
+                             no_wrap=col != "changed inputs", overflow="fold")
+        for a in d["artifacts"]:
+            changed = ", ".join(k for k, i in a["inputs"].items() if i["status"] != "fresh")
+            status = Text(a["status"], style=_STYLE.get(a["status"], ""))
+            table.add_row(Text(Path(a["path"]).name), Text(str(a["stage"])), Text(str(a["rows"])),
+                          status, Text(changed or "-"))
+        stdout.print(table)
+        for a in d["artifacts"]:
+            if a["hint"]:
+                why = a["status"]
+                if why == "incompatible":
+                    why += (f" (schema version {a['schema_version']}, this heliocal reads "
+                            f"{SCHEMA_VERSION})")
+                stdout.print(Text(f"{Path(a['path']).name}: {why}; {a['hint']}"))
+    for f in d["not_artifacts"]:
+        stdout.print(Text(f"not an artifact: {f['reason']}"))
+    for p in d["leftovers"]:
+        stdout.print(Text(f"leftover of an interrupted write (no stage reads it; safe to delete): "
+                          f"{p}"))
+
+
+# ------------------------------------------------------------------------------------------------
+# the command
+# ------------------------------------------------------------------------------------------------
+@command("info")
+def info_cmd(
+    path: Annotated[Path, typer.Argument(
+        help="A heliocal Parquet artifact, or a work directory to list its artifacts.")],
+    json_: JsonFlag = False,
+) -> None:
+    """Show an artifact's provenance (version, command, options, seed, input hashes) and freshness."""
+    if path.is_dir():
+        emit(describe_workdir(path), json_, _print_workdir)
+    else:
+        emit(describe_artifact(path), json_, _print_artifact)
