@@ -13,7 +13,7 @@ SOURCE_FILES := $(shell find $(SOURCES) -type f 2>/dev/null)
 CODE := $(shell find pipeline cli -name '*.py' 2>/dev/null)
 
 .DEFAULT_GOAL := help
-.PHONY: help install sample test clean
+.PHONY: help install sample report test regression clean
 
 ## help: list the targets
 help:
@@ -29,18 +29,31 @@ $(VENV)/.installed: pyproject.toml
 	$(VENV)/bin/pip install --quiet -e ".[test]"
 	touch $@
 
-## sample: run the whole pipeline on sample_data (WORKDIR=runs/sample)
-sample: $(WORKDIR)/measurements.parquet $(WORKDIR)/split.parquet
+## sample: run the whole pipeline on sample_data into WORKDIR (default runs/sample)
+sample: $(WORKDIR)/report/index.html
+
+## report: HTML report, figures and metrics.json of the run ($(WORKDIR)/report/)
+report: $(WORKDIR)/report/index.html
 
 ## test: install and run the test suite
 test: $(VENV)/.installed
 	$(VENV)/bin/python -m pytest -q
 
+## regression: run the sample pipeline and compare its metrics.json with the committed baseline
+regression: $(WORKDIR)/report/index.html
+	$(VENV)/bin/python -m heliocal.pipeline.regression $(WORKDIR)/report/metrics.json tests/baseline/metrics_sample.json
+
 $(WORKDIR)/measurements.parquet $(WORKDIR)/heliostats.parquet $(WORKDIR)/rejected.parquet &: $(SOURCE_FILES) $(CODE) $(VENV)/.installed
-	$(HELIOCAL) ingest $(SOURCES) --workdir $(WORKDIR)
+	$(HELIOCAL) ingest $(SOURCES) --workdir $(WORKDIR) --quiet
 
 $(WORKDIR)/split.parquet: $(WORKDIR)/measurements.parquet
-	$(HELIOCAL) split-knn --workdir $(WORKDIR) --seed $(SEED)
+	$(HELIOCAL) split-knn --workdir $(WORKDIR) --seed $(SEED) --quiet
+
+$(WORKDIR)/coarse_params.parquet $(WORKDIR)/coarse_predictions.parquet &: $(WORKDIR)/split.parquet $(WORKDIR)/heliostats.parquet
+	$(HELIOCAL) fit-coarse --workdir $(WORKDIR) --preset $(PRESET) --quiet
+
+$(WORKDIR)/report/index.html $(WORKDIR)/report/report.md $(WORKDIR)/report/metrics.json &: $(WORKDIR)/coarse_predictions.parquet $(wildcard $(WORKDIR)/hybrid_predictions.parquet $(WORKDIR)/sweep.parquet $(WORKDIR)/selection.parquet)
+	$(HELIOCAL) report --workdir $(WORKDIR) --quiet
 
 ## clean: remove run outputs (not the virtual environment)
 clean:
