@@ -124,6 +124,23 @@ def test_fit_hybrid_without_coarse_fit_names_fit_coarse(runner, workdir):
                     f"`heliocal fit-coarse --workdir {workdir}` first")
 
 
+def test_fit_hybrid_refuses_incompatible_or_stale_coarse_fit(runner, workdir, tmp_path):
+    if "fit-hybrid" not in _registered():
+        pytest.skip("`heliocal fit-hybrid` is not registered in cli/main.py")
+    assert _run(runner, "fit-coarse", "--workdir", workdir, *COARSE_ARGS).exit_code == 0
+    other = Path(shutil.copytree(workdir, tmp_path / "other"))
+    _set_schema_version(other / "coarse_params.parquet", 999)
+    line = _one_line_error(_run(runner, *HYBRID_ARGS, "--workdir", other))
+    assert line == (f"Error: {other}/coarse_params.parquet was written by heliocal {__version__} "
+                    f"with schema version 999, but this heliocal reads version {SCHEMA_VERSION}: "
+                    f"rerun `heliocal fit-coarse --workdir {other}`")
+    assert _run(runner, "ingest", PAINT, "--focal-spot", "helios", "--workdir", workdir).exit_code == 0
+    line = _one_line_error(_run(runner, *HYBRID_ARGS, "--workdir", workdir))
+    assert line == (f"Error: {workdir}/coarse_params.parquet is stale: measurements.parquet changed "
+                    f"after it was written; rerun `heliocal fit-coarse --workdir {workdir}` first")
+    assert not (workdir / "hybrid_predictions.parquet").exists()
+
+
 def test_stale_split_is_refused_by_fit_coarse(runner, workdir):
     # ingest again with other data: HeliOS instead of UTIS focal spots changes measurements.parquet
     before = _sha(workdir / "measurements.parquet")
@@ -294,6 +311,16 @@ def test_crash_inside_a_write_removes_the_temporary_file(crash, code, message, r
     assert {name: (workdir / name).read_bytes() for name in INGEST_ARTIFACTS} == previous
 
 
+def test_artifact_permissions_follow_umask(runner, tmp_path):
+    # mkstemp creates 0600 files; an artifact must be an ordinary file (0644 under umask 022)
+    old = os.umask(0o022)
+    try:
+        assert _run(runner, "ingest", PAINT_SMALL, "--workdir", tmp_path).exit_code == 0
+    finally:
+        os.umask(old)
+    assert oct((tmp_path / "measurements.parquet").stat().st_mode & 0o777) == oct(0o644)
+
+
 # ------------------------------------------------------------------------------------------------
 # reproducibility
 # ------------------------------------------------------------------------------------------------
@@ -301,10 +328,22 @@ def test_crash_inside_a_write_removes_the_temporary_file(crash, code, message, r
 TIMING_COLUMNS = {"wall_time_s"}
 
 
-def _pipeline(runner, workdir: Path) -> None:
-    for args in (["ingest", PAINT], ["split-knn", "--seed", "0"], ["fit-coarse", *COARSE_ARGS]):
+#: fit-hybrid, when registered: BE36 only, 30 epochs (well under a second).
+HYBRID_ARGS = ["fit-hybrid", "--heliostat", "BE36", "--max-epochs", "30", "--seed", "0"]
+
+
+def _pipeline(runner, workdir: Path, hybrid: bool) -> None:
+    stages = [["ingest", PAINT], ["split-knn", "--seed", "0"], ["fit-coarse", *COARSE_ARGS]]
+    for args in stages + ([HYBRID_ARGS] if hybrid else []):
         result = _run(runner, *args, "--workdir", workdir)
         assert result.exit_code == 0, (args, result.stderr)
+
+
+def _without_coarse_params_hash(prov: dict) -> dict:
+    """Known gap: coarse_params.parquet holds wall_time_s, so its hash differs from run to run
+    and so does every downstream artifact's recorded hash of it (drop it when that is fixed)."""
+    inputs = {k: v for k, v in prov.get("inputs", {}).items() if k != "coarse_params"}
+    return {**prov, "inputs": inputs}
 
 
 def _normalized_provenance(path: Path, workdir: Path) -> dict:
@@ -314,12 +353,15 @@ def _normalized_provenance(path: Path, workdir: Path) -> dict:
 
 
 def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
+    hybrid = "fit-hybrid" in _registered()
     first, second = tmp_path / "first", tmp_path / "second"
-    _pipeline(runner, first)
-    _pipeline(runner, second)
-    names = sorted(p.name for p in first.iterdir())
-    assert names == sorted(p.name for p in second.iterdir())
+    _pipeline(runner, first, hybrid)
+    _pipeline(runner, second, hybrid)
+    files = sorted(str(p.relative_to(first)) for p in first.rglob("*") if p.is_file())
+    assert files == sorted(str(p.relative_to(second)) for p in second.rglob("*") if p.is_file())
+    names = [f for f in files if f.endswith(".parquet")]
     assert names == ["coarse_params.parquet", "coarse_predictions.parquet", "heliostats.parquet",
+                     *(["hybrid_predictions.parquet"] if hybrid else []),
                      "measurements.parquet", "rejected.parquet", "split.parquet"]
     for name in names:
         a, b = pd.read_parquet(first / name), pd.read_parquet(second / name)
@@ -332,9 +374,51 @@ def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
         pd.testing.assert_frame_equal(a[other], b[other], check_exact=True, obj=name)
         pd.testing.assert_frame_equal(a[floats], b[floats], check_exact=False, rtol=1e-12,
                                       atol=0.0, obj=name)
-        assert _normalized_provenance(first / name, first) == \
-            _normalized_provenance(second / name, second), name
+        assert _without_coarse_params_hash(_normalized_provenance(first / name, first)) == \
+            _without_coarse_params_hash(_normalized_provenance(second / name, second)), name
+    if hybrid:  # the fine model's files: weights exactly equal (fit-hybrid runs single-threaded)
+        import torch
+
+        assert [f for f in files if not f.endswith(".parquet")] == ["hybrid/hybrid/BE36.json",
+                                                                    "hybrid/hybrid/BE36.pt"]
+        a, b = (torch.load(d / "hybrid/hybrid/BE36.pt", weights_only=True) for d in (first, second))
+        assert list(a) == list(b) and all(torch.equal(a[k], b[k]) for k in a)
+        a, b = (json.loads((d / "hybrid/hybrid/BE36.json").read_text()) for d in (first, second))
+        assert _without_coarse_params_hash(a) == _without_coarse_params_hash(b)
+    # freshness compares content hashes, so a rerun on the same inputs must write the same bytes;
+    # ingest and split-knn (numpy only, no threads) do. coarse_params.parquet does not, only
+    # because of wall_time_s (checked: it is the only column that differs).
+    for name in ("measurements.parquet", "heliostats.parquet", "rejected.parquet", "split.parquet"):
+        assert _sha(first / name) == _sha(second / name), name
     # the fit did something: BE36's selected static-6 fit has a finite test error
     params = pd.read_parquet(first / "coarse_params.parquet")
     assert set(params["heliostat_id"]) == {"BE36"} and params["selected"].all()
     assert np.isfinite(params["test_error_mrad"]).all()
+
+
+# ------------------------------------------------------------------------------------------------
+# known gaps, pinned (strict xfail: when fixed, these pass and the marker must go)
+# ------------------------------------------------------------------------------------------------
+@pytest.mark.xfail(strict=True, reason="artifacts.read_provenance says 'rerun the stage that "
+                   "writes it' without naming it; read_artifact should name schema.producer")
+def test_unreadable_input_artifact_names_the_stage(runner, workdir):
+    data = (workdir / "measurements.parquet").read_bytes()
+    (workdir / "measurements.parquet").write_bytes(data[: len(data) // 2])  # e.g. a copy cut short
+    line = _one_line_error(_run(runner, "split-knn", "--workdir", workdir))
+    assert "`heliocal ingest" in line
+
+
+@pytest.mark.xfail(strict=True, reason="artifacts.check_fresh skips an upstream label the "
+                   "artifact did not record: a coarse fit made before split.parquet existed (on "
+                   "all rows, test rows included) passes as fresh for fit-hybrid")
+def test_coarse_fit_made_without_split_is_not_fresh_once_split_exists(runner, tmp_path):
+    from heliocal.pipeline.coarse import COARSE_PARAMS
+    from heliocal.pipeline.errors import StageInputError
+
+    workdir = tmp_path / "run"
+    for args in (["ingest", PAINT], ["fit-coarse", *COARSE_ARGS], ["split-knn"]):
+        assert _run(runner, *args, "--workdir", workdir).exit_code == 0
+    assert "split" not in read_provenance(workdir / "coarse_params.parquet")["inputs"]
+    with pytest.raises(StageInputError, match="split.parquet"):  # the check fit-hybrid makes
+        check_fresh(workdir, COARSE_PARAMS, {"measurements": MEASUREMENTS,
+                                             "heliostats": HELIOSTATS, "split": SPLIT})
