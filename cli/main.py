@@ -12,6 +12,8 @@ from heliocal.cli import split as _split  # noqa: F401,E402
 from heliocal.cli import coarse as _coarse  # noqa: F401,E402
 from heliocal.cli import report as _report  # noqa: F401,E402
 from heliocal.cli import simulate as _simulate  # noqa: F401,E402
+from heliocal.cli import hybrid as _hybrid  # noqa: F401,E402
+from heliocal.cli import sweep as _sweep  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 

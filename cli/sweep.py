@@ -1,0 +1,81 @@
+"""``heliocal sweep``: regularization sweep and training-size study, batched per heliostat."""
+
+from __future__ import annotations
+
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
+                              Workdir, Workers, command, emit, progress_bar, stdout)
+from heliocal.pipeline.errors import ParameterError
+from heliocal.pipeline.hybrid import FineConfig
+from heliocal.pipeline.sweep import run_sweep, weight_decay_grid
+
+
+def _ints(text: Optional[str], name: str):
+    if text is None:
+        return None
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError as exc:
+        raise ParameterError(f"The '{name}' parameter of sweep must be comma-separated integers. "
+                             f"Got {text!r} instead.") from exc
+
+
+def _fmt(x) -> str:
+    return "-" if x is None or x != x else f"{x:.3f}"
+
+
+def _human(summary: dict) -> None:
+    table = Table(title=f"sweep -> {summary['workdir']} (selection at the full training size)",
+                  show_edge=False)
+    for col in ("heliostat", "model", "preset", "weight decay", "val", "test", "coarse val",
+                "coarse test"):
+        table.add_column(col, justify="left" if col in ("heliostat", "model", "preset") else "right")
+    for s in summary["selection"]:
+        table.add_row(s["heliostat_id"], s["model"], s["preset"],
+                      "-" if s["weight_decay"] != s["weight_decay"] else f"{s['weight_decay']:g}",
+                      _fmt(s["val_error_mrad"]), _fmt(s["test_error_mrad"]),
+                      _fmt(s["coarse_val_error_mrad"]), _fmt(s["coarse_test_error_mrad"]))
+    stdout.print(table)
+    stdout.print("mean error_mrad; the coarse model is always a candidate, so the selection is "
+                 "never worse than it on validation.")
+
+
+@command("sweep")
+def sweep_cmd(
+    workdir: Workdir = DEFAULT_WORKDIR,
+    n_train: Annotated[Optional[str], typer.Option(
+        help="Training sizes, e.g. 5,10,20,40,60,100 (default: that ladder up to all train rows).")] = None,
+    wd_max: Annotated[float, typer.Option(help="Strongest weight decay.")] = 1.0,
+    wd_min: Annotated[float, typer.Option(help="Weakest non-zero weight decay (0 is always added).")] = 1e-6,
+    wd_per_decade: Annotated[int, typer.Option(help="Weight decays per decade.")] = 1,
+    seeds: Annotated[str, typer.Option(help="Seeds, comma-separated (repeats of every member).")] = "0",
+    baselines: Annotated[str, typer.Option(
+        help="Neural baselines to include: nn-only, pretrained-nn (comma-separated, or none).")] = "nn-only,pretrained-nn",
+    max_epochs: Annotated[int, typer.Option(help="Epoch budget of the networks.")] = 800,
+    env: Annotated[Optional[str], typer.Option(help="env_* columns as extra network inputs.")] = None,
+    heliostat: Annotated[Optional[list[str]], typer.Option(help="Only these heliostats.")] = None,
+    workers: Workers = None,
+    scheduler: Scheduler = "local",
+    dask_address: DaskAddress = None,
+    json_: JsonFlag = False,
+    quiet: QuietFlag = False,
+) -> None:
+    """Sweep weight decay (strong to zero) and training size for every model, per heliostat."""
+    config = FineConfig(max_epochs=max_epochs,
+                        env=tuple(e.strip() for e in env.split(",") if e.strip()) if env else ())
+    base = [] if baselines.strip() in ("", "none") else [b.strip() for b in baselines.split(",")]
+    for b in base:
+        if b not in ("nn-only", "pretrained-nn"):
+            raise ParameterError(f"The 'baselines' parameter of sweep must list nn-only and/or "
+                                 f"pretrained-nn. Got {b!r} instead.")
+    with progress_bar("sweep", quiet) as advance:
+        summary = run_sweep(workdir, n_train=_ints(n_train, "n_train"),
+                            weight_decays=weight_decay_grid(wd_max, wd_min, wd_per_decade),
+                            seeds=_ints(seeds, "seeds"), baselines=tuple(base), config=config,
+                            heliostats=heliostat, workers=workers, scheduler=scheduler,
+                            dask_address=dask_address, progress=advance)
+    emit(summary, json_, _human)

@@ -1,0 +1,302 @@
+"""``sweep``: the regularization sweep and the training-size study (paper 000, figs. 6, 8, 9a).
+
+Per heliostat and training size ``n_train`` (the ``n_train`` training rows with the largest kNN
+distance, :func:`heliocal.pipeline.split.restrict_training`):
+
+* every coarse preset is fitted (:func:`heliocal.pipeline.coarse.fit_heliostat`);
+* the hybrid is trained on top of the coarse fit of the heliostat's selected preset, for every
+  weight decay (log-spaced from ``wd_max`` down to ``wd_min``, plus 0) and seed. All hybrid
+  members of a heliostat, i.e. every (n_train, weight decay, seed), train together as ONE
+  batched torch program (:func:`heliocal.pipeline.hybrid.train_members` with per-member
+  training masks, weight decays, seeds and base parameters);
+* the ``nn-only`` baseline (all n_train and seeds batched the same way) and the paper-002
+  ``pretrained-nn`` baseline.
+
+The selection (``selection.parquet``) is made at the full training size: the hybrid member
+(weight decay, seed) with the lowest mean validation error, where the coarse model itself is
+always a candidate, so the selected model is never worse than the coarse one on validation.
+The selected member's weights are written to ``DIR/hybrid/selected/<HID>.pt`` (+ JSON), in the
+layout of ``fit-hybrid``, for ``aim`` and ``report``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+
+from .artifacts import (ArtifactSchema, Column as C, artifact_path, atomic_path, atomic_write_text,
+                        check_fresh, file_sha256, read_artifact, write_artifact)
+from .coarse import (AUTO_PRESETS, COARSE_PARAMS, MeasurementBatch, fit_heliostat,
+                     load_selected_parameters, normal_errors_mrad)
+from .errors import FitError, check_float, check_int
+from .hybrid import (FineConfig, PretrainConfig, _layers_to_state, build_problem, fit_pretrained,
+                     member_errors_mrad, train_members)
+from .kinematics import HeliostatSpec, nominal_parameters
+from .metrics import error_mrad, measured_normal
+from .parallel import map_tasks
+from .schemas import HELIOSTATS, MEASUREMENTS
+from .split import SPLIT, restrict_training
+
+__all__ = ["SWEEP", "SELECTION", "SCHEMAS", "default_ladder", "weight_decay_grid", "sweep_heliostat",
+           "run_sweep"]
+
+log = logging.getLogger("heliocal.sweep")
+
+SWEEP = ArtifactSchema(
+    name="sweep", filename="sweep.parquet", producer="sweep",
+    sort_by=("heliostat_id", "model", "n_train", "weight_decay", "seed"),
+    description="One row per heliostat, model, training size, weight decay and seed: mean and "
+                "median error_mrad per split (means over the split's rows).",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("model", "string", "", "Coarse preset name, `hybrid`, `nn-only` or `pretrained-nn`."),
+        C("n_train", "int64", "", "Training rows (largest kNN distance first)."),
+        C("weight_decay", "float64", "", "Weight decay of the hybrid (NaN for other models).",
+          nullable=True),
+        C("seed", "int64", "", "Seed of the network's initial weights (0 for coarse presets)."),
+        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows."),
+        C("train_median_error_mrad", "float64", "mrad", "Median error on the training rows."),
+        C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows.", nullable=True),
+        C("val_median_error_mrad", "float64", "mrad", "Median on validation.", nullable=True),
+        C("test_error_mrad", "float64", "mrad", "Mean error on the test rows.", nullable=True),
+        C("test_median_error_mrad", "float64", "mrad", "Median on test.", nullable=True),
+        C("test_train_distance_deg", "float64", "deg", "Mean distance of the test rows to their "
+          "nearest training row (sun angles).", nullable=True),
+        C("base_preset", "string", "", "Coarse preset under the hybrid / the preset itself."),
+        C("wall_time_s", "float64", "s", "Wall time of this member's share of the training."),
+    ),
+)
+
+SELECTION = ArtifactSchema(
+    name="selection", filename="selection.parquet", producer="sweep", sort_by=("heliostat_id",),
+    description="Per heliostat the model used by aim and report: the hybrid member with the best "
+                "validation error at the full training size, or the coarse model if it is better.",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("model", "string", "", "`hybrid` or `coarse`."),
+        C("preset", "string", "", "Coarse preset (of the coarse model under the hybrid)."),
+        C("weight_decay", "float64", "", "Selected weight decay (NaN for coarse).", nullable=True),
+        C("seed", "int64", "", "Seed of the selected member (0 for coarse)."),
+        C("n_train", "int64", "", "Training rows."),
+        C("val_error_mrad", "float64", "mrad", "Mean validation error of the selected model."),
+        C("test_error_mrad", "float64", "mrad", "Mean test error of the selected model.", nullable=True),
+        C("coarse_val_error_mrad", "float64", "mrad", "Mean validation error of the coarse model."),
+        C("coarse_test_error_mrad", "float64", "mrad", "Mean test error of the coarse model.",
+          nullable=True),
+    ),
+)
+
+SCHEMAS = (SWEEP, SELECTION)
+
+LADDER = (5, 10, 20, 40, 60, 100, 150, 200, 300, 400)
+
+
+def default_ladder(n_available: int, minimum: int = 5) -> list[int]:
+    """Training sizes 5, 10, 20, 40, 60, 100, 150, ... below ``n_available``, plus all of them."""
+    sizes = [n for n in LADDER if minimum <= n < n_available]
+    return sizes + [n_available]
+
+
+def weight_decay_grid(wd_max: float = 1.0, wd_min: float = 1e-6, per_decade: int = 1) -> list[float]:
+    """Log-spaced weight decays from ``wd_max`` down to ``wd_min`` (``per_decade`` per decade), plus 0."""
+    decades = math.log10(wd_max / wd_min)
+    n = int(round(decades * per_decade)) + 1
+    return [float(x) for x in np.logspace(math.log10(wd_max), math.log10(wd_min), n)] + [0.0]
+
+
+def _stats(err: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    if not mask.any():
+        return float("nan"), float("nan")
+    v = err[mask]
+    return float(v.mean()), float(np.median(v))
+
+
+def _row(hid, model, n_train, wd, seed, err, labels, train_mask, dist, base_preset, wall):
+    tr = _stats(err, train_mask)
+    va = _stats(err, labels == "validation")
+    te = _stats(err, labels == "test")
+    return {"heliostat_id": hid, "model": model, "n_train": int(n_train),
+            "weight_decay": wd, "seed": int(seed),
+            "train_error_mrad": tr[0], "train_median_error_mrad": tr[1],
+            "val_error_mrad": va[0], "val_median_error_mrad": va[1],
+            "test_error_mrad": te[0], "test_median_error_mrad": te[1],
+            "test_train_distance_deg": dist, "base_preset": base_preset, "wall_time_s": wall}
+
+
+def sweep_heliostat(task) -> dict:
+    """The sweep of one heliostat (a picklable task for :func:`map_tasks`)."""
+    (hid, hrow, rows, split_rows, sizes, presets, base_preset, weight_decays, seeds, config,
+     pretrain_config, baselines, coarse_kwargs) = task
+    hrow = pd.Series(hrow)
+    rows = rows.reset_index(drop=True)
+    spec = HeliostatSpec.from_row(hrow)
+    nominal = nominal_parameters(hrow)
+    data = MeasurementBatch.from_frame(rows)
+    labels_full = rows["split"].to_numpy()
+    out_rows = []
+    # training masks and test distances per size
+    masks, dists = {}, {}
+    order = pd.Series(np.arange(len(rows)), index=rows["measurement_id"].to_numpy())
+    for n in sizes:
+        restricted = restrict_training(split_rows, n)
+        train_ids = restricted.loc[restricted["split"] == "train", "measurement_id"]
+        m = np.zeros(len(rows), bool)
+        m[order.loc[train_ids].to_numpy()] = True
+        masks[n] = m
+        test = restricted["split"] == "test"
+        dists[n] = float(restricted.loc[test, "nearest_train_distance_deg"].mean()) if test.any() else float("nan")
+    # coarse presets per size
+    bases = {}
+    start_cache: dict = {}
+    for n in sizes:
+        train = data.subset(masks[n])
+        for preset in presets:
+            t0 = time.perf_counter()
+            fit = fit_heliostat(spec, nominal, train, preset, start_cache=start_cache, **coarse_kwargs)
+            with torch.no_grad():
+                err = normal_errors_mrad(fit.params, spec, data).numpy()
+            out_rows.append(_row(hid, preset, n, float("nan"), 0, err, labels_full, masks[n],
+                                 dists[n], preset, time.perf_counter() - t0))
+            if preset == base_preset:
+                bases[n] = (fit.params, torch.as_tensor(fit.free))
+    free = bases[sizes[-1]][1]
+    members = [(n, wd, s) for n in sizes for wd in weight_decays for s in seeds]
+    train_masks = np.stack([masks[n] for n, _, _ in members])
+    val_mask = labels_full == "validation"
+    selected_state = None
+
+    def run_members(kind: str, members, base_of, wds):
+        base = torch.stack([base_of(n) for n, _, _ in members]).unsqueeze(-2)  # (M, 1, 28)
+        problem = build_problem(rows, hrow, bases[sizes[-1]][0], free, config)
+        problem.base = base
+        tm = np.stack([masks[n] for n, _, _ in members])
+        t0 = time.perf_counter()
+        result = train_members(problem, tm, val_mask, wds, [s for _, _, s in members], config)
+        wall = (time.perf_counter() - t0) / len(members)
+        with torch.no_grad():
+            err = member_errors_mrad(problem, result.layers).numpy()
+        for k, (n, wd, s) in enumerate(members):
+            out_rows.append(_row(hid, kind, n, wd if kind == "hybrid" else float("nan"), s, err[k],
+                                 labels_full, masks[n], dists[n], base_preset, wall))
+        return problem, result, err
+
+    # the swept hybrid: one batched program for every (n_train, weight decay, seed)
+    problem, result, err = run_members("hybrid", members, lambda n: bases[n][0],
+                                       [wd for _, wd, _ in members])
+    # selection at the full training size; the coarse model is a candidate
+    coarse_err = normal_errors_mrad(bases[sizes[-1]][0], spec, data).detach().numpy()
+    coarse_val, coarse_test = _stats(coarse_err, val_mask)[0], _stats(coarse_err, labels_full == "test")[0]
+    best = {"model": "coarse", "weight_decay": float("nan"), "seed": 0, "val": coarse_val,
+            "test": coarse_test}
+    full = [k for k, (n, _, _) in enumerate(members) if n == sizes[-1]]
+    for k in full:
+        v, t = _stats(err[k], val_mask)[0], _stats(err[k], labels_full == "test")[0]
+        if not math.isnan(v) and (math.isnan(best["val"]) or v < best["val"]):
+            best = {"model": "hybrid", "weight_decay": members[k][1], "seed": members[k][2],
+                    "val": v, "test": t, "member": k}
+    if best["model"] == "hybrid":
+        k = best["member"]
+        selected_state = {
+            "state": _layers_to_state(result.member(k)),
+            "config": {"mode": "hybrid", "heliostat_id": hid, "seed": int(members[k][2]),
+                       "weight_decay": float(members[k][1]), "fine_config": config.to_dict(),
+                       "encoder": problem.encoder.to_dict(),
+                       "base_params": bases[sizes[-1]][0].tolist(), "free": free.tolist(),
+                       "scales": problem.scales.tolist(), "coarse_preset": base_preset,
+                       "sizes": problem.sizes(config), "selected_by": "sweep"}}
+    selection = {"heliostat_id": hid, "model": best["model"], "preset": base_preset,
+                 "weight_decay": best["weight_decay"], "seed": int(best["seed"]),
+                 "n_train": int(sizes[-1]), "val_error_mrad": best["val"],
+                 "test_error_mrad": best["test"], "coarse_val_error_mrad": coarse_val,
+                 "coarse_test_error_mrad": coarse_test}
+    if "nn-only" in baselines:
+        nn_members = [(n, 0.0, s) for n in sizes for s in seeds]
+        run_members("nn-only", nn_members, lambda n: nominal, [0.0] * len(nn_members))
+    if "pretrained-nn" in baselines:
+        for n in sizes:
+            labels = np.where(masks[n], "train", np.where(labels_full == "train", "unused", labels_full))
+            for s in seeds:
+                t0 = time.perf_counter()
+                _, _, normal, position = fit_pretrained(bases[n][0], spec, hrow, rows, data, labels,
+                                                        int(s), pretrain_config)
+                with torch.no_grad():
+                    e = error_mrad(normal, measured_normal(data.sun, position, data.focal_spot)).numpy()
+                out_rows.append(_row(hid, "pretrained-nn", n, float("nan"), s, e, labels_full,
+                                     masks[n], dists[n], base_preset, time.perf_counter() - t0))
+    return {"rows": out_rows, "selection": selection, "selected_state": selected_state}
+
+
+def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
+              weight_decays: Sequence[float] | None = None, seeds: Sequence[int] = (0,),
+              presets: Sequence[str] = AUTO_PRESETS, baselines: Sequence[str] = ("nn-only", "pretrained-nn"),
+              config: FineConfig | None = None, pretrain_config: PretrainConfig | None = None,
+              heliostats: Sequence[str] | None = None, workers: int | None = 1,
+              scheduler: str = "local", dask_address: str | None = None, progress=None) -> dict:
+    """The ``sweep`` stage: write sweep.parquet and selection.parquet, return a summary."""
+    workdir = Path(workdir)
+    seeds = [check_int(s, "seeds", "sweep", 0) for s in seeds]
+    weight_decays = list(weight_decays) if weight_decays is not None else weight_decay_grid()
+    for wd in weight_decays:
+        check_float(wd, "weight_decays", "sweep", 0.0, None)
+    config = (config or FineConfig()).validated()
+    pretrain_config = pretrain_config or PretrainConfig()
+    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
+    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats).set_index("heliostat_id", drop=False)
+    check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})
+    check_fresh(workdir, COARSE_PARAMS, {"measurements": MEASUREMENTS, "split": SPLIT})
+    split = read_artifact(workdir, SPLIT, heliostats=heliostats)
+    selected = load_selected_parameters(workdir, heliostats)
+    merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
+                                on=["heliostat_id", "measurement_id"], how="inner")
+    tasks = []
+    for hid in sorted(selected):
+        rows = merged[merged["heliostat_id"] == hid]
+        srows = split[split["heliostat_id"] == hid]
+        n_avail = int(((srows["split"] == "train") | (srows["split"] == "unused")).sum())
+        if n_avail == 0 or hid not in helio.index:
+            continue
+        sizes = sorted({min(int(n), n_avail) for n in n_train}) if n_train else default_ladder(n_avail)
+        for n in sizes:
+            check_int(n, "n_train", "sweep", 2)
+        tasks.append((hid, helio.loc[hid].to_dict(), rows, srows, sizes, tuple(presets),
+                      selected[hid]["preset"], weight_decays, seeds, config, pretrain_config,
+                      tuple(baselines), {"loss": "soft_l1", "robust_start": "auto"}))
+    if not tasks:
+        raise FitError(f"no heliostat in {workdir} has a coarse fit and training rows; run "
+                       f"`heliocal fit-coarse --workdir {workdir}` first")
+    results = map_tasks(sweep_heliostat, tasks, workers=workers, scheduler=scheduler,
+                        dask_address=dask_address,
+                        progress=(lambda d, t: progress(d, t, None)) if progress else None)
+    rows = [r for res in results for r in res["rows"]]
+    selection = pd.DataFrame([res["selection"] for res in results])
+    inputs = {name: artifact_path(workdir, s) for name, s in
+              (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS), ("split", SPLIT),
+               ("coarse_params", COARSE_PARAMS))}
+    hashes = {k: file_sha256(p) for k, p in inputs.items()}
+    out_dir = workdir / "hybrid" / "selected"
+    for res in results:
+        st = res["selected_state"]
+        if st is None:
+            continue
+        hid = st["config"]["heliostat_id"]
+        with atomic_path(out_dir / f"{hid}.pt") as tmp:
+            torch.save(st["state"], tmp)
+        atomic_write_text(out_dir / f"{hid}.json",
+                          json.dumps({**st["config"], "inputs": hashes}, indent=1, sort_keys=True))
+    opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
+            "seeds": seeds, "presets": list(presets), "baselines": list(baselines),
+            "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict()}
+    write_artifact(pd.DataFrame(rows), workdir, SWEEP, stage="sweep", options=opts,
+                   seed=seeds[0], inputs=inputs)
+    write_artifact(selection, workdir, SELECTION, stage="sweep", options=opts, seed=seeds[0],
+                   inputs=inputs)
+    return {"workdir": str(workdir), "selection": selection.to_dict("records"),
+            "members_per_heliostat": {t[0]: len(t[4]) * len(weight_decays) * len(seeds) for t in tasks}}
