@@ -36,16 +36,17 @@ def _human(summary: dict) -> None:
                         f"{summary['seed']}) -> {summary['workdir']}", box=box.SIMPLE_HEAD,
                   pad_edge=False)
     table.add_column("heliostat", no_wrap=True)
-    for col in ("n_train", "coarse", "train", "val", "test", f"{mode}\ntrain", "val", "test"):
+    table.add_column("coarse", no_wrap=True)
+    for col in ("train", "val", "test", "train", "val", "test"):
         table.add_column(col, justify="right", no_wrap=True)
     for h in summary["heliostats"]:
         c, f = h["coarse"], h[mode]
-        table.add_row(h["heliostat_id"], str(h["n_train"]), h["coarse_preset"], _fmt(c["train"]),
+        table.add_row(h["heliostat_id"], h["coarse_preset"], _fmt(c["train"]),
                       _fmt(c["validation"]), _fmt(c["test"]), _fmt(f["train"]),
                       _fmt(f["validation"]), _fmt(f["test"]))
     stdout.print(table)
-    stdout.print("mean error_mrad per split: the selected coarse model vs "
-                 f"{mode}; wrote hybrid/{mode}/ and hybrid_predictions.parquet", markup=False)
+    stdout.print("mean error_mrad per split: the selected coarse preset (first three columns) vs "
+                 f"{mode} (last three); wrote hybrid/{mode}/ and hybrid_predictions.parquet", markup=False)
 
 
 def _floats(text: str, name: str) -> tuple[float, ...]:
