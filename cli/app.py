@@ -93,6 +93,9 @@ def command(name: str, **kwargs) -> Callable:
                 return func(*args, **kw)
             except HeliocalError as exc:
                 fail(str(exc))
+            except KeyboardInterrupt:
+                fail("interrupted; artifacts written so far are complete, the interrupted one was "
+                     "not replaced", code=130)
 
         return app.command(name, **kwargs)(wrapper)
 

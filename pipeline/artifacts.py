@@ -218,12 +218,24 @@ def _provenance(schema: ArtifactSchema, stage: str, options: Mapping | None, see
         "stage": stage,
         "heliocal_version": __version__,
         "git_revision": git_revision(),
-        "command": "heliocal " + " ".join(sys.argv[1:]) if Path(sys.argv[0]).name == "heliocal"
-        else stage,
+        "command": _command_line(stage),
         "options": _jsonable(dict(options or {})),
         "seed": seed,
         "inputs": hashes,
     }
+
+
+def _command_line(stage: str) -> str:
+    """The heliocal command line of this run (``heliocal <stage>`` for in-process library calls)."""
+    try:
+        import click
+
+        ctx = click.get_current_context(silent=True)
+    except ImportError:  # pragma: no cover
+        ctx = None
+    if ctx is not None or Path(sys.argv[0]).name == "heliocal":
+        return "heliocal " + " ".join(sys.argv[1:])
+    return f"heliocal {stage} (library call)"
 
 
 def _jsonable(obj):
@@ -331,7 +343,9 @@ def read_provenance(path: str | os.PathLike) -> dict:
 
 
 def _missing_message(path: Path, schema: ArtifactSchema) -> str:
-    return (f"{path} is missing: run `heliocal {schema.producer} --workdir {path.parent}` first")
+    args = " SOURCE..." if schema.producer == "ingest" else ""
+    return (f"{path} is missing: run `heliocal {schema.producer}{args} --workdir {path.parent}` "
+            "first")
 
 
 def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
@@ -353,7 +367,10 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
     path = artifact_path(workdir, schema)
     if not path.exists():
         raise StageInputError(_missing_message(path, schema))
-    prov = read_provenance(path)
+    try:
+        prov = read_provenance(path)
+    except SchemaError as exc:
+        raise SchemaError(f"{exc}: `heliocal {schema.producer} --workdir {path.parent}`") from exc
     if prov.get("artifact") != schema.name:
         raise SchemaError(f"{path} holds a {prov.get('artifact')!r} artifact, not "
                           f"{schema.name!r}; rerun `heliocal {schema.producer}`")
@@ -393,7 +410,11 @@ def check_fresh(workdir: str | os.PathLike, schema: ArtifactSchema,
         up_path = artifact_path(workdir, up)
         if not up_path.exists():
             raise StageInputError(_missing_message(up_path, up))
-        if label in recorded and recorded[label] != file_sha256(up_path):
+        if label not in recorded:
+            raise StageInputError(
+                f"{path} was made without {up.filename}; rerun "
+                f"`heliocal {schema.producer} --workdir {path.parent}` first")
+        if recorded[label] != file_sha256(up_path):
             raise StageInputError(
                 f"{path} is stale: {up.filename} changed after it was written; rerun "
                 f"`heliocal {schema.producer} --workdir {path.parent}` first")

@@ -128,7 +128,6 @@ COARSE_PARAMS = ArtifactSchema(
           nullable=True),
         C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
           nullable=True),
-        C("wall_time_s", "float64", "s", "Wall time of the fit (robust start included)."),
     ),
 )
 
@@ -534,8 +533,7 @@ def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str
                 "fit_cost": fit.cost, "fit_condition_number": fit.condition_number,
                 "fit_status": fit.status, "fit_implausible": "; ".join(fit.implausible),
                 "n_train": len(train), "train_error_mrad": s["train"],
-                "val_error_mrad": s["validation"], "test_error_mrad": s["test"],
-                "wall_time_s": fit.wall_time_s})
+                "val_error_mrad": s["validation"], "test_error_mrad": s["test"]})
     pred = pd.concat(preds, ignore_index=True)
     pred["heliostat_id"] = hid
     pred["split"] = np.tile(labels, len(preds))

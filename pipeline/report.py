@@ -169,7 +169,7 @@ def load_inputs(workdir: str | Path) -> ReportInputs:
     workdir = Path(workdir)
     if not (workdir / MEASUREMENTS.filename).exists():
         raise StageInputError(f"{workdir / MEASUREMENTS.filename} is missing: run `heliocal ingest "
-                              f"SOURCE --workdir {workdir}` first")
+                              f"SOURCE... --workdir {workdir}` first")
     inp = ReportInputs(workdir=workdir, measurements=_read(workdir, MEASUREMENTS.filename))
     inp.paths[MEASUREMENTS.filename] = workdir / MEASUREMENTS.filename
     for name in ("heliostats.parquet", "rejected.parquet") + _OPTIONAL:

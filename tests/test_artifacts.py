@@ -58,7 +58,7 @@ def test_missing_artifact_names_the_stage(tmp_path):
     with pytest.raises(StageInputError) as exc:
         read_artifact(tmp_path, MEASUREMENTS)
     assert str(exc.value) == (f"{tmp_path / 'measurements.parquet'} is missing: run "
-                              f"`heliocal ingest --workdir {tmp_path}` first")
+                              f"`heliocal ingest SOURCE... --workdir {tmp_path}` first")
 
 
 def test_wrong_schema_version_is_refused(tmp_path):

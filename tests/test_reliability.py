@@ -104,7 +104,7 @@ def workdir(split_workdir, tmp_path) -> Path:
 def test_missing_measurements_names_ingest(stage, runner, tmp_path):
     line = _one_line_error(_run(runner, stage, "--workdir", tmp_path))
     assert line == (f"Error: {tmp_path}/measurements.parquet is missing: run "
-                    f"`heliocal ingest --workdir {tmp_path}` first")
+                    f"`heliocal ingest SOURCE... --workdir {tmp_path}` first")
     assert os.listdir(tmp_path) == []  # nothing written
 
 
@@ -113,7 +113,7 @@ def test_missing_measurements_report(runner, tmp_path):
         pytest.skip("`heliocal report` is not registered in cli/main.py")
     line = _one_line_error(_run(runner, "report", "--workdir", tmp_path))
     assert line == (f"Error: {tmp_path}/measurements.parquet is missing: run "
-                    f"`heliocal ingest SOURCE --workdir {tmp_path}` first")
+                    f"`heliocal ingest SOURCE... --workdir {tmp_path}` first")
 
 
 def test_fit_hybrid_without_coarse_fit_names_fit_coarse(runner, workdir):
@@ -339,13 +339,6 @@ def _pipeline(runner, workdir: Path, hybrid: bool) -> None:
         assert result.exit_code == 0, (args, result.stderr)
 
 
-def _without_coarse_params_hash(prov: dict) -> dict:
-    """Known gap: coarse_params.parquet holds wall_time_s, so its hash differs from run to run
-    and so does every downstream artifact's recorded hash of it (drop it when that is fixed)."""
-    inputs = {k: v for k, v in prov.get("inputs", {}).items() if k != "coarse_params"}
-    return {**prov, "inputs": inputs}
-
-
 def _normalized_provenance(path: Path, workdir: Path) -> dict:
     """Provenance with the work directory's path (the only legitimate difference) replaced."""
     text = json.dumps(read_provenance(path), sort_keys=True)
@@ -374,8 +367,8 @@ def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
         pd.testing.assert_frame_equal(a[other], b[other], check_exact=True, obj=name)
         pd.testing.assert_frame_equal(a[floats], b[floats], check_exact=False, rtol=1e-12,
                                       atol=0.0, obj=name)
-        assert _without_coarse_params_hash(_normalized_provenance(first / name, first)) == \
-            _without_coarse_params_hash(_normalized_provenance(second / name, second)), name
+        assert _normalized_provenance(first / name, first) == \
+            _normalized_provenance(second / name, second), name
     if hybrid:  # the fine model's files: weights exactly equal (fit-hybrid runs single-threaded)
         import torch
 
@@ -384,11 +377,10 @@ def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
         a, b = (torch.load(d / "hybrid/hybrid/BE36.pt", weights_only=True) for d in (first, second))
         assert list(a) == list(b) and all(torch.equal(a[k], b[k]) for k in a)
         a, b = (json.loads((d / "hybrid/hybrid/BE36.json").read_text()) for d in (first, second))
-        assert _without_coarse_params_hash(a) == _without_coarse_params_hash(b)
-    # freshness compares content hashes, so a rerun on the same inputs must write the same bytes;
-    # ingest and split-knn (numpy only, no threads) do. coarse_params.parquet does not, only
-    # because of wall_time_s (checked: it is the only column that differs).
-    for name in ("measurements.parquet", "heliostats.parquet", "rejected.parquet", "split.parquet"):
+        assert a == b
+    # freshness compares content hashes, so a rerun on the same inputs must write the same bytes
+    for name in ("measurements.parquet", "heliostats.parquet", "rejected.parquet", "split.parquet",
+                 "coarse_params.parquet"):
         assert _sha(first / name) == _sha(second / name), name
     # the fit did something: BE36's selected static-6 fit has a finite test error
     params = pd.read_parquet(first / "coarse_params.parquet")
@@ -397,10 +389,8 @@ def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------
-# known gaps, pinned (strict xfail: when fixed, these pass and the marker must go)
+# unreadable and incomplete inputs name the stage to rerun
 # ------------------------------------------------------------------------------------------------
-@pytest.mark.xfail(strict=True, reason="artifacts.read_provenance says 'rerun the stage that "
-                   "writes it' without naming it; read_artifact should name schema.producer")
 def test_unreadable_input_artifact_names_the_stage(runner, workdir):
     data = (workdir / "measurements.parquet").read_bytes()
     (workdir / "measurements.parquet").write_bytes(data[: len(data) // 2])  # e.g. a copy cut short
@@ -408,9 +398,6 @@ def test_unreadable_input_artifact_names_the_stage(runner, workdir):
     assert "`heliocal ingest" in line
 
 
-@pytest.mark.xfail(strict=True, reason="artifacts.check_fresh skips an upstream label the "
-                   "artifact did not record: a coarse fit made before split.parquet existed (on "
-                   "all rows, test rows included) passes as fresh for fit-hybrid")
 def test_coarse_fit_made_without_split_is_not_fresh_once_split_exists(runner, tmp_path):
     from heliocal.pipeline.coarse import COARSE_PARAMS
     from heliocal.pipeline.errors import StageInputError

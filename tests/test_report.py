@@ -383,7 +383,7 @@ def test_figures_of_removed_stages_are_removed(tmp_path):
 
 def test_missing_measurements_is_a_stage_input_error(tmp_path):
     with pytest.raises(StageInputError, match=r"measurements.parquet is missing: run `heliocal "
-                                              r"ingest SOURCE --workdir"):
+                                              r"ingest SOURCE\.\.\. --workdir"):
         run_report(tmp_path)
 
 

@@ -363,7 +363,7 @@ def test_cli_missing_measurements(tmp_path):
     res = runner.invoke(app, ["split-knn", "--workdir", str(tmp_path)])
     assert res.exit_code == 1
     assert res.stderr == (f"Error: {tmp_path}/measurements.parquet is missing: run `heliocal "
-                          f"ingest --workdir {tmp_path}` first\n")
+                          f"ingest SOURCE... --workdir {tmp_path}` first\n")
 
 
 def test_cli_usage_errors(tmp_path):
