@@ -14,7 +14,9 @@ distance, :func:`heliocal.pipeline.split.restrict_training`):
 
 The selection (``selection.parquet``) is made at the full training size: the hybrid member
 (weight decay, seed) with the lowest mean validation error, where the coarse model itself is
-always a candidate, so the selected model is never worse than the coarse one on validation.
+always a candidate, so the selected model is never worse than the coarse one on validation. A
+hybrid member must beat the coarse model's validation error by :data:`MIN_IMPROVEMENT` (2 %,
+relative) to be chosen, so that a network that only fits noise falls back to the coarse model.
 The selected member's weights are written to ``DIR/hybrid/selected/<HID>.pt`` (+ JSON), in the
 layout of ``fit-hybrid``, for ``aim`` and ``report``.
 """
@@ -96,6 +98,9 @@ SELECTION = ArtifactSchema(
 
 SCHEMAS = (SWEEP, SELECTION)
 
+#: Relative validation improvement a hybrid member needs to be selected over the coarse model.
+MIN_IMPROVEMENT = 0.02
+
 LADDER = (5, 10, 20, 40, 60, 100, 150, 200, 300, 400)
 
 
@@ -156,9 +161,10 @@ def sweep_heliostat(task) -> dict:
     # coarse presets per size
     bases = {}
     start_cache: dict = {}
+    fitted = tuple(presets) + ((base_preset,) if base_preset not in presets else ())
     for n in sizes:
         train = data.subset(masks[n])
-        for preset in presets:
+        for preset in fitted:
             t0 = time.perf_counter()
             fit = fit_heliostat(spec, nominal, train, preset, start_cache=start_cache, **coarse_kwargs)
             with torch.no_grad():
@@ -197,9 +203,14 @@ def sweep_heliostat(task) -> dict:
     best = {"model": "coarse", "weight_decay": float("nan"), "seed": 0, "val": coarse_val,
             "test": coarse_test}
     full = [k for k, (n, _, _) in enumerate(members) if n == sizes[-1]]
+    # a hybrid member replaces the coarse model only if it is better on validation by more than
+    # MIN_IMPROVEMENT (relative): differences below that are noise of the validation sample
+    threshold = coarse_val * (1.0 - MIN_IMPROVEMENT)
     for k in full:
         v, t = _stats(err[k], val_mask)[0], _stats(err[k], labels_full == "test")[0]
-        if not math.isnan(v) and (math.isnan(best["val"]) or v < best["val"]):
+        if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
+            continue
+        if best["model"] == "coarse" or v < best["val"]:
             best = {"model": "hybrid", "weight_decay": members[k][1], "seed": members[k][2],
                     "val": v, "test": t, "member": k}
     if best["model"] == "hybrid":
