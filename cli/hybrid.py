@@ -74,7 +74,7 @@ def fit_hybrid_cmd(
     depth: Annotated[int, typer.Option("--depth", min=0, help="Hidden layers.")] = 14,
     width: Annotated[int, typer.Option("--width", min=1, help="Neurons per hidden layer.")] = 2,
     fourier_bands: Annotated[str, typer.Option(
-        "--fourier-bands", help="Frequency bands of the Fourier features of the steps.")] = "1,2,4,8",
+        "--fourier-bands", help="Frequency bands of the Fourier features of the steps.")] = "1,2,4,8,16,32",
     max_epochs: Annotated[int, typer.Option("--max-epochs", min=0, help="Epoch budget.")] = FineConfig.max_epochs,
     patience: Annotated[int, typer.Option(
         "--patience", min=1, help="Epochs without validation improvement before stopping.")] = FineConfig.patience,

@@ -187,7 +187,7 @@ class FineConfig:
 
     depth: int = 14
     width: int = 2
-    fourier_bands: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
+    fourier_bands: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
     env: tuple[str, ...] = ()
     learning_rate: float = 3e-3
     max_epochs: int = 800
