@@ -15,8 +15,8 @@ import typer
 from rich import box
 from rich.table import Table
 
-from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Seed, Workdir, command, emit,
-                              progress_bar, stdout)
+from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler, Seed,
+                              Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import InputError, ParameterError
 from heliocal.pipeline.hybrid import MODES, FineConfig, aim_steps, run_fit_hybrid
 
@@ -83,6 +83,9 @@ def fit_hybrid_cmd(
     heliostat: Annotated[Optional[list[str]], typer.Option(
         help="Fit only these heliostats (repeat the option).")] = None,
     seed: Seed = 0,
+    workers: Workers = None,
+    scheduler: Scheduler = "local",
+    dask_address: DaskAddress = None,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -92,7 +95,8 @@ def fit_hybrid_cmd(
                         learning_rate=learning_rate, max_epochs=max_epochs, patience=patience)
     with progress_bar(f"fit-hybrid {mode.value}", quiet) as advance:
         summary = run_fit_hybrid(workdir, mode=mode.value, weight_decay=weight_decay, seed=seed,
-                                 config=config, heliostats=heliostat, progress=advance)
+                                 config=config, heliostats=heliostat, progress=advance,
+                                 workers=workers, scheduler=scheduler, dask_address=dask_address)
     emit(summary, json_, _human)
 
 

@@ -95,6 +95,7 @@ from .errors import (FitError, InputError, ParameterError, StageInputError, chec
                      check_float, check_int)
 from .kinematics import (PARAMETER_NAMES, HeliostatSpec, forward_kinematics, inverse_kinematics,
                          nominal_parameters)
+from .parallel import map_tasks
 from .metrics import beam_error_mrad, error_mrad, measured_normal, reflect, spot_offset_m
 from .schemas import HELIOSTATS, MEASUREMENTS
 
@@ -926,10 +927,66 @@ def _check_inputs(workdir: Path) -> None:
 
 
 @_single_threaded
+def _hybrid_task(task):
+    """One heliostat of ``fit-hybrid`` (a picklable task for :func:`map_tasks`)."""
+    hid, rows, hrow, sel, mode, weight_decay, seed, config, pretrain_config = task
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    hrow = pd.Series(hrow)
+    rows = rows[rows["split"] != "excluded"].reset_index(drop=True)
+    labels = rows["split"].to_numpy()
+    t0 = time.perf_counter()
+    spec = HeliostatSpec.from_row(hrow)
+    data = MeasurementBatch.from_frame(rows)
+    coarse_pred = predict(sel["params"], spec, data)
+    info: dict = {}
+    if mode == "pretrained-nn":
+        model, info, normal, position = fit_pretrained(
+            sel["params"], spec, hrow, rows, data, labels, seed, pretrain_config)
+        problem = FineProblem(spec, sel["params"], sel["free"], torch.zeros(0),
+                              None, data, torch.zeros(0))
+        state = model.to_state()
+        cfg = {"mode": mode, "heliostat_id": hid, "seed": seed,
+               "pretrain_config": pretrain_config.to_dict(), **model.to_dict(),
+               "coarse_params": sel["params"].tolist(), "coarse_preset": sel["preset"]}
+    else:
+        base = sel["params"] if mode == "hybrid" else sel["nominal"]
+        problem = build_problem(rows, hrow, base, sel["free"], config)
+        result = train_members(problem, labels == "train", labels == "validation",
+                               [weight_decay], [seed], config)
+        with torch.no_grad():
+            normal, position = predict_members(problem, result.layers)
+        normal, position = normal[0], position[0]
+        state = _layers_to_state(result.layers)
+        info = {"best_epoch": int(result.best_epoch[0]), "epochs": int(result.epochs_run[0])}
+        cfg = {"mode": mode, "heliostat_id": hid, "seed": seed, "weight_decay": weight_decay,
+               "fine_config": config.to_dict(), "encoder": problem.encoder.to_dict(),
+               "base_params": base.tolist(), "free": sel["free"].tolist(),
+               "scales": problem.scales.tolist(), "coarse_preset": sel["preset"],
+               "sizes": problem.sizes(config)}
+    cfg.update(info)
+    pred = predictions_frame(problem, normal, position)
+    pred["heliostat_id"], pred["split"], pred["model"] = hid, labels, mode
+    pred["selected"] = mode == "hybrid"
+    test = labels == "test"
+    summary = {
+        "heliostat_id": hid, "mode": mode, "coarse_preset": sel["preset"],
+        "n_train": int((labels == "train").sum()),
+        "coarse": _split_means(coarse_pred["error_mrad"].to_numpy(), labels),
+        mode: _split_means(pred["error_mrad"].to_numpy(), labels),
+        "test_median": {"coarse": float(np.median(coarse_pred["error_mrad"].to_numpy()[test]))
+                        if test.any() else None,
+                        mode: float(np.median(pred["error_mrad"].to_numpy()[test]))
+                        if test.any() else None},
+        **info, "wall_time_s": time.perf_counter() - t0}
+    return pred, summary, state, cfg
+
+
 def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: float = 0.0,
                    seed: int = 0, config: FineConfig | None = None,
                    pretrain_config: PretrainConfig | None = None,
-                   heliostats: Sequence[str] | None = None, progress=None) -> dict:
+                   heliostats: Sequence[str] | None = None, progress=None,
+                   workers: int | None = 1, scheduler: str = "local",
+                   dask_address: str | None = None) -> dict:
     """The ``fit-hybrid`` stage for one mode; writes ``DIR/hybrid/<mode>/`` and merges the mode's
     rows into ``DIR/hybrid_predictions.parquet``.
 
@@ -963,63 +1020,20 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     inputs = _inputs(workdir)
     input_hashes = {k: file_sha256(p) for k, p in inputs.items()}
     groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
+    tasks = [(hid, groups[hid], helio.loc[hid].to_dict(), selected[hid], mode, weight_decay, seed,
+              config, pretrain_config) for hid in ids]
+    results = map_tasks(_hybrid_task, tasks, workers=workers, scheduler=scheduler,
+                        dask_address=dask_address,
+                        progress=(lambda d, t: progress(d, t, None)) if progress else None)
     preds, summaries = [], []
-    for k, hid in enumerate(ids):
-        rows = groups[hid]
-        rows = rows[rows["split"] != "excluded"].reset_index(drop=True)
-        labels = rows["split"].to_numpy()
-        hrow = helio.loc[hid]
-        sel = selected[hid]
-        t0 = time.perf_counter()
-        spec = HeliostatSpec.from_row(hrow)
-        data = MeasurementBatch.from_frame(rows)
-        coarse_pred = predict(sel["params"], spec, data)
-        info: dict = {}
-        if mode == "pretrained-nn":
-            model, info, normal, position = fit_pretrained(
-                sel["params"], spec, hrow, rows, data, labels, seed, pretrain_config)
-            problem = FineProblem(spec, sel["params"], sel["free"], torch.zeros(0),
-                                  None, data, torch.zeros(0))
-            state = model.to_state()
-            cfg = {"mode": mode, "heliostat_id": hid, "seed": seed,
-                   "pretrain_config": pretrain_config.to_dict(), **model.to_dict(),
-                   "coarse_params": sel["params"].tolist(), "coarse_preset": sel["preset"]}
-        else:
-            base = sel["params"] if mode == "hybrid" else sel["nominal"]
-            problem = build_problem(rows, hrow, base, sel["free"], config)
-            result = train_members(problem, labels == "train", labels == "validation",
-                                   [weight_decay], [seed], config)
-            with torch.no_grad():
-                normal, position = predict_members(problem, result.layers)
-            normal, position = normal[0], position[0]
-            state = _layers_to_state(result.layers)
-            info = {"best_epoch": int(result.best_epoch[0]), "epochs": int(result.epochs_run[0])}
-            cfg = {"mode": mode, "heliostat_id": hid, "seed": seed, "weight_decay": weight_decay,
-                   "fine_config": config.to_dict(), "encoder": problem.encoder.to_dict(),
-                   "base_params": base.tolist(), "free": sel["free"].tolist(),
-                   "scales": problem.scales.tolist(), "coarse_preset": sel["preset"],
-                   "sizes": problem.sizes(config)}
+    for pred, summary, state, cfg in results:
+        hid = summary["heliostat_id"]
         cfg["inputs"] = input_hashes
-        cfg.update(info)
-        pred = predictions_frame(problem, normal, position)
-        pred["heliostat_id"], pred["split"], pred["model"] = hid, labels, mode
-        pred["selected"] = mode == "hybrid"
         preds.append(pred)
+        summaries.append(summary)
         with atomic_path(out_dir / f"{hid}.pt") as tmp:
             torch.save(state, tmp)
         atomic_write_text(out_dir / f"{hid}.json", json.dumps(cfg, indent=1, sort_keys=True))
-        summaries.append({
-            "heliostat_id": hid, "mode": mode, "coarse_preset": sel["preset"],
-            "n_train": int((labels == "train").sum()),
-            "coarse": _split_means(coarse_pred["error_mrad"].to_numpy(), labels),
-            mode: _split_means(pred["error_mrad"].to_numpy(), labels),
-            "test_median": {"coarse": float(np.median(coarse_pred["error_mrad"].to_numpy()[labels == "test"]))
-                            if (labels == "test").any() else None,
-                            mode: float(np.median(pred["error_mrad"].to_numpy()[labels == "test"]))
-                            if (labels == "test").any() else None},
-            **info, "wall_time_s": time.perf_counter() - t0})
-        if progress:
-            progress(k + 1, len(ids), hid)
     new = pd.concat(preds, ignore_index=True)
     path = artifact_path(workdir, HYBRID_PREDICTIONS)
     if path.exists():
