@@ -376,29 +376,38 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     prior_scale = (1.0 / sig_free).numpy()
     cache: dict = {}
 
-    def evaluate(x) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals and exact Jacobian at x (cached: MINPACK asks for both at the same x)."""
+    def _prior_rows(x, r, jf=None):
+        if not use_prior:
+            return r, jf
+        r = np.concatenate([r, (np.asarray(x) - nom_free.numpy()) * prior_scale])
+        return r, (None if jf is None else np.vstack([jf, np.diag(prior_scale)]))
+
+    def fun(x):
+        """Residuals at x (forward pass only; trial steps LM rejects need no Jacobian)."""
+        key = np.asarray(x, dtype=np.float64).tobytes()
+        if key in cache:
+            return cache[key][0]
+        with torch.no_grad():
+            p = full(torch.as_tensor(x, dtype=torch.float64))
+            normal, position = forward_kinematics(p, spec, train.steps)
+            meas = measured_normal(train.sun, position, train.focal_spot)
+            # NaN where an actuator leaves its geometric range (law of cosines): a large, flat
+            # residual that LM backs away from
+            r = torch.nan_to_num(1000.0 * (normal - meas).reshape(-1), nan=1e4).numpy()
+        return _prior_rows(x, r)[0]
+
+    def jac(x):
+        """Exact Jacobian at x (geometric, :mod:`heliocal.pipeline.jacobian`)."""
         key = np.asarray(x, dtype=np.float64).tobytes()
         if key not in cache:
             cache.clear()
             p = full(torch.as_tensor(x, dtype=torch.float64))
             r, jac_full = residual_and_jacobian(p, spec, train.steps, train.sun, train.focal_spot)
-            # NaN where an actuator leaves its geometric range (law of cosines): a large, flat
-            # residual that LM backs away from
             r = torch.nan_to_num(r.reshape(-1), nan=1e4).numpy()
             jf = torch.nan_to_num(jac_full[:, :, free_idx_t].reshape(-1, len(free_idx)),
                                   nan=0.0, posinf=0.0, neginf=0.0).numpy()
-            if use_prior:
-                r = np.concatenate([r, (np.asarray(x) - nom_free.numpy()) * prior_scale])
-                jf = np.vstack([jf, np.diag(prior_scale)])
-            cache[key] = (r, jf)
-        return cache[key]
-
-    def fun(x):
-        return evaluate(x)[0]
-
-    def jac(x):
-        return evaluate(x)[1]
+            cache[key] = _prior_rows(x, r, jf)
+        return cache[key][1]
 
     x0 = x0_full[free_idx_t].numpy()
     if len(free_idx) == 0 or len(train) == 0:

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import torch
 
-from .kinematics import (PARAMETER_INDEX, HeliostatSpec, _JOINT_AXES, _N0, _SENSES, _base_frame,
-                         _tilt_matrices, forward_kinematics, joint_angles, rotation_e, rotation_n)
+from .kinematics import (PARAMETER_INDEX, HeliostatSpec, _JOINT_AXES, _SENSES, _base_frame,
+                         _tilt_matrices, forward_kinematics, joint_angles)
 from .metrics import measured_normal
 
 __all__ = ["residual_and_jacobian"]
@@ -39,15 +39,6 @@ _E = torch.eye(3, dtype=torch.float64)
 
 def _unit(v: torch.Tensor) -> torch.Tensor:
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-
-
-def _tilt_axes(prefix: torch.Tensor, tilt_e: torch.Tensor, tilt_n: torch.Tensor) -> torch.Tensor:
-    """World axes (3, 3) [rows e, n, u] of the three tilt rotations following ``prefix`` (3, 3)."""
-    a_e = prefix @ _E[0]
-    p_n = prefix @ rotation_e(tilt_e)
-    a_n = p_n @ _E[1]
-    a_u = p_n @ rotation_n(tilt_n) @ _E[2]
-    return torch.stack([a_e, a_n, a_u])
 
 
 def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor,
@@ -71,14 +62,9 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     (ax1, _), (ax2, _) = _JOINT_AXES[kt]
     senses = _SENSES[kt]
 
-    # joint angles and their derivatives w.r.t. each measurement's own copy of the parameters
-    p_rows = params.expand(n_meas, -1).clone().requires_grad_(True)
-    angles = joint_angles(p_rows, spec, steps.unsqueeze(-2)).squeeze(-2)  # (N, 2)
-    dtheta = []
-    for i in range(2):
-        (g,) = torch.autograd.grad(angles[:, i].sum(), p_rows, retain_graph=i == 0)
-        dtheta.append(torch.nan_to_num(g))  # (N, 28)
-    angles = angles.detach()
+    # joint angles and their derivatives w.r.t. the actuator parameters (closed form)
+    angles = joint_angles(params, spec, steps)  # (N, 2)
+    dtheta = _actuator_derivatives(params, spec, steps)
 
     normal, position = forward_kinematics(params, spec, steps)
     meas = measured_normal(sun, position, focal_spot)
@@ -106,43 +92,45 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     o1 = pos0 + a1 @ t1  # (3,) pivot of joint 1 and of joint-2 tilts
     o2 = o1 + a3 @ t2  # (N, 3) pivot of joint 2
 
-    dn = torch.zeros(n_meas, 3, 28, dtype=torch.float64)
-    dp = torch.zeros(n_meas, 3, 28, dtype=torch.float64)
+    # every rotation parameter: (index, world axis (3,) or (N, 3), pivot or None); every
+    # translation: (index, world direction); evaluated together with one batched cross product
+    rot_idx, rot_axes, rot_pivots, rot_moves = [], [], [], []
 
     def rotation(idx: int, axis: torch.Tensor, pivot: torch.Tensor | None) -> None:
-        axis = axis.expand(n_meas, 3)
-        dn[:, :, idx] = torch.linalg.cross(axis, normal, dim=-1)
-        if pivot is not None:
-            dp[:, :, idx] = torch.linalg.cross(axis, position - pivot, dim=-1)
+        rot_idx.append(idx)
+        rot_axes.append(axis.expand(n_meas, 3))
+        rot_pivots.append((pivot if pivot is not None else pos0).expand(n_meas, 3))
+        rot_moves.append(pivot is not None)
+
+    # Tilt(x) = R_e(x_e) R_n(x_n) R_u(x_u) after a prefix P: the three rotation axes in world
+    # coordinates are P e, P R_e(x_e) n = P (0, cos x_e, sin x_e) and P Tilt u (R_u keeps u)
+    def tilt_axes(prefix, tilt, angle_e):
+        rolled_n = torch.stack([torch.zeros_like(angle_e), torch.cos(angle_e), torch.sin(angle_e)])
+        return (prefix[..., 0], prefix @ rolled_n, (prefix @ tilt)[..., 2])
 
     # joint-1 tilts: rotate everything about the heliostat position
-    for k, ax in enumerate(_tilt_axes(a0, params[r_idx[0][0]], params[r_idx[0][1]])):
+    for k, ax in enumerate(tilt_axes(a0, tilt_1, params[r_idx[0][0]])):
         rotation(r_idx[0][k], ax, pos0)
-    # joint-1 translation
-    for k in range(3):
-        dp[:, :, t_idx[0][k]] = a1[:, k].expand(n_meas, 3)
     # joint-2 tilts: about o1, axes after joint 1's rotation
-    te2, tn2 = params[r_idx[1][0]], params[r_idx[1][1]]
-    ax_e2 = a2 @ _E[0]
-    p_n2 = a2 @ rotation_e(te2)
-    ax_n2 = p_n2 @ _E[1]
-    ax_u2 = p_n2 @ rotation_n(tn2) @ _E[2]
-    for k, ax in enumerate((ax_e2, ax_n2, ax_u2)):
+    for k, ax in enumerate(tilt_axes(a2, tilt_2, params[r_idx[1][0]])):
         rotation(r_idx[1][k], ax, o1)
-    # joint-2 translation
-    for k in range(3):
-        dp[:, :, t_idx[1][k]] = a3[..., k]
-    # concentrator translation
-    for k in range(3):
-        dp[:, :, t_idx[2][k]] = a4[..., k]
     # concentrator tilts: turn the mirror about its centre (normal only)
-    tec, tnc = params[r_idx[2][0]], params[r_idx[2][1]]
-    ax_ec = a4 @ _E[0]
-    p_nc = a4 @ rotation_e(tec)
-    ax_nc = p_nc @ _E[1]
-    ax_uc = p_nc @ rotation_n(tnc) @ _E[2]
-    for k, ax in enumerate((ax_ec, ax_nc, ax_uc)):
+    for k, ax in enumerate(tilt_axes(a4, tilts[2], params[r_idx[2][0]])):
         rotation(r_idx[2][k], ax, None)
+    axes = torch.stack(rot_axes)  # (K, N, 3)
+    pivots = torch.stack(rot_pivots)
+    moves = torch.tensor(rot_moves, dtype=torch.float64).view(-1, 1, 1)
+    dn_rot = torch.linalg.cross(axes, normal.expand_as(axes), dim=-1)
+    dp_rot = torch.linalg.cross(axes, position - pivots, dim=-1) * moves
+    # translations: joint 1 (frame a1), joint 2 (frame a3), concentrator (frame a4)
+    trans_idx = t_idx[0] + t_idx[1] + t_idx[2]
+    dirs = torch.cat([a1.T.unsqueeze(1).expand(3, n_meas, 3), a3.permute(2, 0, 1),
+                      a4.permute(2, 0, 1)])  # (9, N, 3): column k of each frame
+    dn = torch.zeros(n_meas, 3, 28, dtype=torch.float64)
+    dp = torch.zeros(n_meas, 3, 28, dtype=torch.float64)
+    dn[:, :, rot_idx] = dn_rot.permute(1, 2, 0)
+    dp[:, :, rot_idx] = dp_rot.permute(1, 2, 0)
+    dp[:, :, trans_idx] = dirs.permute(1, 2, 0)
     # joints: through the actuator laws
     w1 = a1[:, ax1].expand(n_meas, 3)
     w2 = a3[..., ax2]
@@ -167,6 +155,54 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     dm_dp = -(proj_m @ proj_u) / (norm_su * dist).unsqueeze(-1)  # (N, 3, 3)
     jac = 1000.0 * (dn - dm_dp @ dp)
     return residual, jac
+
+
+def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor):
+    """d(joint angle i)/d(parameters), closed form, as a list of two (N, 28) tensors.
+
+    Ideal: ``theta = steps / g + theta0``. Linear (law of cosines, see
+    :func:`heliocal.pipeline.actuators.linear_steps_to_angle`):
+    ``theta = theta0 + sigma (A(s0) - A(s))``, ``s = steps / inc + s0``,
+    ``A(x) = arccos(c(x))``, ``c(x) = (o^2 + r^2 - x^2) / (2 o r)``; where the cosine is clamped
+    (a stroke that cannot close the triangle) the derivative is 0, as in the forward model.
+    """
+    from .actuators import _sign
+
+    n = steps.shape[0]
+    out = []
+    for i in (1, 2):
+        d = torch.zeros(n, 28, dtype=torch.float64)
+        st = steps[:, i - 1]
+        inc = params[PARAMETER_INDEX[f"axis_{i}_increment"]]
+        d[:, PARAMETER_INDEX[f"axis_{i}_initial_angle_rad"]] = 1.0
+        if spec.actuator_type == "ideal":
+            d[:, PARAMETER_INDEX[f"axis_{i}_increment"]] = -st / inc**2
+            out.append(d)
+            continue
+        s0 = params[PARAMETER_INDEX[f"axis_{i}_initial_stroke_length_m"]]
+        o = params[PARAMETER_INDEX[f"axis_{i}_offset_m"]]
+        r = params[PARAMETER_INDEX[f"axis_{i}_pivot_radius_m"]]
+        sigma = _sign(spec.clockwise[..., i - 1])
+
+        def parts(x):
+            c = (o**2 + r**2 - x**2) / (2.0 * o * r)
+            inside = c.abs() < 1.0
+            da_dc = torch.where(inside, -1.0 / torch.sqrt(torch.clamp(1.0 - c**2, min=1e-300)),
+                                torch.zeros_like(c))
+            dc_dx = -x / (o * r)
+            dc_do = (o**2 - r**2 + x**2) / (2.0 * o**2 * r)
+            dc_dr = (r**2 - o**2 + x**2) / (2.0 * o * r**2)
+            return da_dc * dc_dx, da_dc * dc_do, da_dc * dc_dr
+
+        x = st / inc + s0
+        ax, ao, ar = parts(x)
+        bx, bo, br = parts(s0)
+        d[:, PARAMETER_INDEX[f"axis_{i}_increment"]] = -sigma * ax * (-st / inc**2)
+        d[:, PARAMETER_INDEX[f"axis_{i}_initial_stroke_length_m"]] = sigma * (bx - ax)
+        d[:, PARAMETER_INDEX[f"axis_{i}_offset_m"]] = sigma * (bo - ao)
+        d[:, PARAMETER_INDEX[f"axis_{i}_pivot_radius_m"]] = sigma * (br - ar)
+        out.append(d)
+    return out
 
 
 def _axis_rotation(axis: int, angle: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,190 @@
+"""Benchmark: calibrate a whole simulated field, stage by stage, with 1 and 2 workers.
+
+Simulates a field (default 2,000 heliostats with 100 to 400 measurements each; ``heliocal
+simulate``'s model, seed 0), writes it as a WGS84 calibration log plus PAINT heliostat-properties
+files, then runs ``ingest``, ``split-knn``, ``fit-coarse --preset static-20`` and ``fit-hybrid``
+(one weight decay) as separate ``heliocal`` processes, once with ``--workers 1`` and once with
+``--workers 2``, and prints per stage the wall time, heliostats per second and the peak memory of
+the stage's whole process tree (summed RSS, sampled every 0.1 s), so the scaling ratio is
+measured in one run. Usage::
+
+    .venv/bin/python benchmarks/field.py [--heliostats 2000] [--out runs/field-bench]
+        [--hybrid-epochs 800] [--stages ingest,split-knn,fit-coarse,fit-hybrid]
+
+The simulated field is cached in OUT/field (delete it to simulate again).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+HELIOCAL = str(Path(sys.executable).parent / "heliocal")
+
+
+def _simulate_chunk(args):
+    from heliocal.pipeline.simulate import simulate_field
+
+    n, seed = args
+    return simulate_field(n, seed=seed, measurements=(100, 400), dynamic_fraction=0.5)
+
+
+def write_field(out: Path, n: int, seed: int = 0) -> dict:
+    """Simulate ``n`` heliostats (in chunks over 2 processes) and write the log and properties."""
+    from heliocal.pipeline.geodesy import enu_to_wgs84
+    from heliocal.pipeline.parallel import map_tasks
+    from heliocal.pipeline.simulate import _json, _tower_json
+
+    if (out / "done.json").exists():
+        return json.loads((out / "done.json").read_text())
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    chunk = 100
+    tasks = [(min(chunk, n - i), seed + k) for k, i in enumerate(range(0, n, chunk))]
+    t0 = time.perf_counter()
+    fields = map_tasks(_simulate_chunk, tasks, workers=2)
+    frames, n_written = [], 0
+    for k, f in enumerate(fields):
+        meas = f.measurements.copy()
+        rename = {hid: f"C{k:03d}{hid}" for hid in f.heliostats}  # unique names across chunks
+        meas["heliostat_id"] = meas["heliostat_id"].map(rename)
+        lat, lon, alt = enu_to_wgs84(meas["focal_spot_e_m"].to_numpy(), meas["focal_spot_n_m"].to_numpy(),
+                                     meas["focal_spot_u_m"].to_numpy(), f.reference)
+        h = {rename[hid]: v for hid, v in f.heliostats.items()}
+        centers = {name: t["center_wgs84"] for name, t in f.targets.items()}
+        frames.append(pd.DataFrame({
+            "heliostat_id": meas["heliostat_id"],
+            "timestamp": pd.to_datetime(meas["timestamp"], utc=True).dt.strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "sample_id": meas["measurement_id"],
+            "sun_elevation": meas["sun_elevation_deg"], "sun_azimuth": meas["sun_azimuth_deg"],
+            "axis_1_motor_position": meas["axis_1_steps"].astype(int),
+            "axis_2_motor_position": meas["axis_2_steps"].astype(int),
+            "target_name": meas["target_name"],
+            "heliostat_lat": meas["heliostat_id"].map(lambda x: h[x].row["latitude_deg"]),
+            "heliostat_lon": meas["heliostat_id"].map(lambda x: h[x].row["longitude_deg"]),
+            "heliostat_alt": meas["heliostat_id"].map(lambda x: h[x].row["altitude_m"]),
+            "focal_spot_lat": lat, "focal_spot_lon": lon, "focal_spot_alt": alt,
+            "target_center_lat": meas["target_name"].map(lambda t: centers[t][0]),
+            "target_center_lon": meas["target_name"].map(lambda t: centers[t][1]),
+            "target_center_alt": meas["target_name"].map(lambda t: centers[t][2]),
+            "temperature": meas["temperature_c"]}))
+        for hid, v in h.items():
+            d = out / "paint" / hid
+            d.mkdir(parents=True, exist_ok=True)
+            (d / f"{hid}-heliostat-properties.json").write_text(_json(v.paint_properties))
+            n_written += 1
+        if k == 0:
+            (out / "tower-measurements.json").write_text(_json(_tower_json(f)))
+    log = pd.concat(frames, ignore_index=True)
+    log.to_csv(out / "calibration_log.csv", index=False)
+    info = {"heliostats": n_written, "measurements": int(len(log)),
+            "simulate_s": round(time.perf_counter() - t0, 1)}
+    (out / "done.json").write_text(json.dumps(info))
+    return info
+
+
+def _tree_rss_bytes(root_pid: int) -> int:
+    """Summed RSS of a process and all its descendants (from /proc)."""
+    children: dict[int, list[int]] = {}
+    rss: dict[int, int] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                parts = fh.read().rsplit(")", 1)[1].split()
+            ppid = int(parts[1])
+            rss[int(entry)] = int(parts[21]) * os.sysconf("SC_PAGE_SIZE")
+            children.setdefault(ppid, []).append(int(entry))
+        except (OSError, IndexError, ValueError):
+            continue
+    total, stack = 0, [root_pid]
+    while stack:
+        pid = stack.pop()
+        total += rss.get(pid, 0)
+        stack.extend(children.get(pid, []))
+    return total
+
+
+def run_stage(args: list[str]) -> tuple[float, int]:
+    """Run one heliocal command; return (wall seconds, peak tree RSS bytes)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([HELIOCAL, *args, "--quiet"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    peak = 0
+    stop = threading.Event()
+
+    def sample():
+        nonlocal peak
+        while not stop.is_set():
+            peak = max(peak, _tree_rss_bytes(proc.pid))
+            time.sleep(0.1)
+
+    thread = threading.Thread(target=sample, daemon=True)
+    thread.start()
+    _, err = proc.communicate()
+    stop.set()
+    thread.join()
+    if proc.returncode != 0:
+        raise SystemExit(f"heliocal {' '.join(args)} failed: {err.strip()[-500:]}")
+    return time.perf_counter() - t0, peak
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--heliostats", type=int, default=2000)
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "field-bench")
+    ap.add_argument("--hybrid-epochs", type=int, default=800)
+    ap.add_argument("--stages", default="ingest,split-knn,fit-coarse,fit-hybrid")
+    ap.add_argument("--workers", default="1,2")
+    args = ap.parse_args()
+    field_dir = args.out / f"field-{args.heliostats}"
+    info = write_field(field_dir, args.heliostats)
+    print(f"field: {info['heliostats']} heliostats, {info['measurements']} measurements "
+          f"(simulated in {info['simulate_s']} s, cached in {field_dir})", flush=True)
+    stages = args.stages.split(",")
+    results = {}
+    for workers in [int(w) for w in args.workers.split(",")]:
+        wd = args.out / f"run-{args.heliostats}-w{workers}"
+        shutil.rmtree(wd, ignore_errors=True)
+        commands = {
+            "ingest": ["ingest", str(field_dir / "calibration_log.csv"), "--properties",
+                       str(field_dir / "paint"), "--workdir", str(wd)],
+            "split-knn": ["split-knn", "--workdir", str(wd)],
+            "fit-coarse": ["fit-coarse", "--workdir", str(wd), "--preset", "static-20",
+                           "--workers", str(workers)],
+            "fit-hybrid": ["fit-hybrid", "--workdir", str(wd), "--weight-decay", "1e-3",
+                           "--max-epochs", str(args.hybrid_epochs), "--workers", str(workers)],
+        }
+        for stage in stages:
+            wall, peak = run_stage(commands[stage])
+            results[(stage, workers)] = (wall, peak)
+            print(f"  workers={workers} {stage:11s} {wall:8.1f} s  "
+                  f"{info['heliostats'] / wall:8.1f} heliostats/s  peak {peak / 2**30:5.2f} GiB",
+                  flush=True)
+    print("\nstage        " + "".join(f"  wall w={w}   " for w in args.workers.split(","))
+          + " speed-up  peak memory")
+    ws = [int(w) for w in args.workers.split(",")]
+    for stage in stages:
+        walls = [results[(stage, w)][0] for w in ws]
+        peaks = [results[(stage, w)][1] for w in ws]
+        line = f"{stage:12s} " + "".join(f"{w:9.1f} s   " for w in walls)
+        if len(walls) > 1:
+            line += f"  {walls[0] / walls[-1]:5.2f}x"
+        line += f"   {max(peaks) / 2**30:5.2f} GiB"
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
