@@ -1086,7 +1086,8 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     sun_vector_enu : (3,) direction toward the sun; default from NREL SPA at ``time_utc``.
     time_utc : time of the aim (needed by models with time inputs, and for the sun by default).
     env : values of the model's env inputs (name without ``env_`` -> value).
-    model : ``auto`` (hybrid where fitted, else coarse), ``coarse``, ``hybrid``, ``nn-only`` or
+    model : ``auto`` (the sweep's selection where ``sweep`` ran, else the fit-hybrid hybrid where
+        fitted, else coarse), ``coarse``, ``hybrid``, ``nn-only`` or
         ``pretrained-nn``.
 
     Returns
@@ -1126,8 +1127,23 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     coarse = selected[heliostat_id]["params"]
     chosen = model
     fitted = None
+    rerun = None
     if model == "auto":
-        fitted = load_model(workdir, "hybrid", heliostat_id)
+        # the sweep's selection wins (the model that is never worse than coarse on validation);
+        # without a sweep: the fit-hybrid model where fitted, else the coarse model
+        selection_path = Path(workdir) / "selection.parquet"
+        choice = None
+        if selection_path.exists():
+            sel_df = pd.read_parquet(selection_path)
+            sel_df = sel_df[sel_df["heliostat_id"] == heliostat_id]
+            choice = str(sel_df["model"].iloc[0]) if len(sel_df) else None
+        if choice == "coarse":
+            fitted = None
+        elif choice == "hybrid":
+            fitted = load_model(workdir, "selected", heliostat_id)
+            rerun = f"`heliocal sweep --workdir {workdir}`"
+        else:
+            fitted = load_model(workdir, "hybrid", heliostat_id)
         chosen = "hybrid" if fitted is not None else "coarse"
     elif model != "coarse":
         fitted = load_model(workdir, model, heliostat_id)
@@ -1138,9 +1154,9 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
         cfg = fitted[0]
         current = {k: file_sha256(p) for k, p in _inputs(workdir).items()}
         if any(cfg.get("inputs", {}).get(k) != v for k, v in current.items()):
+            rerun = rerun or f"`heliocal fit-hybrid --workdir {workdir} --mode {chosen}`"
             raise StageInputError(f"the {chosen} model of {heliostat_id} is stale (its inputs "
-                                  f"changed): rerun `heliocal fit-hybrid --workdir {workdir} "
-                                  f"--mode {chosen}` first")
+                                  f"changed): rerun {rerun} first")
     steps = inverse_kinematics(coarse, spec, sun, aim)
     iterations = 0
     if not bool(torch.isfinite(steps).all()):
