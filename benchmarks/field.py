@@ -157,7 +157,8 @@ def main() -> None:
     results = {}
     for workers in [int(w) for w in args.workers.split(",")]:
         wd = args.out / f"run-{args.heliostats}-w{workers}"
-        shutil.rmtree(wd, ignore_errors=True)
+        if "ingest" in stages:  # a fresh workdir; later stages alone reuse the previous one
+            shutil.rmtree(wd, ignore_errors=True)
         commands = {
             "ingest": ["ingest", str(field_dir / "calibration_log.csv"), "--properties",
                        str(field_dir / "paint"), "--workdir", str(wd)],

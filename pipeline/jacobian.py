@@ -29,7 +29,7 @@ from __future__ import annotations
 import torch
 
 from .kinematics import (PARAMETER_INDEX, HeliostatSpec, _JOINT_AXES, _SENSES, _base_frame,
-                         _tilt_matrices, forward_kinematics, joint_angles)
+                         _chain, _tilt_matrices, joint_angles)
 from .metrics import measured_normal
 
 __all__ = ["residual_and_jacobian"]
@@ -66,7 +66,8 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     angles = joint_angles(params, spec, steps)  # (N, 2)
     dtheta = _actuator_derivatives(params, spec, steps)
 
-    normal, position = forward_kinematics(params, spec, steps)
+    normal, position = _chain(params, spec, angles)  # = forward_kinematics, angles reused
+    normal = normal.squeeze(-1)
     meas = measured_normal(sun, position, focal_spot)
     residual = 1000.0 * (normal - meas)
 

@@ -15,6 +15,7 @@ where or in which order the tasks ran: artifacts are identical to a sequential r
 
 from __future__ import annotations
 
+import contextlib
 import os
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Callable, Sequence
@@ -34,10 +35,42 @@ def default_workers() -> int:
         return max(os.cpu_count() or 1, 1)
 
 
+_ONE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def _init_worker() -> None:
+    """One thread per worker process (torch and the BLAS behind numpy/scipy): N workers, N cores."""
     import torch
 
     torch.set_num_threads(1)
+    try:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(1)
+    except ImportError:  # pragma: no cover - comes with scikit-learn
+        pass
+
+
+@contextlib.contextmanager
+def _one_thread():
+    """Limit torch and BLAS to one thread in this process for the duration (small problems:
+    more threads only add synchronisation)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        from threadpoolctl import threadpool_limits
+
+        limits = threadpool_limits(1)
+    except ImportError:  # pragma: no cover
+        limits = None
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+        if limits is not None:
+            limits.restore_original_limits()
 
 
 def _run_chunk(func: Callable, chunk: Sequence[Any]) -> list:
@@ -81,16 +114,19 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
         return _map_dask(func, tasks, workers, dask_address, progress, chunks_per_worker)
     if workers == 1 or total == 1:
         out = []
-        for k, t in enumerate(tasks):
-            out.append(func(t))
-            if progress:
-                progress(k + 1, total)
+        with _one_thread():
+            for k, t in enumerate(tasks):
+                out.append(func(t))
+                if progress:
+                    progress(k + 1, total)
         return out
     chunks = _chunks(tasks, workers * chunks_per_worker)
     results: list = [None] * len(chunks)
     done = 0
     import multiprocessing as mp
 
+    for var in _ONE_THREAD_ENV:  # inherited by the worker processes before numpy loads
+        os.environ.setdefault(var, "1")
     ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as pool:
         futures = {pool.submit(_run_chunk, func, c): i for i, c in enumerate(chunks)}
