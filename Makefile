@@ -8,12 +8,13 @@ WORKDIR ?= runs/sample
 SOURCES ?= sample_data/juelich/paint
 SEED ?= 0
 PRESET ?= auto
+BASELINES ?= nn-only
 
 SOURCE_FILES := $(shell find $(SOURCES) -type f 2>/dev/null)
 CODE := $(shell find pipeline cli -name '*.py' 2>/dev/null)
 
 .DEFAULT_GOAL := help
-.PHONY: help install sample report test regression clean
+.PHONY: help install sample sweep report test regression clean
 
 ## help: list the targets
 help:
@@ -29,7 +30,7 @@ $(VENV)/.installed: pyproject.toml
 	$(VENV)/bin/pip install --quiet -e ".[test]"
 	touch $@
 
-## sample: run the whole pipeline on sample_data into WORKDIR (default runs/sample)
+## sample: run the whole pipeline on sample_data into WORKDIR (default runs/sample; ~2 min)
 sample: $(WORKDIR)/report/index.html
 
 ## report: HTML report, figures and metrics.json of the run ($(WORKDIR)/report/)
@@ -52,7 +53,13 @@ $(WORKDIR)/split.parquet: $(WORKDIR)/measurements.parquet
 $(WORKDIR)/coarse_params.parquet $(WORKDIR)/coarse_predictions.parquet &: $(WORKDIR)/split.parquet $(WORKDIR)/heliostats.parquet
 	$(HELIOCAL) fit-coarse --workdir $(WORKDIR) --preset $(PRESET) --quiet
 
-$(WORKDIR)/report/index.html $(WORKDIR)/report/report.md $(WORKDIR)/report/metrics.json &: $(WORKDIR)/coarse_predictions.parquet $(wildcard $(WORKDIR)/hybrid_predictions.parquet $(WORKDIR)/sweep.parquet $(WORKDIR)/selection.parquet)
+## sweep: weight-decay sweep and training-size study (BASELINES=nn-only,pretrained-nn for both)
+sweep: $(WORKDIR)/selection.parquet
+
+$(WORKDIR)/sweep.parquet $(WORKDIR)/selection.parquet $(WORKDIR)/selected_predictions.parquet &: $(WORKDIR)/coarse_params.parquet
+	$(HELIOCAL) sweep --workdir $(WORKDIR) --seeds $(SEED) --baselines $(BASELINES) --quiet
+
+$(WORKDIR)/report/index.html $(WORKDIR)/report/report.md $(WORKDIR)/report/metrics.json &: $(WORKDIR)/coarse_predictions.parquet $(WORKDIR)/selection.parquet $(wildcard $(WORKDIR)/hybrid_predictions.parquet)
 	$(HELIOCAL) report --workdir $(WORKDIR) --quiet
 
 ## clean: remove run outputs (not the virtual environment)

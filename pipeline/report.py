@@ -79,11 +79,13 @@ SKY_POINTS_PER_MRAD = 4.0
 SKY_CLIP_MRAD = 6.0
 
 _OPTIONAL = ("split.parquet", "coarse_params.parquet", "coarse_predictions.parquet",
-             "hybrid_predictions.parquet", "sweep.parquet", "selection.parquet")
+             "hybrid_predictions.parquet", "sweep.parquet", "selection.parquet",
+             "selected_predictions.parquet")
 #: Stage that writes each optional artifact (used when its schema is not importable yet).
 _PRODUCERS = {"split.parquet": "split-knn", "coarse_params.parquet": "fit-coarse",
               "coarse_predictions.parquet": "fit-coarse", "hybrid_predictions.parquet": "fit-hybrid",
-              "sweep.parquet": "sweep", "selection.parquet": "sweep"}
+              "sweep.parquet": "sweep", "selection.parquet": "sweep",
+              "selected_predictions.parquet": "sweep"}
 _HYBRID_ORDER = ("hybrid", "nn-only", "pretrained-nn")
 _COARSE_ORDER = ("nominal", "static-6", "stone-8", "static-14", "static-20", "static-28")
 _SPLIT_COLORS = {"train": "0.55", "validation": "tab:blue", "test": "tab:orange", "unused": "0.8"}
@@ -190,7 +192,8 @@ def load_inputs(workdir: str | Path) -> ReportInputs:
         elif name == "selection.parquet":
             inp.selection = df
     preds = []
-    for name in ("coarse_predictions.parquet", "hybrid_predictions.parquet"):
+    for name in ("coarse_predictions.parquet", "hybrid_predictions.parquet",
+                 "selected_predictions.parquet"):
         df = _read(workdir, name)
         if df is not None:
             missing = [c for c in ("heliostat_id", "measurement_id", "model", "split", "error_mrad")
@@ -313,16 +316,21 @@ def _final_models(inp: ReportInputs) -> dict[str, dict]:
         for hid, g in p[p["selected"]].groupby("heliostat_id", sort=True):
             coarse = g[g["source"] == "coarse_predictions"]["model"].unique()
             hybrid = g[g["source"] == "hybrid_predictions"]["model"].unique()
+            chosen = g[g["source"] == "selected_predictions"]["model"].unique()
             out[hid] = {"coarse_preset": str(coarse[0]) if len(coarse) else None,
-                        "model": str(hybrid[0]) if len(hybrid) else
+                        "model": str(chosen[0]) if len(chosen) else
+                        str(hybrid[0]) if len(hybrid) else
                         (str(coarse[0]) if len(coarse) else None)}
     sel = inp.selection
     if sel is not None and "heliostat_id" in sel.columns:
         for _, row in sel.iterrows():
             hid = str(row["heliostat_id"])
             entry = out.setdefault(hid, {"coarse_preset": None, "model": None})
-            if "model" in sel.columns and pd.notna(row["model"]):
-                entry["model"] = str(row["model"])
+            if "model" in sel.columns and pd.notna(row["model"]) and entry["model"] != "selected":
+                # without the sweep's per-measurement predictions: the coarse choice is the
+                # selected preset's rows
+                entry["model"] = (entry["coarse_preset"] or "coarse") if row["model"] == "coarse" \
+                    else str(row["model"])
             for key in ("weight_decay", "val_error_mrad", "test_error_mrad",
                         "coarse_val_error_mrad", "coarse_test_error_mrad"):
                 if key in sel.columns:

@@ -23,6 +23,7 @@ layout of ``fit-hybrid``, for ``aim`` and ``report``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -36,18 +37,18 @@ import torch
 
 from .artifacts import (ArtifactSchema, Column as C, artifact_path, atomic_path, atomic_write_text,
                         check_fresh, file_sha256, read_artifact, write_artifact)
-from .coarse import (AUTO_PRESETS, COARSE_PARAMS, MeasurementBatch, fit_heliostat,
-                     load_selected_parameters, normal_errors_mrad)
+from .coarse import (AUTO_PRESETS, COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch,
+                     fit_heliostat, load_selected_parameters, normal_errors_mrad, predict)
 from .errors import FitError, check_float, check_int
 from .hybrid import (FineConfig, PretrainConfig, _layers_to_state, build_problem, fit_pretrained,
-                     member_errors_mrad, train_members)
+                     member_errors_mrad, predict_members, predictions_frame, train_members)
 from .kinematics import HeliostatSpec, nominal_parameters
 from .metrics import error_mrad, measured_normal
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
 from .split import SPLIT, restrict_training
 
-__all__ = ["SWEEP", "SELECTION", "SCHEMAS", "default_ladder", "weight_decay_grid", "sweep_heliostat",
+__all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder", "weight_decay_grid", "sweep_heliostat",
            "run_sweep"]
 
 log = logging.getLogger("heliocal.sweep")
@@ -96,7 +97,13 @@ SELECTION = ArtifactSchema(
     ),
 )
 
-SCHEMAS = (SWEEP, SELECTION)
+SELECTED_PREDICTIONS = ArtifactSchema(
+    name="selected_predictions", filename="selected_predictions.parquet", producer="sweep",
+    sort_by=COARSE_PREDICTIONS.sort_by, columns=COARSE_PREDICTIONS.columns,
+    description="Per measurement the errors of the model selection.parquet chose (model = "
+                "`selected`): the selected hybrid member, or the coarse model.")
+
+SCHEMAS = (SWEEP, SELECTION, SELECTED_PREDICTIONS)
 
 #: Relative validation improvement a hybrid member needs to be selected over the coarse model.
 MIN_IMPROVEMENT = 0.02
@@ -223,6 +230,17 @@ def sweep_heliostat(task) -> dict:
                        "base_params": bases[sizes[-1]][0].tolist(), "free": free.tolist(),
                        "scales": problem.scales.tolist(), "coarse_preset": base_preset,
                        "sizes": problem.sizes(config), "selected_by": "sweep"}}
+    if best["model"] == "hybrid":
+        k = best["member"]
+        single = dataclasses.replace(problem, base=problem.base[k:k + 1])  # that member's base
+        with torch.no_grad():
+            normal, position = predict_members(single, result.member(k))
+        sel_pred = predictions_frame(problem, normal[0], position[0])
+    else:
+        sel_pred = predict(bases[sizes[-1]][0], spec, data).drop(columns=["measurement_id"])
+    sel_pred["measurement_id"] = rows["measurement_id"].astype(str).to_numpy()
+    sel_pred["heliostat_id"], sel_pred["split"] = hid, labels_full
+    sel_pred["model"], sel_pred["selected"] = "selected", True
     selection = {"heliostat_id": hid, "model": best["model"], "preset": base_preset,
                  "weight_decay": best["weight_decay"], "seed": int(best["seed"]),
                  "n_train": int(sizes[-1]), "val_error_mrad": best["val"],
@@ -242,7 +260,8 @@ def sweep_heliostat(task) -> dict:
                     e = error_mrad(normal, measured_normal(data.sun, position, data.focal_spot)).numpy()
                 out_rows.append(_row(hid, "pretrained-nn", n, float("nan"), s, e, labels_full,
                                      masks[n], dists[n], base_preset, time.perf_counter() - t0))
-    return {"rows": out_rows, "selection": selection, "selected_state": selected_state}
+    return {"rows": out_rows, "selection": selection, "selected_state": selected_state,
+            "predictions": sel_pred}
 
 
 def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
@@ -309,5 +328,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                    seed=seeds[0], inputs=inputs)
     write_artifact(selection, workdir, SELECTION, stage="sweep", options=opts, seed=seeds[0],
                    inputs=inputs)
+    write_artifact(pd.concat([res["predictions"] for res in results], ignore_index=True), workdir,
+                   SELECTED_PREDICTIONS, stage="sweep", options=opts, seed=seeds[0], inputs=inputs)
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "members_per_heliostat": {t[0]: len(t[4]) * len(weight_decays) * len(seeds) for t in tasks}}

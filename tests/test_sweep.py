@@ -72,3 +72,18 @@ def test_training_size_study_rows(static_workdir):
     sel = pd.read_parquet(static_workdir / SELECTION.filename)
     assert (sel["val_error_mrad"] <= sel["coarse_val_error_mrad"]).all()
     assert np.isfinite(sweep["test_error_mrad"]).all()
+
+
+def test_selected_predictions_match_the_selection(static_workdir):
+    # the per-measurement predictions of the selected model reproduce the selection's means
+    # (same model, same rows): a check that the right member and base were used
+    from heliocal.pipeline.sweep import SELECTED_PREDICTIONS
+
+    run_sweep(static_workdir, n_train=[10, 10_000], weight_decays=[1e-3, 0.0], presets=("static-20",),
+              baselines=(), config=FineConfig(max_epochs=60, patience=60), heliostats=["SP13"])
+    sel = pd.read_parquet(static_workdir / SELECTION.filename).iloc[0]
+    pred = pd.read_parquet(static_workdir / SELECTED_PREDICTIONS.filename)
+    assert set(pred["model"]) == {"selected"}
+    for split, col in (("validation", "val_error_mrad"), ("test", "test_error_mrad")):
+        mean = pred.loc[pred["split"] == split, "error_mrad"].mean()
+        assert mean == pytest.approx(sel[col], rel=1e-9)
