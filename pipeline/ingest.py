@@ -653,27 +653,10 @@ def _stage_log(path: Path, opts: IngestOptions, kind: str) -> _Staged:
                      "heliostat_lon", "heliostat_alt", "target_center_lat", "target_center_lon",
                      "target_center_alt"):
             take(name)
-        spot = _to_float_frame(df, ["focal_spot_lat", "focal_spot_lon", "focal_spot_alt"])
-        ok = spot.notna().all(axis=1)
-        e, n, u = wgs84_to_enu(spot["focal_spot_lat"].where(ok, 0), spot["focal_spot_lon"].where(ok, 0),
-                               spot["focal_spot_alt"].where(ok, 0), reference)
-        df["focal_spot_e_m"] = np.where(ok, e, np.nan)
-        df["focal_spot_n_m"] = np.where(ok, n, np.nan)
-        df["focal_spot_u_m"] = np.where(ok, u, np.nan)
+        for src, dst in (("focal_spot", "focal_spot"), ("heliostat", "heliostat"),
+                         ("target_center", "target")):
+            _wgs84_columns_to_enu(df, src, dst, reference)
         hpos = _to_float_frame(df, ["heliostat_lat", "heliostat_lon", "heliostat_alt"])
-        hok = hpos.notna().all(axis=1)
-        e, n, u = wgs84_to_enu(hpos["heliostat_lat"].where(hok, 0), hpos["heliostat_lon"].where(hok, 0),
-                               hpos["heliostat_alt"].where(hok, 0), reference)
-        df["heliostat_e_m"] = np.where(hok, e, np.nan)
-        df["heliostat_n_m"] = np.where(hok, n, np.nan)
-        df["heliostat_u_m"] = np.where(hok, u, np.nan)
-        tc = _to_float_frame(df, ["target_center_lat", "target_center_lon", "target_center_alt"])
-        tok = tc.notna().all(axis=1)
-        e, n, u = wgs84_to_enu(tc["target_center_lat"].where(tok, 0), tc["target_center_lon"].where(tok, 0),
-                               tc["target_center_alt"].where(tok, 0), reference)
-        df["target_e_m"] = np.where(tok, e, np.nan)
-        df["target_n_m"] = np.where(tok, n, np.nan)
-        df["target_u_m"] = np.where(tok, u, np.nan)
         df["_hpos_wgs84"] = list(zip(hpos["heliostat_lat"], hpos["heliostat_lon"], hpos["heliostat_alt"]))
     else:  # enu-log
         for name in ("focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m", "heliostat_e_m",
@@ -711,6 +694,16 @@ def _stage_log(path: Path, opts: IngestOptions, kind: str) -> _Staged:
         df["focal_spot_source"] = "log"
     df["focal_spot_source"] = df["focal_spot_source"].replace("", "log")
     return _Staged(df, heliostats, targets, reference, kind, ignored)
+
+
+def _wgs84_columns_to_enu(df: pd.DataFrame, src: str, dst: str, reference) -> None:
+    """Columns ``{src}_lat/lon/alt`` (text) -> ``{dst}_e_m/n_m/u_m`` (NaN where any is missing)."""
+    names = [f"{src}_lat", f"{src}_lon", f"{src}_alt"]
+    wgs = _to_float_frame(df, names)
+    ok = wgs.notna().all(axis=1)
+    enu = wgs84_to_enu(*(wgs[c].where(ok, 0) for c in names), reference)
+    for axis, values in zip("enu", enu):
+        df[f"{dst}_{axis}_m"] = np.where(ok, values, np.nan)
 
 
 def _read_properties_source(path: Path, reference) -> tuple[dict[str, dict], dict[str, Target]]:
