@@ -43,7 +43,7 @@ from scipy.optimize import least_squares
 from .artifacts import (ArtifactSchema, Column as C, artifact_path, check_fresh, read_artifact,
                         write_artifact)
 from .errors import FitError, check_choice, check_float
-from .jacobian import residual_and_jacobian
+from .jacobian import forward_state, residual_and_jacobian
 from .parallel import map_tasks
 from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
                          HeliostatSpec, forward_kinematics, joint_angles, nominal_parameters,
@@ -375,6 +375,7 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     use_prior = prior_weight > 0
     prior_scale = (1.0 / sig_free).numpy()
     cache: dict = {}
+    states: dict = {}
 
     def _prior_rows(x, r, jf=None):
         if not use_prior:
@@ -389,11 +390,13 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
             return cache[key][0]
         with torch.no_grad():
             p = full(torch.as_tensor(x, dtype=torch.float64))
-            normal, position = forward_kinematics(p, spec, train.steps)
-            meas = measured_normal(train.sun, position, train.focal_spot)
+            state = forward_state(p, spec, train.steps)
+            meas = measured_normal(train.sun, state[2], train.focal_spot)
             # NaN where an actuator leaves its geometric range (law of cosines): a large, flat
             # residual that LM backs away from
-            r = torch.nan_to_num(1000.0 * (normal - meas).reshape(-1), nan=1e4).numpy()
+            r = torch.nan_to_num(1000.0 * (state[1] - meas).reshape(-1), nan=1e4).numpy()
+        states.clear()
+        states[key] = state  # the Jacobian at an accepted x reuses this forward pass
         return _prior_rows(x, r)[0]
 
     def jac(x):
@@ -402,7 +405,8 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         if key not in cache:
             cache.clear()
             p = full(torch.as_tensor(x, dtype=torch.float64))
-            r, jac_full = residual_and_jacobian(p, spec, train.steps, train.sun, train.focal_spot)
+            r, jac_full = residual_and_jacobian(p, spec, train.steps, train.sun, train.focal_spot,
+                                                state=states.get(key))
             r = torch.nan_to_num(r.reshape(-1), nan=1e4).numpy()
             jf = torch.nan_to_num(jac_full[:, :, free_idx_t].reshape(-1, len(free_idx)),
                                   nan=0.0, posinf=0.0, neginf=0.0).numpy()

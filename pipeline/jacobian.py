@@ -32,7 +32,7 @@ from .kinematics import (PARAMETER_INDEX, HeliostatSpec, _JOINT_AXES, _SENSES, _
                          _chain, _tilt_matrices, joint_angles)
 from .metrics import measured_normal
 
-__all__ = ["residual_and_jacobian"]
+__all__ = ["residual_and_jacobian", "forward_state"]
 
 _E = torch.eye(3, dtype=torch.float64)
 
@@ -41,8 +41,16 @@ def _unit(v: torch.Tensor) -> torch.Tensor:
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
 
 
+def forward_state(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor):
+    """Joint angles (N, 2), mirror normals (N, 3) and centres (N, 3): the forward pass that
+    :func:`residual_and_jacobian` builds on (pass it back as ``state`` to avoid recomputing)."""
+    angles = joint_angles(params, spec, steps)
+    normal, position = _chain(params, spec, angles)
+    return angles, normal.squeeze(-1), position
+
+
 def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor,
-                          sun: torch.Tensor, focal_spot: torch.Tensor):
+                          sun: torch.Tensor, focal_spot: torch.Tensor, state=None):
     """Residuals ``1000 (n_pred - n_meas)`` [mrad] and their exact Jacobian for one heliostat.
 
     Parameters
@@ -50,6 +58,7 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     params : (28,) parameter vector.
     spec : the heliostat (batch shape ``()``).
     steps : (N, 2) motor steps; sun : (N, 3) unit sun vectors; focal_spot : (N, 3) [m] ENU.
+    state : :func:`forward_state` at ``params``, if already computed.
 
     Returns
     -------
@@ -63,11 +72,9 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     senses = _SENSES[kt]
 
     # joint angles and their derivatives w.r.t. the actuator parameters (closed form)
-    angles = joint_angles(params, spec, steps)  # (N, 2)
+    angles, normal, position = state if state is not None else forward_state(params, spec, steps)
     dtheta = _actuator_derivatives(params, spec, steps)
 
-    normal, position = _chain(params, spec, angles)  # = forward_kinematics, angles reused
-    normal = normal.squeeze(-1)
     meas = measured_normal(sun, position, focal_spot)
     residual = 1000.0 * (normal - meas)
 
