@@ -62,6 +62,7 @@ __all__ = [
     "CoarseFit",
     "fit_heliostat",
     "predict",
+    "metrics_frame",
     "run_fit_coarse",
     "load_selected_parameters",
     "normal_errors_mrad",
@@ -201,10 +202,10 @@ def normal_errors_mrad(params: torch.Tensor, spec: HeliostatSpec, data: Measurem
     return error_mrad(normal, meas)
 
 
-def predict(params: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch) -> pd.DataFrame:
-    """All error metrics of every measurement for one parameter vector (28,)."""
+def metrics_frame(data: MeasurementBatch, normal: torch.Tensor, position: torch.Tensor) -> pd.DataFrame:
+    """The per-measurement metric columns of coarse_predictions for predicted normals and mirror
+    centres (N, 3): error_mrad, beam_error_mrad and the spot offset (defined in metrics)."""
     with torch.no_grad():
-        normal, position = forward_kinematics(params, spec, data.steps)
         meas = measured_normal(data.sun, position, data.focal_spot)
         err = error_mrad(normal, meas)
         beam = beam_error_mrad(data.sun, normal, position, data.focal_spot)
@@ -215,6 +216,13 @@ def predict(params: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch) -
         "error_mrad": err.numpy(), "beam_error_mrad": beam.numpy(),
         "spot_offset_horizontal_m": h.numpy(), "spot_offset_vertical_m": v.numpy(),
         "spot_offset_m": mag.numpy()})
+
+
+def predict(params: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch) -> pd.DataFrame:
+    """All error metrics of every measurement for one parameter vector (28,)."""
+    with torch.no_grad():
+        normal, position = forward_kinematics(params, spec, data.steps)
+    return metrics_frame(data, normal, position)
 
 
 # ------------------------------------------------------------------------------------------------

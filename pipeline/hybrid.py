@@ -87,16 +87,16 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import (ArtifactSchema, artifact_path, atomic_path, atomic_write_text,
-                        check_fresh, file_sha256, read_artifact, read_provenance, write_artifact)
+from .artifacts import (artifact_path, atomic_path, atomic_write_text, check_fresh, file_sha256,
+                        read_artifact, read_provenance, write_artifact)
 from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, _kind, _load_split,
-                     load_selected_parameters, predict)
+                     load_selected_parameters, metrics_frame, predict)
 from .errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
                      check_float, check_int)
 from .kinematics import (PARAMETER_NAMES, HeliostatSpec, forward_kinematics, inverse_kinematics,
                          nominal_parameters)
+from .metrics import error_mrad, measured_normal, reflect
 from .parallel import map_tasks
-from .metrics import beam_error_mrad, error_mrad, measured_normal, reflect, spot_offset_m
 from .schemas import HELIOSTATS, MEASUREMENTS
 
 __all__ = [
@@ -674,17 +674,7 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
 # ------------------------------------------------------------------------------------------------
 def predictions_frame(problem: FineProblem, normal: torch.Tensor, position: torch.Tensor) -> pd.DataFrame:
     """The coarse_predictions columns (metrics only) for predicted normals/centres (N, 3)."""
-    d = problem.data
-    with torch.no_grad():
-        meas = measured_normal(d.sun, position, d.focal_spot)
-        err = error_mrad(normal, meas)
-        beam = beam_error_mrad(d.sun, normal, position, d.focal_spot)
-        h, v, mag = spot_offset_m(d.sun, normal, position, d.focal_spot, d.target_center,
-                                  d.target_normal)
-    return pd.DataFrame({
-        "measurement_id": d.measurement_id, "error_mrad": err.numpy(),
-        "beam_error_mrad": beam.numpy(), "spot_offset_horizontal_m": h.numpy(),
-        "spot_offset_vertical_m": v.numpy(), "spot_offset_m": mag.numpy()})
+    return metrics_frame(problem.data, normal, position)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ from typing import Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from .artifacts import artifact_path, file_sha256, write_artifact
+from .artifacts import artifact_path, write_artifact
 from .errors import InputError, check_choice, check_float
 from .geodesy import wgs84_to_enu
 from .schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
@@ -250,6 +250,36 @@ def read_tower(path: Path | None) -> Tower:
     return Tower(path=path, reference=ref, targets=targets)
 
 
+def paint_kinematics_columns(kin: dict) -> dict:
+    """heliostats.parquet columns of a PAINT ``kinematics_properties`` dict: translations and
+    both linear actuators, with ARTIST's -pi/2 shift on actuator 1's ``initial_angle``.
+
+    Raises KeyError / TypeError / ValueError on a malformed dict (the caller names the file).
+    """
+    row = {}
+    for j, key in (("joint_1", "joint_translation_{a}_1"), ("joint_2", "joint_translation_{a}_2"),
+                   ("concentrator", "concentrator_translation_{a}")):
+        for a in "enu":
+            row[f"{j}_translation_{a}_m"] = float(kin.get(key.format(a=a), 0.0))
+    for i, act in enumerate(kin["actuators"], start=1):
+        angle = float(act["initial_angle"])
+        if i == 1:
+            angle += PAINT_AXIS_1_INITIAL_ANGLE_SHIFT_RAD
+        row.update({
+            f"axis_{i}_increment": float(act["increment"]),
+            f"axis_{i}_initial_stroke_length_m": float(act["initial_stroke_length"]),
+            f"axis_{i}_offset_m": float(act["offset"]),
+            f"axis_{i}_pivot_radius_m": float(act["pivot_radius"]),
+            f"axis_{i}_initial_angle_rad": angle,
+            f"axis_{i}_clockwise": bool(int(act.get("clockwise_axis_movement", 0))),
+            f"axis_{i}_min_steps": float(act.get("min_increment", 0)),
+            f"axis_{i}_max_steps": float(act["max_increment"]),
+            f"axis_{i}_gear_ratio_steps_per_rad": np.nan,
+            f"axis_{i}_angle_offset_rad": np.nan,
+        })
+    return row
+
+
 def read_paint_properties(path: Path, reference) -> dict:
     """One heliostats.parquet row from a PAINT ``<HID>-heliostat-properties.json``.
 
@@ -274,28 +304,8 @@ def read_paint_properties(path: Path, reference) -> dict:
             "initial_orientation_e": orientation[0], "initial_orientation_n": orientation[1],
             "initial_orientation_u": orientation[2],
         }
-        for j, key in (("joint_1", "joint_translation_{a}_1"), ("joint_2", "joint_translation_{a}_2"),
-                       ("concentrator", "concentrator_translation_{a}")):
-            for a in "enu":
-                row[f"{j}_translation_{a}_m"] = float(kin.get(key.format(a=a), 0.0))
-        types = set()
-        for i, act in enumerate(actuators, start=1):
-            types.add(str(act.get("type_axis", "linear")).lower())
-            angle = float(act["initial_angle"])
-            if i == 1:
-                angle += PAINT_AXIS_1_INITIAL_ANGLE_SHIFT_RAD
-            row.update({
-                f"axis_{i}_increment": float(act["increment"]),
-                f"axis_{i}_initial_stroke_length_m": float(act["initial_stroke_length"]),
-                f"axis_{i}_offset_m": float(act["offset"]),
-                f"axis_{i}_pivot_radius_m": float(act["pivot_radius"]),
-                f"axis_{i}_initial_angle_rad": angle,
-                f"axis_{i}_clockwise": bool(int(act.get("clockwise_axis_movement", 0))),
-                f"axis_{i}_min_steps": float(act.get("min_increment", 0)),
-                f"axis_{i}_max_steps": float(act["max_increment"]),
-                f"axis_{i}_gear_ratio_steps_per_rad": np.nan,
-                f"axis_{i}_angle_offset_rad": np.nan,
-            })
+        row.update(paint_kinematics_columns(kin))
+        types = {str(act.get("type_axis", "linear")).lower() for act in actuators}
         if types != {"linear"}:
             raise ValueError(f"actuator types {sorted(types)}; PAINT heliostats have linear actuators")
     except (KeyError, TypeError, ValueError) as exc:

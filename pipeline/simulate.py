@@ -55,7 +55,7 @@ from . import __version__
 from .artifacts import atomic_write_text
 from .errors import InputError, ParameterError, check_choice, check_float, check_int
 from .geodesy import enu_to_wgs84, wgs84_to_enu
-from .ingest import PAINT_AXIS_1_INITIAL_ANGLE_SHIFT_RAD
+from .ingest import paint_kinematics_columns
 from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PRESET_NAMES,
                          STONE_MAPPING, HeliostatSpec, forward_kinematics, inverse_kinematics,
                          nominal_parameters, preset_parameters)
@@ -386,23 +386,7 @@ def _juelich_heliostat(rng, hid: str, position_enu, reference):
            "latitude_deg": pos_wgs[0], "longitude_deg": pos_wgs[1], "altitude_m": pos_wgs[2],
            "initial_orientation_e": 0.0, "initial_orientation_n": -1.0, "initial_orientation_u": 0.0,
            "primary_axis_e": np.nan, "primary_axis_n": np.nan, "primary_axis_u": np.nan}
-    for j, key in (("joint_1", "joint_translation_{a}_1"), ("joint_2", "joint_translation_{a}_2"),
-                   ("concentrator", "concentrator_translation_{a}")):
-        for a in "enu":
-            row[f"{j}_translation_{a}_m"] = float(kin[key.format(a=a)])
-    for i, act in enumerate(actuators, start=1):
-        angle = float(act["initial_angle"])
-        if i == 1:  # exactly what ingest computes from the written value
-            angle += PAINT_AXIS_1_INITIAL_ANGLE_SHIFT_RAD
-        row.update({
-            f"axis_{i}_increment": float(act["increment"]),
-            f"axis_{i}_initial_stroke_length_m": float(act["initial_stroke_length"]),
-            f"axis_{i}_offset_m": float(act["offset"]),
-            f"axis_{i}_pivot_radius_m": float(act["pivot_radius"]),
-            f"axis_{i}_initial_angle_rad": angle,
-            f"axis_{i}_clockwise": bool(act["clockwise_axis_movement"]),
-            f"axis_{i}_min_steps": 0.0, f"axis_{i}_max_steps": float(act["max_increment"]),
-            f"axis_{i}_gear_ratio_steps_per_rad": np.nan, f"axis_{i}_angle_offset_rad": np.nan})
+    row.update(paint_kinematics_columns(kin))  # exactly what ingest makes of the written file
     return paint, row
 
 

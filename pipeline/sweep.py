@@ -182,7 +182,6 @@ def sweep_heliostat(task) -> dict:
                 bases[n] = (fit.params, torch.as_tensor(fit.free))
     free = bases[sizes[-1]][1]
     members = [(n, wd, s) for n in sizes for wd in weight_decays for s in seeds]
-    train_masks = np.stack([masks[n] for n, _, _ in members])
     val_mask = labels_full == "validation"
     selected_state = None
 
