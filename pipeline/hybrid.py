@@ -93,7 +93,8 @@ from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, _kind,
                      load_selected_parameters, metrics_frame, predict)
 from .errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
                      check_float, check_int)
-from .kinematics import (PARAMETER_NAMES, HeliostatSpec, forward_kinematics, inverse_kinematics,
+from .kinematics import (PARAMETER_NAMES, HeliostatSpec, ParameterComponents, forward_kinematics,
+                         inverse_kinematics,
                          nominal_parameters)
 from .metrics import error_mrad, measured_normal, reflect
 from .parallel import map_tasks
@@ -435,21 +436,42 @@ def init_mlp(sizes: Sequence[int], seeds: Sequence[int], *, zero_last: bool = Tr
 def mlp_forward(layers: Layers, x: torch.Tensor) -> torch.Tensor:
     """Apply the member networks: x (M, N, in) or (N, in) -> (M, N, out). SELU between layers,
     linear output."""
-    m = layers[0][0].shape[0]
-    h = x if x.dim() == 3 else x.unsqueeze(0).expand(m, *x.shape)
-    for k, (w, b) in enumerate(layers):
-        h = torch.baddbmm(b.unsqueeze(1), h, w.transpose(1, 2))
-        if k < len(layers) - 1:
-            h = torch.nn.functional.selu(h)
+    return _mlp_columns(layers, x).transpose(1, 2)
+
+
+def _mlp_columns(layers: Layers, x: torch.Tensor) -> torch.Tensor:
+    """:func:`mlp_forward` with the rows as columns: returns (M, out, N).
+
+    Activations are kept as (M, width, N) so every layer is one batched ``W @ H`` whose long
+    dimension (the N rows) is contiguous; the row-major (M, N, width) layout makes the batched
+    matrix products of a narrow network several times slower.
+    """
+    w0, b0 = layers[0]
+    h = torch.matmul(w0, x.transpose(-1, -2)) + b0.unsqueeze(-1)       # (M, width, N)
+    for w, b in layers[1:]:
+        h = torch.baddbmm(b.unsqueeze(-1), w, torch.nn.functional.selu(h))
     return h
 
 
-def _penalty(layers: Layers) -> torch.Tensor:
-    """Sum of squared weights and biases per member (M,)."""
-    total = 0.0
-    for w, b in layers:
-        total = total + (w ** 2).sum((1, 2)) + (b ** 2).sum(1)
-    return total
+def _flatten_layers(layers: Layers) -> torch.Tensor:
+    """All weights and biases of each member in one row: (M, T)."""
+    m = layers[0][0].shape[0]
+    return torch.cat([t.reshape(m, -1) for w, b in layers for t in (w, b)], dim=1)
+
+
+def _layer_views(theta: torch.Tensor, like: Layers) -> Layers:
+    """Views of the flat (M, T) tensor shaped like ``like`` (inverse of :func:`_flatten_layers`).
+
+    Training keeps one flat leaf tensor so that the optimiser, the weight-decay penalty, the
+    gradient clean-up and the best-state bookkeeping are one operation each, not one per layer.
+    """
+    views, offset = [], 0
+    for w, b in like:
+        (_, o, i), nb = w.shape, b.shape[1]
+        views.append((theta[:, offset:offset + o * i].view(-1, o, i),
+                      theta[:, offset + o * i:offset + o * i + nb]))
+        offset += o * i + nb
+    return views
 
 
 def _layers_to_state(layers: Layers, member: int | None = None) -> dict:
@@ -496,6 +518,7 @@ class FineProblem:
     def free_index(self) -> torch.Tensor:
         return torch.nonzero(self.free).flatten()
 
+
     def sizes(self, config: FineConfig) -> list[int]:
         return [self.encoder.n_features] + [config.width] * config.depth + [int(self.free.sum())]
 
@@ -524,12 +547,23 @@ def build_problem(rows: pd.DataFrame, hrow: pd.Series, base: torch.Tensor, free:
                        encoder.context_from_frame(rows))
 
 
+def member_components(problem: FineProblem, layers: Layers,
+                      features: torch.Tensor) -> ParameterComponents:
+    """Per-member, per-row parameters as :class:`ParameterComponents`: base + scaled network
+    deviations, (M, N) for the free parameters and (M, 1) for the fixed ones (no per-row
+    kinematics work for those)."""
+    out = _mlp_columns(layers, features) * problem.scales.unsqueeze(-1)   # (M, P, N)
+    base = problem.base                                                   # (28,) or (M, 1, 28)
+    base = base.unsqueeze(-1) if base.dim() == 1 else base.transpose(-1, -2)  # (28, 1) | (M, 28, 1)
+    comps = list(base.unbind(-2))                                         # 28 x (1,) | (M, 1)
+    for j, k in enumerate(problem.free_index.tolist()):
+        comps[k] = comps[k] + out[:, j]
+    return ParameterComponents(comps)
+
+
 def member_parameters(problem: FineProblem, layers: Layers, features: torch.Tensor) -> torch.Tensor:
     """Per-member, per-row parameters (M, N, 28) = base + scaled network deviations."""
-    out = mlp_forward(layers, features) * problem.scales               # (M, N, P)
-    full = out.new_zeros(*out.shape[:-1], len(PARAMETER_NAMES))
-    full = full.index_copy(-1, problem.free_index, out)
-    return problem.base + full
+    return member_components(problem, layers, features).stacked()
 
 
 def predict_members(problem: FineProblem, layers: Layers, steps: torch.Tensor | None = None,
@@ -542,16 +576,21 @@ def predict_members(problem: FineProblem, layers: Layers, steps: torch.Tensor | 
     parameter vector with every row.
     """
     steps = problem.data.steps if steps is None else steps
-    params = member_parameters(problem, layers, problem.features(steps, context))
+    params = member_components(problem, layers, problem.features(steps, context))
     normal, position = forward_kinematics(params, problem.spec, steps.unsqueeze(-2))
     return normal.squeeze(-2), position.squeeze(-2)
 
 
 def member_errors_mrad(problem: FineProblem, layers: Layers) -> torch.Tensor:
     """error_mrad (M, N) of every member on every row of the problem."""
-    normal, position = predict_members(problem, layers)
-    meas = measured_normal(problem.data.sun, position, problem.data.focal_spot)
-    return error_mrad(normal, meas)
+    return _errors_from_features(problem, layers, problem.features())
+
+
+def _errors_from_features(problem: FineProblem, layers: Layers, features: torch.Tensor):
+    params = member_components(problem, layers, features)
+    normal, position = forward_kinematics(params, problem.spec, problem.data.steps.unsqueeze(-2))
+    meas = measured_normal(problem.data.sun, position.squeeze(-2), problem.data.focal_spot)
+    return error_mrad(normal.squeeze(-2), meas)
 
 
 @dataclass
@@ -619,21 +658,20 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
         raise ParameterError(f"The 'weight_decays' parameter of train_members must be finite "
                              f"floats >= 0. Got {wd.tolist()!r} instead.")
     layers = initial if initial is not None else init_mlp(problem.sizes(config), seeds)
-    leaves = []
-    for w, b in layers:
-        leaves += [w.detach().clone().requires_grad_(True), b.detach().clone().requires_grad_(True)]
-    cur = [(leaves[2 * k], leaves[2 * k + 1]) for k in range(len(layers))]
-    opt = torch.optim.Adam(leaves, lr=config.learning_rate)
+    theta = _flatten_layers(layers).detach().clone().requires_grad_(True)     # (M, T)
+    cur = _layer_views(theta, layers)
+    opt = torch.optim.Adam([theta], lr=config.learning_rate)
+    features = problem.features().T.contiguous().T    # inputs do not change during training
     has_val = vm.any(-1)
     n_train = tm.sum(-1).clamp_min(1)
-    best = [(w.detach().clone(), b.detach().clone()) for w, b in cur]
+    best = theta.detach().clone()
     best_val = torch.full((m,), math.inf, dtype=torch.float64)
     best_epoch = torch.zeros(m, dtype=torch.long)
     active = torch.ones(m, dtype=torch.bool)
     stopped_at = torch.full((m,), config.max_epochs, dtype=torch.long)
     hist_train, hist_val = [], []
     for epoch in range(config.max_epochs + 1):
-        err = member_errors_mrad(problem, cur)                           # (M, N)
+        err = _errors_from_features(problem, cur, features)              # (M, N)
         sq = torch.where(tm, torch.nan_to_num(err, nan=0.0) ** 2, torch.zeros_like(err))
         train_mse = sq.sum(-1) / n_train
         with torch.no_grad():
@@ -643,10 +681,7 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
             improved = active & (torch.where(has_val, val, -torch.ones_like(val)) < best_val)
             improved |= active & ~has_val  # no validation rows: keep the latest state
             if bool(improved.any()):
-                for k, (w, b) in enumerate(cur):
-                    bw, bb = best[k]
-                    best[k] = (torch.where(improved[:, None, None], w.detach(), bw),
-                               torch.where(improved[:, None], b.detach(), bb))
+                best = torch.where(improved[:, None], theta.detach(), best)
                 best_val = torch.where(improved & has_val, val, best_val)
                 best_epoch = torch.where(improved, torch.full_like(best_epoch, epoch), best_epoch)
             newly = active & has_val & (epoch - best_epoch >= config.patience)
@@ -654,15 +689,15 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
             active &= ~newly
         if epoch == config.max_epochs or not bool(active.any()):
             break
-        loss = (train_mse + wd * _penalty(cur)).sum()
+        loss = (train_mse + wd * (theta ** 2).sum(-1)).sum()
         opt.zero_grad(set_to_none=False)
         loss.backward()
         with torch.no_grad():
-            for p in leaves:
-                p.grad.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
+            theta.grad.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)
         opt.step()
         if progress:
             progress(epoch + 1, config.max_epochs)
+    best = [(w.clone(), b.clone()) for w, b in _layer_views(best, layers)]
     best_val = torch.where(has_val, best_val, torch.full_like(best_val, float("nan")))
     return MemberResult(best, best_epoch, best_val, torch.minimum(stopped_at, torch.tensor(epoch)),
                         torch.stack(hist_train), torch.stack(hist_val),

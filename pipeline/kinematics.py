@@ -76,6 +76,7 @@ __all__ = [
     "KINEMATIC_PRESETS",
     "STONE_MAPPING",
     "HeliostatSpec",
+    "ParameterComponents",
     "nominal_parameters",
     "preset_mask",
     "preset_parameters",
@@ -481,17 +482,58 @@ def _rotate_columns(m: torch.Tensor, axis: int, c: torch.Tensor, s: torch.Tensor
 # Forward kinematics
 # ---------------------------------------------------------------------------------------------
 
-_TRANSLATION_INDEX = torch.tensor(
-    [[PARAMETER_INDEX[f"{b}_translation_{d}_m"] for d in _ENU] for b in _BODIES])
-_TILT_INDEX = torch.tensor([[PARAMETER_INDEX[f"{b}_tilt_{d}_rad"] for d in _ENU] for b in _BODIES])
-_ACTUATOR_INDEX = torch.tensor(
-    [[PARAMETER_INDEX[f"axis_{i}_{f}"] for i in (1, 2)] for f in _ACTUATOR_FIELDS])
+def _translations(params: torch.Tensor) -> torch.Tensor:
+    """Translations of joint_1, joint_2, concentrator as a view (..., body, e/n/u) [m].
+
+    The parameter order (:data:`PARAMETER_NAMES`) keeps each body's translation and tilt in
+    six consecutive slots, so the per-body blocks are strided *views* of ``params`` (no gather:
+    gathers and their scatter backward dominate batched training).
+    """
+    return params[..., :18].unflatten(-1, (3, 6))[..., :3]
+
+
+def _tilt_angles(params: torch.Tensor) -> torch.Tensor:
+    """Tilt angles of joint_1, joint_2, concentrator as a view (..., body, e/n/u) [rad]."""
+    return params[..., :18].unflatten(-1, (3, 6))[..., 3:]
+
+
 _SENSES = {kt: torch.tensor([axes[0][1], axes[1][1]], dtype=torch.float64)
            for kt, axes in _JOINT_AXES.items()}
 _N0 = {kt: torch.tensor(v, dtype=torch.float64) for kt, v in REFERENCE_NORMALS.items()}
 
 
-def _check_params(params) -> torch.Tensor:
+class ParameterComponents(tuple):
+    """The 28 parameters as separate tensors, each broadcastable to the batch shape ``(...)``
+    of an equivalent (..., 28) ``params`` tensor.
+
+    Accepted wherever the forward kinematics takes ``params``. A parameter that is the same
+    for every row can stay (M, 1) while the others are (M, N): the hybrid's fine network moves
+    only the free parameters per row, and the kinematics then does no per-row work for the
+    rest.
+    """
+
+    def __new__(cls, components):
+        components = tuple(torch.as_tensor(c, dtype=torch.float64) for c in components)
+        if len(components) != len(PARAMETER_NAMES):
+            raise ParameterError("ParameterComponents needs one tensor per parameter (28). "
+                                 f"Got {len(components)} instead.")
+        return super().__new__(cls, components)
+
+    def stacked(self) -> torch.Tensor:
+        """The equivalent (..., 28) tensor."""
+        return torch.stack(torch.broadcast_tensors(*self), dim=-1)
+
+
+def _components(params) -> tuple:
+    """28 tensors of shape (..., 1) (a trailing axis that broadcasts over N rows)."""
+    if isinstance(params, ParameterComponents):
+        return tuple(c.unsqueeze(-1) for c in params)
+    return params.unsqueeze(-1).unbind(-2)
+
+
+def _check_params(params):
+    if isinstance(params, ParameterComponents):
+        return params
     if not isinstance(params, torch.Tensor):
         params = torch.as_tensor(np.asarray(params, dtype=np.float64))
     if params.shape[-1:] != (len(PARAMETER_NAMES),):
@@ -500,22 +542,57 @@ def _check_params(params) -> torch.Tensor:
     return params
 
 
+def _tilt_entries(angle_e, angle_n, angle_u):
+    """Entries of ``R_e(angle_e) R_n(angle_n) R_u(angle_u)`` as a nested 3 x 3 tuple of tensors.
+
+    The kinematics works on *components* (one tensor per vector or matrix entry, all of the
+    batch shape) rather than on (..., 3, 3) stacks: a batch of tiny matrix products costs far
+    more than a few elementwise operations on long contiguous arrays, forward and backward.
+    """
+    ca, cb, cg = torch.cos(angle_e), torch.cos(angle_n), torch.cos(angle_u)
+    sa, sb, sg = torch.sin(angle_e), torch.sin(angle_n), torch.sin(angle_u)
+    sasb, casb = sa * sb, ca * sb
+    return ((cb * cg, -cb * sg, sb),
+            (ca * sg + sasb * cg, ca * cg - sasb * sg, -sa * cb),
+            (sa * sg - casb * cg, sa * cg + casb * sg, ca * cb))
+
+
 def _tilt_matrices(params: torch.Tensor) -> torch.Tensor:
     """``R_e(te) R_n(tn) R_u(tu)`` for joint_1, joint_2, concentrator: (..., 3, 3, 3)."""
-    angles = params[..., _TILT_INDEX]                                   # (..., body, e/n/u)
-    c, s = torch.cos(angles), torch.sin(angles)
-    ca, cb, cg = c.unbind(-1)
-    sa, sb, sg = s.unbind(-1)
-    sasb, casb = sa * sb, ca * sb
-    entries = (cb * cg, -cb * sg, sb,
-               ca * sg + sasb * cg, ca * cg - sasb * sg, -sa * cb,
-               sa * sg - casb * cg, sa * cg + casb * sg, ca * cb)
-    return torch.stack(entries, dim=-1).unflatten(-1, (3, 3))
+    entries = _tilt_entries(*_tilt_angles(params).unbind(-1))
+    return torch.stack([e for row in entries for e in row], dim=-1).unflatten(-1, (3, 3))
+
+
+def _matvec(mat, vec):
+    """Matrix (nested 3 x 3 tuple of tensors) times vector (3-tuple of tensors or floats)."""
+    out = []
+    for row in mat:
+        acc = None
+        for m_ij, v_j in zip(row, vec):
+            if isinstance(v_j, float) and v_j == 0.0:
+                continue
+            term = m_ij * v_j
+            acc = term if acc is None else acc + term
+        out.append(acc if acc is not None else torch.zeros_like(row[0]))
+    return tuple(out)
+
+
+def _rotate_vec(vec, axis: int, c, s):
+    """Rotate the vector ``vec`` (3-tuple of tensors) right-handedly about basis axis ``axis``."""
+    x, y, z = vec
+    if axis == 0:
+        return (x, c * y - s * z, s * y + c * z)
+    if axis == 1:
+        return (c * x + s * z, y, c * z - s * x)
+    return (c * x - s * y, s * x + c * y, z)
 
 
 def _actuator_values(params: torch.Tensor):
     """(increment, initial_stroke, offset, pivot_radius, initial_angle), each (..., 1, 2)."""
-    return params[..., _ACTUATOR_INDEX].unsqueeze(-3).unbind(-2)
+    if isinstance(params, ParameterComponents):
+        return tuple(torch.stack(torch.broadcast_tensors(params[18 + f], params[23 + f]), dim=-1)
+                     .unsqueeze(-2) for f in range(5))
+    return params[..., 18:].unflatten(-1, (2, 5)).transpose(-1, -2).unsqueeze(-3).unbind(-2)
 
 
 def _clockwise(spec: HeliostatSpec) -> torch.Tensor:
@@ -571,29 +648,36 @@ def _chain(params, spec: HeliostatSpec, angles, directions=None):
 
     ``directions``: local direction vectors as columns (3, K), default the reference normal.
     Returns ((..., N, 3, K) directions, (..., N, 3) positions).
+
+    Evaluated on components (see :func:`_tilt_entries`): every parameter is a (..., 1) tensor
+    that broadcasts over the N joint-angle pairs.
     """
     (ax1, _), (ax2, _) = _JOINT_AXES[spec.kinematic_type]
     phi = angles * _SENSES[spec.kinematic_type]
-    cos, sin = torch.cos(phi), torch.sin(phi)
-    c1, c2 = cos.unbind(-1)
-    s1, s2 = sin.unbind(-1)
-    tilt = _tilt_matrices(params)
-    tilt_1, tilt_2, tilt_c = tilt.unbind(-3)
-    translation = params[..., _TRANSLATION_INDEX].unsqueeze(-1)        # (..., body, 3, 1)
-    t_1, t_2, t_c = translation.unbind(-3)
+    c1, c2 = torch.cos(phi).unbind(-1)
+    s1, s2 = torch.sin(phi).unbind(-1)
+    comps = _components(params)                                         # 28 x (..., 1)
+    t_1, t_2, t_c = (comps[6 * b:6 * b + 3] for b in range(3))
+    tilt_1, tilt_2, tilt_c = (_tilt_entries(*comps[6 * b + 3:6 * b + 6]) for b in range(3))
     if directions is None:
         directions = _N0[spec.kinematic_type].unsqueeze(-1)
-    k = directions.shape[-1]
-    m = torch.cat([tilt_c @ directions, t_c], dim=-1)                 # (..., 3, K + 1)
-    m = m.unsqueeze(-3)                                                 # (..., 1, 3, K + 1)
-    m = _rotate_columns(m, ax2, c2, s2) + torch.nn.functional.pad(t_2, (k, 0)).unsqueeze(-3)
-    m = tilt_2.unsqueeze(-3) @ m
-    m = _rotate_columns(m, ax1, c1, s1) + torch.nn.functional.pad(t_1, (k, 0)).unsqueeze(-3)
+    columns = [tuple(float(x) for x in col) for col in directions.T.tolist()]
+    vectors = [_matvec(tilt_c, col) for col in columns] + [t_c]        # K directions + centre
+    vectors = [_rotate_vec(v, ax2, c2, s2) for v in vectors]
+    vectors[-1] = tuple(x + t for x, t in zip(vectors[-1], t_2))
+    vectors = [_matvec(tilt_2, v) for v in vectors]
+    vectors = [_rotate_vec(v, ax1, c1, s1) for v in vectors]
+    vectors[-1] = tuple(x + t for x, t in zip(vectors[-1], t_1))
+    vectors = [_matvec(tilt_1, v) for v in vectors]
     frame = _base_frame(spec)
-    outer = tilt_1 if frame is None else frame @ tilt_1
-    m = outer.unsqueeze(-3) @ m
-    position = spec.position_enu.unsqueeze(-2) + m[..., k]
-    return m[..., :k], position
+    if frame is not None:
+        f = [[frame[..., i, j].unsqueeze(-1) for j in range(3)] for i in range(3)]
+        vectors = [_matvec(f, v) for v in vectors]
+    normals = torch.stack([torch.stack(torch.broadcast_tensors(*v), dim=-1) for v in vectors[:-1]],
+                          dim=-1)
+    position = spec.position_enu.unsqueeze(-2) + torch.stack(
+        torch.broadcast_tensors(*vectors[-1]), dim=-1)
+    return normals, position
 
 
 def forward_kinematics(params, spec: HeliostatSpec, steps) -> tuple[torch.Tensor, torch.Tensor]:

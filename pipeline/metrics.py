@@ -61,6 +61,13 @@ def _unit(v: torch.Tensor) -> torch.Tensor:
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
 
 
+def _unit_components(x, y, z):
+    """Unit vector of (x, y, z) given as separate tensors (cheaper than (..., 3) reductions
+    when the batch is large and the vectors are views of other stacks)."""
+    inv = torch.rsqrt(x * x + y * y + z * z)
+    return x * inv, y * inv, z * inv
+
+
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a * b).sum(-1)
 
@@ -97,7 +104,9 @@ def measured_normal(sun_vector, concentrator_position, focal_spot):
     -------
     (..., 3) unit normal, ENU.
     """
-    return _unit(_unit(sun_vector) + _unit(focal_spot - concentrator_position))
+    sun = _unit_components(*sun_vector.unbind(-1))
+    spot = _unit_components(*(focal_spot - concentrator_position).unbind(-1))
+    return torch.stack(_unit_components(*(a + b for a, b in zip(sun, spot))), dim=-1)
 
 
 @_numpy_friendly
@@ -112,8 +121,12 @@ def angle_between_mrad(a, b):
     -------
     (...) angle [mrad] in [0, 1000 pi].
     """
-    cross = torch.linalg.cross(*torch.broadcast_tensors(a, b), dim=-1)
-    return 1000.0 * torch.atan2(torch.linalg.vector_norm(cross, dim=-1), _dot(a, b))
+    ax, ay, az = a.unbind(-1)
+    bx, by, bz = b.unbind(-1)
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    # vector_norm (not sqrt of the sum of squares): its gradient at a zero angle is 0, not NaN
+    sin = torch.linalg.vector_norm(torch.stack((cx, cy, cz), dim=-1), dim=-1)
+    return 1000.0 * torch.atan2(sin, ax * bx + ay * by + az * bz)
 
 
 @_numpy_friendly
