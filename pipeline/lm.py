@@ -23,7 +23,8 @@ its steps are rarely rejected.
 
 Rows of heliostats with fewer measurements than the longest in the batch are padded and masked
 (residual and Jacobian rows zero), so they add nothing. Every heliostat has its own damping
-``lambda`` (Marquardt's scaling by the diagonal of the normal matrix, Nielsen's update), its own
+``lambda`` (Levenberg's ``lambda I`` in the variables scaled by ``x_scale``, where the weak
+prior keeps every curvature >= 1; Nielsen's update), its own
 step acceptance and its own convergence test; converged heliostats drop out of the batch, so the
 work per iteration shrinks as the batch converges. The normal equations (H, P, P) are solved by a
 batched Cholesky factorisation (least squares where a matrix is not positive definite).
