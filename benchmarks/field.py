@@ -10,6 +10,7 @@ measured in one run. Usage::
 
     .venv/bin/python benchmarks/field.py [--heliostats 2000] [--out runs/field-bench]
         [--hybrid-epochs 800] [--stages ingest,split-knn,fit-coarse,fit-hybrid]
+        [--solver batched|scipy]
 
 The simulated field is cached in OUT/field (delete it to simulate again).
 """
@@ -148,6 +149,7 @@ def main() -> None:
     ap.add_argument("--hybrid-epochs", type=int, default=800)
     ap.add_argument("--stages", default="ingest,split-knn,fit-coarse,fit-hybrid")
     ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--solver", default="batched", help="fit-coarse --solver (batched or scipy)")
     args = ap.parse_args()
     field_dir = args.out / f"field-{args.heliostats}"
     info = write_field(field_dir, args.heliostats)
@@ -164,7 +166,7 @@ def main() -> None:
                        str(field_dir / "paint"), "--workdir", str(wd)],
             "split-knn": ["split-knn", "--workdir", str(wd)],
             "fit-coarse": ["fit-coarse", "--workdir", str(wd), "--preset", "static-20",
-                           "--workers", str(workers)],
+                           "--workers", str(workers), "--solver", args.solver],
             "fit-hybrid": ["fit-hybrid", "--workdir", str(wd), "--weight-decay", "1e-3",
                            "--max-epochs", str(args.hybrid_epochs), "--workers", str(workers)],
         }

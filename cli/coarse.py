@@ -43,6 +43,9 @@ def fit_coarse_cmd(
              "median error exceeds 50 mrad), always or never.")] = "auto",
     heliostat: Annotated[Optional[list[str]], typer.Option(
         help="Fit only these heliostats (repeat the option).")] = None,
+    solver: Annotated[str, typer.Option(
+        help="batched (many heliostats per vectorized Levenberg-Marquardt program) or scipy "
+             "(one least_squares per heliostat, the reference).")] = "batched",
     workers: Workers = None,
     scheduler: Scheduler = "local",
     dask_address: DaskAddress = None,
@@ -53,5 +56,5 @@ def fit_coarse_cmd(
     with progress_bar("fit-coarse", quiet) as advance:
         summary = run_fit_coarse(workdir, preset=preset, loss=loss, f_scale_mrad=f_scale,
                                  robust_start=robust_start, heliostats=heliostat, progress=advance,
-                                 workers=workers, scheduler=scheduler, dask_address=dask_address)
+                                 solver=solver, workers=workers, scheduler=scheduler, dask_address=dask_address)
     emit(summary, json_, _human)

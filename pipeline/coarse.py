@@ -42,7 +42,7 @@ from scipy.optimize import least_squares
 
 from .artifacts import (ArtifactSchema, Column as C, artifact_path, check_fresh, read_artifact,
                         write_artifact)
-from .errors import FitError, check_choice, check_float
+from .errors import FitError, check_choice, check_float, check_int
 from .jacobian import forward_state, residual_and_jacobian
 from .parallel import map_tasks
 from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
@@ -61,6 +61,9 @@ __all__ = [
     "MeasurementBatch",
     "CoarseFit",
     "fit_heliostat",
+    "fit_heliostats_batched",
+    "fit_heliostat_chunk",
+    "SOLVERS",
     "predict",
     "metrics_frame",
     "run_fit_coarse",
@@ -75,6 +78,8 @@ log = logging.getLogger("heliocal.coarse")
 AUTO_PRESETS = ("static-6", "stone-8", "static-14", "static-20", "static-28")
 
 LOSSES = ("linear", "soft_l1", "huber")
+#: Solvers of ``fit-coarse``: the batched LM (:mod:`heliocal.pipeline.lm`) or scipy per heliostat.
+SOLVERS = ("batched", "scipy")
 
 
 def _kind(name: str) -> str:
@@ -320,6 +325,33 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
     return best_p if after < before else p0
 
 
+def _fit_setup(spec: HeliostatSpec, nominal: torch.Tensor, train: MeasurementBatch, preset: str,
+               *, robust_start, start: torch.Tensor | None, start_cache: dict | None,
+               prior_weight: float):
+    """What both solvers share before LM: free mask (28,), prior sigma (28,), the start (28,)
+    (nominal, explicit, or the robust start's) and the free parameters' prior sigma (P,)."""
+    free = preset_mask(preset, spec.actuator_type, spec.kinematic_type).numpy()
+    free_idx = np.flatnonzero(free)
+    sigma = _prior_sigma(nominal)
+    x0_full = start.clone() if start is not None else nominal.clone()
+    mode = {True: "always", False: "never"}.get(robust_start, robust_start)
+    check_choice(mode, "robust_start", "fit_heliostat", ("always", "auto", "never"))
+    if mode != "never" and start is None and len(train):
+        zero_point = tuple(bool(free[PARAMETER_INDEX[f"axis_{i}_{f}"]]) for i in (1, 2)
+                           for f in ("initial_angle_rad", "initial_stroke_length_m"))
+        cache = start_cache if start_cache is not None else {}
+        if zero_point not in cache:
+            needed = mode == "always"
+            if not needed:
+                with torch.no_grad():
+                    med = torch.nan_to_num(normal_errors_mrad(nominal, spec, train), nan=1e9).median()
+                needed = float(med) > ROBUST_START_THRESHOLD_MRAD
+            cache[zero_point] = _robust_start(x0_full, spec, train, free) if needed else x0_full
+        x0_full = cache[zero_point].clone()
+    sig_free = torch.as_tensor(sigma[free_idx]) / math.sqrt(max(prior_weight, 1e-300))
+    return free, sigma, x0_full, sig_free
+
+
 def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: MeasurementBatch, preset: str,
                   *, loss: str = "linear", f_scale_mrad: float = 1.0, robust_start: bool = True,
                   max_nfev: int = 200, start: torch.Tensor | None = None,
@@ -352,26 +384,11 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     check_choice(loss, "loss", "fit_heliostat", LOSSES)
     t0 = time.perf_counter()
     nominal = nominal.to(torch.float64)
-    free = preset_mask(preset, spec.actuator_type, spec.kinematic_type).numpy()
+    free, sigma, x0_full, sig_free = _fit_setup(spec, nominal, train, preset,
+                                                robust_start=robust_start, start=start,
+                                                start_cache=start_cache, prior_weight=prior_weight)
     free_idx = np.flatnonzero(free)
     free_idx_t = torch.as_tensor(free_idx)
-    sigma = _prior_sigma(nominal)
-    x0_full = start.clone() if start is not None else nominal.clone()
-    mode = {True: "always", False: "never"}.get(robust_start, robust_start)
-    check_choice(mode, "robust_start", "fit_heliostat", ("always", "auto", "never"))
-    if mode != "never" and start is None and len(train):
-        zero_point = tuple(bool(free[PARAMETER_INDEX[f"axis_{i}_{f}"]]) for i in (1, 2)
-                           for f in ("initial_angle_rad", "initial_stroke_length_m"))
-        cache = start_cache if start_cache is not None else {}
-        if zero_point not in cache:
-            needed = mode == "always"
-            if not needed:
-                with torch.no_grad():
-                    med = torch.nan_to_num(normal_errors_mrad(nominal, spec, train), nan=1e9).median()
-                needed = float(med) > ROBUST_START_THRESHOLD_MRAD
-            cache[zero_point] = _robust_start(x0_full, spec, train, free) if needed else x0_full
-        x0_full = cache[zero_point].clone()
-    sig_free = torch.as_tensor(sigma[free_idx]) / math.sqrt(max(prior_weight, 1e-300))
     # the prior's mean is the start: the nominal geometry, with the actuator zero points the
     # robust start corrected from the data
     nom_free = x0_full[free_idx_t]
@@ -439,11 +456,100 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         J = jac(res_x)
     fitted = full(torch.as_tensor(res_x, dtype=torch.float64)).detach()
 
+    std, determined, cond = _fit_diagnostics(J, fun(res_x) if J is not None else None, n_data,
+                                             free_idx, sigma)
+    implausible = _implausible(fitted, nominal, free_idx)
+    return CoarseFit(preset, fitted, nominal, free, std, determined, nfev, cost, cond, status,
+                     implausible, time.perf_counter() - t0)
+
+
+def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
+                           trains: Sequence[MeasurementBatch], preset: str, *,
+                           loss: str = "linear", f_scale_mrad: float = 1.0,
+                           robust_start: bool | str = True, max_nfev: int = 200,
+                           prior_weight: float = 1.0, tolerance: float = 1e-10,
+                           start_caches: Sequence[dict] | None = None) -> list[CoarseFit]:
+    """:func:`fit_heliostat` for many heliostats of one kinematic and actuator type at once.
+
+    The objective (data rows, prior rows, loss) and the start (including the robust start, per
+    heliostat) are those of :func:`fit_heliostat`; the minimisation is one batched
+    Levenberg-Marquardt program (:func:`heliocal.pipeline.lm.solve_batched`) instead of one
+    scipy solve per heliostat. Standard errors, 'determined' flags and the condition number
+    come from the same per-heliostat diagnostics at the solution. Heliostats without training
+    rows are left to :func:`fit_heliostat` ("nothing to fit").
+    """
+    from .lm import BatchedProblem, solve_batched, stack_specs
+
+    check_choice(preset, "preset", "fit_heliostat", PRESET_NAMES)
+    check_choice(loss, "loss", "fit_heliostat", LOSSES)
+    t0 = time.perf_counter()
+    n_helio = len(specs)
+    caches = list(start_caches) if start_caches is not None else [{} for _ in range(n_helio)]
+    fits: list[CoarseFit | None] = [None] * n_helio
+    setups, batch = [], []
+    for k in range(n_helio):
+        if len(trains[k]) == 0:
+            fits[k] = fit_heliostat(specs[k], nominals[k], trains[k], preset, loss=loss,
+                                    f_scale_mrad=f_scale_mrad, robust_start=robust_start,
+                                    max_nfev=max_nfev, prior_weight=prior_weight,
+                                    tolerance=tolerance, start_cache=caches[k])
+            continue
+        nominal = nominals[k].to(torch.float64)
+        setups.append((nominal,) + _fit_setup(specs[k], nominal, trains[k], preset,
+                                              robust_start=robust_start, start=None,
+                                              start_cache=caches[k], prior_weight=prior_weight))
+        batch.append(k)
+    if not batch:
+        return fits
+    free = setups[0][1]
+    free_idx = np.flatnonzero(free)
+    free_idx_t = torch.as_tensor(free_idx)
+    n_rows = [len(trains[k]) for k in batch]
+    n_max = max(n_rows)
+
+    def padded(field: str) -> torch.Tensor:
+        # pad with copies of the heliostat's first row (finite geometry); the mask zeroes them
+        out = []
+        for k, n in zip(batch, n_rows):
+            t = getattr(trains[k], field)
+            out.append(torch.cat([t, t[:1].expand(n_max - n, *t.shape[1:])]) if n < n_max else t)
+        return torch.stack(out)
+
+    base = torch.stack([x0 for _, _, _, x0, _ in setups])
+    sigma = np.stack([sig for _, _, sig, _, _ in setups])
+    problem = BatchedProblem(
+        spec=stack_specs([specs[k] for k in batch]), base=base, free_idx=free_idx_t,
+        steps=padded("steps"), sun=padded("sun"), focal_spot=padded("focal_spot"),
+        row_mask=torch.arange(n_max).unsqueeze(0) < torch.tensor(n_rows).unsqueeze(1),
+        prior_mean=base[:, free_idx_t],
+        prior_scale=(1.0 / torch.stack([sf for *_, sf in setups])) if prior_weight > 0 else None,
+        x_scale=torch.as_tensor(sigma[:, free_idx]))
+    sol = solve_batched(problem, base[:, free_idx_t], loss=loss, f_scale=f_scale_mrad,
+                        max_nfev=max_nfev, tolerance=tolerance)
+    wall = (time.perf_counter() - t0) / len(batch)
+    data_rows = 3 * n_max
+    for j, k in enumerate(batch):
+        nominal, _, sig, x0_full, _ = setups[j]
+        n_data = 3 * n_rows[j]
+        keep = np.r_[0:n_data, data_rows:problem.n_rows]  # real data rows, then prior rows
+        J = sol.jacobian[j].numpy()[keep]
+        r = sol.residual[j].numpy()[keep]
+        fitted = x0_full.index_put((free_idx_t,), sol.x[j])
+        std, determined, cond = _fit_diagnostics(J, r, n_data, free_idx, sig)
+        fits[k] = CoarseFit(preset, fitted, nominal, free, std, determined, int(sol.njev[j]),
+                            float(sol.cost[j]), cond, f"batched LM: {sol.status[j]}",
+                            _implausible(fitted, nominal, free_idx), wall)
+    return fits
+
+
+def _fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
+                     free_idx: np.ndarray, sigma: np.ndarray):
+    """Standard errors (28,), the 'determined' flags (28,) and the condition number from the
+    Jacobian ``J`` (data rows, then prior rows) and residuals ``r`` at the solution."""
     std = np.full(len(PARAMETER_NAMES), np.nan)
     determined = np.ones(len(PARAMETER_NAMES), bool)
     cond = float("nan")
     if J is not None:
-        r = fun(res_x)
         dof = max(n_data - len(free_idx), 1)
         s2 = float((r[:n_data] ** 2).sum() / dof)
         scale = sigma[free_idx]
@@ -475,6 +581,11 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         except np.linalg.LinAlgError:  # pragma: no cover
             data_only, null = np.full(len(free_idx), np.inf), np.ones(len(free_idx), bool)
         determined[free_idx] = (data_only < 0.5) & ~null
+    return std, determined, cond
+
+
+def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarray) -> list[str]:
+    """Free parameters corrected beyond :data:`PLAUSIBLE_CORRECTION`, as text."""
     implausible = []
     for i in free_idx:
         name = PARAMETER_NAMES[i]
@@ -484,8 +595,7 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         if abs(delta) > bound:
             unit = PARAMETER_UNITS[name].split(" ")[0]
             implausible.append(f"{name} {delta:+.4g} {unit}")
-    return CoarseFit(preset, fitted, nominal, free, std, determined, nfev, cost, cond, status,
-                     implausible, time.perf_counter() - t0)
+    return implausible
 
 
 # ------------------------------------------------------------------------------------------------
@@ -513,19 +623,45 @@ def _mean(values: np.ndarray) -> float:
     return float(np.mean(values)) if len(values) else float("nan")
 
 
-def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
-                      loss: str, f_scale_mrad: float, robust_start: bool):
-    """Fit every preset for one heliostat; returns (param rows, prediction rows, summary)."""
+def _heliostat_inputs(hrow, rows: pd.DataFrame):
+    """(spec, nominal, all rows, split labels, training rows) of one heliostat."""
     spec = HeliostatSpec.from_row(hrow)
-    nominal = nominal_parameters(hrow)
     data = MeasurementBatch.from_frame(rows)
     labels = rows["split"].to_numpy()
-    train = data.subset(labels == "train")
-    hid = str(hrow["heliostat_id"])
+    return spec, nominal_parameters(hrow), data, labels, data.subset(labels == "train")
+
+
+def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
+                      loss: str, f_scale_mrad: float, robust_start: bool):
+    """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary)."""
+    spec, nominal, data, labels, train = _heliostat_inputs(hrow, rows)
     fits, start_cache = [], {}
     for preset in presets:
         fits.append(fit_heliostat(spec, nominal, train, preset, loss=loss, f_scale_mrad=f_scale_mrad,
                                   robust_start=robust_start, start_cache=start_cache))
+    return _heliostat_outputs(str(hrow["heliostat_id"]), spec, nominal, data, labels, train, fits)
+
+
+def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: Sequence[str], *,
+                        loss: str, f_scale_mrad: float, robust_start: bool | str) -> list[tuple]:
+    """Every preset for several heliostats of one kinematic and actuator type, each preset one
+    batched LM solve (:func:`fit_heliostats_batched`); per heliostat the same (param rows,
+    prediction rows, summary) as :func:`fit_one_heliostat`."""
+    inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
+    caches = [{} for _ in inputs]
+    per_preset = [fit_heliostats_batched([i[0] for i in inputs], [i[1] for i in inputs],
+                                         [i[4] for i in inputs], preset, loss=loss,
+                                         f_scale_mrad=f_scale_mrad, robust_start=robust_start,
+                                         start_caches=caches)
+                  for preset in presets]
+    return [_heliostat_outputs(str(h["heliostat_id"]), *inp, [fits[k] for fits in per_preset])
+            for k, (h, inp) in enumerate(zip(hrows, inputs))]
+
+
+def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
+                       data: MeasurementBatch, labels: np.ndarray, train: MeasurementBatch,
+                       fits: Sequence[CoarseFit]):
+    """Predictions, the validation selection, param rows and summary of one heliostat's fits."""
     preds, summaries = [], []
     nominal_pred = predict(nominal, spec, data).assign(model="nominal")
     preds.append(nominal_pred)
@@ -592,17 +728,34 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
     return out
 
 
-def _fit_task(task) -> tuple:
-    """One heliostat's fits (a picklable task for :func:`~heliocal.pipeline.parallel.map_tasks`)."""
-    hrow, rows, presets, kwargs = task
-    return fit_one_heliostat(pd.Series(hrow), rows, presets, **kwargs)
+def _fit_task(task) -> list[tuple]:
+    """Fits of one heliostat (scipy) or of one chunk of heliostats (batched): a picklable task
+    for :func:`~heliocal.pipeline.parallel.map_tasks`; a list of per-heliostat results."""
+    solver, hrows, rows, presets, kwargs = task
+    if solver == "scipy":
+        return [fit_one_heliostat(pd.Series(hrows[0]), rows[0], presets, **kwargs)]
+    return fit_heliostat_chunk([pd.Series(h) for h in hrows], rows, presets, **kwargs)
+
+
+def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
+                    batch_size: int) -> list[list[str]]:
+    """Heliostat ids in chunks for the batched solver: one kinematic and actuator type per chunk,
+    similar training-row counts together (little padding). Depends only on the data, so every
+    scheduler and worker count sees the same chunks (and the same numbers)."""
+    chunks = []
+    keys = helio.loc[list(ids), ["kinematic_type", "actuator_type"]].astype(str)
+    for _, group in keys.groupby(["kinematic_type", "actuator_type"], sort=True):
+        members = sorted(group.index, key=lambda h: (n_train[h], h))
+        chunks += [members[i:i + batch_size] for i in range(0, len(members), batch_size)]
+    return chunks
 
 
 def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
                    f_scale_mrad: float = 1.0, robust_start: str = "auto",
                    heliostats: Sequence[str] | None = None, progress=None,
                    workers: int | None = 1, scheduler: str = "local",
-                   dask_address: str | None = None) -> dict:
+                   dask_address: str | None = None, solver: str = "batched",
+                   batch_size: int = 64) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -614,10 +767,16 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     progress : optional callable ``progress(done, total, heliostat_id)``.
     workers, scheduler, dask_address : where the per-heliostat fits run
         (:func:`heliocal.pipeline.parallel.map_tasks`); results do not depend on it.
+    solver : ``batched`` (heliostats of one type in chunks of ``batch_size``, one vectorized
+        Levenberg-Marquardt program per chunk and preset, :mod:`heliocal.pipeline.lm`) or
+        ``scipy`` (one :func:`scipy.optimize.least_squares` per heliostat, the reference).
+    batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
     check_float(f_scale_mrad, "f_scale_mrad", "fit_coarse", 0.0, None, low_inclusive=False)
+    check_choice(solver, "solver", "fit_coarse", SOLVERS)
+    batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
     workdir = Path(workdir)
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
     helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
@@ -630,16 +789,23 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
                        "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")
     groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
-    tasks = []
-    for hid in ids:
-        rows = groups[hid]
-        tasks.append((helio.loc[hid].to_dict(), rows[rows["split"] != "excluded"], presets,
-                      {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}))
-    results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
-                        dask_address=dask_address,
-                        progress=(lambda done, total: progress(done, total, None)) if progress else None)
+    rows_of = {hid: groups[hid][groups[hid]["split"] != "excluded"] for hid in ids}
+    kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
+    if solver == "scipy":
+        chunks = [[hid] for hid in ids]
+    else:
+        n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in ids}
+        chunks = _chunks_by_type(helio, ids, n_train, batch_size)
+    tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
+              presets, kwargs) for chunk in chunks]
+    chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
+                              dask_address=dask_address,
+                              progress=(lambda done, total: progress(done, total, None))
+                              if progress else None)
+    by_id = {h: res for chunk, results in zip(chunks, chunk_results)
+             for h, res in zip(chunk, results)}
     all_params, all_preds, summaries = [], [], []
-    for params, preds, summary in results:
+    for params, preds, summary in (by_id[h] for h in ids):
         for name, items in summary["implausible"].items():
             if name == summary["selected"]:
                 log.warning("%s: the nominal geometry needed a large correction (%s)",
@@ -648,7 +814,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         all_preds.append(preds)
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
-            "robust_start": robust_start, "heliostats": list(heliostats) if heliostats else None}
+            "robust_start": robust_start, "solver": solver, "heliostats": list(heliostats) if heliostats else None}
     inputs = {"measurements": artifact_path(workdir, MEASUREMENTS),
               "heliostats": artifact_path(workdir, HELIOSTATS)}
     from .split import SPLIT

@@ -51,22 +51,28 @@ def forward_state(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor
 
 def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor,
                           sun: torch.Tensor, focal_spot: torch.Tensor, state=None):
-    """Residuals ``1000 (n_pred - n_meas)`` [mrad] and their exact Jacobian for one heliostat.
+    """Residuals ``1000 (n_pred - n_meas)`` [mrad] and their exact Jacobian.
+
+    Every tensor may carry a leading batch shape ``S`` (heliostats of one kinematic and actuator
+    type, e.g. ``S = (H,)``, as :func:`heliocal.pipeline.lm.solve_batched` uses it); ``S = ()``
+    is one heliostat.
 
     Parameters
     ----------
-    params : (28,) parameter vector.
-    spec : the heliostat (batch shape ``()``).
-    steps : (N, 2) motor steps; sun : (N, 3) unit sun vectors; focal_spot : (N, 3) [m] ENU.
+    params : (*S, 28) parameter vector(s).
+    spec : the heliostat(s) (batch shape ``S`` or ``()``).
+    steps : (*S, N, 2) motor steps; sun : (*S, N, 3) unit sun vectors; focal_spot : (*S, N, 3)
+        [m] ENU.
     state : :func:`forward_state` at ``params``, if already computed.
 
     Returns
     -------
-    residual : (N, 3) [mrad]
-    jacobian : (N, 3, 28) [mrad per parameter unit], columns in PARAMETER_NAMES order.
+    residual : (*S, N, 3) [mrad]
+    jacobian : (*S, N, 3, 28) [mrad per parameter unit], columns in PARAMETER_NAMES order.
     """
     params = params.detach()
-    n_meas = steps.shape[0]
+    batch = params.shape[:-1]
+    n_meas = steps.shape[-2]
     kt = spec.kinematic_type
     (ax1, _), (ax2, _) = _JOINT_AXES[kt]
     senses = _SENSES[kt]
@@ -78,75 +84,86 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     meas = measured_normal(sun, position, focal_spot)
     residual = 1000.0 * (normal - meas)
 
-    tilts = _tilt_matrices(params)  # (3 bodies, 3, 3)
-    tilt_1, tilt_2, _ = tilts.unbind(0)
+    tilts = _tilt_matrices(params)  # (*S, 3 bodies, 3, 3)
+    tilt_1, tilt_2, _ = tilts.unbind(-3)
     t_idx = [[PARAMETER_INDEX[f"{b}_translation_{d}_m"] for d in "enu"]
              for b in ("joint_1", "joint_2", "concentrator")]
     r_idx = [[PARAMETER_INDEX[f"{b}_tilt_{d}_rad"] for d in "enu"]
              for b in ("joint_1", "joint_2", "concentrator")]
-    t1, t2 = params[t_idx[0]], params[t_idx[1]]
+    t1, t2 = params[..., t_idx[0]], params[..., t_idx[1]]  # (*S, 3)
 
     frame = _base_frame(spec)
     a0 = torch.eye(3, dtype=torch.float64) if frame is None else frame
-    a1 = a0 @ tilt_1  # (3, 3), same for all measurements
-    phi = angles * senses  # (N, 2)
-    r1 = _axis_rotation(ax1, phi[:, 0])  # (N, 3, 3)
-    r2 = _axis_rotation(ax2, phi[:, 1])
-    a2 = a1 @ r1  # (N, 3, 3)
-    a3 = a2 @ tilt_2
+    a1 = a0 @ tilt_1  # (*S, 3, 3), same for all measurements
+    phi = angles * senses  # (*S, N, 2)
+    r1 = _axis_rotation(ax1, phi[..., 0])  # (*S, N, 3, 3)
+    r2 = _axis_rotation(ax2, phi[..., 1])
+    a2 = a1.unsqueeze(-3) @ r1  # (*S, N, 3, 3)
+    a3 = a2 @ tilt_2.unsqueeze(-3)
     a4 = a3 @ r2
 
-    pos0 = spec.position_enu
-    o1 = pos0 + a1 @ t1  # (3,) pivot of joint 1 and of joint-2 tilts
-    o2 = o1 + a3 @ t2  # (N, 3) pivot of joint 2
+    pos0 = spec.position_enu.expand(*batch, 3)
+    o1 = pos0 + (a1 @ t1.unsqueeze(-1)).squeeze(-1)  # (*S, 3) pivot of joint 1 and of joint-2 tilts
+    o2 = o1.unsqueeze(-2) + (a3 @ t2[..., None, :, None]).squeeze(-1)  # (*S, N, 3) pivot of joint 2
 
-    # every rotation parameter: (index, world axis (3,) or (N, 3), pivot or None); every
-    # translation: (index, world direction); evaluated together with one batched cross product
+    def per_measurement(v: torch.Tensor) -> torch.Tensor:
+        """(*S, 3) or (*S, N, 3) -> (*S, N, 3)."""
+        if v.dim() == len(batch) + 1:
+            v = v.unsqueeze(-2)
+        return v.expand(*batch, n_meas, 3)
+
+    # every rotation parameter: (index, world axis, pivot or None); every translation: (index,
+    # world direction); evaluated together with one batched cross product
     rot_idx, rot_axes, rot_pivots, rot_moves = [], [], [], []
 
     def rotation(idx: int, axis: torch.Tensor, pivot: torch.Tensor | None) -> None:
         rot_idx.append(idx)
-        rot_axes.append(axis.expand(n_meas, 3))
-        rot_pivots.append((pivot if pivot is not None else pos0).expand(n_meas, 3))
+        rot_axes.append(per_measurement(axis))
+        rot_pivots.append(per_measurement(pivot if pivot is not None else pos0))
         rot_moves.append(pivot is not None)
 
     # Tilt(x) = R_e(x_e) R_n(x_n) R_u(x_u) after a prefix P: the three rotation axes in world
     # coordinates are P e, P R_e(x_e) n = P (0, cos x_e, sin x_e) and P Tilt u (R_u keeps u)
     def tilt_axes(prefix, tilt, angle_e):
-        rolled_n = torch.stack([torch.zeros_like(angle_e), torch.cos(angle_e), torch.sin(angle_e)])
-        return (prefix[..., 0], prefix @ rolled_n, (prefix @ tilt)[..., 2])
+        rolled_n = torch.stack([torch.zeros_like(angle_e), torch.cos(angle_e), torch.sin(angle_e)],
+                               dim=-1)  # (*S, 3)
+        per_row = prefix.dim() == len(batch) + 3  # prefix (*S, N, 3, 3)
+        if per_row:
+            rolled_n, tilt = rolled_n.unsqueeze(-2), tilt.unsqueeze(-3)
+        return (prefix[..., 0], (prefix @ rolled_n.unsqueeze(-1)).squeeze(-1),
+                (prefix @ tilt)[..., 2])
 
     # joint-1 tilts: rotate everything about the heliostat position
-    for k, ax in enumerate(tilt_axes(a0, tilt_1, params[r_idx[0][0]])):
+    for k, ax in enumerate(tilt_axes(a0, tilt_1, params[..., r_idx[0][0]])):
         rotation(r_idx[0][k], ax, pos0)
     # joint-2 tilts: about o1, axes after joint 1's rotation
-    for k, ax in enumerate(tilt_axes(a2, tilt_2, params[r_idx[1][0]])):
+    for k, ax in enumerate(tilt_axes(a2, tilt_2, params[..., r_idx[1][0]])):
         rotation(r_idx[1][k], ax, o1)
     # concentrator tilts: turn the mirror about its centre (normal only)
-    for k, ax in enumerate(tilt_axes(a4, tilts[2], params[r_idx[2][0]])):
+    for k, ax in enumerate(tilt_axes(a4, tilts[..., 2, :, :], params[..., r_idx[2][0]])):
         rotation(r_idx[2][k], ax, None)
-    axes = torch.stack(rot_axes)  # (K, N, 3)
+    axes = torch.stack(rot_axes)  # (K, *S, N, 3)
     pivots = torch.stack(rot_pivots)
-    moves = torch.tensor(rot_moves, dtype=torch.float64).view(-1, 1, 1)
+    moves = torch.tensor(rot_moves, dtype=torch.float64).view(-1, *([1] * (len(batch) + 2)))
     dn_rot = torch.linalg.cross(axes, normal.expand_as(axes), dim=-1)
     dp_rot = torch.linalg.cross(axes, position - pivots, dim=-1) * moves
     # translations: joint 1 (frame a1), joint 2 (frame a3), concentrator (frame a4)
     trans_idx = t_idx[0] + t_idx[1] + t_idx[2]
-    dirs = torch.cat([a1.T.unsqueeze(1).expand(3, n_meas, 3), a3.permute(2, 0, 1),
-                      a4.permute(2, 0, 1)])  # (9, N, 3): column k of each frame
-    dn = torch.zeros(n_meas, 3, 28, dtype=torch.float64)
-    dp = torch.zeros(n_meas, 3, 28, dtype=torch.float64)
-    dn[:, :, rot_idx] = dn_rot.permute(1, 2, 0)
-    dp[:, :, rot_idx] = dp_rot.permute(1, 2, 0)
-    dp[:, :, trans_idx] = dirs.permute(1, 2, 0)
+    dirs = torch.cat([a1.movedim(-1, 0).unsqueeze(-2).expand(3, *batch, n_meas, 3),
+                      a3.movedim(-1, 0), a4.movedim(-1, 0)])  # (9, *S, N, 3): column k of each frame
+    dn = torch.zeros(*batch, n_meas, 3, 28, dtype=torch.float64)
+    dp = torch.zeros(*batch, n_meas, 3, 28, dtype=torch.float64)
+    dn[..., rot_idx] = dn_rot.movedim(0, -1)
+    dp[..., rot_idx] = dp_rot.movedim(0, -1)
+    dp[..., trans_idx] = dirs.movedim(0, -1)
     # joints: through the actuator laws
-    w1 = a1[:, ax1].expand(n_meas, 3)
+    w1 = per_measurement(a1[..., ax1])
     w2 = a3[..., ax2]
     dn_dphi1 = torch.linalg.cross(w1, normal, dim=-1)
-    dp_dphi1 = torch.linalg.cross(w1, position - o1, dim=-1)
+    dp_dphi1 = torch.linalg.cross(w1, position - o1.unsqueeze(-2), dim=-1)
     dn_dphi2 = torch.linalg.cross(w2, normal, dim=-1)
     dp_dphi2 = torch.linalg.cross(w2, position - o2, dim=-1)
-    g1 = dtheta[0] * senses[0]  # (N, 28) dphi1/dq
+    g1 = dtheta[0] * senses[0]  # (*S, N, 28) dphi1/dq
     g2 = dtheta[1] * senses[1]
     dn = dn + dn_dphi1.unsqueeze(-1) * g1.unsqueeze(-2) + dn_dphi2.unsqueeze(-1) * g2.unsqueeze(-2)
     dp = dp + dp_dphi1.unsqueeze(-1) * g1.unsqueeze(-2) + dp_dphi2.unsqueeze(-1) * g2.unsqueeze(-2)
@@ -160,13 +177,13 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     eye = torch.eye(3, dtype=torch.float64)
     proj_u = eye - u.unsqueeze(-1) * u.unsqueeze(-2)
     proj_m = eye - meas.unsqueeze(-1) * meas.unsqueeze(-2)
-    dm_dp = -(proj_m @ proj_u) / (norm_su * dist).unsqueeze(-1)  # (N, 3, 3)
+    dm_dp = -(proj_m @ proj_u) / (norm_su * dist).unsqueeze(-1)  # (*S, N, 3, 3)
     jac = 1000.0 * (dn - dm_dp @ dp)
     return residual, jac
 
 
 def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor):
-    """d(joint angle i)/d(parameters), closed form, as a list of two (N, 28) tensors.
+    """d(joint angle i)/d(parameters), closed form, as a list of two (*S, N, 28) tensors.
 
     Ideal: ``theta = steps / g + theta0``. Linear (law of cosines, see
     :func:`heliocal.pipeline.actuators.linear_steps_to_angle`):
@@ -176,21 +193,25 @@ def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     """
     from .actuators import _sign
 
-    n = steps.shape[0]
+    shape = steps.shape[:-1]  # (*S, N)
     out = []
+
+    def value(name: str) -> torch.Tensor:  # (*S, 1): broadcasts over the measurements
+        return params[..., PARAMETER_INDEX[name]].unsqueeze(-1)
+
     for i in (1, 2):
-        d = torch.zeros(n, 28, dtype=torch.float64)
-        st = steps[:, i - 1]
-        inc = params[PARAMETER_INDEX[f"axis_{i}_increment"]]
-        d[:, PARAMETER_INDEX[f"axis_{i}_initial_angle_rad"]] = 1.0
+        d = torch.zeros(*shape, 28, dtype=torch.float64)
+        st = steps[..., i - 1]
+        inc = value(f"axis_{i}_increment")
+        d[..., PARAMETER_INDEX[f"axis_{i}_initial_angle_rad"]] = 1.0
         if spec.actuator_type == "ideal":
-            d[:, PARAMETER_INDEX[f"axis_{i}_increment"]] = -st / inc**2
+            d[..., PARAMETER_INDEX[f"axis_{i}_increment"]] = -st / inc**2
             out.append(d)
             continue
-        s0 = params[PARAMETER_INDEX[f"axis_{i}_initial_stroke_length_m"]]
-        o = params[PARAMETER_INDEX[f"axis_{i}_offset_m"]]
-        r = params[PARAMETER_INDEX[f"axis_{i}_pivot_radius_m"]]
-        sigma = _sign(spec.clockwise[..., i - 1])
+        s0 = value(f"axis_{i}_initial_stroke_length_m")
+        o = value(f"axis_{i}_offset_m")
+        r = value(f"axis_{i}_pivot_radius_m")
+        sigma = _sign(spec.clockwise[..., i - 1]).unsqueeze(-1)
 
         def parts(x):
             c = (o**2 + r**2 - x**2) / (2.0 * o * r)
@@ -205,10 +226,10 @@ def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torc
         x = st / inc + s0
         ax, ao, ar = parts(x)
         bx, bo, br = parts(s0)
-        d[:, PARAMETER_INDEX[f"axis_{i}_increment"]] = -sigma * ax * (-st / inc**2)
-        d[:, PARAMETER_INDEX[f"axis_{i}_initial_stroke_length_m"]] = sigma * (bx - ax)
-        d[:, PARAMETER_INDEX[f"axis_{i}_offset_m"]] = sigma * (bo - ao)
-        d[:, PARAMETER_INDEX[f"axis_{i}_pivot_radius_m"]] = sigma * (br - ar)
+        d[..., PARAMETER_INDEX[f"axis_{i}_increment"]] = -sigma * ax * (-st / inc**2)
+        d[..., PARAMETER_INDEX[f"axis_{i}_initial_stroke_length_m"]] = sigma * (bx - ax)
+        d[..., PARAMETER_INDEX[f"axis_{i}_offset_m"]] = sigma * (bo - ao)
+        d[..., PARAMETER_INDEX[f"axis_{i}_pivot_radius_m"]] = sigma * (br - ar)
         out.append(d)
     return out
 
