@@ -18,7 +18,8 @@ from rich.table import Table
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler, Seed,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import InputError, ParameterError
-from heliocal.pipeline.hybrid import MODES, FineConfig, aim_steps, run_fit_hybrid
+from heliocal.pipeline.hybrid import (HYBRID_BATCH_SIZE, MODES, FineConfig, aim_steps,
+                                      run_fit_hybrid)
 
 __all__ = ["fit_hybrid_cmd", "aim_cmd"]
 
@@ -83,6 +84,10 @@ def fit_hybrid_cmd(
     heliostat: Annotated[Optional[list[str]], typer.Option(
         help="Fit only these heliostats (repeat the option).")] = None,
     seed: Seed = 0,
+    batch_size: Annotated[int, typer.Option(
+        "--batch-size", min=1, help="Heliostats that train together as one batched program "
+                                    "(same type and coarse preset); each batch is one task for "
+                                    "the workers.")] = HYBRID_BATCH_SIZE,
     workers: Workers = None,
     scheduler: Scheduler = "local",
     dask_address: DaskAddress = None,
@@ -96,7 +101,8 @@ def fit_hybrid_cmd(
     with progress_bar(f"fit-hybrid {mode.value}", quiet) as advance:
         summary = run_fit_hybrid(workdir, mode=mode.value, weight_decay=weight_decay, seed=seed,
                                  config=config, heliostats=heliostat, progress=advance,
-                                 workers=workers, scheduler=scheduler, dask_address=dask_address)
+                                 workers=workers, scheduler=scheduler, dask_address=dask_address,
+                                 batch_size=batch_size)
     emit(summary, json_, _human)
 
 

@@ -504,15 +504,21 @@ class FineProblem:
     encoder : the input encoding.
     data : the measurements (N rows).
     context : (N, 4 + E) time, season and env features of the rows.
+    cached_features : the encoded inputs of ``data`` (set by :func:`stack_problems`, whose
+        heliostats each have their own encoder).
+
+    :func:`stack_problems` makes one problem of M heliostats: every tensor above then has a
+    leading member axis (spec batch (M, 1), base (M, 1, 28), scales (M, P), data (M, N, ...)).
     """
 
     spec: HeliostatSpec
     base: torch.Tensor
     free: torch.Tensor
     scales: torch.Tensor
-    encoder: FeatureEncoder
+    encoder: FeatureEncoder | None
     data: MeasurementBatch
     context: torch.Tensor
+    cached_features: torch.Tensor | None = None
 
     @property
     def free_index(self) -> torch.Tensor:
@@ -520,11 +526,63 @@ class FineProblem:
 
 
     def sizes(self, config: FineConfig) -> list[int]:
-        return [self.encoder.n_features] + [config.width] * config.depth + [int(self.free.sum())]
+        n_in = (self.cached_features.shape[-1] if self.cached_features is not None
+                else self.encoder.n_features)
+        return [n_in] + [config.width] * config.depth + [int(self.free.sum())]
 
     def features(self, steps: torch.Tensor | None = None, context: torch.Tensor | None = None):
+        if steps is None and context is None and self.cached_features is not None:
+            return self.cached_features
         steps = self.data.steps if steps is None else steps
         return self.encoder.encode(steps, self.context if context is None else context)
+
+    def subset(self, mask) -> "FineProblem":
+        """The same problem on the rows where ``mask`` (N,) is true (the encoder, fitted on all
+        rows, is kept)."""
+        m = torch.as_tensor(np.asarray(mask, bool))
+        return dataclasses.replace(self, data=self.data.subset(mask), context=self.context[m],
+                                   cached_features=None)
+
+
+def _pad_rows(t: torch.Tensor, n: int) -> torch.Tensor:
+    """Pad (N, ...) to (n, ...) by repeating the last row (finite values for masked rows)."""
+    if t.shape[0] == n:
+        return t
+    return torch.cat([t, t[-1:].expand(n - t.shape[0], *t.shape[1:])])
+
+
+def stack_problems(problems: Sequence[FineProblem]) -> tuple[FineProblem, torch.Tensor]:
+    """One problem of M heliostats (member m = heliostat m) for :func:`train_members`.
+
+    The heliostats must share kinematic type, actuator type, free parameters and input size.
+    Shorter heliostats are padded to the longest (their last row repeated); the returned
+    ``valid`` (M, N) mask is false on padding, and the training and validation masks must be
+    and-ed with it. Each heliostat keeps its own encoder, spec, base and scales, so member m
+    trains exactly as heliostat m would alone.
+    """
+    from .lm import stack_specs
+
+    free = problems[0].free
+    if any(not torch.equal(p.free, free) for p in problems):
+        raise ParameterError("The 'problems' parameter of stack_problems must share the free "
+                             "parameters (one coarse preset).")
+    n = max(len(p.data) for p in problems)
+    spec = stack_specs([p.spec for p in problems])
+    for name in ("clockwise", "min_steps", "max_steps", "position_enu", "initial_orientation",
+                 "primary_axis"):
+        object.__setattr__(spec, name, getattr(spec, name).unsqueeze(1))   # batch (M, 1)
+    pad = lambda get: torch.stack([_pad_rows(get(p), n) for p in problems])
+    data = MeasurementBatch(
+        measurement_id=np.array([np.resize(p.data.measurement_id, n) for p in problems]),
+        steps=pad(lambda p: p.data.steps), sun=pad(lambda p: p.data.sun),
+        focal_spot=pad(lambda p: p.data.focal_spot),
+        target_center=pad(lambda p: p.data.target_center),
+        target_normal=pad(lambda p: p.data.target_normal))
+    valid = torch.stack([torch.arange(n) < len(p.data) for p in problems])
+    stacked = FineProblem(spec, torch.stack([p.base for p in problems]).unsqueeze(1), free,
+                          torch.stack([p.scales for p in problems]), problems[0].encoder, data,
+                          pad(lambda p: p.context), pad(lambda p: p.features()))
+    return stacked, valid
 
 
 def build_problem(rows: pd.DataFrame, hrow: pd.Series, base: torch.Tensor, free: torch.Tensor,
@@ -650,7 +708,7 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     t_start = time.perf_counter()
     seeds = [int(s) for s in np.atleast_1d(np.asarray(seeds))]
     m = len(seeds)
-    n = len(problem.data)
+    n = problem.data.steps.shape[-2]
     tm = torch.as_tensor(np.asarray(train_mask, bool)).reshape(-1, n).expand(m, n)
     vm = torch.as_tensor(np.asarray(val_mask, bool)).reshape(-1, n).expand(m, n)
     wd = torch.as_tensor(np.asarray(weight_decays, np.float64)).reshape(-1).expand(m).clone()
@@ -661,7 +719,8 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     theta = _flatten_layers(layers).detach().clone().requires_grad_(True)     # (M, T)
     cur = _layer_views(theta, layers)
     opt = torch.optim.Adam([theta], lr=config.learning_rate)
-    features = problem.features().T.contiguous().T    # inputs do not change during training
+    features = problem.features()                     # inputs do not change during training
+    features = features.transpose(-1, -2).contiguous().transpose(-1, -2)  # rows contiguous
     has_val = vm.any(-1)
     n_train = tm.sum(-1).clamp_min(1)
     best = theta.detach().clone()
@@ -951,44 +1010,72 @@ def _check_inputs(workdir: Path) -> None:
     check_fresh(workdir, COARSE_PARAMS, upstream)
 
 
+#: Heliostats per batched training program of ``fit-hybrid`` (one task for the workers).
+HYBRID_BATCH_SIZE = 32
+
+
 @_single_threaded
-def _hybrid_task(task):
-    """One heliostat of ``fit-hybrid`` (a picklable task for :func:`map_tasks`)."""
-    hid, rows, hrow, sel, mode, weight_decay, seed, config, pretrain_config = task
+def _hybrid_chunk_task(task):
+    """Heliostats of ``fit-hybrid`` that train as one batched program (a picklable task for
+    :func:`map_tasks`). pretrained-nn heliostats are fitted one by one."""
+    items, mode, weight_decay, seed, config, pretrain_config = task
     torch.use_deterministic_algorithms(True, warn_only=True)
-    hrow = pd.Series(hrow)
-    rows = rows[rows["split"] != "excluded"].reset_index(drop=True)
-    labels = rows["split"].to_numpy()
     t0 = time.perf_counter()
-    spec = HeliostatSpec.from_row(hrow)
-    data = MeasurementBatch.from_frame(rows)
-    coarse_pred = predict(sel["params"], spec, data)
-    info: dict = {}
+    prepared = []
+    for hid, rows, hrow, sel in items:
+        hrow = pd.Series(hrow)
+        rows = rows[rows["split"] != "excluded"].reset_index(drop=True)
+        spec = HeliostatSpec.from_row(hrow)
+        data = MeasurementBatch.from_frame(rows)
+        prepared.append((hid, rows, hrow, sel, rows["split"].to_numpy(), spec, data,
+                         predict(sel["params"], spec, data)))
+    out = []
     if mode == "pretrained-nn":
-        model, info, normal, position = fit_pretrained(
-            sel["params"], spec, hrow, rows, data, labels, seed, pretrain_config)
-        problem = FineProblem(spec, sel["params"], sel["free"], torch.zeros(0),
-                              None, data, torch.zeros(0))
-        state = model.to_state()
-        cfg = {"mode": mode, "heliostat_id": hid, "seed": seed,
-               "pretrain_config": pretrain_config.to_dict(), **model.to_dict(),
-               "coarse_params": sel["params"].tolist(), "coarse_preset": sel["preset"]}
-    else:
+        for hid, rows, hrow, sel, labels, spec, data, coarse_pred in prepared:
+            t1 = time.perf_counter()
+            model, info, normal, position = fit_pretrained(
+                sel["params"], spec, hrow, rows, data, labels, seed, pretrain_config)
+            problem = FineProblem(spec, sel["params"], sel["free"], torch.zeros(0),
+                                  None, data, torch.zeros(0))
+            cfg = {"mode": mode, "heliostat_id": hid, "seed": seed,
+                   "pretrain_config": pretrain_config.to_dict(), **model.to_dict(),
+                   "coarse_params": sel["params"].tolist(), "coarse_preset": sel["preset"], **info}
+            out.append(_hybrid_outputs(hid, mode, sel, labels, problem, normal, position,
+                                       coarse_pred, model.to_state(), cfg, info,
+                                       time.perf_counter() - t1))
+        return out
+    problems = []
+    for hid, rows, hrow, sel, labels, spec, data, coarse_pred in prepared:
         base = sel["params"] if mode == "hybrid" else sel["nominal"]
-        problem = build_problem(rows, hrow, base, sel["free"], config)
-        result = train_members(problem, labels == "train", labels == "validation",
-                               [weight_decay], [seed], config)
+        problems.append(build_problem(rows, hrow, base, sel["free"], config))
+    # train on the rows that matter (train and validation); test rows are predicted afterwards
+    fitting = [np.isin(p[4], ("train", "validation")) for p in prepared]
+    stacked, valid = stack_problems([pr.subset(f) for pr, f in zip(problems, fitting)])
+    n = stacked.data.steps.shape[1]
+    labels_fit = np.array([np.resize(p[4][f], n) for p, f in zip(prepared, fitting)])
+    result = train_members(stacked, torch.as_tensor(labels_fit == "train") & valid,
+                           torch.as_tensor(labels_fit == "validation") & valid,
+                           [weight_decay] * len(problems), [seed] * len(problems), config)
+    wall = (time.perf_counter() - t0) / len(problems)
+    for k, ((hid, rows, hrow, sel, labels, spec, data, coarse_pred), problem) in enumerate(
+            zip(prepared, problems)):
+        layers = result.member(k)
         with torch.no_grad():
-            normal, position = predict_members(problem, result.layers)
-        normal, position = normal[0], position[0]
-        state = _layers_to_state(result.layers)
-        info = {"best_epoch": int(result.best_epoch[0]), "epochs": int(result.epochs_run[0])}
+            normal, position = predict_members(problem, layers)
+        info = {"best_epoch": int(result.best_epoch[k]), "epochs": int(result.epochs_run[k])}
         cfg = {"mode": mode, "heliostat_id": hid, "seed": seed, "weight_decay": weight_decay,
                "fine_config": config.to_dict(), "encoder": problem.encoder.to_dict(),
-               "base_params": base.tolist(), "free": sel["free"].tolist(),
+               "base_params": problem.base.tolist(), "free": sel["free"].tolist(),
                "scales": problem.scales.tolist(), "coarse_preset": sel["preset"],
-               "sizes": problem.sizes(config)}
-    cfg.update(info)
+               "sizes": problem.sizes(config), **info}
+        out.append(_hybrid_outputs(hid, mode, sel, labels, problem, normal[0], position[0],
+                                   coarse_pred, _layers_to_state(layers), cfg, info, wall))
+    return out
+
+
+def _hybrid_outputs(hid, mode, sel, labels, problem, normal, position, coarse_pred, state, cfg,
+                    info, wall_time_s):
+    """One heliostat's predictions frame, summary, state dict and config."""
     pred = predictions_frame(problem, normal, position)
     pred["heliostat_id"], pred["split"], pred["model"] = hid, labels, mode
     pred["selected"] = mode == "hybrid"
@@ -1002,8 +1089,25 @@ def _hybrid_task(task):
                         if test.any() else None,
                         mode: float(np.median(pred["error_mrad"].to_numpy()[test]))
                         if test.any() else None},
-        **info, "wall_time_s": time.perf_counter() - t0}
+        **info, "wall_time_s": wall_time_s}
     return pred, summary, state, cfg
+
+
+def _hybrid_chunks(ids, selected, helio, batch_size: int):
+    """Group heliostats that can share one batched program (kinematic and actuator type, free
+    parameters) and cut each group, ordered by row count (little padding), into chunks. The
+    chunks depend only on the data, so local and Dask runs train the same programs."""
+    groups: dict = {}
+    for hid in ids:
+        h = helio.loc[hid]
+        key = (str(h["kinematic_type"]), str(h["actuator_type"]),
+               tuple(bool(x) for x in selected[hid]["free"].tolist()))
+        groups.setdefault(key, []).append(hid)
+    chunks = []
+    for key in sorted(groups):
+        members = groups[key]
+        chunks += [members[i:i + batch_size] for i in range(0, len(members), batch_size)]
+    return chunks
 
 
 def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: float = 0.0,
@@ -1011,9 +1115,13 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
                    pretrain_config: PretrainConfig | None = None,
                    heliostats: Sequence[str] | None = None, progress=None,
                    workers: int | None = 1, scheduler: str = "local",
-                   dask_address: str | None = None) -> dict:
+                   dask_address: str | None = None, batch_size: int = HYBRID_BATCH_SIZE) -> dict:
     """The ``fit-hybrid`` stage for one mode; writes ``DIR/hybrid/<mode>/`` and merges the mode's
     rows into ``DIR/hybrid_predictions.parquet``.
+
+    Heliostats of one kinematic type, actuator type and coarse preset train ``batch_size`` at a
+    time as one batched program (:func:`stack_problems`); each chunk is one task for the
+    workers or the Dask cluster.
 
     Parameters
     ----------
@@ -1044,12 +1152,16 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     out_dir = _model_dir(workdir, mode)
     inputs = _inputs(workdir)
     input_hashes = {k: file_sha256(p) for k, p in inputs.items()}
+    batch_size = check_int(batch_size, "batch_size", _FUNC, 1)
     groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
-    tasks = [(hid, groups[hid], helio.loc[hid].to_dict(), selected[hid], mode, weight_decay, seed,
-              config, pretrain_config) for hid in ids]
-    results = map_tasks(_hybrid_task, tasks, workers=workers, scheduler=scheduler,
-                        dask_address=dask_address,
-                        progress=(lambda d, t: progress(d, t, None)) if progress else None)
+    ids = sorted(ids, key=lambda h: (len(groups[h]), h))
+    tasks = [([(hid, groups[hid], helio.loc[hid].to_dict(), selected[hid]) for hid in chunk],
+              mode, weight_decay, seed, config, pretrain_config)
+             for chunk in _hybrid_chunks(ids, selected, helio, batch_size)]
+    results = [r for chunk in map_tasks(
+        _hybrid_chunk_task, tasks, workers=workers, scheduler=scheduler, dask_address=dask_address,
+        progress=(lambda d, t: progress(d, t, None)) if progress else None) for r in chunk]
+    results.sort(key=lambda r: r[1]["heliostat_id"])
     preds, summaries = [], []
     for pred, summary, state, cfg in results:
         hid = summary["heliostat_id"]
