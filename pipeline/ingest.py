@@ -29,6 +29,7 @@ import logging
 import math
 import os
 import re
+import shutil
 import tempfile
 import tomllib
 from dataclasses import dataclass, field
@@ -39,7 +40,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from .artifacts import _to_table, artifact_path, artifact_writer
+from .artifacts import _to_table, artifact_path, artifact_writer, write_artifact
 from .errors import InputError, check_choice, check_float, check_int
 from .geodesy import wgs84_to_enu
 from .schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
@@ -1566,6 +1567,31 @@ def ingest(sources: Iterable[str | os.PathLike], options: IngestOptions | None =
     return measurements, helio, rej, info
 
 
+class _SpillFolder(os.PathLike):
+    """A hidden folder in the workdir for sorted runs, made when the first run is written and
+    removed (with its runs) when the stage ends, also on an error; usable as the folder of a
+    :class:`SortedSpill`."""
+
+    def __init__(self, workdir: Path):
+        self.workdir = workdir
+        self.path: Path | None = None
+
+    def __fspath__(self) -> str:
+        if self.path is None:
+            self.path = Path(tempfile.mkdtemp(prefix=".ingest-spill-", dir=self.workdir))
+        return str(self.path)
+
+    def __truediv__(self, name: str) -> Path:
+        return Path(self) / name
+
+    def __enter__(self) -> "_SpillFolder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.path is not None:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+
 class _RejectedSink:
     """Rejected rows in memory up to ``batch_rows``, beyond that sorted runs in the spill folder;
     :meth:`chunks` yields them in the order of rejected.parquet."""
@@ -1576,7 +1602,7 @@ class _RejectedSink:
         self.batch_rows = batch_rows
         self.held: list[pd.DataFrame] = []
         self.held_rows = 0
-        self.spill = SortedSpill(spill_dir, "rejected", self._KEY)
+        self.spill = SortedSpill(spill_dir, "rejected", self._KEY)  # a _SpillFolder
 
     def _table(self, frames: list[pd.DataFrame]) -> pa.Table:
         df = pd.concat(frames)
@@ -1591,6 +1617,10 @@ class _RejectedSink:
         if self.held_rows >= self.batch_rows:
             self.spill.add(self._table(self.held))
             self.held, self.held_rows = [], 0
+
+    @property
+    def spilled(self) -> bool:
+        return bool(self.spill.runs)
 
     def chunks(self) -> Iterator[pd.DataFrame]:
         if self.held and self.spill.runs:
@@ -1628,23 +1658,29 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
     resolved = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(opts).items()}
     resolved["sources"] = [str(s) for s in sources]
     prov = dict(stage="ingest", options=resolved, inputs=inputs)
-    with tempfile.TemporaryDirectory(prefix=".ingest-spill-", dir=workdir) as spill, \
-            contextlib.ExitStack() as stack:
-        run = _IngestRun(sources, opts, batch_rows, Path(spill))
-        rejected = _RejectedSink(Path(spill), batch_rows)
+    with _SpillFolder(workdir) as spill, contextlib.ExitStack() as stack:
+        run = _IngestRun(sources, opts, batch_rows, spill)
+        rejected = _RejectedSink(spill, batch_rows)
+        helio: list[pd.DataFrame] = []
+        # measurements.parquet is written while the sources are validated; it replaces the
+        # previous one last, after rejected.parquet and heliostats.parquet
         measurements = stack.enter_context(artifact_writer(
             workdir, MEASUREMENTS, extra=run.extra_types(),
             row_group_size=MEASUREMENTS_ROW_GROUP_ROWS, **prov))
-        helio = stack.enter_context(artifact_writer(workdir, HELIOSTATS, **prov))
         info = run.execute(lambda df: measurements.write(df.drop(columns=["_src", "_seq"])),
-                           helio.write, rejected.add)
+                           helio.append, rejected.add)
         if info["kept"] == 0:
             reasons = ", ".join(f"{k}: {v}" for k, v in info["rejected_by_reason"].items())
             raise InputError(f"no measurement of {', '.join(map(str, sources))} could be kept "
                              f"({reasons}); see the reasons and fix the source")
-        writer = stack.enter_context(artifact_writer(workdir, REJECTED, **prov))
-        for chunk in rejected.chunks():
-            writer.write(chunk)
+        if rejected.spilled:
+            with artifact_writer(workdir, REJECTED, **prov) as writer:
+                for chunk in rejected.chunks():
+                    writer.write(chunk)
+        else:
+            write_artifact(next(rejected.chunks(), pd.DataFrame(columns=REJECTED.column_names())),
+                           workdir, REJECTED, **prov)
+        write_artifact(pd.concat(helio, ignore_index=True), workdir, HELIOSTATS, **prov)
     info["workdir"] = str(workdir)
     info["artifacts"] = [str(artifact_path(workdir, s)) for s in (MEASUREMENTS, HELIOSTATS, REJECTED)]
     for reason, n in info["rejected_by_reason"].items():

@@ -9,6 +9,7 @@ a slice of each at a time, and yields tables that hold every row of a contiguous
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Iterator
 
@@ -27,14 +28,15 @@ class SortedSpill:
 
     Parameters
     ----------
-    folder : an existing folder for the run files (the caller removes it).
+    folder : a folder (or ``os.PathLike`` made on first use) for the run files; the caller
+        removes it.
     name : file name prefix of the runs.
     key : column the merge groups by; a yielded table never splits one key value.
     tie : optional column ordering the rows of one key (for example the source row).
     """
 
-    def __init__(self, folder: Path, name: str, key: str, tie: str | None = None):
-        self.folder = Path(folder)
+    def __init__(self, folder: "os.PathLike[str]", name: str, key: str, tie: str | None = None):
+        self.folder = folder  # converted to a path only when the first run is written
         self.name = name
         self.key = key
         self.tie = tie
@@ -51,7 +53,7 @@ class SortedSpill:
         """Sort ``table`` and write it as one run (an empty table is skipped)."""
         if table.num_rows == 0:
             return
-        path = self.folder / f"{self.name}-{len(self.runs):06d}.parquet"
+        path = Path(self.folder) / f"{self.name}-{len(self.runs):06d}.parquet"
         pq.write_table(table.sort_by(self._sort_keys()), path,
                        row_group_size=max(_MIN_READ_ROWS, min(table.num_rows, 1 << 16)))
         self.runs.append(path)
