@@ -62,13 +62,14 @@ class SortedSpill:
     def merged(self, chunk_rows: int) -> Iterator[pa.Table]:
         """Yield tables sorted by ``(key, tie)``, each holding all rows of a range of keys.
 
-        A yielded table has about ``chunk_rows`` rows or more when one key has more; the key
-        ranges of successive tables increase. Memory: one slice of ``chunk_rows / runs`` rows
-        (at least 1024) per run plus the table being assembled.
+        A yielded table has at most ``chunk_rows`` rows, unless one step of the merge (all rows
+        below the cutoff key, at most half a chunk with slices of ``chunk_rows / (2 runs)`` rows,
+        at least 1024, plus the rest of one key) has more; the key ranges of successive tables
+        increase. Memory: one slice per run plus the table being assembled.
         """
         if not self.runs:
             return
-        read_rows = max(_MIN_READ_ROWS, chunk_rows // len(self.runs))
+        read_rows = max(_MIN_READ_ROWS, chunk_rows // (2 * len(self.runs)))
         readers = [pq.ParquetFile(p).iter_batches(batch_size=read_rows) for p in self.runs]
         buffers: list[pa.Table | None] = [None] * len(readers)
         done = [False] * len(readers)
@@ -94,12 +95,13 @@ class SortedSpill:
             growing = [i for i in live if not done[i]]
             cutoff = min(buffers[i][self.key][-1].as_py() for i in growing) if growing else None
             emitted = 0
+            parts = []
             for i in live:
                 buf = buffers[i]
                 n = (buf.num_rows if cutoff is None
                      else pc.sum(pc.less(buf[self.key], cutoff)).as_py() or 0)
                 if n:
-                    out.append(buf.slice(0, n))
+                    parts.append(buf.slice(0, n))
                     buffers[i] = buf.slice(n)
                     emitted += n
             if not emitted:  # the runs ending at the cutoff key hold only that key: read on
@@ -107,9 +109,10 @@ class SortedSpill:
                     if buffers[i][self.key][-1].as_py() == cutoff:
                         pull(i)
                 continue
-            out_rows += emitted
-            if out_rows >= chunk_rows:
+            if out and out_rows + emitted > chunk_rows:  # would outgrow a chunk: hand it out
                 yield pa.concat_tables(out).sort_by(self._sort_keys())
                 out, out_rows = [], 0
+            out += parts
+            out_rows += emitted
         if out:
             yield pa.concat_tables(out).sort_by(self._sort_keys())
