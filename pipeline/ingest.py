@@ -1160,31 +1160,35 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
 def _parse_timestamps(values: pd.Series, timezone: str | None):
     """Parse to UTC; returns (timestamps, unparsable mask, no-zone mask)."""
     text = values.map(lambda v: v.strip() if isinstance(v, str) else ("" if v is None else str(v)))
-    ts = pd.Series(pd.NaT, index=values.index, dtype="datetime64[us, UTC]")
-    bad = pd.Series(False, index=values.index)
-    naive = pd.Series(False, index=values.index)
-    for idx, t in text.items():
+    stamps = [pd.NaT] * len(text)  # filled in a list: a Series item assignment per row is slow
+    bad = np.zeros(len(text), bool)
+    naive = np.zeros(len(text), bool)
+    for i, t in enumerate(text):
         if not t or t.lower() in ("nan", "nat", "none"):
             continue
         try:
             stamp = pd.Timestamp(t)
         except (ValueError, TypeError, OverflowError):
-            bad[idx] = True
+            bad[i] = True
             continue
         if stamp is pd.NaT:
-            bad[idx] = True
+            bad[i] = True
             continue
         if stamp.tzinfo is None:
             if timezone is None:
-                naive[idx] = True
+                naive[i] = True
                 continue
             try:
                 stamp = stamp.tz_localize(timezone)
             except Exception:  # noqa: BLE001 - invalid/ambiguous local time
-                bad[idx] = True
+                bad[i] = True
                 continue
-        ts[idx] = stamp.tz_convert("UTC")
-    return ts, bad, naive
+        stamps[i] = stamp.tz_convert("UTC")
+    ts = pd.Series(pd.NaT, index=values.index, dtype="datetime64[us, UTC]")
+    ok = [i for i, s in enumerate(stamps) if s is not pd.NaT]
+    if ok:
+        ts.iloc[ok] = pd.DatetimeIndex([stamps[i] for i in ok]).as_unit("us")
+    return ts, pd.Series(bad, index=values.index), pd.Series(naive, index=values.index)
 
 
 def _resolve_targets(df: pd.DataFrame, targets: dict[str, Target]) -> pd.Series:
@@ -1326,7 +1330,7 @@ class _SourceChecks:
 # the stage: sources -> chunks of whole heliostats -> artifacts
 # ------------------------------------------------------------------------------------------------
 #: Rows per batch read from a log (``--batch-rows``): peak memory grows with it, not with the log.
-DEFAULT_BATCH_ROWS = 50_000
+DEFAULT_BATCH_ROWS = 25_000
 #: Rows per row group of measurements.parquet (sorted by heliostat, so a heliostat's rows sit in
 #: one or two row groups and ``read_artifact(..., heliostats=...)`` skips the others).
 MEASUREMENTS_ROW_GROUP_ROWS = 32_768
@@ -1492,7 +1496,7 @@ class _IngestRun:
         for parts, rows in _merge_sources(self.sources, rejected):
             group = self._complete(pd.concat(parts))
             # duplicates across sources: first source wins
-            key = group["heliostat_id"] + "\0" + group["measurement_id"]
+            key = group["heliostat_id"].astype(str) + "\0" + group["measurement_id"].astype(str)
             dup = key.duplicated(keep="first").to_numpy()
             if dup.any():
                 extra = group.loc[dup]
