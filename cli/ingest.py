@@ -10,7 +10,7 @@ from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.ingest import IngestOptions, run_ingest
+from heliocal.pipeline.ingest import DEFAULT_BATCH_ROWS, IngestOptions, run_ingest
 
 
 def _parse_location(text: Optional[str]):
@@ -57,6 +57,10 @@ def ingest_cmd(
         help="Time zone of timestamps that carry none (e.g. Europe/Berlin).")] = None,
     location: Annotated[Optional[str], typer.Option(
         help="Plant location LAT,LON,ALT for ENU logs (for NREL SPA sun positions).")] = None,
+    batch_rows: Annotated[int, typer.Option(
+        help="Rows of a log read and validated at a time; peak memory grows with it, not with the "
+             "log (a longer log is sorted by heliostat in a hidden folder of the workdir). "
+             "The artifacts do not depend on it.", min=1)] = DEFAULT_BATCH_ROWS,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -65,5 +69,5 @@ def ingest_cmd(
                          max_spot_distance_m=max_spot_distance, sun_tolerance_deg=sun_tolerance,
                          azimuth_convention=azimuth_convention, timezone=timezone,
                          location=_parse_location(location))
-    summary = run_ingest(sources, workdir, opts)
+    summary = run_ingest(sources, workdir, opts, batch_rows=batch_rows)
     emit(summary, json_, _human)

@@ -43,6 +43,8 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_text",
     "write_artifact",
+    "artifact_writer",
+    "ArtifactWriter",
     "read_artifact",
     "read_provenance",
     "file_sha256",
@@ -326,6 +328,74 @@ def write_artifact(df: pd.DataFrame, workdir: str | os.PathLike, schema: Artifac
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp, row_group_size=row_group_size, compression="zstd")
     return path
+
+
+class ArtifactWriter:
+    """Appends DataFrame chunks to one artifact being written (see :func:`artifact_writer`)."""
+
+    def __init__(self, writer: pq.ParquetWriter, schema: ArtifactSchema, arrow_schema: pa.Schema,
+                 row_group_size: int | None):
+        self._writer = writer
+        self.schema = schema
+        self.arrow_schema = arrow_schema
+        self.row_group_size = row_group_size
+        self.rows = 0
+
+    def write(self, df: pd.DataFrame) -> None:
+        """Check ``df`` against the schema, sort it by ``schema.sort_by`` and append it.
+
+        Chunks must come in ``sort_by`` order (each one sorted within itself here), so the file
+        is sorted as :func:`write_artifact` would sort the whole table.
+        """
+        table = _to_table(df, self.schema)
+        extra = [f.name for f in self.arrow_schema][len(self.schema.columns):]
+        unexpected = [n for n in table.column_names[len(self.schema.columns):] if n not in extra]
+        if unexpected:
+            raise SchemaError(
+                f"cannot write {self.schema.filename}: columns {unexpected} were not declared when "
+                "the file was opened (this is a bug in heliocal; please report it)")
+        for name in extra:  # a chunk without an extra column gets it empty
+            if name not in table.column_names:
+                table = table.append_column(name, pa.nulls(table.num_rows))
+        try:
+            table = table.select(self.arrow_schema.names).cast(self.arrow_schema)
+        except (pa.ArrowInvalid, pa.ArrowTypeError, pa.ArrowNotImplementedError) as exc:
+            raise SchemaError(
+                f"cannot write {self.schema.filename}: a chunk does not match the columns declared "
+                f"when the file was opened ({exc}); this is a bug in heliocal, please report it"
+            ) from exc
+        self._writer.write_table(table, row_group_size=self.row_group_size)
+        self.rows += table.num_rows
+
+
+@contextlib.contextmanager
+def artifact_writer(workdir: str | os.PathLike, schema: ArtifactSchema, *, stage: str,
+                    extra: Mapping[str, pa.DataType] | None = None,
+                    options: Mapping | None = None, seed: int | None = None,
+                    inputs: Mapping[str, str | os.PathLike] | None = None,
+                    row_group_size: int | None = None) -> Iterator[ArtifactWriter]:
+    """Write ``schema``'s artifact chunk by chunk, atomically, with provenance metadata.
+
+    The streaming twin of :func:`write_artifact`: yields an :class:`ArtifactWriter` whose
+    ``write(df)`` checks and appends one chunk. The file goes to a hidden temporary name and
+    replaces ``workdir/schema.filename`` only when the ``with`` block ends without an exception;
+    on an exception the temporary file is removed and the previous artifact is left as it was.
+
+    Parameters
+    ----------
+    extra : name -> Arrow type of the extra columns (``env_*``, ``qa_*``) the chunks may hold; a
+        chunk without one of them gets it empty.
+    row_group_size : rows per Parquet row group at most (a chunk never shares a row group with
+        the next one).
+    """
+    arrow_schema = schema.arrow_schema(extra)
+    meta = {_META_KEY: json.dumps(_provenance(schema, stage, options, seed, inputs),
+                                  sort_keys=True).encode()}
+    arrow_schema = arrow_schema.with_metadata(meta)
+    path = artifact_path(workdir, schema)
+    with atomic_path(path) as tmp:
+        with pq.ParquetWriter(tmp, arrow_schema, compression="zstd") as writer:
+            yield ArtifactWriter(writer, schema, arrow_schema, row_group_size)
 
 
 def read_provenance(path: str | os.PathLike) -> dict:

@@ -22,25 +22,29 @@ naming the file, the problem and the fix) before any artifact is written.
 
 from __future__ import annotations
 
+import contextlib
 import csv
-import io
 import json
 import logging
 import math
 import os
 import re
+import shutil
+import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 
-from .artifacts import artifact_path, write_artifact
-from .errors import InputError, check_choice, check_float
+from .artifacts import _to_table, artifact_path, artifact_writer, write_artifact
+from .errors import InputError, check_choice, check_float, check_int
 from .geodesy import wgs84_to_enu
 from .schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
+from .spill import SortedSpill
 from .sun import spa_sun_position, sun_vector_enu, wrap_deg
 
 __all__ = [
@@ -53,6 +57,7 @@ __all__ = [
     "read_paint_properties",
     "ingest",
     "run_ingest",
+    "DEFAULT_BATCH_ROWS",
     "DEFAULT_JUELICH_PROPERTIES",
 ]
 
@@ -149,13 +154,13 @@ def _read_header(path: Path) -> list[str]:
         except Exception as exc:  # noqa: BLE001 - pyarrow raises several types
             raise InputError(f"{path}: not a readable Parquet file ({_short(exc)}); export the log "
                              "again or give a CSV") from exc
-    text = _decode_text(path, path.read_bytes())
-    try:
-        for cells in csv.reader(io.StringIO(text, newline=""), skipinitialspace=True):
-            if cells and any(c.strip() for c in cells):
-                return [c.strip() for c in cells]
-    except csv.Error as exc:
-        raise InputError(f"{path}: malformed CSV header ({_short(exc)}); fix the first line") from exc
+    with _open_csv_text(path) as text:
+        try:
+            for cells in csv.reader(text, skipinitialspace=True):
+                if cells and any(c.strip() for c in cells):
+                    return [c.strip() for c in cells]
+        except csv.Error as exc:
+            raise InputError(f"{path}: malformed CSV header ({_short(exc)}); fix the first line") from exc
     raise InputError(f"{path}: the file is empty; give a calibration log with a header row "
                      "and one row per measurement")
 
@@ -548,57 +553,69 @@ def _decode_text(path: Path, raw: bytes) -> str:
                          "as UTF-8 CSV") from exc
 
 
-def _read_csv_records(path: Path) -> tuple[list[str], list[list[str]]]:
-    """Header and data rows of a comma-separated UTF-8 file, every cell a stripped string.
+_TEXT_HEAD_BYTES = 65536
+
+
+@contextlib.contextmanager
+def _open_csv_text(path: Path):
+    """The CSV as UTF-8 text, read as a stream; the checks of :func:`_decode_text` without
+    holding the file: its first 64 KiB are checked for binary data and blankness up front, and a
+    decoding error anywhere is reported by :func:`_decode_text` (which then reads the file)."""
+    with open(path, "rb") as fh:
+        head = fh.read(_TEXT_HEAD_BYTES + 1)
+    if (not head.strip() and len(head) <= _TEXT_HEAD_BYTES) or b"\0" in head[:_TEXT_HEAD_BYTES]:
+        _decode_text(path, head)
+    try:
+        with open(path, encoding="utf-8-sig", newline="") as text:
+            yield text
+    except UnicodeDecodeError:
+        _decode_text(path, path.read_bytes())  # raises the InputError naming line and byte
+        raise  # pragma: no cover - Python's decoder and _decode_text agree
+
+
+def _iter_csv_records(path: Path, rows_per_block: int) -> Iterator[tuple[list[str], list[list[str]]]]:
+    """Header and blocks of data rows of a comma-separated UTF-8 file, every cell a stripped
+    string, streamed: yields ``(header, rows)`` with at most ``rows_per_block`` rows per block.
 
     Blank lines are skipped; a short row is padded with empty cells (they become
     ``missing_value`` rejections); a row with more non-empty cells than the header raises
     :class:`InputError` naming the row, since its values cannot be assigned to columns.
     """
-    text = _decode_text(path, path.read_bytes())
-    reader = csv.reader(io.StringIO(text, newline=""), skipinitialspace=True, strict=True)
-    rows: list[list[str]] = []
-    header: list[str] | None = None
-    try:
-        for cells in reader:
-            if not cells or (len(cells) == 1 and not cells[0].strip()):
-                continue
-            cells = [c.strip() for c in cells]
-            if header is None:
-                header = cells
-                continue
-            if len(cells) > len(header):
-                if any(cells[len(header):]):
-                    raise InputError(
-                        f"{path}: data row {len(rows) + 1} (line {reader.line_num}) has "
-                        f"{len(cells)} fields but the header has {len(header)}; remove the extra "
-                        "fields or quote values that contain commas")
-                cells = cells[:len(header)]
-            rows.append(cells + [""] * (len(header) - len(cells)))
-    except csv.Error as exc:
-        raise InputError(f"{path}: malformed CSV at line {reader.line_num} ({_short(exc)}); close "
-                         "the quote or re-export the log") from exc
-    if header is None:  # pragma: no cover - _decode_text refuses blank files
-        raise InputError(f"{path}: the file is empty; give a calibration log with a header row")
-    return header, rows
-
-
-def _read_log(path: Path) -> pd.DataFrame:
-    if path.suffix.lower() in (".parquet", ".pq"):
-        import pyarrow.parquet as pq
-
+    with _open_csv_text(path) as text:
+        reader = csv.reader(text, skipinitialspace=True, strict=True)
+        rows: list[list[str]] = []
+        header: list[str] | None = None
+        n_rows = 0
         try:
-            df = pq.read_table(path).to_pandas()
-        except Exception as exc:  # noqa: BLE001
-            raise InputError(f"{path}: not a readable Parquet file ({_short(exc)}); export the log "
-                             "again") from exc
-        df.columns = [str(c) for c in df.columns]
-        if len(set(df.columns)) != len(df.columns):
-            dup = next(c for c in df.columns if list(df.columns).count(c) > 1)
-            raise InputError(f"{path}: duplicated column {dup!r}; remove one of them so each field "
-                             "appears once")
-        return df.astype(object).where(df.notna(), "")
-    header, rows = _read_csv_records(path)
+            for cells in reader:
+                if not cells or (len(cells) == 1 and not cells[0].strip()):
+                    continue
+                cells = [c.strip() for c in cells]
+                if header is None:
+                    header = cells
+                    continue
+                n_rows += 1
+                if len(cells) > len(header):
+                    if any(cells[len(header):]):
+                        raise InputError(
+                            f"{path}: data row {n_rows} (line {reader.line_num}) has "
+                            f"{len(cells)} fields but the header has {len(header)}; remove the "
+                            "extra fields or quote values that contain commas")
+                    cells = cells[:len(header)]
+                rows.append(cells + [""] * (len(header) - len(cells)))
+                if len(rows) >= rows_per_block:
+                    yield header, rows
+                    rows = []
+        except csv.Error as exc:
+            raise InputError(f"{path}: malformed CSV at line {reader.line_num} ({_short(exc)}); "
+                             "close the quote or re-export the log") from exc
+    if header is None:
+        raise InputError(f"{path}: the file is empty; give a calibration log with a header row "
+                         "and one row per measurement")
+    yield header, rows
+
+
+def _check_header(path: Path, header: Sequence[str]) -> None:
     seen = set()
     for name in header:
         if name in seen:
@@ -608,32 +625,234 @@ def _read_log(path: Path) -> pd.DataFrame:
     if "" in header:
         raise InputError(f"{path}: column {header.index('') + 1} of the header has no name; name "
                          "it or remove the column")
-    return pd.DataFrame(rows, columns=header, dtype=object)
 
 
-def _stage_log(path: Path, opts: IngestOptions, kind: str) -> _Staged:
-    raw = _read_log(path)
-    if raw.empty:
+# The pass over a log: read in batches, keyed by heliostat -------------------------------------
+#: Internal columns of the spilled source rows (a log column of the same name is refused).
+_KEY = "__heliocal_heliostat_key"
+_SEQ = "__heliocal_source_row"
+#: Rows parsed from a CSV at a time before they become one Arrow block.
+_CSV_BLOCK_ROWS = 16384
+
+
+def _heliostat_key(values: pd.Series) -> pd.Series:
+    """The stripped heliostat id as text ('' when missing): rows of one heliostat share a key."""
+    return values.map(lambda v: v.strip() if isinstance(v, str)
+                      else ("" if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)))
+
+
+@dataclass
+class _LogRows:
+    """The rows of one log after the streaming pass: in memory (one chunk) or spilled in runs."""
+
+    path: Path
+    header: list[str]
+    rows: int
+    parquet_schema: "pa.Schema | None"  # original schema (with pandas metadata) of a Parquet log
+    float_columns: set[str]  # Parquet integer columns with nulls somewhere (pandas makes them float)
+    extra_stats: dict[str, list]  # column -> [non-empty, numeric non-empty, all integer]
+    tables: list  # in-memory blocks (pa.Table) when not spilled
+    spill: SortedSpill | None
+
+    def chunks(self, chunk_rows: int | None) -> Iterator["pa.Table"]:
+        """Blocks holding every row of a range of heliostats, in heliostat order."""
+        if self.spill is None:
+            if self.tables:
+                yield pa.concat_tables(self.tables)
+            return
+        yield from self.spill.merged(chunk_rows)
+
+    def frame(self, table: "pa.Table") -> pd.DataFrame:
+        """A block as the raw frame :func:`_stage_log_rows` takes: source order, every value as
+        read (Parquet: pandas' conversion of the whole file), index = source row - 1."""
+        seq = table.column(_SEQ).to_numpy()
+        order = np.argsort(seq, kind="stable")
+        table = table.take(pa.array(order)).drop_columns([_KEY, _SEQ])
+        seq = seq[order]
+        if self.parquet_schema is not None:
+            for name in self.float_columns:
+                i = table.column_names.index(name)
+                table = table.set_column(i, name, table.column(name).cast(pa.float64()))
+            df = table.replace_schema_metadata(self.parquet_schema.metadata).to_pandas()
+            df = df.reset_index(drop=True)
+            df.columns = [str(c) for c in df.columns]
+            df = df.astype(object).where(df.notna(), "")
+        else:
+            df = pd.DataFrame({n: table.column(n).to_numpy(zero_copy_only=False)
+                               for n in table.column_names}, dtype=object)
+        df.index = pd.Index(seq - 1)
+        return df
+
+
+def _log_column_usage(header: Sequence[str], kind: str) -> set[str]:
+    """Names of the log columns :func:`_log_context` maps to canonical columns."""
+    names = {"heliostat_id", "timestamp", "target_name", "focal_spot_source"}
+    for aliases in _LOG_ALIASES.values():
+        names.update(aliases)
+    if kind == "wgs84-log":
+        names.update(f"{p}_{c}" for p in ("focal_spot", "heliostat", "target_center")
+                     for c in ("lat", "lon", "alt"))
+    else:
+        names.update(_ENU_LOG_COLUMNS)
+    names.update(_LOG_RECOGNISED_IGNORED)
+    return names & set(header)
+
+
+def _numeric_stats(values: pd.Series) -> tuple[int, int, bool]:
+    """(non-empty cells, numeric non-empty cells, all integers) of an extra log column."""
+    numeric = pd.to_numeric(values.replace("", np.nan), errors="coerce")
+    nonempty = values.astype(str).str.strip() != ""
+    return (int(nonempty.sum()), int(numeric[nonempty].notna().sum()),
+            bool(pd.api.types.is_integer_dtype(numeric)))
+
+
+def _read_log_rows(path: Path, kind: str, batch_rows: int | None, spill_dir: Path | None) -> _LogRows:
+    """Read a CSV or Parquet log in batches of ``batch_rows`` rows (all at once with ``None``),
+    keyed by heliostat; with a ``spill_dir`` and more rows than one batch, every batch is sorted
+    by heliostat and spilled there as a run, so memory holds one batch."""
+    rows = _LogRows(path, [], 0, None, set(), {}, [], None)
+    extra: list[str] = []
+    is_parquet = path.suffix.lower() in (".parquet", ".pq")
+
+    def add(table: pa.Table, frame: pd.DataFrame) -> None:
+        key = (_heliostat_key(frame[_KEY]) if _KEY in frame.columns
+               else pd.Series("", index=frame.index))
+        table = table.append_column(_KEY, pa.array(key.tolist(), pa.string()))
+        table = table.append_column(_SEQ, pa.array(np.arange(rows.rows + 1, rows.rows + 1
+                                                               + table.num_rows), pa.int64()))
+        rows.rows += table.num_rows
+        for name in extra:
+            if name in frame.columns:
+                nonempty, numeric, integer = _numeric_stats(frame[name])
+                st = rows.extra_stats.setdefault(name, [0, 0, True])
+                st[0] += nonempty
+                st[1] += numeric
+                st[2] = st[2] and integer
+        rows.tables.append(table)
+        if (batch_rows is not None and spill_dir is not None
+                and sum(t.num_rows for t in rows.tables) >= batch_rows):
+            if rows.spill is None:
+                rows.spill = SortedSpill(spill_dir, f"log-{id(rows):x}", _KEY, _SEQ)
+            rows.spill.add(pa.concat_tables(rows.tables))
+            rows.tables = []
+
+    def id_column(header: Sequence[str]) -> str | None:
+        return next((c for c in header if str(c).strip() == "heliostat_id"), None)
+
+    if is_parquet:
+        import pyarrow.parquet as pq
+
+        try:
+            pf = pq.ParquetFile(path)
+            schema = pf.schema_arrow
+            index_cols = {c for c in ((schema.pandas_metadata or {}).get("index_columns") or [])
+                          if isinstance(c, str)}
+            names = [n for n in schema.names if n not in index_cols]
+            rows.parquet_schema = schema
+            rows.header = [str(n) for n in names]
+            extra = [n for n in rows.header if n not in _log_column_usage(rows.header, kind)]
+            nulls: dict[str, int] = {}
+            block = batch_rows or (1 << 16)
+            for batch in pf.iter_batches(batch_size=min(block, 1 << 16)):
+                table = pa.Table.from_batches([batch], schema=schema)
+                for n in names:
+                    nulls[n] = nulls.get(n, 0) + table.column(n).null_count
+                hcol = id_column(names)
+                frame = (table.select([hcol, *extra] if hcol else extra)
+                         .replace_schema_metadata(None).to_pandas())
+                frame = frame.astype(object).where(frame.notna(), "")
+                if hcol:
+                    frame[_KEY] = frame.pop(hcol) if hcol not in extra else frame[hcol]
+                add(table, frame)
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - pyarrow raises several types
+            raise InputError(f"{path}: not a readable Parquet file ({_short(exc)}); export the log "
+                             "again") from exc
+        rows.float_columns = {n for n in names if nulls.get(n) and pa.types.is_integer(schema.field(n).type)}
+    else:
+        header: list[str] = []
+        for header, block in _iter_csv_records(path, min(batch_rows or _CSV_BLOCK_ROWS, _CSV_BLOCK_ROWS)):
+            if not rows.header:
+                rows.header = list(header)
+                extra = [n for n in header if n not in _log_column_usage(header, kind)]
+            if not block:
+                continue
+            columns = list(zip(*block))
+            names = list(dict.fromkeys(header))  # a duplicated column is refused below
+            table = pa.table({n: pa.array(columns[header.index(n)], pa.string()) for n in names})
+            frame = pd.DataFrame({n: columns[header.index(n)] for n in extra if n in names},
+                                 index=range(len(block)), dtype=object)
+            hcol = id_column(names)
+            if hcol:
+                frame[_KEY] = pd.Series(columns[header.index(hcol)], dtype=object)
+            add(table, frame)
+        rows.header = list(header)
+    _check_header(path, rows.header)
+    if _KEY in rows.header or _SEQ in rows.header:
+        raise InputError(f"{path}: column names {_KEY!r} and {_SEQ!r} are reserved by heliocal; "
+                         "rename the column")
+    if rows.spill is not None and rows.tables:
+        rows.spill.add(pa.concat_tables(rows.tables))
+        rows.tables = []
+    return rows
+
+
+@dataclass
+class _LogContext:
+    """What a log's header, tower file and properties define for all its rows."""
+
+    path: Path
+    kind: str
+    columns: dict[str, str]  # canonical name -> log column
+    env: dict[str, tuple[str, bool]]  # env_* name -> (log column, integer)
+    heliostats: dict[str, dict]
+    targets: dict[str, Target]
+    reference: tuple[float, float, float] | None
+    ignored: list[str]
+
+
+_ENU_LOG_COLUMNS = ("focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m", "heliostat_e_m",
+                    "heliostat_n_m", "heliostat_u_m", "target_e_m", "target_n_m", "target_u_m",
+                    "target_normal_e", "target_normal_n", "target_normal_u")
+
+
+def _staged_names(kind: str) -> set[str]:
+    """Columns of a staged log frame (a log column of the same name is neither env_* nor
+    reported as ignored)."""
+    names = {"source_file", "source_row", "raw", "heliostat_id", "measurement_id", "axis_1_steps",
+             "axis_2_steps", "timestamp", "sun_azimuth_deg", "sun_elevation_deg", "target_name",
+             "focal_spot_source"}
+    if kind == "wgs84-log":
+        names |= {f"{p}_{c}" for p in ("focal_spot", "heliostat", "target_center")
+                  for c in ("lat", "lon", "alt")}
+        names |= {f"{p}_{a}_m" for p in ("focal_spot", "heliostat", "target") for a in "enu"}
+        names.add("_hpos_wgs84")
+    else:
+        names |= set(_ENU_LOG_COLUMNS)
+    return names
+
+
+def _log_context(rows: _LogRows, opts: IngestOptions, kind: str) -> _LogContext:
+    """Map a log's columns, read its tower and properties; raise on what no row can fix."""
+    path = rows.path
+    if rows.rows == 0:
         raise InputError(f"{path}: header only, no data rows; give a log with at least one "
                          "measurement")
-    cols = {str(c).strip(): c for c in raw.columns}
-    df = pd.DataFrame(index=raw.index)
-    df["source_file"] = str(path)
-    df["source_row"] = np.arange(1, len(raw) + 1)
-    df["raw"] = [json.dumps(r, default=str) for r in raw.to_dict("records")]
+    cols = {str(c).strip(): c for c in rows.header}
+    mapping: dict[str, str] = {}
     used = set()
 
     def take(canonical: str, *names: str, required: bool = False):
         for name in names or (canonical,):
             if name in cols:
-                df[canonical] = raw[cols[name]]
+                mapping[canonical] = cols[name]
                 used.add(name)
                 return True
         if required:
             raise InputError(f"{path}: missing required column {canonical!r} (or "
                              f"{' / '.join(n for n in names if n != canonical) or 'alias'}); add it "
                              "to the log, see README 'Input formats'")
-        df[canonical] = ""
         return False
 
     take("heliostat_id", required=True)
@@ -651,7 +870,6 @@ def _stage_log(path: Path, opts: IngestOptions, kind: str) -> _Staged:
     heliostats: dict[str, dict] = {}
     targets: dict[str, Target] = {}
     reference = None
-
     if kind == "wgs84-log":
         tower = read_tower(find_tower_file(path, opts.tower))
         reference = tower.reference
@@ -663,15 +881,8 @@ def _stage_log(path: Path, opts: IngestOptions, kind: str) -> _Staged:
                      "heliostat_lon", "heliostat_alt", "target_center_lat", "target_center_lon",
                      "target_center_alt"):
             take(name)
-        for src, dst in (("focal_spot", "focal_spot"), ("heliostat", "heliostat"),
-                         ("target_center", "target")):
-            _wgs84_columns_to_enu(df, src, dst, reference)
-        hpos = _to_float_frame(df, ["heliostat_lat", "heliostat_lon", "heliostat_alt"])
-        df["_hpos_wgs84"] = list(zip(hpos["heliostat_lat"], hpos["heliostat_lon"], hpos["heliostat_alt"]))
     else:  # enu-log
-        for name in ("focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m", "heliostat_e_m",
-                     "heliostat_n_m", "heliostat_u_m", "target_e_m", "target_n_m", "target_u_m",
-                     "target_normal_e", "target_normal_n", "target_normal_u"):
+        for name in _ENU_LOG_COLUMNS:
             take(name)
         reference = opts.location
         if opts.properties is None:
@@ -684,26 +895,50 @@ def _stage_log(path: Path, opts: IngestOptions, kind: str) -> _Staged:
         raise InputError(f"{path}: sun angles are missing and no plant location to compute them; "
                          "pass --location LAT,LON,ALT")
 
-    # extra numeric columns -> env_*
-    ignored = []
-    known = used | set(_LOG_RECOGNISED_IGNORED) | {"focal_spot_source"}
+    # extra numeric columns -> env_* (judged on the whole column: 90 % of its cells numbers)
+    ignored, env = [], {}
+    known = used | set(_LOG_RECOGNISED_IGNORED) | {"focal_spot_source"} | _staged_names(kind)
     for name, col in cols.items():
-        if name in known or name in df.columns:
+        if name in known:
             continue
-        values = raw[col]
-        numeric = pd.to_numeric(values.replace("", np.nan), errors="coerce")
-        nonempty = values.astype(str).str.strip() != ""
-        if nonempty.any() and numeric[nonempty].notna().mean() >= 0.9:
-            env_name = "env_" + re.sub(r"[^0-9a-zA-Z]+", "_", name).strip("_").lower()
-            df[env_name] = numeric
+        nonempty, numeric, integer = rows.extra_stats.get(col, (0, 0, True))
+        if nonempty and numeric / nonempty >= 0.9:
+            env["env_" + re.sub(r"[^0-9a-zA-Z]+", "_", name).strip("_").lower()] = (col, integer)
         else:
             ignored.append(name)
     ignored += [c for c in _LOG_RECOGNISED_IGNORED if c in cols]
+    return _LogContext(path, kind, mapping, env, heliostats, targets, reference, ignored)
+
+
+def _stage_log_rows(raw: pd.DataFrame, ctx: _LogContext) -> _Staged:
+    """Rows of a log (a raw frame from :meth:`_LogRows.frame`) as a staged frame."""
+    df = pd.DataFrame(index=raw.index)
+    df["source_file"] = str(ctx.path)
+    df["source_row"] = raw.index.to_numpy() + 1
+    df["raw"] = [json.dumps(r, default=str) for r in raw.to_dict("records")]
+    for canonical in ("heliostat_id", "measurement_id", "axis_1_steps", "axis_2_steps",
+                      "timestamp", "sun_azimuth_deg", "sun_elevation_deg", "target_name",
+                      "focal_spot_source"):
+        df[canonical] = raw[ctx.columns[canonical]] if canonical in ctx.columns else ""
+    if ctx.kind == "wgs84-log":
+        for name in ("focal_spot_lat", "focal_spot_lon", "focal_spot_alt", "heliostat_lat",
+                     "heliostat_lon", "heliostat_alt", "target_center_lat", "target_center_lon",
+                     "target_center_alt"):
+            df[name] = raw[ctx.columns[name]] if name in ctx.columns else ""
+        for src, dst in (("focal_spot", "focal_spot"), ("heliostat", "heliostat"),
+                         ("target_center", "target")):
+            _wgs84_columns_to_enu(df, src, dst, ctx.reference)
+        hpos = _to_float_frame(df, ["heliostat_lat", "heliostat_lon", "heliostat_alt"])
+        df["_hpos_wgs84"] = list(zip(hpos["heliostat_lat"], hpos["heliostat_lon"], hpos["heliostat_alt"]))
+    else:
+        for name in _ENU_LOG_COLUMNS:
+            df[name] = raw[ctx.columns[name]] if name in ctx.columns else ""
+    for env_name, (col, integer) in ctx.env.items():
+        numeric = pd.to_numeric(raw[col].replace("", np.nan), errors="coerce")
+        df[env_name] = numeric if integer else numeric.astype(float)
     df["_reject"] = None
-    if "focal_spot_source" not in df or (df["focal_spot_source"] == "").all():
-        df["focal_spot_source"] = "log"
     df["focal_spot_source"] = df["focal_spot_source"].replace("", "log")
-    return _Staged(df, heliostats, targets, reference, kind, ignored)
+    return _Staged(df, ctx.heliostats, ctx.targets, ctx.reference, ctx.kind, ctx.ignored)
 
 
 def _wgs84_columns_to_enu(df: pd.DataFrame, src: str, dst: str, reference) -> None:
@@ -750,7 +985,10 @@ def _to_float(series: pd.Series) -> pd.Series:
 # ------------------------------------------------------------------------------------------------
 # validation: one reason per rejected row, in a fixed order
 # ------------------------------------------------------------------------------------------------
-def _validate(st: _Staged, opts: IngestOptions) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
+    """Kept rows, rejected rows and heliostat rows of staged rows (a whole source or a chunk
+    holding every row of its heliostats: nothing here looks beyond one heliostat's rows, except
+    what goes to ``checks``, which judges the whole source once all its chunks were seen)."""
     df = st.frame.copy()
     reason = pd.Series([r[0] if r else None for r in df["_reject"]], index=df.index, dtype=object)
     detail = pd.Series([r[1] if r else None for r in df["_reject"]], index=df.index, dtype=object)
@@ -826,11 +1064,7 @@ def _validate(st: _Staged, opts: IngestOptions) -> tuple[pd.DataFrame, pd.DataFr
     ts = pd.Series(pd.NaT, index=df.index, dtype="datetime64[us, UTC]")
     if "timestamp" in df:
         ts, bad_ts, naive = _parse_timestamps(df["timestamp"], opts.timezone)
-        if naive.any() and naive[ts_given].all() and opts.timezone is None:
-            example = df.loc[naive.idxmax(), "timestamp"]
-            raise InputError(f"{df['source_file'].iloc[0]}: timestamps have no time zone (e.g. "
-                             f"{example!r}); add a UTC offset such as 'Z' or pass --timezone "
-                             "Europe/Berlin")
+        checks.add_timestamps(df, ts_given, naive)  # all without a zone: the source is refused
         reject(bad_ts & ts_given, "unparsable_timestamp",
                df["timestamp"].map(lambda v: f"timestamp {v!r} is not a UTC time"))
         reject(naive & ts_given, "unparsable_timestamp",
@@ -867,9 +1101,7 @@ def _validate(st: _Staged, opts: IngestOptions) -> tuple[pd.DataFrame, pd.DataFr
             v_spa = sun_vector_enu(spa_az[logged], spa_el[logged])
             diff = np.degrees(np.arccos(np.clip((v_log * v_spa).sum(axis=1), -1, 1)))
             df.loc[logged, "qa_sun_spa_diff_deg"] = diff
-            if opts.azimuth_convention == "south" and logged.sum() >= 3:
-                _check_azimuth_convention(df, az[logged], el[logged], spa_az[logged], spa_el[logged],
-                                          diff, opts)
+            checks.add_sun(az[logged], el[logged], spa_az[logged], spa_el[logged], diff)
     elif (az.isna() | el.isna()).any() and location is None:
         reject(az.isna() | el.isna(), "missing_value", "sun angles are empty and there is no plant "
                "location to compute them (pass --location LAT,LON,ALT)")
@@ -928,31 +1160,35 @@ def _validate(st: _Staged, opts: IngestOptions) -> tuple[pd.DataFrame, pd.DataFr
 def _parse_timestamps(values: pd.Series, timezone: str | None):
     """Parse to UTC; returns (timestamps, unparsable mask, no-zone mask)."""
     text = values.map(lambda v: v.strip() if isinstance(v, str) else ("" if v is None else str(v)))
-    ts = pd.Series(pd.NaT, index=values.index, dtype="datetime64[us, UTC]")
-    bad = pd.Series(False, index=values.index)
-    naive = pd.Series(False, index=values.index)
-    for idx, t in text.items():
+    stamps = [pd.NaT] * len(text)  # filled in a list: a Series item assignment per row is slow
+    bad = np.zeros(len(text), bool)
+    naive = np.zeros(len(text), bool)
+    for i, t in enumerate(text):
         if not t or t.lower() in ("nan", "nat", "none"):
             continue
         try:
             stamp = pd.Timestamp(t)
         except (ValueError, TypeError, OverflowError):
-            bad[idx] = True
+            bad[i] = True
             continue
         if stamp is pd.NaT:
-            bad[idx] = True
+            bad[i] = True
             continue
         if stamp.tzinfo is None:
             if timezone is None:
-                naive[idx] = True
+                naive[i] = True
                 continue
             try:
                 stamp = stamp.tz_localize(timezone)
             except Exception:  # noqa: BLE001 - invalid/ambiguous local time
-                bad[idx] = True
+                bad[i] = True
                 continue
-        ts[idx] = stamp.tz_convert("UTC")
-    return ts, bad, naive
+        stamps[i] = stamp.tz_convert("UTC")
+    ts = pd.Series(pd.NaT, index=values.index, dtype="datetime64[us, UTC]")
+    ok = [i for i, s in enumerate(stamps) if s is not pd.NaT]
+    if ok:
+        ts.iloc[ok] = pd.DatetimeIndex([stamps[i] for i in ok]).as_unit("us")
+    return ts, pd.Series(bad, index=values.index), pd.Series(naive, index=values.index)
 
 
 def _resolve_targets(df: pd.DataFrame, targets: dict[str, Target]) -> pd.Series:
@@ -993,99 +1229,431 @@ def _location(st: _Staged, heliostats: dict[str, dict]):
     return None
 
 
-def _check_azimuth_convention(df, az, el, spa_az, spa_el, diff, opts) -> None:
-    """Refuse a log whose azimuths are clearly north-clockwise (0 = north)."""
-    if np.median(diff) <= 5 * opts.sun_tolerance_deg + 1.0:
-        return
-    alt = sun_vector_enu(wrap_deg(180.0 - az.to_numpy()), el)
-    alt_diff = np.degrees(np.arccos(np.clip((alt * sun_vector_enu(spa_az, spa_el)).sum(axis=1), -1, 1)))
-    if np.median(alt_diff) < 1.0:
-        raise InputError(f"{df['source_file'].iloc[0]}: sun azimuths look north-clockwise (0 = "
-                         "north); heliocal's convention is 0 = south, positive toward east: pass "
-                         "--azimuth-convention north-clockwise")
-
-
 # ------------------------------------------------------------------------------------------------
-# the stage
+# whole-source checks, accumulated over the chunks of a source
 # ------------------------------------------------------------------------------------------------
-def ingest(sources: Iterable[str | os.PathLike], options: IngestOptions | None = None):
-    """Read every source and return (measurements, heliostats, rejected, info) DataFrames.
+class _MedianVsThreshold:
+    """Compares the median of values seen in chunks with a fixed threshold, in constant memory.
 
-    Raises :class:`InputError` when a source cannot be read at all; row-level problems become
-    rows of ``rejected`` with a reason from :data:`~heliocal.pipeline.schemas.REJECTION_REASONS`.
+    :meth:`median` returns ``np.median`` of all values when the two middle values lie on both
+    sides of the threshold (they are then the largest value below and the smallest above it,
+    which are kept), and otherwise a value on the same side of the threshold as the median.
     """
-    opts = (options or IngestOptions()).validate()
+
+    def __init__(self, threshold: float):
+        self.threshold = float(threshold)
+        self.n_lt = self.n_eq = self.n_gt = self.n_nan = 0
+        self.max_lt, self.min_gt = -math.inf, math.inf
+
+    @property
+    def n(self) -> int:
+        return self.n_lt + self.n_eq + self.n_gt + self.n_nan
+
+    def add(self, values) -> None:
+        v = np.asarray(values, float)
+        lt, gt, nan = v < self.threshold, v > self.threshold, np.isnan(v)
+        self.n_lt += int(lt.sum())
+        self.n_gt += int(gt.sum())
+        self.n_nan += int(nan.sum())
+        self.n_eq += int(len(v) - lt.sum() - gt.sum() - nan.sum())
+        if lt.any():
+            self.max_lt = max(self.max_lt, float(v[lt].max()))
+        if gt.any():
+            self.min_gt = min(self.min_gt, float(v[gt].min()))
+
+    def median(self) -> float:
+        if self.n_nan:
+            return math.nan
+
+        def at(i: int) -> float:
+            if i < self.n_lt:
+                return self.max_lt
+            return self.threshold if i < self.n_lt + self.n_eq else self.min_gt
+
+        n = self.n
+        if n % 2:
+            return at(n // 2)
+        return (at(n // 2 - 1) + at(n // 2)) / 2
+
+
+class _SourceChecks:
+    """Checks of :func:`_validate` that judge a whole source (time zones, azimuth convention):
+    the chunks of one source add their rows here, :meth:`finish` raises once all were seen."""
+
+    def __init__(self, opts: IngestOptions):
+        self.opts = opts
+        self.first: tuple | None = None  # (row label, source file) of the source's first row
+        self.ts_given = 0
+        self.naive = 0
+        self.naive_example: tuple | None = None  # (row label, timestamp)
+        self.sun_diff = _MedianVsThreshold(5 * opts.sun_tolerance_deg + 1.0)
+        self.sun_alt_diff = _MedianVsThreshold(1.0)
+
+    def add_rows(self, df: pd.DataFrame) -> None:
+        if len(df):
+            label = df.index.min()
+            if self.first is None or label < self.first[0]:
+                self.first = (label, df.loc[label, "source_file"])
+
+    def add_timestamps(self, df: pd.DataFrame, ts_given: pd.Series, naive: pd.Series) -> None:
+        self.ts_given += int(ts_given.sum())
+        self.naive += int((naive & ts_given).sum())
+        if naive.any():
+            label = naive[naive].index.min()
+            if self.naive_example is None or label < self.naive_example[0]:
+                self.naive_example = (label, df.loc[label, "timestamp"])
+
+    def add_sun(self, az, el, spa_az, spa_el, diff) -> None:
+        """Logged sun angles against SPA, and the same with azimuths read north-clockwise."""
+        alt = sun_vector_enu(wrap_deg(180.0 - np.asarray(az, float)), el)
+        alt_diff = np.degrees(np.arccos(np.clip((alt * sun_vector_enu(spa_az, spa_el)).sum(axis=1),
+                                                -1, 1)))
+        self.sun_diff.add(diff)
+        self.sun_alt_diff.add(alt_diff)
+
+    def finish(self) -> None:
+        source = self.first[1] if self.first else "?"
+        if self.naive and self.naive == self.ts_given and self.opts.timezone is None:
+            raise InputError(f"{source}: timestamps have no time zone (e.g. "
+                             f"{self.naive_example[1]!r}); add a UTC offset such as 'Z' or pass "
+                             "--timezone Europe/Berlin")
+        # a log whose azimuths are clearly north-clockwise (0 = north) is refused
+        if (self.opts.azimuth_convention == "south" and self.sun_diff.n >= 3
+                and not self.sun_diff.median() <= self.sun_diff.threshold
+                and self.sun_alt_diff.median() < 1.0):
+            raise InputError(f"{source}: sun azimuths look north-clockwise (0 = north); heliocal's "
+                             "convention is 0 = south, positive toward east: pass "
+                             "--azimuth-convention north-clockwise")
+
+
+# ------------------------------------------------------------------------------------------------
+# the stage: sources -> chunks of whole heliostats -> artifacts
+# ------------------------------------------------------------------------------------------------
+#: Rows per batch read from a log (``--batch-rows``): peak memory grows with it, not with the log.
+DEFAULT_BATCH_ROWS = 25_000
+#: Rows per row group of measurements.parquet (sorted by heliostat, so a heliostat's rows sit in
+#: one or two row groups and ``read_artifact(..., heliostats=...)`` skips the others).
+MEASUREMENTS_ROW_GROUP_ROWS = 32_768
+
+
+@dataclass
+class _Chunk:
+    kept: pd.DataFrame  # MEASUREMENTS columns + env_*, plus _src and _seq
+    rejected: pd.DataFrame  # REJECTED columns plus _src, _seq, _cross
+    derived: dict[str, dict]  # heliostat rows derived from the log rows (no properties)
+
+
+class _Source:
+    """One source: read (and spilled) on construction, validated chunk by chunk by :meth:`chunks`."""
+
+    def __init__(self, index: int, path: Path, opts: IngestOptions, batch_rows: int | None,
+                 spill_dir: Path | None):
+        self.index, self.path, self.opts, self.batch_rows = index, path, opts, batch_rows
+        self.kind = detect_source(path)
+        if self.kind == "paint":
+            self._paint = _stage_paint(path, opts)
+            self.rows = len(self._paint.frame)
+            self.heliostats = self._paint.heliostats
+            self.ignored = self._paint.ignored_columns
+            self.env: dict[str, bool] = {}
+        else:
+            self._log = _read_log_rows(path, self.kind, batch_rows, spill_dir)
+            self._ctx = _log_context(self._log, opts, self.kind)
+            self.rows = self._log.rows
+            self.heliostats = self._ctx.heliostats
+            self.ignored = self._ctx.ignored
+            self.env = {name: integer for name, (_, integer) in self._ctx.env.items()}
+
+    def _staged(self) -> Iterator[_Staged]:
+        if self.kind == "paint":
+            yield self._paint
+            return
+        for table in self._log.chunks(self.batch_rows):
+            yield _stage_log_rows(self._log.frame(table), self._ctx)
+
+    def chunks(self) -> Iterator[_Chunk]:
+        """Validated chunks holding every row of a range of heliostats, in heliostat order."""
+        checks = _SourceChecks(self.opts)
+        for staged in self._staged():
+            checks.add_rows(staged.frame)
+            kept, rejected, helios = _validate(staged, self.opts, checks)
+            kept = kept.assign(_src=self.index, _seq=kept.index.to_numpy())
+            if self.kind == "paint":
+                kept = kept.sort_values("heliostat_id", kind="mergesort")
+            rejected = rejected.assign(_src=self.index, _seq=rejected.index.to_numpy(), _cross=0)
+            derived = {h: r for h, r in helios.items() if h not in self.heliostats}
+            yield _Chunk(kept, rejected, derived)
+        checks.finish()
+
+
+def _merge_sources(sources: list[_Source], on_rejected) -> Iterator[tuple[list[pd.DataFrame], dict]]:
+    """Kept rows of all sources merged by heliostat: yields (parts in source order, heliostat
+    rows) where the parts hold every kept row of a range of heliostats and the heliostat rows are
+    the first source's (as :func:`ingest` always did). Rejected chunks go to ``on_rejected``."""
+    iters = [s.chunks() for s in sources]
+    buffers: list[pd.DataFrame | None] = [None] * len(sources)
+    done = [False] * len(sources)
+    derived: list[dict] = [{} for _ in sources]
+
+    def pull(i: int) -> None:
+        chunk = next(iters[i], None)
+        if chunk is None:
+            done[i] = True
+            return
+        on_rejected(chunk.rejected)
+        derived[i].update(chunk.derived)
+        buffers[i] = chunk.kept if buffers[i] is None or buffers[i].empty else pd.concat(
+            [buffers[i], chunk.kept])
+
+    while True:
+        for i in range(len(sources)):
+            while not done[i] and (buffers[i] is None or buffers[i].empty):
+                pull(i)
+        growing = [i for i in range(len(sources)) if not done[i]]
+        live = [i for i in range(len(sources)) if buffers[i] is not None and not buffers[i].empty]
+        if not live:
+            return
+        # rows of a heliostat below the smallest last heliostat of a source still read are complete
+        cutoff = min(buffers[i]["heliostat_id"].max() for i in growing) if growing else None
+        parts = []
+        for i in live:
+            take = (buffers[i]["heliostat_id"] < cutoff if cutoff is not None
+                    else pd.Series(True, index=buffers[i].index))
+            if take.any():
+                parts.append(buffers[i].loc[take.to_numpy()])
+                buffers[i] = buffers[i].loc[~take.to_numpy()]
+        if not parts:
+            for i in growing:
+                if buffers[i]["heliostat_id"].max() == cutoff:
+                    pull(i)
+            continue
+        ids = set().union(*(p["heliostat_id"].unique() for p in parts))
+        rows = {}
+        for hid in ids:
+            for i, s in enumerate(sources):
+                row = s.heliostats.get(hid) or derived[i].get(hid)
+                if row is not None:
+                    rows[hid] = row
+                    break
+            for d in derived:
+                d.pop(hid, None)
+        yield parts, rows
+
+
+def _rejected_order(df: pd.DataFrame) -> pd.Series:
+    """Sort key of rejected rows: by source file and row, then (as ingest concatenated them)
+    validation rejections before cross-source duplicates, by source and row."""
+    return pd.Series([f"{f}\0{r:020d}\0{c}\0{s:06d}\0{q:020d}" for f, r, c, s, q in zip(
+        df["source_file"], df["source_row"].astype("int64"), df["_cross"], df["_src"], df["_seq"])],
+        index=df.index, dtype=object)
+
+
+class _IngestRun:
+    """The ingest stage over all sources, handing out its results chunk by chunk."""
+
+    def __init__(self, sources: Sequence[Path], opts: IngestOptions, batch_rows: int | None,
+                 spill_dir: Path | None):
+        self.opts = opts
+        self.sources = [_Source(i, p, opts, batch_rows, spill_dir) for i, p in enumerate(sources)]
+        env: dict[str, bool] = {}
+        for s in self.sources:  # first appearance order, as pandas concatenated the sources
+            for name, integer in s.env.items():
+                env[name] = env.get(name, True) and integer
+        for name in env:  # a source without the column gives it missing values: float
+            env[name] = env[name] and all(name in s.env for s in self.sources)
+        self.env_integer = env
+        self.columns = MEASUREMENTS.column_names() + list(env)
+
+    def extra_types(self) -> dict:
+        types = {"qa_sun_spa_diff_deg": pa.float64(), "qa_sun_mismatch": pa.bool_()}
+        types.update({n: pa.int64() if i else pa.float64() for n, i in self.env_integer.items()})
+        return {n: types[n] for n in self.columns if n not in MEASUREMENTS.column_names()}
+
+    def _complete(self, df: pd.DataFrame) -> pd.DataFrame:
+        """``df`` with every env column of the run, in the dtype of the whole table."""
+        df = df.reindex(columns=self.columns + ["_src", "_seq"])
+        for name, integer in self.env_integer.items():
+            if not integer:
+                df[name] = df[name].astype(float)
+        return df
+
+    def execute(self, on_measurements, on_heliostats, on_rejected) -> dict:
+        """Validate every source; hand over measurements (with ``_src``/``_seq``), heliostat rows
+        and rejected rows (with ``_src``/``_seq``/``_cross``) chunk by chunk; return the summary."""
+        counts: dict[str, int] = {}
+        reasons: dict[str, int] = {}
+        default_geometry: list[str] = []
+        n_kept = n_rejected = mismatch = 0
+
+        def rejected(df: pd.DataFrame) -> None:
+            nonlocal n_rejected
+            n_rejected += len(df)
+            for reason, n in df["reason"].value_counts().items():
+                reasons[reason] = reasons.get(reason, 0) + int(n)
+            if len(df):
+                on_rejected(df)
+
+        for parts, rows in _merge_sources(self.sources, rejected):
+            group = self._complete(pd.concat(parts))
+            # duplicates across sources: first source wins
+            key = group["heliostat_id"].astype(str) + "\0" + group["measurement_id"].astype(str)
+            dup = key.duplicated(keep="first").to_numpy()
+            if dup.any():
+                extra = group.loc[dup]
+                rejected(pd.DataFrame({
+                    "source_file": extra["source_file"], "source_row": extra["source_row"],
+                    "heliostat_id": extra["heliostat_id"], "measurement_id": extra["measurement_id"],
+                    "reason": "duplicate_measurement_id",
+                    "detail": "measurement id already ingested from an earlier source",
+                    "raw": extra.drop(columns=["timestamp", "_src", "_seq"]).to_json(
+                        orient="records", lines=True).splitlines(),
+                    "_src": extra["_src"], "_seq": extra["_seq"], "_cross": 1}))
+                group = group.loc[~dup]
+            n = group.groupby("heliostat_id").size()
+            helio = pd.DataFrame([{**rows[hid], "n_measurements": int(k)} for hid, k in sorted(n.items())],
+                                 columns=HELIOSTATS.column_names())
+            for col in (c.name for c in HELIOSTATS.columns if c.dtype == "bool"):
+                helio[col] = helio[col].astype(bool)
+            counts.update({h: int(k) for h, k in n.items()})
+            default_geometry += [h for h in n.index if rows[h]["properties_source"] == "default-juelich"]
+            n_kept += len(group)
+            mismatch += int(group["qa_sun_mismatch"].sum())
+            on_measurements(group)
+            on_heliostats(helio)
+        rows_read = sum(s.rows for s in self.sources)
+        info = {
+            "sources": {str(s.path): s.kind for s in self.sources},
+            "rows_read": rows_read,
+            "kept": n_kept,
+            "rejected": n_rejected,
+            "rejected_by_reason": dict(sorted(reasons.items())),
+            "heliostats": dict(sorted(counts.items())),
+            "heliostats_with_default_geometry": sorted(default_geometry),
+            "sun_mismatch_rows": mismatch,
+            "ignored_columns": {str(s.path): s.ignored for s in self.sources if s.ignored},
+            "env_columns": sorted(self.env_integer),
+        }
+        if rows_read != n_kept + n_rejected:  # pragma: no cover - an invariant
+            raise RuntimeError(f"ingest lost rows: read {rows_read}, kept {n_kept}, "
+                               f"rejected {n_rejected}")
+        return info
+
+
+def _sources(sources: Iterable[str | os.PathLike]) -> list[Path]:
     sources = [Path(s) for s in sources]
     if not sources:
         raise InputError("no SOURCE given; pass a PAINT folder or a CSV/Parquet log")
-    kept_parts, rejected_parts, heliostats, ignored, kinds = [], [], {}, {}, {}
-    rows_read = 0
-    for src in sources:
-        kind = detect_source(src)
-        kinds[str(src)] = kind
-        staged = _stage_paint(src, opts) if kind == "paint" else _stage_log(src, opts, kind)
-        rows_read += len(staged.frame)
-        kept, rejected, helios = _validate(staged, opts)
-        for hid, row in helios.items():
-            heliostats.setdefault(hid, row)
-        kept_parts.append(kept)
-        rejected_parts.append(rejected)
-        if staged.ignored_columns:
-            ignored[str(src)] = staged.ignored_columns
-    measurements = pd.concat(kept_parts, ignore_index=True) if kept_parts else pd.DataFrame()
-    rejected = pd.concat(rejected_parts, ignore_index=True)
-    # duplicates across sources: first source wins
-    key = measurements["heliostat_id"] + "\0" + measurements["measurement_id"]
-    dup = key.duplicated(keep="first")
-    if dup.any():
-        extra = measurements.loc[dup]
-        rejected = pd.concat([rejected, pd.DataFrame({
-            "source_file": extra["source_file"], "source_row": extra["source_row"],
-            "heliostat_id": extra["heliostat_id"], "measurement_id": extra["measurement_id"],
-            "reason": "duplicate_measurement_id",
-            "detail": "measurement id already ingested from an earlier source",
-            "raw": extra.drop(columns=["timestamp"]).to_json(orient="records", lines=True).splitlines()})],
-            ignore_index=True)
-        measurements = measurements.loc[~dup].reset_index(drop=True)
-    counts = measurements.groupby("heliostat_id").size()
-    helio = pd.DataFrame([{**row, "n_measurements": int(counts.get(hid, 0))}
-                          for hid, row in sorted(heliostats.items()) if counts.get(hid, 0) > 0],
-                         columns=HELIOSTATS.column_names())
-    for col in (c.name for c in HELIOSTATS.columns if c.dtype == "bool"):
-        helio[col] = helio[col].astype(bool)
-    info = {
-        "sources": kinds,
-        "rows_read": rows_read,
-        "kept": int(len(measurements)),
-        "rejected": int(len(rejected)),
-        "rejected_by_reason": {k: int(v) for k, v in rejected["reason"].value_counts().sort_index().items()},
-        "heliostats": {k: int(v) for k, v in counts.sort_index().items()},
-        "heliostats_with_default_geometry": sorted(
-            h for h, r in heliostats.items() if r["properties_source"] == "default-juelich"
-            and counts.get(h, 0) > 0),
-        "sun_mismatch_rows": int(measurements["qa_sun_mismatch"].sum()) if len(measurements) else 0,
-        "ignored_columns": ignored,
-        "env_columns": sorted(c for c in measurements.columns if c.startswith("env_")),
-    }
-    if rows_read != info["kept"] + info["rejected"]:  # pragma: no cover - an invariant
-        raise RuntimeError(f"ingest lost rows: read {rows_read}, kept {info['kept']}, "
-                           f"rejected {info['rejected']}")
-    return measurements, helio, rejected, info
+    return sources
+
+
+def ingest(sources: Iterable[str | os.PathLike], options: IngestOptions | None = None):
+    """Read every source and return (measurements, heliostats, rejected, info) DataFrames.
+
+    Everything is held in memory (see :func:`run_ingest` for the streaming stage). Raises
+    :class:`InputError` when a source cannot be read at all; row-level problems become rows of
+    ``rejected`` with a reason from :data:`~heliocal.pipeline.schemas.REJECTION_REASONS`.
+    Rows come in source order (the artifacts sort them).
+    """
+    opts = (options or IngestOptions()).validate()
+    run = _IngestRun(_sources(sources), opts, None, None)
+    kept, helio, rejected = [], [], []
+    info = run.execute(kept.append, helio.append, rejected.append)
+    measurements = (pd.concat(kept) if kept else run._complete(pd.DataFrame()))
+    measurements = measurements.sort_values(["_src", "_seq"], kind="mergesort")
+    measurements = measurements.drop(columns=["_src", "_seq"]).reset_index(drop=True)
+    helio = pd.concat(helio, ignore_index=True) if helio else pd.DataFrame(columns=HELIOSTATS.column_names())
+    rej_cols = REJECTED.column_names()
+    if rejected:
+        rej = pd.concat(rejected).sort_values(["_cross", "_src", "_seq"], kind="mergesort")
+        rej = rej[rej_cols].reset_index(drop=True)
+    else:
+        rej = pd.DataFrame(columns=rej_cols)
+    return measurements, helio, rej, info
+
+
+class _SpillFolder(os.PathLike):
+    """A hidden folder in the workdir for sorted runs, made when the first run is written and
+    removed (with its runs) when the stage ends, also on an error; usable as the folder of a
+    :class:`SortedSpill`."""
+
+    def __init__(self, workdir: Path):
+        self.workdir = workdir
+        self.path: Path | None = None
+
+    def __fspath__(self) -> str:
+        if self.path is None:
+            self.path = Path(tempfile.mkdtemp(prefix=".ingest-spill-", dir=self.workdir))
+        return str(self.path)
+
+    def __truediv__(self, name: str) -> Path:
+        return Path(self) / name
+
+    def __enter__(self) -> "_SpillFolder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.path is not None:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+
+class _RejectedSink:
+    """Rejected rows in memory up to ``batch_rows``, beyond that sorted runs in the spill folder;
+    :meth:`chunks` yields them in the order of rejected.parquet."""
+
+    _KEY = "__heliocal_order"
+
+    def __init__(self, spill_dir: Path, batch_rows: int):
+        self.batch_rows = batch_rows
+        self.held: list[pd.DataFrame] = []
+        self.held_rows = 0
+        self.spill = SortedSpill(spill_dir, "rejected", self._KEY)  # a _SpillFolder
+
+    def _table(self, frames: list[pd.DataFrame]) -> pa.Table:
+        df = pd.concat(frames)
+        key = _rejected_order(df).to_numpy()
+        order = np.argsort(key, kind="stable")  # the order _to_table's sort keeps
+        table = _to_table(df.iloc[order][REJECTED.column_names()], REJECTED)
+        return table.append_column(self._KEY, pa.array(key[order].tolist(), pa.string()))
+
+    def add(self, df: pd.DataFrame) -> None:
+        self.held.append(df)
+        self.held_rows += len(df)
+        if self.held_rows >= self.batch_rows:
+            self.spill.add(self._table(self.held))
+            self.held, self.held_rows = [], 0
+
+    @property
+    def spilled(self) -> bool:
+        return bool(self.spill.runs)
+
+    def chunks(self) -> Iterator[pd.DataFrame]:
+        if self.held and self.spill.runs:
+            self.spill.add(self._table(self.held))
+            self.held = []
+        if self.held:
+            yield from (self._table(self.held).sort_by(self._KEY).drop_columns([self._KEY])
+                        .to_pandas(),)
+            return
+        for table in self.spill.merged(self.batch_rows):
+            yield table.drop_columns([self._KEY]).to_pandas()
 
 
 def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
-               options: IngestOptions | None = None) -> dict:
+               options: IngestOptions | None = None, batch_rows: int = DEFAULT_BATCH_ROWS) -> dict:
     """The ``ingest`` stage: read ``sources``, write the three artifacts into ``workdir``.
 
-    Returns the summary (rows read, kept, rejected per reason, heliostats).
+    Logs are read ``batch_rows`` rows at a time; a log longer than that is spilled, sorted by
+    heliostat, to a hidden folder in ``workdir`` and validated heliostat range by heliostat range,
+    so memory is bounded by the batch (and the largest heliostat), not by the field. The
+    artifacts are written chunk by chunk to temporary files that replace the previous ones only
+    when the whole stage succeeded. Returns the summary (rows read, kept, rejected per reason,
+    heliostats).
     """
-    opts = options or IngestOptions()
-    measurements, helio, rejected, info = ingest(sources, opts)
-    if info["kept"] == 0:
-        reasons = ", ".join(f"{k}: {v}" for k, v in info["rejected_by_reason"].items())
-        raise InputError(f"no measurement of {', '.join(map(str, sources))} could be kept "
-                         f"({reasons}); see the reasons and fix the source")
+    opts = (options or IngestOptions()).validate()
+    batch_rows = check_int(batch_rows, "batch_rows", "ingest", 1)
+    sources = _sources(sources)
     workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
     inputs = {f"source:{s}": s for s in sources}
     if opts.tower:
         inputs["tower"] = opts.tower
@@ -1093,8 +1661,30 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
         inputs["properties"] = opts.properties
     resolved = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(opts).items()}
     resolved["sources"] = [str(s) for s in sources]
-    for df, schema in ((rejected, REJECTED), (helio, HELIOSTATS), (measurements, MEASUREMENTS)):
-        write_artifact(df, workdir, schema, stage="ingest", options=resolved, inputs=inputs)
+    prov = dict(stage="ingest", options=resolved, inputs=inputs)
+    with _SpillFolder(workdir) as spill, contextlib.ExitStack() as stack:
+        run = _IngestRun(sources, opts, batch_rows, spill)
+        rejected = _RejectedSink(spill, batch_rows)
+        helio: list[pd.DataFrame] = []
+        # measurements.parquet is written while the sources are validated; it replaces the
+        # previous one last, after rejected.parquet and heliostats.parquet
+        measurements = stack.enter_context(artifact_writer(
+            workdir, MEASUREMENTS, extra=run.extra_types(),
+            row_group_size=MEASUREMENTS_ROW_GROUP_ROWS, **prov))
+        info = run.execute(lambda df: measurements.write(df.drop(columns=["_src", "_seq"])),
+                           helio.append, rejected.add)
+        if info["kept"] == 0:
+            reasons = ", ".join(f"{k}: {v}" for k, v in info["rejected_by_reason"].items())
+            raise InputError(f"no measurement of {', '.join(map(str, sources))} could be kept "
+                             f"({reasons}); see the reasons and fix the source")
+        if rejected.spilled:
+            with artifact_writer(workdir, REJECTED, **prov) as writer:
+                for chunk in rejected.chunks():
+                    writer.write(chunk)
+        else:
+            write_artifact(next(rejected.chunks(), pd.DataFrame(columns=REJECTED.column_names())),
+                           workdir, REJECTED, **prov)
+        write_artifact(pd.concat(helio, ignore_index=True), workdir, HELIOSTATS, **prov)
     info["workdir"] = str(workdir)
     info["artifacts"] = [str(artifact_path(workdir, s)) for s in (MEASUREMENTS, HELIOSTATS, REJECTED)]
     for reason, n in info["rejected_by_reason"].items():

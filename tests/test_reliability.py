@@ -184,6 +184,8 @@ def test_artifact_of_other_schema_version_is_refused(artifact, stage, producer, 
 #: Runs `heliocal ingest` in a child process whose pyarrow.parquet.write_table, for the file
 #: named in HELIOCAL_TEST_STOP_IN, writes the first half of the real Parquet bytes to the temporary
 #: file, reports on the pipe HELIOCAL_TEST_FD and sleeps: the parent kills it inside the write.
+#: An artifact written chunk by chunk (pyarrow.parquet.ParquetWriter: measurements.parquet) is
+#: stopped the same way when its writer is closed: its row groups are on disk, its footer is not.
 #: Only the ingest command is imported (no torch), so the child starts in about a second.
 _CHILD = textwrap.dedent("""
     import io, os, sys, time
@@ -207,6 +209,15 @@ _CHILD = textwrap.dedent("""
         time.sleep(300)
 
     pq.write_table = write_table
+    real_close = pq.ParquetWriter.close
+
+    def close(self):
+        if self.is_open and os.path.basename(str(self.where)).startswith(stop_in):
+            os.write(fd, str(self.where).encode())  # all chunks written, the footer not yet
+            time.sleep(300)
+        return real_close(self)
+
+    pq.ParquetWriter.close = close
     from heliocal.cli.app import app
     import heliocal.cli.ingest  # noqa: F401 - registers `ingest`
     app(args=sys.argv[1:], prog_name="heliocal")
@@ -250,10 +261,14 @@ def test_kill_inside_a_write_leaves_previous_artifact_intact(stop_in, runner, tm
     previous = {name: (workdir / name).read_bytes() for name in INGEST_ARTIFACTS}
     tmp = _ingest_killed_inside_write(workdir, stop_in, str(PAINT_SMALL), "--focal-spot", "helios")
 
-    # the only leftover is the hidden temporary file of the interrupted write, and it is partial
+    # the leftovers are the hidden temporary file of the interrupted write, which is partial, and
+    # (killed while writing rejected.parquet) that of measurements.parquet, written chunk by chunk
+    # while the sources were validated and renamed into place last
     assert tmp.parent == workdir and tmp.name.startswith(f".{stop_in}.tmp-")
     leftovers = sorted(p.name for p in workdir.iterdir() if p.name not in INGEST_ARTIFACTS)
-    assert leftovers == [tmp.name]
+    assert tmp.name in leftovers
+    others = {"rejected.parquet": [".measurements.parquet.tmp-"], "measurements.parquet": []}
+    assert sorted(n[:n.index(".tmp-") + 5] for n in leftovers if n != tmp.name) == others[stop_in]
     assert tmp.stat().st_size > 0
     with pytest.raises(Exception):
         pq.read_table(tmp)  # half a Parquet file: no footer
