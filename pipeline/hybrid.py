@@ -185,6 +185,8 @@ class FineConfig:
     max_epochs : epoch budget (full batch: one step per epoch).
     patience : epochs without a validation improvement before a member stops.
     output_scale_factor : multiplies :data:`OUTPUT_SCALE` (1 for ``hybrid``).
+    fourier_decay : the Fourier feature of band ``b`` has amplitude ``b ** -fourier_decay``
+        (0: all 1, Tancik et al.; > 0: a smoothness prior, see :class:`FeatureEncoder`).
     """
 
     depth: int = 14
@@ -195,6 +197,7 @@ class FineConfig:
     max_epochs: int = 800
     patience: int = 200
     output_scale_factor: float = 1.0
+    fourier_decay: float = 0.0
 
     def validated(self) -> "FineConfig":
         check_int(self.depth, "depth", _FUNC, 0)
@@ -206,6 +209,7 @@ class FineConfig:
                     low_inclusive=False)
         for b in self.fourier_bands:
             check_float(b, "fourier_bands", _FUNC, 0.0, None, low_inclusive=False)
+        check_float(self.fourier_decay, "fourier_decay", _FUNC, 0.0, None)
         return self
 
     def to_dict(self) -> dict:
@@ -321,6 +325,7 @@ class FeatureEncoder:
     env: tuple = ()
     env_mean: list = field(default_factory=list)
     env_std: list = field(default_factory=list)
+    decay: float = 0.0
 
     @property
     def n_features(self) -> int:
@@ -328,7 +333,7 @@ class FeatureEncoder:
 
     @classmethod
     def fit(cls, rows: pd.DataFrame, spec: HeliostatSpec, bands: Sequence[float],
-            env: Sequence[str] = ()) -> "FeatureEncoder":
+            env: Sequence[str] = (), decay: float = 0.0) -> "FeatureEncoder":
         """Normalisation constants from all rows of one heliostat (inputs only)."""
         steps = rows[["axis_1_steps", "axis_2_steps"]].to_numpy(np.float64)
         scale = []
@@ -354,7 +359,8 @@ class FeatureEncoder:
             v = v[np.isfinite(v)]
             means.append(float(v.mean()) if len(v) else 0.0)
             stds.append(float(v.std()) if len(v) and v.std() > 0 else 1.0)
-        return cls(scale, tuple(float(b) for b in bands), t0, t1, fill, tuple(env), means, stds)
+        return cls(scale, tuple(float(b) for b in bands), t0, t1, fill, tuple(env), means, stds,
+                   float(decay))
 
     def context(self, timestamps, env_values: np.ndarray | None = None) -> torch.Tensor:
         """Time, season and env features (N, 4 + E) for UTC ``timestamps`` (NaT -> median time)
@@ -385,7 +391,8 @@ class FeatureEncoder:
         a = steps / torch.as_tensor(self.step_scale, dtype=torch.float64)
         feats = [a]
         for b in self.bands:
-            feats += [torch.sin(2 * math.pi * b * a), torch.cos(2 * math.pi * b * a)]
+            amp = b ** -self.decay if self.decay else 1.0
+            feats += [amp * torch.sin(2 * math.pi * b * a), amp * torch.cos(2 * math.pi * b * a)]
         return torch.cat(feats, dim=-1)
 
     def encode(self, steps: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
@@ -397,13 +404,13 @@ class FeatureEncoder:
         return {"step_scale": list(map(float, self.step_scale)), "bands": list(self.bands),
                 "t0_s": self.t0_s, "t1_s": self.t1_s, "fill_time_s": self.fill_time_s,
                 "env": list(self.env), "env_mean": list(self.env_mean),
-                "env_std": list(self.env_std)}
+                "env_std": list(self.env_std), "decay": float(self.decay)}
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "FeatureEncoder":
         return cls(list(d["step_scale"]), tuple(d["bands"]), float(d["t0_s"]), float(d["t1_s"]),
                    float(d["fill_time_s"]), tuple(d.get("env", ())), list(d.get("env_mean", ())),
-                   list(d.get("env_std", ())))
+                   list(d.get("env_std", ())), float(d.get("decay", 0.0)))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -598,7 +605,7 @@ def build_problem(rows: pd.DataFrame, hrow: pd.Series, base: torch.Tensor, free:
     """
     spec = HeliostatSpec.from_row(hrow)
     nominal = nominal_parameters(hrow)
-    encoder = FeatureEncoder.fit(rows, spec, config.fourier_bands, config.env)
+    encoder = FeatureEncoder.fit(rows, spec, config.fourier_bands, config.env, config.fourier_decay)
     data = MeasurementBatch.from_frame(rows)
     return FineProblem(spec, base.to(torch.float64), free.to(torch.bool),
                        output_scales(free, nominal, config.output_scale_factor), encoder, data,

@@ -206,6 +206,25 @@ def test_features_rebuild_from_config():
     assert torch.allclose(d[-1], torch.tensor([0.0, -1.0], dtype=torch.float64), atol=1e-12)
 
 
+def test_fourier_decay_scales_each_band():
+    """Band b's sin/cos pair has amplitude b ** -fourier_decay (closed form: sin^2 + cos^2 = 1)."""
+    rows = synthetic_measurements(30)
+    config = FineConfig(fourier_bands=(1.0, 4.0, 16.0), fourier_decay=1.0)
+    problem = _problem(rows, config)
+    sf = problem.encoder.step_features(problem.data.steps)          # (N, 2 + 4 B)
+    assert sf.shape == (30, 2 + 4 * 3)
+    for k, b in enumerate((1.0, 4.0, 16.0)):
+        pair = sf[:, 2 + 4 * k: 2 + 4 * k + 4]                       # sin a1, sin a2, cos a1, cos a2
+        power = pair[:, 0:2] ** 2 + pair[:, 2:4] ** 2
+        assert torch.allclose(power, torch.full_like(power, b ** -2.0), rtol=1e-12)
+    # the decay is part of the stored encoder
+    enc2 = FeatureEncoder.from_dict(json.loads(json.dumps(problem.encoder.to_dict())))
+    assert enc2.decay == 1.0 and torch.equal(enc2.step_features(problem.data.steps), sf)
+    # an encoder stored before the option existed rebuilds with all amplitudes 1
+    old = {k: v for k, v in problem.encoder.to_dict().items() if k != "decay"}
+    assert FeatureEncoder.from_dict(old).decay == 0.0
+
+
 def test_forward_kinematics_broadcasts_per_row_parameters():
     """(M, N, 28) parameters need steps (N, 1, 2): (N, 2) pairs every parameter vector with
     every row (the shape the brief suggested would give (M, N, N, 3))."""
