@@ -2,10 +2,13 @@
 
 The 16 members (8 weight decays x 2 seeds, or as given) train as ONE batched torch program
 (:func:`heliocal.pipeline.hybrid.train_members` with M = 16) and, for comparison, one by one
-(16 calls with M = 1, the same seeds). Prints both wall times, the throughput ratio, and the
-largest difference of the members' final mean errors. Usage::
+(16 calls with M = 1, the same seeds). Both paths are first warmed up once (a process's first
+training pays a one-time start-up cost of about a second: torch's lazy initialisation and the
+allocator growing), then timed ``--repeats`` times, alternating. Prints the median wall times,
+the throughput ratio of the medians, and the largest difference of the members' final mean
+errors. Usage::
 
-    .venv/bin/python benchmarks/sweep.py [--epochs 300] [--members 16]
+    .venv/bin/python benchmarks/sweep.py [--epochs 300] [--members 16] [--repeats 3]
 
 Data: the synthetic static heliostat SP13 of sample_data/synthetic (ingested, kNN split, coarse
 fit static-6 on its training rows) so the benchmark needs no workdir.
@@ -36,6 +39,7 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=300)
     ap.add_argument("--members", type=int, default=16)
     ap.add_argument("--heliostat", default="SP13")
+    ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
@@ -56,24 +60,34 @@ def main() -> None:
     wds = (wds * 2)[: args.members]
     seeds = [k // max(len(wds) // 2, 1) for k in range(args.members)]
 
-    t0 = time.perf_counter()
-    batched = train_members(problem, train, val, wds, seeds, config)
-    t_batched = time.perf_counter() - t0
+    def batched_run():
+        return train_members(problem, train, val, wds, seeds, config)
+
+    def loop_run():
+        return [train_members(problem, train, val, [wd], [s], config) for wd, s in zip(wds, seeds)]
+
+    warm = FineConfig(max_epochs=5, patience=5)
+    train_members(problem, train, val, wds, seeds, warm)
+    train_members(problem, train, val, wds[:1], seeds[:1], warm)
+    t_b, t_l = [], []
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        batched = batched_run()
+        t_b.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        singles = loop_run()
+        t_l.append(time.perf_counter() - t0)
+    t_batched, t_loop = float(np.median(t_b)), float(np.median(t_l))
     with torch.no_grad():
         err_b = member_errors_mrad(problem, batched.layers).mean(-1)
-
-    t0 = time.perf_counter()
-    err_l = []
-    for wd, s in zip(wds, seeds):
-        single = train_members(problem, train, val, [wd], [s], config)
-        with torch.no_grad():
-            err_l.append(member_errors_mrad(problem, single.layers).mean(-1)[0])
-    t_loop = time.perf_counter() - t0
+        err_l = [member_errors_mrad(problem, single.layers).mean(-1)[0] for single in singles]
     diff = (err_b - torch.stack(err_l)).abs().max().item()
     print(f"{args.members}-member sweep of {args.heliostat}, {args.epochs} epochs "
           f"({int(train.sum())} training rows, single thread):")
-    print(f"  batched (one program): {t_batched:8.2f} s")
-    print(f"  sequential loop:       {t_loop:8.2f} s")
+    print(f"  batched (one program): {t_batched:8.2f} s  (median of {args.repeats}: "
+          f"{', '.join(f'{t:.2f}' for t in t_b)})")
+    print(f"  sequential loop:       {t_loop:8.2f} s  (median of {args.repeats}: "
+          f"{', '.join(f'{t:.2f}' for t in t_l)})")
     print(f"  throughput ratio loop / batched: {t_loop / t_batched:.1f}x")
     print(f"  largest difference of members' mean error_mrad: {diff:.2e} mrad")
 

@@ -551,6 +551,17 @@ class FineProblem:
                                    cached_features=None)
 
 
+def _take_rows(problem: FineProblem, rows: torch.Tensor) -> FineProblem:
+    """The problem (single or stacked) on the rows where ``rows`` (N,) is true, features kept."""
+    take = lambda t: t[..., rows, :]
+    features = problem.features()
+    d = problem.data
+    data = MeasurementBatch(d.measurement_id[..., rows.numpy()], take(d.steps), take(d.sun),
+                            take(d.focal_spot), take(d.target_center), take(d.target_normal))
+    return dataclasses.replace(problem, data=data, context=take(problem.context),
+                               cached_features=take(features))
+
+
 def _pad_rows(t: torch.Tensor, n: int) -> torch.Tensor:
     """Pad (N, ...) to (n, ...) by repeating the last row (finite values for masked rows)."""
     if t.shape[0] == n:
@@ -722,6 +733,9 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     if bool((wd < 0).any()) or not bool(torch.isfinite(wd).all()):
         raise ParameterError(f"The 'weight_decays' parameter of train_members must be finite "
                              f"floats >= 0. Got {wd.tolist()!r} instead.")
+    used = (tm | vm).any(0)
+    if not bool(used.all()):  # rows no member trains or stops on (test rows) cost per epoch
+        problem, tm, vm = _take_rows(problem, used), tm[:, used], vm[:, used]
     layers = initial if initial is not None else init_mlp(problem.sizes(config), seeds)
     theta = _flatten_layers(layers).detach().clone().requires_grad_(True)     # (M, T)
     cur = _layer_views(theta, layers)
