@@ -16,6 +16,7 @@ where or in which order the tasks ran: artifacts are identical to a sequential r
 from __future__ import annotations
 
 import contextlib
+import pickle
 import os
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any, Callable, Sequence
@@ -78,6 +79,17 @@ def _run_chunk(func: Callable, chunk: Sequence[Any]) -> list:
     return [func(task) for task in chunk]
 
 
+def _run_chunk_pickled(func: Callable, chunk: Sequence[Any]) -> bytes:
+    """:func:`_run_chunk` with the results pickled to bytes in the worker.
+
+    Torch registers its own reducers with multiprocessing: a tensor in a result would travel
+    as a shared-memory file descriptor, one per tensor, and a chunk with thousands of them
+    (the state dicts of a few hundred networks) exhausts the descriptors passed over the
+    socket ("received 0 items of ancdata") and breaks the pool. Plain pickle sends them by value.
+    """
+    return pickle.dumps(_run_chunk(func, chunk), protocol=pickle.HIGHEST_PROTOCOL)
+
+
 def _chunks(tasks: Sequence[Any], n: int) -> list[list[Any]]:
     size = max(1, -(-len(tasks) // n))
     return [list(tasks[i:i + size]) for i in range(0, len(tasks), size)]
@@ -129,12 +141,12 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
         os.environ.setdefault(var, "1")
     ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as pool:
-        futures = {pool.submit(_run_chunk, func, c): i for i, c in enumerate(chunks)}
+        futures = {pool.submit(_run_chunk_pickled, func, c): i for i, c in enumerate(chunks)}
         from concurrent.futures import as_completed
 
         for fut in as_completed(futures):
             i = futures[fut]
-            results[i] = fut.result()
+            results[i] = pickle.loads(fut.result())
             done += len(chunks[i])
             if progress:
                 progress(done, total)
@@ -162,7 +174,7 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
             done = 0
             for fut in as_completed(futures):
                 i = index[fut.key]
-                results[i] = fut.result()
+                results[i] = pickle.loads(fut.result())
                 done += len(chunks[i])
                 if progress:
                     progress(done, len(tasks))
