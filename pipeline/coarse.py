@@ -783,8 +783,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     measurements["split"] = _load_split(workdir, measurements).to_numpy()
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     helio = helio.set_index("heliostat_id", drop=False)
-    ids = [h for h in helio.index if ((measurements["heliostat_id"] == h)
-                                      & (measurements["split"] == "train")).any()]
+    with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])
+    ids = [h for h in helio.index if h in with_train]   # (a scan per heliostat is O(H N))
     if not ids:
         raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
                        "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")

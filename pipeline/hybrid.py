@@ -1165,8 +1165,8 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats).set_index("heliostat_id", drop=False)
     measurements["split"] = _load_split(workdir, measurements).to_numpy()
     selected = load_selected_parameters(workdir, heliostats)
-    ids = [h for h in sorted(selected) if h in helio.index
-           and ((measurements["heliostat_id"] == h) & (measurements["split"] == "train")).any()]
+    with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])
+    ids = [h for h in sorted(selected) if h in helio.index and h in with_train]
     if not ids:
         raise FitError(f"no heliostat in {workdir} has a coarse fit with training rows; run "
                        f"`heliocal fit-coarse --workdir {workdir}` first")

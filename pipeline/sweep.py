@@ -286,9 +286,11 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
                                 on=["heliostat_id", "measurement_id"], how="inner")
     tasks = []
+    rows_of = dict(tuple(merged.groupby("heliostat_id", sort=False)))   # not a scan per heliostat
+    split_of = dict(tuple(split.groupby("heliostat_id", sort=False)))
     for hid in sorted(selected):
-        rows = merged[merged["heliostat_id"] == hid]
-        srows = split[split["heliostat_id"] == hid]
+        rows = rows_of.get(hid, merged.iloc[:0])
+        srows = split_of.get(hid, split.iloc[:0])
         n_avail = int(((srows["split"] == "train") | (srows["split"] == "unused")).sum())
         if n_avail == 0 or hid not in helio.index:
             continue
