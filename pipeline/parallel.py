@@ -174,7 +174,7 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
             done = 0
             for fut in as_completed(futures):
                 i = index[fut.key]
-                results[i] = pickle.loads(fut.result())
+                results[i] = fut.result()
                 done += len(chunks[i])
                 if progress:
                     progress(done, len(tasks))
