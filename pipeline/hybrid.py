@@ -73,6 +73,7 @@ model at the returned steps and the direction to the aim point.
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import functools
 import json
@@ -562,6 +563,39 @@ def _take_rows(problem: FineProblem, rows: torch.Tensor) -> FineProblem:
                                cached_features=take(features))
 
 
+def _take_members(problem: FineProblem, keep: torch.Tensor) -> FineProblem:
+    """The members where ``keep`` (M,) is true: a problem's per-member tensors (stacked data,
+    spec, inputs and scales, per-member base) are sliced; shared ones are kept as they are."""
+    if problem.base.dim() == 3:
+        problem = dataclasses.replace(problem, base=problem.base[keep])
+    if problem.data.steps.dim() != 3:            # one heliostat: only the base is per member
+        return problem
+    from .lm import _SPEC_TENSORS
+
+    spec = copy.copy(problem.spec)
+    for name in _SPEC_TENSORS:
+        object.__setattr__(spec, name, getattr(spec, name)[keep])
+    d = problem.data
+    data = MeasurementBatch(d.measurement_id[keep.numpy()], d.steps[keep], d.sun[keep],
+                            d.focal_spot[keep], d.target_center[keep], d.target_normal[keep])
+    return dataclasses.replace(problem, spec=spec, data=data, context=problem.context[keep],
+                               scales=problem.scales[keep],
+                               cached_features=problem.features()[keep])
+
+
+def _keep_rows_of_leaf(theta: torch.Tensor, opt: torch.optim.Adam, keep: torch.Tensor, lr: float):
+    """A new (L', T) leaf of the kept rows and an Adam that continues from their moments (Adam
+    is elementwise, so the kept members follow exactly the path they would have followed)."""
+    state = opt.state[theta]
+    new = theta.detach()[keep].clone().requires_grad_(True)
+    new_opt = torch.optim.Adam([new], lr=lr)
+    if state:
+        new_opt.state[new] = {"step": state["step"].clone(),
+                              "exp_avg": state["exp_avg"][keep].clone(),
+                              "exp_avg_sq": state["exp_avg_sq"][keep].clone()}
+    return new, new_opt
+
+
 def _pad_rows(t: torch.Tensor, n: int) -> torch.Tensor:
     """Pad (N, ...) to (n, ...) by repeating the last row (finite values for masked rows)."""
     if t.shape[0] == n:
@@ -680,7 +714,8 @@ class MemberResult:
     best_val_mrad : (M,) mean validation error of the kept state (NaN without validation rows).
     epochs_run : (M,) epochs each member trained before it stopped.
     history_train, history_val : (E, M) mean squared train error and mean validation error
-        after each epoch (row 0 = before training).
+        after each epoch (row 0 = before training); NaN once a member has stopped and left the
+        program (the program drops stopped members when a quarter of it has stopped).
     wall_time_s : wall time.
     """
 
@@ -737,7 +772,7 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     if not bool(used.all()):  # rows no member trains or stops on (test rows) cost per epoch
         problem, tm, vm = _take_rows(problem, used), tm[:, used], vm[:, used]
     layers = initial if initial is not None else init_mlp(problem.sizes(config), seeds)
-    theta = _flatten_layers(layers).detach().clone().requires_grad_(True)     # (M, T)
+    theta = _flatten_layers(layers).detach().clone().requires_grad_(True)     # (L, T), L live
     cur = _layer_views(theta, layers)
     opt = torch.optim.Adam([theta], lr=config.learning_rate)
     features = problem.features()                     # inputs do not change during training
@@ -750,18 +785,23 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     active = torch.ones(m, dtype=torch.bool)
     stopped_at = torch.full((m,), config.max_epochs, dtype=torch.long)
     hist_train, hist_val = [], []
+    live = torch.arange(m)          # members still in the program (stopped ones are dropped)
+    run_problem, run_tm, run_vm, run_wd, run_n = problem, tm, vm, wd, n_train
     for epoch in range(config.max_epochs + 1):
-        err = _errors_from_features(problem, cur, features)              # (M, N)
-        sq = torch.where(tm, torch.nan_to_num(err, nan=0.0) ** 2, torch.zeros_like(err))
-        train_mse = sq.sum(-1) / n_train
+        err = _errors_from_features(run_problem, cur, features)          # (L, N)
+        sq = torch.where(run_tm, torch.nan_to_num(err, nan=0.0) ** 2, torch.zeros_like(err))
+        train_mse = sq.sum(-1) / run_n
         with torch.no_grad():
-            val = _masked_mean(torch.nan_to_num(err.detach(), nan=1e6), vm)
-            hist_train.append(train_mse.detach().clone())
+            val = torch.full((m,), float("nan"), dtype=torch.float64)
+            val[live] = _masked_mean(torch.nan_to_num(err.detach(), nan=1e6), run_vm)
+            mse = torch.full((m,), float("nan"), dtype=torch.float64)
+            mse[live] = train_mse.detach()
+            hist_train.append(mse)
             hist_val.append(val.clone())
             improved = active & (torch.where(has_val, val, -torch.ones_like(val)) < best_val)
             improved |= active & ~has_val  # no validation rows: keep the latest state
             if bool(improved.any()):
-                best = torch.where(improved[:, None], theta.detach(), best)
+                best[live] = torch.where(improved[live, None], theta.detach(), best[live])
                 best_val = torch.where(improved & has_val, val, best_val)
                 best_epoch = torch.where(improved, torch.full_like(best_epoch, epoch), best_epoch)
             newly = active & has_val & (epoch - best_epoch >= config.patience)
@@ -769,7 +809,19 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
             active &= ~newly
         if epoch == config.max_epochs or not bool(active.any()):
             break
-        loss = (train_mse + wd * (theta ** 2).sum(-1)).sum()
+        keep = active[live]
+        if 4 * int((~keep).sum()) >= len(live):  # a quarter has stopped: drop them
+            live = live[keep]
+            run_problem = _take_members(run_problem, keep)
+            run_tm, run_vm, run_wd, run_n = run_tm[keep], run_vm[keep], run_wd[keep], run_n[keep]
+            if features.dim() == 3:
+                features = features[keep]
+            theta, opt = _keep_rows_of_leaf(theta, opt, keep, config.learning_rate)
+            cur = _layer_views(theta, layers)
+            err = _errors_from_features(run_problem, cur, features)
+            sq = torch.where(run_tm, torch.nan_to_num(err, nan=0.0) ** 2, torch.zeros_like(err))
+            train_mse = sq.sum(-1) / run_n
+        loss = (train_mse + run_wd * (theta ** 2).sum(-1)).sum()
         opt.zero_grad(set_to_none=False)
         loss.backward()
         with torch.no_grad():

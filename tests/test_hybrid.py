@@ -379,3 +379,25 @@ def test_aim_errors_are_one_line(workdir, runner):
     res = runner.invoke(app, ["aim", "-w", str(wd), "--heliostat", HID, "--time",
                               "2024-05-03T11:00Z", "--target", "nowhere"])
     assert res.exit_code == 1 and "unknown target" in res.stderr
+
+
+def test_members_that_stop_leave_the_program_without_changing_the_others():
+    """Stopped members are dropped from the running program (their Adam moments are sliced
+    away, the rest continue). Expected values: each member trained alone; they stop at
+    different epochs, so the batched run compacted at least once."""
+    rows = synthetic_measurements(60)
+    problem = _problem(rows)
+    config = FineConfig(max_epochs=150, patience=8, fourier_bands=(1.0, 2.0))
+    n = len(rows)
+    val = np.zeros(n, bool)
+    val[:12] = True
+    wds, seeds = [1.0, 1e-1, 1e-2, 1e-3, 1e-4, 0.0], [1, 2, 3, 4, 5, 6]
+    batched = train_members(problem, ~val, val, wds, seeds, config)
+    assert len(set(batched.epochs_run.tolist())) > 1
+    err_b = member_errors_mrad(problem, batched.layers).detach()
+    for m in range(len(wds)):
+        single = train_members(problem, ~val, val, [wds[m]], [seeds[m]], config)
+        assert int(single.epochs_run[0]) == int(batched.epochs_run[m])
+        assert int(single.best_epoch[0]) == int(batched.best_epoch[m])
+        err_s = member_errors_mrad(problem, single.layers).detach()
+        assert float((err_s[0] - err_b[m]).abs().max()) < 1e-9
