@@ -98,6 +98,7 @@ from .kinematics import (PARAMETER_NAMES, HeliostatSpec, ParameterComponents, fo
                          inverse_kinematics,
                          nominal_parameters)
 from .metrics import error_mrad, measured_normal, reflect
+from .lm import _SPEC_TENSORS, stack_specs
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
 
@@ -544,13 +545,6 @@ class FineProblem:
         steps = self.data.steps if steps is None else steps
         return self.encoder.encode(steps, self.context if context is None else context)
 
-    def subset(self, mask) -> "FineProblem":
-        """The same problem on the rows where ``mask`` (N,) is true (the encoder, fitted on all
-        rows, is kept)."""
-        m = torch.as_tensor(np.asarray(mask, bool))
-        return dataclasses.replace(self, data=self.data.subset(mask), context=self.context[m],
-                                   cached_features=None)
-
 
 def _take_rows(problem: FineProblem, rows: torch.Tensor) -> FineProblem:
     """The problem (single or stacked) on the rows where ``rows`` (N,) is true, features kept."""
@@ -570,8 +564,6 @@ def _take_members(problem: FineProblem, keep: torch.Tensor) -> FineProblem:
         problem = dataclasses.replace(problem, base=problem.base[keep])
     if problem.data.steps.dim() != 3:            # one heliostat: only the base is per member
         return problem
-    from .lm import _SPEC_TENSORS
-
     spec = copy.copy(problem.spec)
     for name in _SPEC_TENSORS:
         object.__setattr__(spec, name, getattr(spec, name)[keep])
@@ -612,16 +604,13 @@ def stack_problems(problems: Sequence[FineProblem]) -> tuple[FineProblem, torch.
     and-ed with it. Each heliostat keeps its own encoder, spec, base and scales, so member m
     trains exactly as heliostat m would alone.
     """
-    from .lm import stack_specs
-
     free = problems[0].free
     if any(not torch.equal(p.free, free) for p in problems):
         raise ParameterError("The 'problems' parameter of stack_problems must share the free "
                              "parameters (one coarse preset).")
     n = max(len(p.data) for p in problems)
     spec = stack_specs([p.spec for p in problems])
-    for name in ("clockwise", "min_steps", "max_steps", "position_enu", "initial_orientation",
-                 "primary_axis"):
+    for name in _SPEC_TENSORS:
         object.__setattr__(spec, name, getattr(spec, name).unsqueeze(1))   # batch (M, 1)
     pad = lambda get: torch.stack([_pad_rows(get(p), n) for p in problems])
     data = MeasurementBatch(
@@ -686,7 +675,12 @@ def predict_members(problem: FineProblem, layers: Layers, steps: torch.Tensor | 
     parameter vector with every row.
     """
     steps = problem.data.steps if steps is None else steps
-    params = member_components(problem, layers, problem.features(steps, context))
+    return _forward(problem, layers, problem.features(steps, context), steps)
+
+
+def _forward(problem: FineProblem, layers: Layers, features: torch.Tensor, steps: torch.Tensor):
+    """Normals and centres (M, N, 3) of every member for encoded inputs and their steps."""
+    params = member_components(problem, layers, features)
     normal, position = forward_kinematics(params, problem.spec, steps.unsqueeze(-2))
     return normal.squeeze(-2), position.squeeze(-2)
 
@@ -697,10 +691,8 @@ def member_errors_mrad(problem: FineProblem, layers: Layers) -> torch.Tensor:
 
 
 def _errors_from_features(problem: FineProblem, layers: Layers, features: torch.Tensor):
-    params = member_components(problem, layers, features)
-    normal, position = forward_kinematics(params, problem.spec, problem.data.steps.unsqueeze(-2))
-    meas = measured_normal(problem.data.sun, position.squeeze(-2), problem.data.focal_spot)
-    return error_mrad(normal.squeeze(-2), meas)
+    normal, position = _forward(problem, layers, features, problem.data.steps)
+    return error_mrad(normal, measured_normal(problem.data.sun, position, problem.data.focal_spot))
 
 
 @dataclass
@@ -788,6 +780,15 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     live = torch.arange(m)          # members still in the program (stopped ones are dropped)
     run_problem, run_tm, run_vm, run_wd, run_n = problem, tm, vm, wd, n_train
     for epoch in range(config.max_epochs + 1):
+        keep = active[live]
+        if 4 * int((~keep).sum()) >= len(live):  # a quarter has stopped: drop them
+            live = live[keep]
+            run_problem = _take_members(run_problem, keep)
+            run_tm, run_vm, run_wd, run_n = run_tm[keep], run_vm[keep], run_wd[keep], run_n[keep]
+            if features.dim() == 3:
+                features = features[keep]
+            theta, opt = _keep_rows_of_leaf(theta, opt, keep, config.learning_rate)
+            cur = _layer_views(theta, layers)
         err = _errors_from_features(run_problem, cur, features)          # (L, N)
         sq = torch.where(run_tm, torch.nan_to_num(err, nan=0.0) ** 2, torch.zeros_like(err))
         train_mse = sq.sum(-1) / run_n
@@ -809,18 +810,6 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
             active &= ~newly
         if epoch == config.max_epochs or not bool(active.any()):
             break
-        keep = active[live]
-        if 4 * int((~keep).sum()) >= len(live):  # a quarter has stopped: drop them
-            live = live[keep]
-            run_problem = _take_members(run_problem, keep)
-            run_tm, run_vm, run_wd, run_n = run_tm[keep], run_vm[keep], run_wd[keep], run_n[keep]
-            if features.dim() == 3:
-                features = features[keep]
-            theta, opt = _keep_rows_of_leaf(theta, opt, keep, config.learning_rate)
-            cur = _layer_views(theta, layers)
-            err = _errors_from_features(run_problem, cur, features)
-            sq = torch.where(run_tm, torch.nan_to_num(err, nan=0.0) ** 2, torch.zeros_like(err))
-            train_mse = sq.sum(-1) / run_n
         loss = (train_mse + run_wd * (theta ** 2).sum(-1)).sum()
         opt.zero_grad(set_to_none=False)
         loss.backward()
@@ -1123,7 +1112,8 @@ def _hybrid_chunk_task(task):
         problems.append(build_problem(rows, hrow, base, sel["free"], config))
     # train on the rows that matter (train and validation); test rows are predicted afterwards
     fitting = [np.isin(p[4], ("train", "validation")) for p in prepared]
-    stacked, valid = stack_problems([pr.subset(f) for pr, f in zip(problems, fitting)])
+    stacked, valid = stack_problems([_take_rows(pr, torch.as_tensor(f))
+                                     for pr, f in zip(problems, fitting)])
     n = stacked.data.steps.shape[1]
     labels_fit = np.array([np.resize(p[4][f], n) for p, f in zip(prepared, fitting)])
     result = train_members(stacked, torch.as_tensor(labels_fit == "train") & valid,
