@@ -75,7 +75,12 @@ def fit_hybrid_cmd(
     depth: Annotated[int, typer.Option("--depth", min=0, help="Hidden layers.")] = 14,
     width: Annotated[int, typer.Option("--width", min=1, help="Neurons per hidden layer.")] = 2,
     fourier_bands: Annotated[str, typer.Option(
-        "--fourier-bands", help="Frequency bands of the Fourier features of the steps.")] = "1,2,4,8,16,32",
+        "--fourier-bands", help="Frequency bands of the Fourier features of the steps "
+                                "[1 / max steps], comma-separated (default: every integer 1..32)."
+    )] = ",".join(f"{b:g}" for b in FineConfig.fourier_bands),
+    ensemble: Annotated[int, typer.Option(
+        "--ensemble", min=1, help="Networks per heliostat (seeds seed*K .. seed*K+K-1); the model "
+                                  "is their mean deviation.")] = FineConfig.ensemble,
     max_epochs: Annotated[int, typer.Option("--max-epochs", min=0, help="Epoch budget.")] = FineConfig.max_epochs,
     patience: Annotated[int, typer.Option(
         "--patience", min=1, help="Epochs without validation improvement before stopping.")] = FineConfig.patience,
@@ -97,7 +102,8 @@ def fit_hybrid_cmd(
     """Train the fine model (or a baseline) on each heliostat's training rows."""
     config = FineConfig(depth=depth, width=width, fourier_bands=_floats(fourier_bands, "--fourier-bands"),
                         env=tuple(e.strip() for e in env.split(",") if e.strip()),
-                        learning_rate=learning_rate, max_epochs=max_epochs, patience=patience)
+                        learning_rate=learning_rate, max_epochs=max_epochs, patience=patience,
+                        ensemble=ensemble)
     with progress_bar(f"fit-hybrid {mode.value}", quiet) as advance:
         summary = run_fit_hybrid(workdir, mode=mode.value, weight_decay=weight_decay, seed=seed,
                                  config=config, heliostats=heliostat, progress=advance,

@@ -11,7 +11,7 @@ from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.hybrid import FineConfig
-from heliocal.pipeline.sweep import run_sweep, weight_decay_grid
+from heliocal.pipeline.sweep import OCTAVE_BANDS, run_sweep, weight_decay_grid
 
 
 def _ints(text: Optional[str], name: str):
@@ -53,8 +53,13 @@ def sweep_cmd(
     wd_min: Annotated[float, typer.Option(help="Weakest non-zero weight decay (0 is always added).")] = 1e-6,
     wd_per_decade: Annotated[int, typer.Option(help="Weight decays per decade.")] = 1,
     seeds: Annotated[str, typer.Option(help="Seeds, comma-separated (repeats of every member).")] = "0",
+    ensemble: Annotated[int, typer.Option(
+        min=1, help="Networks averaged per member (weight decay, seed).")] = FineConfig.ensemble,
     baselines: Annotated[str, typer.Option(
         help="Neural baselines to include: nn-only, pretrained-nn (comma-separated, or none).")] = "nn-only,pretrained-nn",
+    octaves: Annotated[bool, typer.Option(
+        "--octaves/--no-octaves", help="Also sweep the hybrid with octave Fourier bands "
+                                       "1,2,4,...,32 (model hybrid-octaves) as a candidate.")] = True,
     max_epochs: Annotated[int, typer.Option(help="Epoch budget of the networks.")] = 800,
     env: Annotated[Optional[str], typer.Option(help="env_* columns as extra network inputs.")] = None,
     heliostat: Annotated[Optional[list[str]], typer.Option(help="Only these heliostats.")] = None,
@@ -65,7 +70,7 @@ def sweep_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Sweep weight decay (strong to zero) and training size for every model, per heliostat."""
-    config = FineConfig(max_epochs=max_epochs,
+    config = FineConfig(max_epochs=max_epochs, ensemble=ensemble,
                         env=tuple(e.strip() for e in env.split(",") if e.strip()) if env else ())
     base = [] if baselines.strip() in ("", "none") else [b.strip() for b in baselines.split(",")]
     for b in base:
@@ -77,5 +82,6 @@ def sweep_cmd(
                             weight_decays=weight_decay_grid(wd_max, wd_min, wd_per_decade),
                             seeds=_ints(seeds, "seeds"), baselines=tuple(base), config=config,
                             heliostats=heliostat, workers=workers, scheduler=scheduler,
-                            dask_address=dask_address, progress=advance)
+                            dask_address=dask_address, progress=advance,
+                            extra_bands=(OCTAVE_BANDS,) if octaves else ())
     emit(summary, json_, _human)

@@ -119,6 +119,10 @@ __all__ = [
     "train_members",
     "predict_members",
     "member_errors_mrad",
+    "predict_ensembles",
+    "ensemble_errors_mrad",
+    "ensemble_seeds",
+    "DEFAULT_FOURIER_BANDS",
     "predictions_frame",
     "run_fit_hybrid",
     "load_model",
@@ -173,6 +177,17 @@ def _single_threaded(func):
 # ------------------------------------------------------------------------------------------------
 # configuration
 # ------------------------------------------------------------------------------------------------
+#: Default Fourier bands of the steps: every integer 1..32 [1 / max_steps].
+DEFAULT_FOURIER_BANDS = tuple(float(b) for b in range(1, 33))
+
+
+def ensemble_seeds(seed: int, ensemble: int) -> list[int]:
+    """Seeds of the ``ensemble`` networks of the model with seed ``seed``:
+    ``seed * ensemble + k`` for k = 0 .. ensemble - 1 (one network: the seed itself; different
+    seeds never share a network)."""
+    return [int(seed) * int(ensemble) + k for k in range(int(ensemble))]
+
+
 @dataclass(frozen=True)
 class FineConfig:
     """Settings of the fine network and its training (``__init__`` only stores them).
@@ -189,17 +204,26 @@ class FineConfig:
     output_scale_factor : multiplies :data:`OUTPUT_SCALE` (1 for ``hybrid``).
     fourier_decay : the Fourier feature of band ``b`` has amplitude ``b ** -fourier_decay``
         (0: all 1, Tancik et al.; > 0: a smoothness prior, see :class:`FeatureEncoder`).
+    ensemble : networks per model; the model's deviation is their mean (see
+        :func:`ensemble_seeds`). Averaging removes most of the dependence on the initial
+        weights, which for a 14 x 2 network is large (docs/hybrid.md, "Ensembles").
+
+    The default bands are every integer 1..32: a complete Fourier series of the normalised
+    steps, so a disturbance with any period of at least ``max_steps / 32`` steps (a gear or
+    worm period, say) is a linear function of the inputs. Octave bands (1, 2, 4, ..., 32) can
+    only express periods near ``max_steps / 2**k`` (docs/hybrid.md, "Why SS48 missed").
     """
 
     depth: int = 14
     width: int = 2
-    fourier_bands: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+    fourier_bands: tuple[float, ...] = DEFAULT_FOURIER_BANDS
     env: tuple[str, ...] = ()
     learning_rate: float = 3e-3
     max_epochs: int = 800
     patience: int = 200
     output_scale_factor: float = 1.0
     fourier_decay: float = 0.0
+    ensemble: int = 4
 
     def validated(self) -> "FineConfig":
         check_int(self.depth, "depth", _FUNC, 0)
@@ -212,6 +236,7 @@ class FineConfig:
         for b in self.fourier_bands:
             check_float(b, "fourier_bands", _FUNC, 0.0, None, low_inclusive=False)
         check_float(self.fourier_decay, "fourier_decay", _FUNC, 0.0, None)
+        check_int(self.ensemble, "ensemble", _FUNC, 1)
         return self
 
     def to_dict(self) -> dict:
@@ -651,7 +676,11 @@ def member_components(problem: FineProblem, layers: Layers,
     """Per-member, per-row parameters as :class:`ParameterComponents`: base + scaled network
     deviations, (M, N) for the free parameters and (M, 1) for the fixed ones (no per-row
     kinematics work for those)."""
-    out = _mlp_columns(layers, features) * problem.scales.unsqueeze(-1)   # (M, P, N)
+    return _components(problem, _mlp_columns(layers, features) * problem.scales.unsqueeze(-1))
+
+
+def _components(problem: FineProblem, out: torch.Tensor) -> ParameterComponents:
+    """Base parameters plus scaled deviations ``out`` (M, P, N) as components."""
     base = problem.base                                                   # (28,) or (M, 1, 28)
     base = base.unsqueeze(-1) if base.dim() == 1 else base.transpose(-1, -2)  # (28, 1) | (M, 28, 1)
     comps = list(base.unbind(-2))                                         # 28 x (1,) | (M, 1)
@@ -676,6 +705,40 @@ def predict_members(problem: FineProblem, layers: Layers, steps: torch.Tensor | 
     """
     steps = problem.data.steps if steps is None else steps
     return _forward(problem, layers, problem.features(steps, context), steps)
+
+
+def _grouped(problem: FineProblem, layers: Layers, features: torch.Tensor,
+             ensemble: int | None) -> ParameterComponents:
+    """Components of G = M / K models whose K networks are consecutive members (K =
+    ``ensemble``; None: all M networks are one model)."""
+    out = _mlp_columns(layers, features) * problem.scales.unsqueeze(-1)   # (M, P, N)
+    m = out.shape[0]
+    k = m if ensemble is None else int(ensemble)
+    if k < 1 or m % k:
+        raise ParameterError(f"The 'ensemble' parameter must divide the {m} networks. Got {k} "
+                             "instead.")
+    out = out.reshape(m // k, k, *out.shape[1:]).mean(1)                  # (G, P, N)
+    base = problem.base
+    if base.dim() == 3 and base.shape[0] == m:                            # per-member bases
+        base = base[::k]
+    return _components(dataclasses.replace(problem, base=base), out)
+
+
+def predict_ensembles(problem: FineProblem, layers: Layers, ensemble: int | None = None,
+                      steps: torch.Tensor | None = None, context: torch.Tensor | None = None):
+    """Mirror normals and centres (G, N, 3) of models made of ``ensemble`` consecutive
+    networks each (G = M / ensemble; default: all of ``layers`` is one model), whose deviation
+    is the mean of their networks' deviations. Steps and context as :func:`predict_members`."""
+    steps = problem.data.steps if steps is None else steps
+    params = _grouped(problem, layers, problem.features(steps, context), ensemble)
+    normal, position = forward_kinematics(params, problem.spec, steps.unsqueeze(-2))
+    return normal.squeeze(-2), position.squeeze(-2)
+
+
+def ensemble_errors_mrad(problem: FineProblem, layers: Layers, ensemble: int | None = None):
+    """error_mrad (G, N) of the models of :func:`predict_ensembles` on the problem's rows."""
+    normal, position = predict_ensembles(problem, layers, ensemble)
+    return error_mrad(normal, measured_normal(problem.data.sun, position, problem.data.focal_spot))
 
 
 def _forward(problem: FineProblem, layers: Layers, features: torch.Tensor, steps: torch.Tensor):
@@ -1110,22 +1173,28 @@ def _hybrid_chunk_task(task):
     for hid, rows, hrow, sel, labels, spec, data, coarse_pred in prepared:
         base = sel["params"] if mode == "hybrid" else sel["nominal"]
         problems.append(build_problem(rows, hrow, base, sel["free"], config))
-    # train on the rows that matter (train and validation); test rows are predicted afterwards
+    # train on the rows that matter (train and validation); test rows are predicted afterwards.
+    # Member h * K + j is network j of heliostat h's ensemble of K.
+    k_ens = config.ensemble
     fitting = [np.isin(p[4], ("train", "validation")) for p in prepared]
     stacked, valid = stack_problems([_take_rows(pr, torch.as_tensor(f))
-                                     for pr, f in zip(problems, fitting)])
+                                     for pr, f in zip(problems, fitting) for _ in range(k_ens)])
     n = stacked.data.steps.shape[1]
-    labels_fit = np.array([np.resize(p[4][f], n) for p, f in zip(prepared, fitting)])
+    labels_fit = np.array([np.resize(p[4][f], n) for p, f in zip(prepared, fitting)
+                           for _ in range(k_ens)])
     result = train_members(stacked, torch.as_tensor(labels_fit == "train") & valid,
                            torch.as_tensor(labels_fit == "validation") & valid,
-                           [weight_decay] * len(problems), [seed] * len(problems), config)
+                           [weight_decay] * len(labels_fit),
+                           ensemble_seeds(seed, k_ens) * len(problems), config)
     wall = (time.perf_counter() - t0) / len(problems)
-    for k, ((hid, rows, hrow, sel, labels, spec, data, coarse_pred), problem) in enumerate(
+    for h, ((hid, rows, hrow, sel, labels, spec, data, coarse_pred), problem) in enumerate(
             zip(prepared, problems)):
-        layers = result.member(k)
+        nets = slice(h * k_ens, (h + 1) * k_ens)
+        layers = [(w[nets], b[nets]) for w, b in result.layers]
         with torch.no_grad():
-            normal, position = predict_members(problem, layers)
-        info = {"best_epoch": int(result.best_epoch[k]), "epochs": int(result.epochs_run[k])}
+            normal, position = predict_ensembles(problem, layers)
+        info = {"best_epoch": result.best_epoch[nets].tolist(),
+                "epochs": result.epochs_run[nets].tolist()}
         cfg = {"mode": mode, "heliostat_id": hid, "seed": seed, "weight_decay": weight_decay,
                "fine_config": config.to_dict(), "encoder": problem.encoder.to_dict(),
                "base_params": problem.base.tolist(), "free": sel["free"].tolist(),
@@ -1339,7 +1408,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
             choice = str(sel_df["model"].iloc[0]) if len(sel_df) else None
         if choice == "coarse":
             fitted = None
-        elif choice == "hybrid":
+        elif choice is not None and choice.startswith("hybrid"):   # hybrid, hybrid-octaves
             fitted = load_model(workdir, "selected", heliostat_id)
             rerun = f"`heliocal sweep --workdir {workdir}`"
         else:
@@ -1389,7 +1458,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
 
         def params_at(s):
             with torch.no_grad():
-                return member_parameters(problem, layers, enc.encode(s, context))[0, 0]   # (28,)
+                return _grouped(problem, layers, enc.encode(s, context), None).stacked()[0, 0]
 
         for iterations in range(1, max_iterations + 1):
             params = params_at(steps)

@@ -32,7 +32,8 @@ from heliocal.pipeline.coarse import (MeasurementBatch, fit_heliostat, normal_er
                                       run_fit_coarse)
 from heliocal.pipeline.errors import StageInputError
 from heliocal.pipeline.hybrid import (HYBRID_PREDICTIONS, FineConfig, FineProblem, FeatureEncoder,
-                                      build_problem, init_mlp, load_model, member_errors_mrad,
+                                      build_problem, ensemble_errors_mrad, ensemble_seeds, init_mlp,
+                                      load_model, member_errors_mrad, predict_ensembles,
                                       member_parameters, output_scales, predict_members,
                                       run_fit_hybrid, train_members)
 from heliocal.pipeline.kinematics import (PARAMETER_INDEX, HeliostatSpec, forward_kinematics,
@@ -166,6 +167,38 @@ def test_zero_initialised_hybrid_equals_coarse():
     assert hybrid.shape == (3, 40)
     assert float((hybrid - coarse).abs().max()) < 1e-9
     assert float(coarse.mean()) > 0.1  # a non-trivial comparison
+
+
+def _random_output_layer(layers, seed):
+    g = torch.Generator().manual_seed(seed)
+    w, b = layers[-1]
+    return layers[:-1] + [(torch.randn(w.shape, generator=g, dtype=torch.float64),
+                           torch.randn(b.shape, generator=g, dtype=torch.float64))]
+
+
+def test_ensemble_is_the_mean_deviation():
+    # closed form 1: an ensemble of a network and its negation (output layer * -1) has zero
+    # mean deviation, so it is the base model exactly, while either network alone is not
+    rows = synthetic_measurements(40)
+    problem = _problem(rows)
+    one = _random_output_layer(init_mlp(problem.sizes(FAST), [3]), 0)
+    pair = [(torch.cat([w, -w if k == len(one) - 1 else w]), torch.cat([b, -b if k == len(one) - 1 else b]))
+            for k, (w, b) in enumerate(one)]
+    base = normal_errors_mrad(problem.base, problem.spec, MeasurementBatch.from_frame(rows))
+    single = member_errors_mrad(problem, one)[0]
+    cancel = ensemble_errors_mrad(problem, pair)[0]
+    assert float((single - base).abs().max()) > 0.1
+    assert float((cancel - base).abs().max()) < 1e-9
+    # closed form 2: parameters are linear in the outputs, so the ensemble of K networks equals
+    # the forward model at the mean of the K members' parameters; two ensembles of 3 side by side
+    six = _random_output_layer(init_mlp(problem.sizes(FAST), list(range(6))), 1)
+    normal, _ = predict_ensembles(problem, six, ensemble=3)                 # (2, 40, 3)
+    params = member_parameters(problem, six, problem.features())           # (6, 40, 28)
+    for g in range(2):
+        expect, _ = forward_kinematics(params[3 * g:3 * g + 3].mean(0), problem.spec,
+                                       problem.data.steps.unsqueeze(-2))
+        assert float((normal[g] - expect.squeeze(-2)).abs().max()) < 1e-12
+    assert ensemble_seeds(2, 4) == [8, 9, 10, 11] and ensemble_seeds(5, 1) == [5]
 
 
 def test_network_shapes_and_lecun_init():
@@ -353,7 +386,9 @@ def test_aim_round_trip(workdir, runner):
                           None, None)
     steps = torch.tensor([[out["axis_1_steps"], out["axis_2_steps"]]], dtype=torch.float64)
     ctx = problem.encoder.context([pd.Timestamp("2024-05-03T11:00Z")])
-    params = member_parameters(problem, layers, problem.encoder.encode(steps, ctx))[0].detach()
+    # the model is the mean of its ensemble's networks (parameters are linear in the outputs)
+    assert layers[0][0].shape[0] == FAST.ensemble > 1
+    params = member_parameters(problem, layers, problem.encoder.encode(steps, ctx)).mean(0).detach()
     normal, position = forward_kinematics(params, spec, steps)
     from heliocal.pipeline.sun import spa_sun_position, sun_vector_enu
     az, el = spa_sun_position(["2024-05-03T11:00Z"], 50.915305, 6.387838, 88.7)

@@ -14,7 +14,7 @@ from heliocal.pipeline.coarse import run_fit_coarse
 from heliocal.pipeline.hybrid import FineConfig
 from heliocal.pipeline.ingest import run_ingest
 from heliocal.pipeline.split import run_split
-from heliocal.pipeline.sweep import (SELECTION, SWEEP, default_ladder, run_sweep,
+from heliocal.pipeline.sweep import (MIN_IMPROVEMENT, SELECTION, SWEEP, default_ladder, run_sweep,
                                      weight_decay_grid)
 
 SYNTHETIC = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic" / "paint"
@@ -53,8 +53,9 @@ def test_network_that_can_only_overfit_falls_back_to_coarse(static_workdir):
     # the hybrid member was trained (it fits its training rows at least as well) ...
     coarse = sweep[sweep["model"] == "static-20"].iloc[0]
     assert hyb["train_error_mrad"] <= coarse["train_error_mrad"]
-    # ... but does not generalise by the required margin
-    assert hyb["val_error_mrad"] > 0.98 * row["coarse_val_error_mrad"]
+    # ... but does not generalise by the required margin (it does improve validation a little:
+    # interpolating the coarse fit's residual structure helps rows between training rows)
+    assert hyb["val_error_mrad"] > (1.0 - MIN_IMPROVEMENT) * row["coarse_val_error_mrad"]
 
 
 def test_training_size_study_rows(static_workdir):
@@ -63,9 +64,11 @@ def test_training_size_study_rows(static_workdir):
               config=FineConfig(max_epochs=20, patience=20), heliostats=["SP13"])
     sweep = pd.read_parquet(static_workdir / SWEEP.filename)
     counts = sweep.groupby("model").size().to_dict()
-    # 2 sizes x 2 presets; 2 sizes x 2 weight decays x 2 seeds; 2 sizes x 2 seeds
-    # (the selected preset static-20 is always fitted too: it is the hybrid's base)
-    assert counts == {"static-6": 2, "stone-8": 2, "static-20": 2, "hybrid": 8, "nn-only": 4}
+    # 2 sizes x 2 presets; 2 sizes x 2 weight decays x 2 seeds, once with the config's Fourier
+    # bands and once with octaves; 2 sizes x 2 seeds (the selected preset static-20 is always
+    # fitted too: it is the hybrid's base)
+    assert counts == {"static-6": 2, "stone-8": 2, "static-20": 2, "hybrid": 8,
+                      "hybrid-octaves": 8, "nn-only": 4}
     # fewer training rows (the largest kNN distances kept) lie farther from the test set
     d = sweep[sweep["model"] == "static-6"].set_index("n_train")["test_train_distance_deg"]
     assert d[10] > d[40]
@@ -74,14 +77,21 @@ def test_training_size_study_rows(static_workdir):
     assert np.isfinite(sweep["test_error_mrad"]).all()
 
 
-def test_selected_predictions_match_the_selection(static_workdir):
+def test_selected_predictions_match_the_selection(static_workdir, monkeypatch):
     # the per-measurement predictions of the selected model reproduce the selection's means
-    # (same model, same rows): a check that the right member and base were used
+    # (same model, same rows): a check that the right member, ensemble and base were used. A
+    # negative margin forces a hybrid choice on this static heliostat.
+    from heliocal.pipeline import sweep as sweep_module
     from heliocal.pipeline.sweep import SELECTED_PREDICTIONS
 
+    monkeypatch.setattr(sweep_module, "MIN_IMPROVEMENT", -1.0)
     run_sweep(static_workdir, n_train=[10, 10_000], weight_decays=[1e-3, 0.0], presets=("static-20",),
               baselines=(), config=FineConfig(max_epochs=60, patience=60), heliostats=["SP13"])
     sel = pd.read_parquet(static_workdir / SELECTION.filename).iloc[0]
+    assert sel["model"] in ("hybrid", "hybrid-octaves")
+    sweep = pd.read_parquet(static_workdir / SWEEP.filename)
+    full = sweep[sweep["model"].str.startswith("hybrid") & (sweep["n_train"] > 10)]
+    assert sel["val_error_mrad"] == full["val_error_mrad"].min()   # the best on validation
     pred = pd.read_parquet(static_workdir / SELECTED_PREDICTIONS.filename)
     assert set(pred["model"]) == {"selected"}
     for split, col in (("validation", "val_error_mrad"), ("test", "test_error_mrad")):
