@@ -684,8 +684,10 @@ def _components(problem: FineProblem, out: torch.Tensor) -> ParameterComponents:
     base = problem.base                                                   # (28,) or (M, 1, 28)
     base = base.unsqueeze(-1) if base.dim() == 1 else base.transpose(-1, -2)  # (28, 1) | (M, 28, 1)
     comps = list(base.unbind(-2))                                         # 28 x (1,) | (M, 1)
-    for j, k in enumerate(problem.free_index.tolist()):
-        comps[k] = comps[k] + out[:, j]
+    # unbind, not out[:, j]: the backward of P separate selects zero-fills a full (M, P, N)
+    # gradient per parameter (P^2 M N work, most of an epoch at M = 128); unbind's is one stack
+    for k, col in zip(problem.free_index.tolist(), out.unbind(1)):
+        comps[k] = comps[k] + col
     return ParameterComponents(comps)
 
 
