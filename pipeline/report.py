@@ -853,13 +853,21 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                    "validation [mrad]", "test [mrad]", "coarse validation [mrad]",
                    "coarse test [mrad]"]
         rows = []
+        # the sweep's choice (hybrid, hybrid-octaves or coarse) behind the "selected" rows
+        choice = {}
+        if inp.selection is not None and {"heliostat_id", "model"} <= set(inp.selection.columns):
+            choice = dict(zip(inp.selection["heliostat_id"].astype(str),
+                              inp.selection["model"].astype(str)))
         for hid, h in helios.items():
             s = dict(h["selection"])
             model = h["models"].get(s["model"] or "", {}).get("splits", {})
             coarse = h["models"].get(s["coarse_preset"] or "", {}).get("splits", {})
             pick = lambda key, splits, sp: s[key] if s[key] is not None else (
                 splits.get(sp, {}).get("mean_error_mrad"))
-            rows.append([hid, s["coarse_preset"] or "–", s["model"] or "–",
+            shown = s["model"] or "–"
+            if shown == "selected" and hid in choice:
+                shown = f"selected ({choice[hid]})"
+            rows.append([hid, s["coarse_preset"] or "–", shown,
                          _fmt_g(s["weight_decay"]),
                          _fmt(pick("val_error_mrad", model, "validation")),
                          _fmt(pick("test_error_mrad", model, "test")),
