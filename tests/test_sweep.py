@@ -97,3 +97,47 @@ def test_selected_predictions_match_the_selection(static_workdir, monkeypatch):
     for split, col in (("validation", "val_error_mrad"), ("test", "test_error_mrad")):
         mean = pred.loc[pred["split"] == split, "error_mrad"].mean()
         assert mean == pytest.approx(sel[col], rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def temperature_workdir(tmp_path_factory):
+    """The synthetic sample as the accuracy figures in docs/hybrid.md use it: the log with the
+    PAINT properties (temperature as env_temperature), split-knn, the auto-selected preset."""
+    from heliocal.pipeline.ingest import IngestOptions
+
+    w = tmp_path_factory.mktemp("sweep_env")
+    log = SYNTHETIC.parent / "calibration_log.csv"
+    run_ingest([log], w, IngestOptions(properties=SYNTHETIC))
+    run_split(w)
+    run_fit_coarse(w, heliostats=["SS48", "SQ04"])
+    return w
+
+
+def test_gear_error_heliostat_gets_the_hybrid(temperature_workdir):
+    # SS48 carries a gear error of period 4000 steps (1/18.86 of max_steps; ground_truth.json).
+    # docs/hybrid.md measures the default sweep at 0.65 x coarse (must-show: <= 0.7 x); here one
+    # weight decay of the grid (the one the full sweep selects) and the default encoding, so it
+    # runs in seconds. The octave bands cannot represent that period (test_hybrid), so this test
+    # fails with them.
+    config = FineConfig(env=("temperature",))
+    run_sweep(temperature_workdir, n_train=[10_000], weight_decays=[1e-2], baselines=(),
+              config=config, heliostats=["SS48"], extra_bands=())
+    sel = pd.read_parquet(temperature_workdir / SELECTION.filename).iloc[0]
+    assert sel["model"] == "hybrid"
+    assert sel["test_error_mrad"] <= 0.7 * sel["coarse_test_error_mrad"]
+
+
+def test_static_heliostat_whose_validation_improves_keeps_coarse(temperature_workdir):
+    # SQ04 is static. The unregularised ensemble improves its validation error by about 15 %
+    # (interpolating the coarse fit's residual structure) while its test error gets worse
+    # (docs/hybrid.md, "Selection"); the 20 % margin keeps the coarse model.
+    config = FineConfig(env=("temperature",))
+    run_sweep(temperature_workdir, n_train=[10_000], weight_decays=[0.0], baselines=(),
+              config=config, heliostats=["SQ04"], extra_bands=())
+    sel = pd.read_parquet(temperature_workdir / SELECTION.filename).iloc[0]
+    sweep = pd.read_parquet(temperature_workdir / SWEEP.filename)
+    hyb = sweep[sweep["model"] == "hybrid"].iloc[0]
+    assert hyb["val_error_mrad"] < 0.95 * sel["coarse_val_error_mrad"]     # a real val gain ...
+    assert hyb["test_error_mrad"] > sel["coarse_test_error_mrad"]          # ... that does not hold
+    assert sel["model"] == "coarse"
+    assert sel["test_error_mrad"] == sel["coarse_test_error_mrad"]
