@@ -558,7 +558,6 @@ class FineProblem:
     def free_index(self) -> torch.Tensor:
         return torch.nonzero(self.free).flatten()
 
-
     def sizes(self, config: FineConfig) -> list[int]:
         n_in = (self.cached_features.shape[-1] if self.cached_features is not None
                 else self.encoder.n_features)
@@ -732,22 +731,29 @@ def predict_ensembles(problem: FineProblem, layers: Layers, ensemble: int | None
     networks each (G = M / ensemble; default: all of ``layers`` is one model), whose deviation
     is the mean of their networks' deviations. Steps and context as :func:`predict_members`."""
     steps = problem.data.steps if steps is None else steps
-    params = _grouped(problem, layers, problem.features(steps, context), ensemble)
-    normal, position = forward_kinematics(params, problem.spec, steps.unsqueeze(-2))
-    return normal.squeeze(-2), position.squeeze(-2)
+    return _kinematics(problem, _grouped(problem, layers, problem.features(steps, context),
+                                         ensemble), steps)
 
 
 def ensemble_errors_mrad(problem: FineProblem, layers: Layers, ensemble: int | None = None):
     """error_mrad (G, N) of the models of :func:`predict_ensembles` on the problem's rows."""
-    normal, position = predict_ensembles(problem, layers, ensemble)
+    return _errors(problem, *predict_ensembles(problem, layers, ensemble))
+
+
+def _kinematics(problem: FineProblem, params: ParameterComponents, steps: torch.Tensor):
+    """Normals and centres (M, N, 3) for per-row parameters (M, N) and their steps (N, 2)."""
+    normal, position = forward_kinematics(params, problem.spec, steps.unsqueeze(-2))
+    return normal.squeeze(-2), position.squeeze(-2)
+
+
+def _errors(problem: FineProblem, normal: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
+    """error_mrad of predicted normals and mirror centres on the problem's measurements."""
     return error_mrad(normal, measured_normal(problem.data.sun, position, problem.data.focal_spot))
 
 
 def _forward(problem: FineProblem, layers: Layers, features: torch.Tensor, steps: torch.Tensor):
     """Normals and centres (M, N, 3) of every member for encoded inputs and their steps."""
-    params = member_components(problem, layers, features)
-    normal, position = forward_kinematics(params, problem.spec, steps.unsqueeze(-2))
-    return normal.squeeze(-2), position.squeeze(-2)
+    return _kinematics(problem, member_components(problem, layers, features), steps)
 
 
 def member_errors_mrad(problem: FineProblem, layers: Layers) -> torch.Tensor:
@@ -756,8 +762,7 @@ def member_errors_mrad(problem: FineProblem, layers: Layers) -> torch.Tensor:
 
 
 def _errors_from_features(problem: FineProblem, layers: Layers, features: torch.Tensor):
-    normal, position = _forward(problem, layers, features, problem.data.steps)
-    return error_mrad(normal, measured_normal(problem.data.sun, position, problem.data.focal_spot))
+    return _errors(problem, *_forward(problem, layers, features, problem.data.steps))
 
 
 @dataclass
@@ -1179,8 +1184,8 @@ def _hybrid_chunk_task(task):
     # Member h * K + j is network j of heliostat h's ensemble of K.
     k_ens = config.ensemble
     fitting = [np.isin(p[4], ("train", "validation")) for p in prepared]
-    stacked, valid = stack_problems([_take_rows(pr, torch.as_tensor(f))
-                                     for pr, f in zip(problems, fitting) for _ in range(k_ens)])
+    taken = [_take_rows(pr, torch.as_tensor(f)) for pr, f in zip(problems, fitting)]
+    stacked, valid = stack_problems([t for t in taken for _ in range(k_ens)])
     n = stacked.data.steps.shape[1]
     labels_fit = np.array([np.resize(p[4][f], n) for p, f in zip(prepared, fitting)
                            for _ in range(k_ens)])
