@@ -3,6 +3,11 @@
 
 PYTHON ?= python3
 VENV ?= .venv
+LOCK ?= requirements.lock
+LOCK_VENV ?= .venv-lock
+LATEST_VENV ?= /tmp/heliocal-latest-venv
+UV_VERSION ?= 0.13.9
+TORCH_WHEELS ?= /opt/wheels
 HELIOCAL = $(VENV)/bin/heliocal
 WORKDIR ?= runs/sample
 SOURCES ?= sample_data/juelich/paint
@@ -14,21 +19,57 @@ SOURCE_FILES := $(shell find $(SOURCES) -type f 2>/dev/null)
 CODE := $(shell find pipeline cli -name '*.py' 2>/dev/null)
 
 .DEFAULT_GOAL := help
-.PHONY: help install sample sweep report test regression clean
+.PHONY: help install check-lock lock test-latest sample sweep report test regression clean
 
 ## help: list the targets
 help:
 	@grep -E '^## ' $(MAKEFILE_LIST) | sed 's/^## /  /'
 
-## install: create $(VENV) and install heliocal (pinned CPU torch first)
+## install: create $(VENV) with exactly the versions of $(LOCK) (pinned CPU torch included), then heliocal
 install: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml
+# The lock is the one source of installed versions: every package pinned with its SHA-256, resolved
+# for this Python (3.11) on x86_64 Linux. pyproject.toml keeps the ranges for people who install
+# heliocal into their own environment. The venv is made anew whenever the lock changes, so nothing
+# from an earlier resolution survives, and `check-lock` proves it.
+$(VENV)/.installed: $(LOCK) pyproject.toml
+	rm -rf $(VENV)
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --quiet --upgrade pip
-	$(VENV)/bin/pip install --quiet torch==2.13.0
-	$(VENV)/bin/pip install --quiet -e ".[test]"
+	$(VENV)/bin/pip install --quiet --require-hashes --no-deps -r $(LOCK)
+	$(VENV)/bin/pip install --quiet --no-deps --no-build-isolation -e .
+	$(VENV)/bin/python .ci/check_lock.py $(LOCK)
 	touch $@
+
+## check-lock: verify that $(VENV) holds exactly the versions of $(LOCK)
+check-lock: $(VENV)/.installed
+	$(VENV)/bin/python .ci/check_lock.py $(LOCK)
+
+## lock: re-resolve $(LOCK) from the ranges in pyproject.toml (a deliberate commit; needs PyPI)
+lock: $(LOCK_VENV)/bin/uv
+	$(PYTHON) -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['build-system']['requires'], sep='\n')" \
+	  | $(LOCK_VENV)/bin/uv pip compile pyproject.toml - --extra test --upgrade --generate-hashes \
+	      --python-version 3.11 --python-platform x86_64-manylinux_2_28 \
+	      --find-links $(TORCH_WHEELS) --emit-find-links --no-header --quiet -o $(LOCK).tmp
+	{ echo "# heliocal's locked dependencies: refresh with 'make lock' (uv $(UV_VERSION), ranges from"; \
+	  echo "# pyproject.toml, build backend included, torch = the CPU wheel in $(TORCH_WHEELS))."; \
+	  cat $(LOCK).tmp; } > $(LOCK) && rm -f $(LOCK).tmp
+	@echo "$(LOCK) written: review 'git diff $(LOCK)', run 'make test', commit it on its own." >&2
+
+$(LOCK_VENV)/bin/uv:
+	$(PYTHON) -m venv $(LOCK_VENV)
+	$(LOCK_VENV)/bin/pip install --quiet uv==$(UV_VERSION)
+
+## test-latest: drift check, the tests in a throwaway venv with the newest versions the ranges allow
+test-latest:
+	rm -rf $(LATEST_VENV)
+	$(PYTHON) -m venv $(LATEST_VENV)
+	$(LATEST_VENV)/bin/pip install --quiet torch==2.13.0
+	$(LATEST_VENV)/bin/pip install --quiet --upgrade --upgrade-strategy eager -e ".[test]"
+	@echo "test-latest: versions that differ from $(LOCK):" >&2
+	-$(LATEST_VENV)/bin/python .ci/check_lock.py $(LOCK) --report
+	$(LATEST_VENV)/bin/python -m pytest -q -p no:cacheprovider; status=$$?; \
+	  echo "test-latest: pytest exit $$status with the versions above" >&2; \
+	  rm -rf $(LATEST_VENV); exit $$status
 
 ## sample: run the whole pipeline on sample_data into WORKDIR (default runs/sample; ~2 min)
 sample: $(WORKDIR)/report/index.html

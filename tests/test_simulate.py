@@ -19,6 +19,7 @@ from typer.testing import CliRunner
 import heliocal.cli.simulate  # noqa: F401  (registers simulate on the app)
 from heliocal.cli.app import app
 from heliocal.pipeline.errors import ParameterError
+from heliocal.pipeline.golden import compare_trees
 from heliocal.pipeline.ingest import IngestOptions, ingest
 from heliocal.pipeline.kinematics import PARAMETER_INDEX, preset_parameters
 from heliocal.pipeline.simulate import (DEVIATION_SIZES, SimulatedField, simulate_field,
@@ -361,11 +362,13 @@ def test_help_text():
 
 
 def test_committed_sample_is_reproducible(tmp_path):
-    """sample_data/synthetic is exactly what the command in sample_data/README.md writes."""
+    """sample_data/synthetic is what the command in sample_data/README.md writes: the same files,
+    keys, columns, dtypes, row order and strings, and numbers within relative 1e-9
+    (heliocal.pipeline.golden says why); not the same bytes, which a library update may change."""
     out = tmp_path / "synthetic"
     result = CliRunner().invoke(app, [a.format(out=out) for a in SAMPLE_ARGS])
     assert result.exit_code == 0, result.stderr
-    assert _files(out) == _files(SAMPLE)
+    assert compare_trees(out, SAMPLE) == []
     readme = (REPO / "sample_data" / "README.md").read_text()
     assert "heliocal " + " ".join(SAMPLE_ARGS).format(out="sample_data/synthetic") in readme
     # small enough for the sample pipeline: < 3 MB, 4 heliostats, 2 static + 2 dynamic
