@@ -19,7 +19,7 @@ SOURCE_FILES := $(shell find $(SOURCES) -type f 2>/dev/null)
 CODE := $(shell find pipeline cli -name '*.py' 2>/dev/null)
 
 .DEFAULT_GOAL := help
-.PHONY: help install check-lock lock test-latest sample sweep report test regression clean
+.PHONY: help install check-lock lock lock-upgrade test-latest sample sweep report test regression clean
 
 ## help: list the targets
 help:
@@ -44,14 +44,18 @@ $(VENV)/.installed: $(LOCK) pyproject.toml
 check-lock: $(VENV)/.installed
 	$(VENV)/bin/python .ci/check_lock.py $(LOCK)
 
-## lock: re-resolve $(LOCK) from the ranges in pyproject.toml (a deliberate commit; needs PyPI)
-lock: $(LOCK_VENV)/bin/uv
+## lock: resolve $(LOCK) from pyproject.toml, keeping today's pins where the ranges allow (needs PyPI)
+## lock-upgrade: the same, moving every package to the newest version the ranges allow
+lock-upgrade: UV_UPGRADE = --upgrade
+lock lock-upgrade: $(LOCK_VENV)/bin/uv
+	test ! -f $(LOCK) || cp $(LOCK) $(LOCK).tmp
 	$(PYTHON) -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['build-system']['requires'], sep='\n')" \
-	  | $(LOCK_VENV)/bin/uv pip compile pyproject.toml - --extra test --upgrade --generate-hashes \
+	  | $(LOCK_VENV)/bin/uv pip compile pyproject.toml - --extra test $(UV_UPGRADE) --generate-hashes \
 	      --python-version 3.11 --python-platform x86_64-manylinux_2_28 \
 	      --find-links $(TORCH_WHEELS) --emit-find-links --no-header --quiet -o $(LOCK).tmp
-	{ echo "# heliocal's locked dependencies: refresh with 'make lock' (uv $(UV_VERSION), ranges from"; \
-	  echo "# pyproject.toml, build backend included, torch = the CPU wheel in $(TORCH_WHEELS))."; \
+	{ echo "# heliocal's locked dependencies, written by 'make lock' (keeps pins) or 'make lock-upgrade'"; \
+	  echo "# (newest the ranges of pyproject.toml allow) with uv $(UV_VERSION); build backend included;"; \
+	  echo "# torch is the CPU wheel found in $(TORCH_WHEELS)."; \
 	  cat $(LOCK).tmp; } > $(LOCK) && rm -f $(LOCK).tmp
 	@echo "$(LOCK) written: review 'git diff $(LOCK)', run 'make test', commit it on its own." >&2
 
