@@ -70,6 +70,9 @@ __all__ = [
     "load_selected_parameters",
     "normal_errors_mrad",
     "fit_one_heliostat",
+    "fit_presets",
+    "coarse_fit_options",
+    "FIT_OPTIONS",
 ]
 
 log = logging.getLogger("heliocal.coarse")
@@ -631,14 +634,49 @@ def _heliostat_inputs(hrow, rows: pd.DataFrame):
     return spec, nominal_parameters(hrow), data, labels, data.subset(labels == "train")
 
 
+def fit_presets(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
+                trains: Sequence[MeasurementBatch], presets: Sequence[str], *,
+                solver: str = "batched", loss: str = "soft_l1", f_scale_mrad: float = 1.0,
+                robust_start: bool | str = "auto") -> list[list[CoarseFit]]:
+    """Every preset for each heliostat on its training rows, exactly as ``fit-coarse`` fits them.
+
+    This is the one fitting function of ``fit-coarse`` (:func:`run_fit_coarse`) and of the
+    training-size study of ``sweep``, so a study point is what ``fit-coarse`` gives with that
+    many training rows. Each heliostat (each entry of the lists; the same heliostat may appear
+    several times with different training rows) has its own robust start, shared only by its
+    presets.
+
+    Parameters
+    ----------
+    specs, nominals, trains : per heliostat its spec, nominal parameters (28,) and training rows.
+        With ``solver="batched"`` all must share one kinematic and actuator type.
+    presets : preset names.
+    solver : ``batched`` (per preset one :func:`fit_heliostats_batched` program for all) or
+        ``scipy`` (one :func:`fit_heliostat` per heliostat and preset).
+    loss, f_scale_mrad, robust_start : see :func:`fit_heliostat`.
+
+    Returns
+    -------
+    Per heliostat, its fits in the order of ``presets``.
+    """
+    check_choice(solver, "solver", "fit_presets", SOLVERS)
+    caches = [{} for _ in specs]
+    kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
+    if solver == "scipy":
+        return [[fit_heliostat(spec, nominal, train, preset, start_cache=cache, **kwargs)
+                 for preset in presets]
+                for spec, nominal, train, cache in zip(specs, nominals, trains, caches)]
+    per_preset = [fit_heliostats_batched(specs, nominals, trains, preset, start_caches=caches,
+                                         **kwargs) for preset in presets]
+    return [[fits[k] for fits in per_preset] for k in range(len(specs))]
+
+
 def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
                       loss: str, f_scale_mrad: float, robust_start: bool):
     """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary)."""
     spec, nominal, data, labels, train = _heliostat_inputs(hrow, rows)
-    fits, start_cache = [], {}
-    for preset in presets:
-        fits.append(fit_heliostat(spec, nominal, train, preset, loss=loss, f_scale_mrad=f_scale_mrad,
-                                  robust_start=robust_start, start_cache=start_cache))
+    fits = fit_presets([spec], [nominal], [train], presets, solver="scipy", loss=loss,
+                       f_scale_mrad=f_scale_mrad, robust_start=robust_start)[0]
     return _heliostat_outputs(str(hrow["heliostat_id"]), spec, nominal, data, labels, train, fits)
 
 
@@ -648,13 +686,10 @@ def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: 
     batched LM solve (:func:`fit_heliostats_batched`); per heliostat the same (param rows,
     prediction rows, summary) as :func:`fit_one_heliostat`."""
     inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
-    caches = [{} for _ in inputs]
-    per_preset = [fit_heliostats_batched([i[0] for i in inputs], [i[1] for i in inputs],
-                                         [i[4] for i in inputs], preset, loss=loss,
-                                         f_scale_mrad=f_scale_mrad, robust_start=robust_start,
-                                         start_caches=caches)
-                  for preset in presets]
-    return [_heliostat_outputs(str(h["heliostat_id"]), *inp, [fits[k] for fits in per_preset])
+    fits = fit_presets([i[0] for i in inputs], [i[1] for i in inputs], [i[4] for i in inputs],
+                       presets, solver="batched", loss=loss, f_scale_mrad=f_scale_mrad,
+                       robust_start=robust_start)
+    return [_heliostat_outputs(str(h["heliostat_id"]), *inp, fits[k])
             for k, (h, inp) in enumerate(zip(hrows, inputs))]
 
 
@@ -726,6 +761,20 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
             "std_error": torch.tensor(g["std_error"].to_numpy(np.float64)),
         }
     return out
+
+
+#: Options of ``fit-coarse`` that decide a fit (its provenance records them; the defaults of
+#: :func:`run_fit_coarse` stand in for a file written before an option existed).
+FIT_OPTIONS = {"solver": "batched", "loss": "soft_l1", "f_scale_mrad": 1.0, "robust_start": "auto"}
+
+
+def coarse_fit_options(workdir: str | Path) -> dict:
+    """The solver, loss, ``f_scale_mrad`` and robust start ``fit-coarse`` used in ``workdir``
+    (from coarse_params.parquet's provenance), as keyword arguments of :func:`fit_presets`."""
+    from .artifacts import read_provenance
+
+    recorded = read_provenance(artifact_path(workdir, COARSE_PARAMS)).get("options") or {}
+    return {k: recorded.get(k, default) for k, default in FIT_OPTIONS.items()}
 
 
 def _fit_task(task) -> list[tuple]:
