@@ -180,12 +180,16 @@ def describe_workdir(workdir: str | Path) -> dict:
                                              "inputs")}
                          | {"schema_version": d["provenance"].get("schema_version")})
     leftovers = sorted(str(p) for p in workdir.glob(".*.tmp-*"))
+    from heliocal.pipeline.hybrid import aim_models
+
     return {
         "workdir": str(workdir),
         "artifacts": artifacts,
         "fresh": all(a["status"] == "fresh" for a in artifacts),
         "not_artifacts": foreign,
         "leftovers": leftovers,
+        "aim_models": [{k: v for k, v in m.items() if k != "model_dir"}
+                       for m in aim_models(workdir).values()],
     }
 
 
@@ -279,6 +283,27 @@ def _print_workdir(d: dict) -> None:
     for p in d["leftovers"]:
         stdout.print(Text(f"leftover of an interrupted write (no stage reads it; safe to delete): "
                           f"{p}"))
+    if d.get("aim_models"):
+        stdout.print(_aim_table(d["aim_models"]))
+
+
+def _mrad(x) -> str:
+    return "-" if x is None or x != x else f"{x:.3f}"
+
+
+def _aim_table(models: list) -> Table:
+    table = Table(title=Text("models `aim --model auto` uses (mean error_mrad)"),
+                  box=box.SIMPLE_HEAD, pad_edge=False)
+    for col in ("heliostat", "model", "weight decay", "chosen by", "validation", "test"):
+        table.add_column(col, justify="right" if col in ("validation", "test", "weight decay")
+                         else "left", no_wrap=True)
+    for m in models:
+        name = (f"coarse {m['preset']}" if m["model"] == "coarse"
+                else f"{m['variant']} on {m['preset']}")
+        wd = "-" if m["weight_decay"] is None else f"{m['weight_decay']:g}"
+        table.add_row(Text(m["heliostat_id"]), Text(name), Text(wd), Text(m["source"]),
+                      Text(_mrad(m["val_error_mrad"])), Text(_mrad(m["test_error_mrad"])))
+    return table
 
 
 # ------------------------------------------------------------------------------------------------

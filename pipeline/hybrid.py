@@ -126,6 +126,7 @@ __all__ = [
     "predictions_frame",
     "run_fit_hybrid",
     "load_model",
+    "aim_models",
     "aim_steps",
 ]
 
@@ -1343,6 +1344,86 @@ def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict,
     return cfg, _state_to_layers(state)
 
 
+def _model_fitted(workdir: Path, mode: str, heliostat_id: str) -> bool:
+    """Whether :func:`load_model` finds a model (both its files)."""
+    d = _model_dir(workdir, mode)
+    return (d / f"{heliostat_id}.json").exists() and (d / f"{heliostat_id}.pt").exists()
+
+
+def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None) -> dict:
+    """Per heliostat the model ``aim --model auto`` uses, and its mean validation and test error.
+
+    The one decision both :func:`aim_steps` and ``heliocal info WORKDIR`` use: the sweep's
+    selection (selection.parquet) where the sweep ran: its coarse model, or its selected hybrid
+    ensemble (``hybrid/selected/``) if that was written; without a selection row for the
+    heliostat, the ``fit-hybrid`` hybrid (``hybrid/hybrid/``) where fitted; otherwise (and when a
+    selected hybrid's files are missing) the coarse model, ``fit-coarse``'s selected preset.
+
+    Returns
+    -------
+    dict heliostat_id -> {``model`` (``coarse`` or ``hybrid``), ``variant`` (``hybrid`` or
+    ``hybrid-octaves`` ...; None for coarse), ``source`` (the stage that chose it: ``sweep``,
+    ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
+    ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
+    such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
+    empty without coarse_params.parquet.
+    """
+    workdir = Path(workdir)
+    if not artifact_path(workdir, COARSE_PARAMS).exists():
+        return {}
+    params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
+                           columns=["heliostat_id", "preset", "selected", "val_error_mrad",
+                                    "test_error_mrad"])
+    coarse = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
+    selection_path = workdir / "selection.parquet"
+    selection = (pd.read_parquet(selection_path).drop_duplicates("heliostat_id")
+                 .set_index("heliostat_id") if selection_path.exists() else None)
+    fit_hybrid_errors = None
+    out = {}
+    for hid in sorted(coarse.index):
+        c = coarse.loc[hid]
+        entry = {"heliostat_id": hid, "model": "coarse", "variant": None, "source": "fit-coarse",
+                 "preset": str(c["preset"]), "weight_decay": None,
+                 "val_error_mrad": float(c["val_error_mrad"]),
+                 "test_error_mrad": float(c["test_error_mrad"]), "model_dir": None}
+        choice = (str(selection.loc[hid, "model"])
+                  if selection is not None and hid in selection.index else None)
+        if choice == "coarse":
+            row = selection.loc[hid]
+            entry.update(source="sweep", val_error_mrad=float(row["coarse_val_error_mrad"]),
+                         test_error_mrad=float(row["coarse_test_error_mrad"]))
+        elif choice is not None and choice.startswith("hybrid"):
+            if _model_fitted(workdir, "selected", hid):
+                row = selection.loc[hid]
+                entry.update(model="hybrid", variant=choice, source="sweep",
+                             weight_decay=float(row["weight_decay"]),
+                             val_error_mrad=float(row["val_error_mrad"]),
+                             test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
+        elif _model_fitted(workdir, "hybrid", hid):
+            cfg = json.loads((_model_dir(workdir, "hybrid") / f"{hid}.json").read_text())
+            if fit_hybrid_errors is None:
+                fit_hybrid_errors = _fit_hybrid_errors(workdir)
+            val, test = fit_hybrid_errors.get(hid, (float("nan"), float("nan")))
+            entry.update(model="hybrid", variant="hybrid", source="fit-hybrid",
+                         weight_decay=float(cfg.get("weight_decay", float("nan"))),
+                         val_error_mrad=val, test_error_mrad=test, model_dir="hybrid")
+        out[hid] = entry
+    return out
+
+
+def _fit_hybrid_errors(workdir: Path) -> dict:
+    """Mean validation and test error_mrad of fit-hybrid's ``hybrid`` mode per heliostat."""
+    if not artifact_path(workdir, HYBRID_PREDICTIONS).exists():
+        return {}
+    p = read_artifact(workdir, HYBRID_PREDICTIONS,
+                      columns=["heliostat_id", "split", "model", "error_mrad"])
+    p = p[p["model"] == "hybrid"]
+    means = p.groupby(["heliostat_id", "split"])["error_mrad"].mean()
+    return {str(h): (float(means.get((h, "validation"), float("nan"))),
+                     float(means.get((h, "test"), float("nan"))))
+            for h in p["heliostat_id"].unique()}
+
+
 def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Tensor) -> FineProblem:
     base = torch.tensor(cfg["base_params"], dtype=torch.float64)
     free = torch.tensor(cfg["free"], dtype=torch.bool)
@@ -1405,21 +1486,11 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     fitted = None
     rerun = None
     if model == "auto":
-        # the sweep's selection wins (the model that is never worse than coarse on validation);
-        # without a sweep: the fit-hybrid model where fitted, else the coarse model
-        selection_path = Path(workdir) / "selection.parquet"
-        choice = None
-        if selection_path.exists():
-            sel_df = pd.read_parquet(selection_path)
-            sel_df = sel_df[sel_df["heliostat_id"] == heliostat_id]
-            choice = str(sel_df["model"].iloc[0]) if len(sel_df) else None
-        if choice == "coarse":
-            fitted = None
-        elif choice is not None and choice.startswith("hybrid"):   # hybrid, hybrid-octaves
-            fitted = load_model(workdir, "selected", heliostat_id)
-            rerun = f"`heliocal sweep --workdir {workdir}`"
-        else:
-            fitted = load_model(workdir, "hybrid", heliostat_id)
+        choice = aim_models(workdir, [heliostat_id]).get(heliostat_id, {})
+        if choice.get("model") == "hybrid":
+            fitted = load_model(workdir, choice["model_dir"], heliostat_id)
+            if choice["source"] == "sweep":
+                rerun = f"`heliocal sweep --workdir {workdir}`"
         chosen = "hybrid" if fitted is not None else "coarse"
     elif model != "coarse":
         fitted = load_model(workdir, model, heliostat_id)
