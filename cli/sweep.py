@@ -1,4 +1,5 @@
-"""``heliocal sweep``: regularization sweep and training-size study, batched per heliostat."""
+"""``heliocal sweep``: the production model selection of every heliostat, and the training-size
+study of a sample of them."""
 
 from __future__ import annotations
 
@@ -11,7 +12,9 @@ from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.hybrid import FineConfig
-from heliocal.pipeline.sweep import OCTAVE_BANDS, run_sweep, weight_decay_grid
+from heliocal.pipeline.hybrid import HYBRID_BATCH_SIZE
+from heliocal.pipeline.sweep import (DEFAULT_STUDY, OCTAVE_BANDS, PathConfig, run_sweep,
+                                     weight_decay_grid)
 
 
 def _ints(text: Optional[str], name: str):
@@ -40,48 +43,78 @@ def _human(summary: dict) -> None:
                       _fmt(s["val_error_mrad"]), _fmt(s["test_error_mrad"]),
                       _fmt(s["coarse_val_error_mrad"]), _fmt(s["coarse_test_error_mrad"]))
     stdout.print(table)
-    stdout.print("mean error_mrad; the coarse model is always a candidate, so the selection is "
-                 "never worse than it on validation.")
+    stdout.print("mean error_mrad; coarse = fit-coarse's selected fit (the same numbers), always a "
+                 "candidate, so the selection is never worse than it on validation.")
+    if summary.get("study_heliostats"):
+        stdout.print(f"training-size study: {', '.join(summary['study_heliostats'])}")
 
 
 @command("sweep")
 def sweep_cmd(
     workdir: Workdir = DEFAULT_WORKDIR,
     n_train: Annotated[Optional[str], typer.Option(
-        help="Training sizes, e.g. 5,10,20,40,60,100 (default: that ladder up to all train rows).")] = None,
+        help="Training sizes of the study, e.g. 5,10,20,40,60,100 (default: that ladder up to "
+             "all train rows).")] = None,
+    study: Annotated[int, typer.Option(
+        min=0, help="Heliostats in the training-size study (a seeded random choice; all if the "
+                    "field has no more; 0: production selection only).")] = DEFAULT_STUDY,
+    study_seed: Annotated[int, typer.Option(
+        min=0, help="Seed of the study's choice of heliostats.")] = 0,
     wd_max: Annotated[float, typer.Option(help="Strongest weight decay.")] = 1.0,
     wd_min: Annotated[float, typer.Option(help="Weakest non-zero weight decay (0 is always added).")] = 1e-6,
     wd_per_decade: Annotated[int, typer.Option(help="Weight decays per decade.")] = 1,
+    warm_start: Annotated[bool, typer.Option(
+        "--warm-start/--no-warm-start",
+        help="Train the weight decays as a path, strong to weak, each starting from the "
+             "previous one's best-validation weights (default); or each from scratch with "
+             "--max-epochs and --patience.")] = PathConfig.warm_start,
+    stage_epochs: Annotated[int, typer.Option(
+        help="Epoch budget of each weight decay with --warm-start.")] = PathConfig.stage_epochs,
+    stage_patience: Annotated[int, typer.Option(
+        help="Early stopping of each weight decay with --warm-start: epochs without a "
+             "validation improvement.")] = PathConfig.stage_patience,
     seeds: Annotated[str, typer.Option(help="Seeds, comma-separated (repeats of every member).")] = "0",
     ensemble: Annotated[int, typer.Option(
         min=1, help="Networks averaged per member (weight decay, seed).")] = FineConfig.ensemble,
     baselines: Annotated[str, typer.Option(
-        help="Neural baselines to include: nn-only, pretrained-nn (comma-separated, or none).")] = "nn-only,pretrained-nn",
+        help="Neural baselines of the study: nn-only, pretrained-nn (comma-separated, or "
+             "none).")] = "nn-only",
     octaves: Annotated[bool, typer.Option(
         "--octaves/--no-octaves", help="Also sweep the hybrid with octave Fourier bands "
                                        "1,2,4,...,32 (model hybrid-octaves) as a candidate.")] = True,
-    max_epochs: Annotated[int, typer.Option(help="Epoch budget of the networks.")] = 800,
+    max_epochs: Annotated[int, typer.Option(
+        help="Epoch budget of a network trained from scratch (--no-warm-start, and the "
+             "nn-only baseline).")] = FineConfig.max_epochs,
+    patience: Annotated[int, typer.Option(
+        help="Early stopping of a network trained from scratch: epochs without a validation "
+             "improvement.")] = FineConfig.patience,
     env: Annotated[Optional[str], typer.Option(help="env_* columns as extra network inputs.")] = None,
     heliostat: Annotated[Optional[list[str]], typer.Option(help="Only these heliostats.")] = None,
+    batch_size: Annotated[int, typer.Option(
+        min=1, help="Heliostats per batched training program of the selection.")] = HYBRID_BATCH_SIZE,
     workers: Workers = None,
     scheduler: Scheduler = "local",
     dask_address: DaskAddress = None,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
-    """Sweep weight decay (strong to zero) and training size for every model, per heliostat."""
-    config = FineConfig(max_epochs=max_epochs, ensemble=ensemble,
+    """Select every heliostat's model (coarse or hybrid) at its full training size; study the
+    training size on a sample of heliostats."""
+    config = FineConfig(max_epochs=max_epochs, patience=patience, ensemble=ensemble,
                         env=tuple(e.strip() for e in env.split(",") if e.strip()) if env else ())
     base = [] if baselines.strip() in ("", "none") else [b.strip() for b in baselines.split(",")]
     for b in base:
         if b not in ("nn-only", "pretrained-nn"):
             raise ParameterError(f"The 'baselines' parameter of sweep must list nn-only and/or "
                                  f"pretrained-nn. Got {b!r} instead.")
+    path = PathConfig(warm_start=warm_start, stage_epochs=stage_epochs,
+                      stage_patience=stage_patience)
     with progress_bar("sweep", quiet) as advance:
         summary = run_sweep(workdir, n_train=_ints(n_train, "n_train"),
                             weight_decays=weight_decay_grid(wd_max, wd_min, wd_per_decade),
                             seeds=_ints(seeds, "seeds"), baselines=tuple(base), config=config,
                             heliostats=heliostat, workers=workers, scheduler=scheduler,
                             dask_address=dask_address, progress=advance,
-                            extra_bands=(OCTAVE_BANDS,) if octaves else ())
+                            extra_bands=(OCTAVE_BANDS,) if octaves else (), study=study,
+                            study_seed=study_seed, path=path, batch_size=batch_size)
     emit(summary, json_, _human)

@@ -1,25 +1,35 @@
-"""``sweep``: the regularization sweep and the training-size study (paper 000, figs. 6, 8, 9a).
+"""``sweep``: the model every heliostat's ``aim`` uses, and the training-size study.
 
-Per heliostat and training size ``n_train`` (the ``n_train`` training rows with the largest kNN
-distance, :func:`heliocal.pipeline.split.restrict_training`):
+Two parts with different purposes:
 
-* every coarse preset is fitted (:func:`heliocal.pipeline.coarse.fit_heliostat`);
-* the hybrid is trained on top of the coarse fit of the heliostat's selected preset, for every
-  weight decay (log-spaced from ``wd_max`` down to ``wd_min``, plus 0) and seed. Each (n_train,
-  weight decay, seed) is an ensemble of ``FineConfig.ensemble`` networks whose deviations are
-  averaged (:func:`heliocal.pipeline.hybrid.ensemble_seeds`); all networks of a heliostat train
-  together as ONE batched torch program (:func:`heliocal.pipeline.hybrid.train_members` with
-  per-member training masks, weight decays, seeds and base parameters);
-* the ``nn-only`` baseline (all n_train and seeds batched the same way, ensembles too) and the
-  paper-002 ``pretrained-nn`` baseline.
+**Production selection** (every heliostat, its full training set, i.e. the ``train`` rows of
+split.parquet that ``fit-coarse`` fitted on). The coarse candidate *is* ``fit-coarse``'s
+selected fit, read from coarse_params.parquet and not refitted: its errors in sweep.parquet and
+selection.parquet are ``fit-coarse``'s, computed from the same predictions
+(coarse_predictions.parquet). The hybrid is trained on top of it, for every Fourier band set
+(:func:`hybrid_variants`), weight decay and seed, each an ensemble of ``FineConfig.ensemble``
+networks whose deviations are averaged (:func:`heliocal.pipeline.hybrid.ensemble_seeds`).
+Heliostats of one kinematic type, actuator type and coarse preset train together, ``batch_size``
+at a time, as one batched torch program per weight decay (as ``fit-hybrid`` does, with
+:func:`heliocal.pipeline.hybrid.stack_problems`); the weight decays are trained along a path
+from strong to weak (:func:`train_path`, :class:`PathConfig`). The selection
+(``selection.parquet``) is the candidate ensemble with the lowest mean validation error, where
+the coarse model is always a candidate, so the selected model is never worse than
+``fit-coarse``'s on validation. A hybrid must beat the coarse model's validation error by
+:data:`MIN_IMPROVEMENT` (20 %, relative) to be chosen; why 20 % is in docs/hybrid.md
+("Selection"). The selected ensemble's weights are written to ``DIR/hybrid/selected/<HID>.pt``
+(+ JSON), in the layout of ``fit-hybrid``, for ``aim`` and ``report``.
 
-The selection (``selection.parquet``) is made at the full training size: the hybrid ensemble
-(weight decay, seed) with the lowest mean validation error, where the coarse model itself is
-always a candidate, so the selected model is never worse than the coarse one on validation. A
-hybrid must beat the coarse model's validation error by :data:`MIN_IMPROVEMENT` (20 %,
-relative) to be chosen; why 20 % and not less is in docs/hybrid.md ("Selection"). The selected
-ensemble's weights are written to ``DIR/hybrid/selected/<HID>.pt`` (+ JSON), in the layout of
-``fit-hybrid``, for ``aim`` and ``report``.
+**Training-size study** (paper 000, figs. 6 and 9a; a seeded sample of ``study`` heliostats,
+:func:`study_heliostats`). Per training size below the full one (the ``n_train`` training rows
+with the largest kNN distance, :func:`heliocal.pipeline.split.restrict_training`) every coarse
+preset is refitted with :func:`heliocal.pipeline.coarse.fit_presets`, the function
+``fit-coarse`` fits with, with the solver and options ``fit-coarse`` recorded in
+coarse_params.parquet and each size its own robust start, so a study point is what
+``fit-coarse`` would give with that many rows. The hybrid of each size trains on that size's
+refit of the selected preset; the ``nn-only`` baseline (all sizes) and the paper-002
+``pretrained-nn`` baseline are trained for the study heliostats only. The full-size hybrid
+points of a study heliostat are its production rows.
 """
 
 from __future__ import annotations
@@ -29,8 +39,9 @@ import json
 import logging
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import pandas as pd
@@ -38,20 +49,22 @@ import torch
 
 from .artifacts import (ArtifactSchema, Column as C, artifact_path, atomic_path, atomic_write_text,
                         check_fresh, file_sha256, read_artifact, write_artifact)
-from .coarse import (AUTO_PRESETS, COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch,
-                     fit_heliostat, load_selected_parameters, normal_errors_mrad, predict)
-from .errors import FitError, check_float, check_int
-from .hybrid import (FineConfig, PretrainConfig, _layers_to_state, build_problem, fit_pretrained,
-                     ensemble_errors_mrad, ensemble_seeds, predict_ensembles, predictions_frame,
-                     train_members)
+from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, coarse_fit_options,
+                     fit_presets, load_selected_parameters, normal_errors_mrad)
+from .errors import FitError, ParameterError, check_float, check_int
+from .hybrid import (HYBRID_BATCH_SIZE, FineConfig, FineProblem, MemberResult, PretrainConfig,
+                     _hybrid_chunks, _layers_to_state, _take_rows, build_problem,
+                     ensemble_errors_mrad, ensemble_seeds, fit_pretrained, predict_ensembles,
+                     predictions_frame, stack_problems, train_members)
 from .kinematics import HeliostatSpec, nominal_parameters
 from .metrics import error_mrad, measured_normal
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
 from .split import SPLIT, restrict_training
 
-__all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder", "weight_decay_grid", "sweep_heliostat",
-           "run_sweep", "hybrid_variants", "OCTAVE_BANDS", "MIN_IMPROVEMENT"]
+__all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder",
+           "weight_decay_grid", "run_sweep", "hybrid_variants", "OCTAVE_BANDS", "MIN_IMPROVEMENT",
+           "PathConfig", "train_path", "study_heliostats", "DEFAULT_STUDY"]
 
 log = logging.getLogger("heliocal.sweep")
 
@@ -59,16 +72,21 @@ SWEEP = ArtifactSchema(
     name="sweep", filename="sweep.parquet", producer="sweep",
     sort_by=("heliostat_id", "model", "n_train", "weight_decay", "seed"),
     description="One row per heliostat, model, training size, weight decay and seed: mean and "
-                "median error_mrad per split (means over the split's rows).",
+                "median error_mrad per split (means over the split's rows). Every heliostat has "
+                "its full-size rows (fit-coarse's presets and the hybrid candidates of the "
+                "selection); the heliostats of the training-size study also smaller sizes and "
+                "the baselines.",
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
-        C("model", "string", "", "Coarse preset name, `hybrid` (the config's Fourier bands), "
-          "`hybrid-octaves` (octave bands), `nn-only` or `pretrained-nn`."),
+        C("model", "string", "", "Coarse preset name (at the full size: fit-coarse's fit of "
+          "it), `hybrid` (the config's Fourier bands), `hybrid-octaves` (octave bands), "
+          "`nn-only` or `pretrained-nn`."),
         C("n_train", "int64", "", "Training rows (largest kNN distance first)."),
         C("weight_decay", "float64", "", "Weight decay of the hybrid (NaN for other models).",
           nullable=True),
         C("seed", "int64", "", "Seed of the network's initial weights (0 for coarse presets)."),
-        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows."),
+        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows (of this "
+          "training size)."),
         C("train_median_error_mrad", "float64", "mrad", "Median error on the training rows."),
         C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows.", nullable=True),
         C("val_median_error_mrad", "float64", "mrad", "Median on validation.", nullable=True),
@@ -77,14 +95,16 @@ SWEEP = ArtifactSchema(
         C("test_train_distance_deg", "float64", "deg", "Mean distance of the test rows to their "
           "nearest training row (sun angles).", nullable=True),
         C("base_preset", "string", "", "Coarse preset under the hybrid / the preset itself."),
-        C("wall_time_s", "float64", "s", "Wall time of this member's share of the training."),
+        C("wall_time_s", "float64", "s", "Wall time of this member's share of the training (0 "
+          "for fit-coarse's fits, which the sweep reads)."),
     ),
 )
 
 SELECTION = ArtifactSchema(
     name="selection", filename="selection.parquet", producer="sweep", sort_by=("heliostat_id",),
-    description="Per heliostat the model used by aim and report: the hybrid member with the best "
-                "validation error at the full training size, or the coarse model if it is better.",
+    description="Per heliostat the model used by aim and report: the hybrid ensemble with the "
+                "best validation error at the full training size if it beats fit-coarse's "
+                "selected preset by 20 % on validation, else that coarse model.",
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
         C("model", "string", "", "`hybrid`, `hybrid-octaves` or `coarse`."),
@@ -94,9 +114,10 @@ SELECTION = ArtifactSchema(
         C("n_train", "int64", "", "Training rows."),
         C("val_error_mrad", "float64", "mrad", "Mean validation error of the selected model."),
         C("test_error_mrad", "float64", "mrad", "Mean test error of the selected model.", nullable=True),
-        C("coarse_val_error_mrad", "float64", "mrad", "Mean validation error of the coarse model."),
-        C("coarse_test_error_mrad", "float64", "mrad", "Mean test error of the coarse model.",
-          nullable=True),
+        C("coarse_val_error_mrad", "float64", "mrad", "Mean validation error of the coarse "
+          "model: fit-coarse's selected preset (the value of coarse_params.parquet)."),
+        C("coarse_test_error_mrad", "float64", "mrad", "Mean test error of the coarse model "
+          "(fit-coarse's, as coarse_params.parquet).", nullable=True),
     ),
 )
 
@@ -169,192 +190,440 @@ def hybrid_variants(config: FineConfig, extra_bands: Sequence[tuple] = (OCTAVE_B
     return out
 
 
-def sweep_heliostat(task) -> dict:
-    """The sweep of one heliostat (a picklable task for :func:`map_tasks`)."""
-    (hid, hrow, rows, split_rows, sizes, presets, base_preset, weight_decays, seeds, config,
-     pretrain_config, baselines, coarse_kwargs, extra_bands) = task
-    hrow = pd.Series(hrow)
-    rows = rows.reset_index(drop=True)
-    spec = HeliostatSpec.from_row(hrow)
-    nominal = nominal_parameters(hrow)
-    data = MeasurementBatch.from_frame(rows)
-    labels_full = rows["split"].to_numpy()
-    out_rows = []
-    # training masks and test distances per size
+# ------------------------------------------------------------------------------------------------
+# training along the weight-decay path
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PathConfig:
+    """How the hybrid's networks are trained along the weight-decay path (strong to weak).
+
+    Attributes
+    ----------
+    warm_start : continuation (default): the first weight decay trains from the seeded initial
+        weights, every later one from the previous weight decay's best-validation weights (its
+        Adam moments are not kept); each trains for at most ``stage_epochs`` epochs and stops
+        after ``stage_patience`` epochs without a validation improvement. ``False``: every
+        weight decay trains from the seeded initial weights with :class:`FineConfig`'s budget
+        (``max_epochs``, ``patience``), independently of the others.
+    stage_epochs, stage_patience : the budget of each weight decay with ``warm_start``.
+
+    Why these defaults: docs/hybrid.md ("Training the path"): on 46 simulated heliostats and
+    the Jülich sample the continuation selects as well as independent trainings (within their
+    seed-to-seed spread) for about a third of the compute.
+    """
+
+    warm_start: bool = True
+    stage_epochs: int = 200
+    stage_patience: int = 50
+
+    def validated(self) -> "PathConfig":
+        check_int(self.stage_epochs, "stage_epochs", "sweep", 0)
+        check_int(self.stage_patience, "stage_patience", "sweep", 1)
+        return self
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _path_order(weight_decays: Sequence[float]) -> list[float]:
+    """The weight decays from strong to weak (0 last), each once."""
+    return sorted({float(w) for w in weight_decays}, reverse=True)
+
+
+def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
+               weight_decays: Sequence[float], config: FineConfig,
+               path: PathConfig = PathConfig()) -> Iterator[tuple[float, MemberResult]]:
+    """Train M networks at every weight decay, strong to weak; yield ``(weight_decay, result)``.
+
+    Each weight decay is one :func:`heliocal.pipeline.hybrid.train_members` program of the M
+    networks (``seeds`` (M,), masks as there). With ``path.warm_start`` the first weight decay
+    starts from the seeded weights and every later one from the previous weight decay's
+    best-validation weights, each with the budget of ``path``; since the start is the epoch-0
+    candidate of the early stopping, a network's validation error never rises along the path.
+    Without warm start every weight decay is an independent training with ``config``'s budget.
+    """
+    previous = None
+    if path.warm_start:
+        config = dataclasses.replace(config, max_epochs=path.stage_epochs,
+                                     patience=path.stage_patience)
+    for wd in _path_order(weight_decays):
+        warm = path.warm_start and previous is not None
+        result = train_members(problem, train_mask, val_mask, [wd] * len(seeds), list(seeds),
+                               config, initial=previous.layers if warm else None)
+        previous = result
+        yield wd, result
+
+
+# ------------------------------------------------------------------------------------------------
+# one heliostat's inputs
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class _Heliostat:
+    """What both parts of the sweep need of one heliostat (built in the worker)."""
+
+    hid: str
+    rows: pd.DataFrame          # its measurements (all splits) with the split label
+    hrow: pd.Series
+    split_rows: pd.DataFrame
+    selected: dict              # fit-coarse's selected fit (load_selected_parameters)
+    coarse: dict                # model -> DataFrame of coarse_predictions metric columns, rows' order
+    coarse_val: float           # fit-coarse's selected preset's mean validation error
+    coarse_test: float          # ... and test error (coarse_params.parquet)
+
+    def __post_init__(self):
+        self.rows = self.rows.reset_index(drop=True)
+        self.hrow = pd.Series(self.hrow)
+        self.labels = self.rows["split"].to_numpy()
+        self.spec = HeliostatSpec.from_row(self.hrow)
+        self.nominal = nominal_parameters(self.hrow)
+        self.data = MeasurementBatch.from_frame(self.rows)
+        self.train = self.labels == "train"
+        self.n_full = int(self.train.sum())
+        test = self.split_rows["split"] == "test"
+        self.test_distance = (float(self.split_rows.loc[test, "nearest_train_distance_deg"].mean())
+                              if test.any() else float("nan"))
+
+
+def _coarse_by_model(pred: pd.DataFrame, rows: pd.DataFrame) -> dict:
+    """coarse_predictions rows of one heliostat per model, in the order of ``rows``."""
+    order = rows["measurement_id"].astype(str).to_numpy()
+    out = {}
+    for model, g in pred.groupby("model", sort=True):
+        out[str(model)] = g.set_index(g["measurement_id"].astype(str)).reindex(order)
+    return out
+
+
+_METRICS = ("error_mrad", "beam_error_mrad", "spot_offset_horizontal_m", "spot_offset_vertical_m",
+            "spot_offset_m")
+
+
+def _sel_frame(h: _Heliostat, metrics: pd.DataFrame) -> pd.DataFrame:
+    """selected_predictions rows of one heliostat from a frame of the metric columns."""
+    out = metrics[list(_METRICS)].reset_index(drop=True).copy()
+    out["measurement_id"] = h.rows["measurement_id"].astype(str).to_numpy()
+    out["heliostat_id"], out["split"] = h.hid, h.labels
+    out["model"], out["selected"] = "selected", True
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# production selection: a chunk of heliostats, full training size
+# ------------------------------------------------------------------------------------------------
+def _select_chunk(items, variants, weight_decays, seeds, path) -> list[dict]:
+    """The full-size candidates and the selection of a chunk of heliostats that share one
+    kinematic type, actuator type and coarse preset (one batched program per weight decay)."""
+    helios = [_Heliostat(*item) for item in items]
+    val_masks = [h.labels == "validation" for h in helios]
+    test_masks = [h.labels == "test" for h in helios]
+    out_rows: list[list[dict]] = [[] for _ in helios]
+    best = []
+    for h, rows in zip(helios, out_rows):
+        # the coarse presets exactly as fit-coarse fitted them (its predictions)
+        for model, frame in h.coarse.items():
+            if model == "nominal":
+                continue
+            rows.append(_row(h.hid, model, h.n_full, float("nan"), 0,
+                             frame["error_mrad"].to_numpy(np.float64), h.labels, h.train,
+                             h.test_distance, model, 0.0))
+        best.append({"model": "coarse", "weight_decay": float("nan"), "seed": 0,
+                     "val": h.coarse_val, "test": h.coarse_test})
+    n_seeds = len(seeds)
+    for kind, cfg in variants:
+        k_ens = cfg.ensemble
+        problems = [build_problem(h.rows, h.hrow, h.selected["params"], h.selected["free"], cfg)
+                    for h in helios]
+        fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
+        taken = [_take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
+        per_h = n_seeds * k_ens           # networks per heliostat: seeds x ensemble
+        stacked, valid = stack_problems([t for t in taken for _ in range(per_h)])
+        n = stacked.data.steps.shape[1]
+        labels_fit = np.array([np.resize(h.labels[f], n) for h, f in zip(helios, fitting)
+                               for _ in range(per_h)])
+        net_seeds = [x for _ in helios for s in seeds for x in ensemble_seeds(s, k_ens)]
+        for wd, result in train_path(stacked, torch.as_tensor(labels_fit == "train") & valid,
+                                     torch.as_tensor(labels_fit == "validation") & valid,
+                                     net_seeds, weight_decays, cfg, path):
+            wall = result.wall_time_s / (len(helios) * n_seeds)
+            for i, (h, problem) in enumerate(zip(helios, problems)):
+                nets = slice(i * per_h, (i + 1) * per_h)
+                layers = [(w[nets], b[nets]) for w, b in result.layers]
+                with torch.no_grad():
+                    err = ensemble_errors_mrad(problem, layers, k_ens).numpy()   # (seeds, N)
+                threshold = h.coarse_val * (1.0 - MIN_IMPROVEMENT)
+                for j, s in enumerate(seeds):
+                    out_rows[i].append(_row(h.hid, kind, h.n_full, wd, s, err[j], h.labels,
+                                            h.train, h.test_distance, h.selected["preset"], wall))
+                    v = _stats(err[j], val_masks[i])[0]
+                    # a hybrid replaces the coarse model only if it is better on validation by
+                    # more than MIN_IMPROVEMENT (relative); see its comment
+                    if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
+                        continue
+                    if best[i]["model"] == "coarse" or v < best[i]["val"]:
+                        ens = slice(j * k_ens, (j + 1) * k_ens)
+                        best[i] = {"model": kind, "weight_decay": wd, "seed": int(s), "val": v,
+                                   "test": _stats(err[j], test_masks[i])[0], "cfg": cfg,
+                                   "problem": problem,
+                                   "layers": [(w[ens].clone(), b[ens].clone()) for w, b in layers]}
+    results = []
+    for h, rows, b in zip(helios, out_rows, best):
+        state = None
+        if b["model"] == "coarse":
+            pred = _sel_frame(h, h.coarse[h.selected["preset"]])
+        else:
+            problem, layers, cfg = b["problem"], b["layers"], b["cfg"]
+            with torch.no_grad():
+                normal, position = predict_ensembles(problem, layers)
+            pred = _sel_frame(h, predictions_frame(problem, normal[0], position[0]))
+            state = {
+                "state": _layers_to_state(layers),
+                "config": {"mode": "hybrid", "heliostat_id": h.hid, "seed": b["seed"],
+                           "weight_decay": float(b["weight_decay"]),
+                           "fine_config": cfg.to_dict(), "encoder": problem.encoder.to_dict(),
+                           "variant": b["model"], "base_params": problem.base.tolist(),
+                           "free": h.selected["free"].tolist(),
+                           "scales": problem.scales.tolist(),
+                           "coarse_preset": h.selected["preset"], "sizes": problem.sizes(cfg),
+                           "path": path.to_dict(), "selected_by": "sweep"}}
+        selection = {"heliostat_id": h.hid, "model": b["model"], "preset": h.selected["preset"],
+                     "weight_decay": b["weight_decay"], "seed": int(b["seed"]),
+                     "n_train": h.n_full, "val_error_mrad": b["val"],
+                     "test_error_mrad": b["test"], "coarse_val_error_mrad": h.coarse_val,
+                     "coarse_test_error_mrad": h.coarse_test}
+        results.append({"rows": rows, "selection": selection, "selected_state": state,
+                        "predictions": pred})
+    return results
+
+
+# ------------------------------------------------------------------------------------------------
+# the training-size study: one heliostat, every size
+# ------------------------------------------------------------------------------------------------
+def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
+                     pretrain_config, baselines, coarse_options) -> dict:
+    """Study rows of one heliostat: every size below the full one (refits with fit-coarse's
+    function and options), and the baselines at every size."""
+    h = _Heliostat(*item)
+    hid, labels = h.hid, h.labels
+    out_rows: list[dict] = []
     masks, dists = {}, {}
-    order = pd.Series(np.arange(len(rows)), index=rows["measurement_id"].to_numpy())
+    order = pd.Series(np.arange(len(h.rows)), index=h.rows["measurement_id"].to_numpy())
     for n in sizes:
-        restricted = restrict_training(split_rows, n)
+        restricted = restrict_training(h.split_rows, n)
         train_ids = restricted.loc[restricted["split"] == "train", "measurement_id"]
-        m = np.zeros(len(rows), bool)
+        m = np.zeros(len(h.rows), bool)
         m[order.loc[train_ids].to_numpy()] = True
         masks[n] = m
         test = restricted["split"] == "test"
-        dists[n] = float(restricted.loc[test, "nearest_train_distance_deg"].mean()) if test.any() else float("nan")
-    # coarse presets per size
-    bases = {}
-    start_cache: dict = {}
-    fitted = tuple(presets) + ((base_preset,) if base_preset not in presets else ())
-    for n in sizes:
-        train = data.subset(masks[n])
-        for preset in fitted:
-            t0 = time.perf_counter()
-            fit = fit_heliostat(spec, nominal, train, preset, start_cache=start_cache, **coarse_kwargs)
-            with torch.no_grad():
-                err = normal_errors_mrad(fit.params, spec, data).numpy()
-            out_rows.append(_row(hid, preset, n, float("nan"), 0, err, labels_full, masks[n],
-                                 dists[n], preset, time.perf_counter() - t0))
-            if preset == base_preset:
-                bases[n] = (fit.params, torch.as_tensor(fit.free))
-    free = bases[sizes[-1]][1]
-    members = [(n, wd, s) for n in sizes for wd in weight_decays for s in seeds]
-    val_mask = labels_full == "validation"
-    selected_state = None
-    k_ens = config.ensemble
-
-    def run_members(kind: str, members, base_of, wds, cfg=config):
-        # every member (n, wd, seed) is an ensemble of K networks: networks k*K .. k*K+K-1
-        nets = [m for m in members for _ in range(k_ens)]
-        base = torch.stack([base_of(n) for n, _, _ in nets]).unsqueeze(-2)  # (M K, 1, 28)
-        problem = build_problem(rows, hrow, bases[sizes[-1]][0], free, cfg)
-        problem.base = base
-        tm = np.stack([masks[n] for n, _, _ in nets])
+        dists[n] = (float(restricted.loc[test, "nearest_train_distance_deg"].mean())
+                    if test.any() else float("nan"))
+    base_preset = h.selected["preset"]
+    small = [n for n in sizes if n < h.n_full]
+    fitted = tuple(dict.fromkeys(tuple(presets) + (base_preset,)))
+    bases = {h.n_full: h.selected["params"]}
+    # coarse presets: each size its own fit-coarse (own robust start); presets fit-coarse did not
+    # fit are fitted at the full size too (its production rows hold those it did)
+    jobs = [(n, fitted) for n in small]
+    missing = tuple(p for p in fitted if p not in h.coarse)
+    if missing:
+        jobs.append((h.n_full, missing))
+    for n, names in jobs:
         t0 = time.perf_counter()
-        result = train_members(problem, tm, val_mask, [w for w in wds for _ in range(k_ens)],
-                               [x for _, _, s in members for x in ensemble_seeds(s, k_ens)], cfg)
-        wall = (time.perf_counter() - t0) / len(members)
-        with torch.no_grad():
-            err = ensemble_errors_mrad(problem, result.layers, k_ens).numpy()
-        for k, (n, wd, s) in enumerate(members):
-            out_rows.append(_row(hid, kind, n, wd if kind.startswith("hybrid") else float("nan"),
-                                 s, err[k], labels_full, masks[n], dists[n], base_preset, wall))
-        return problem, result, err
+        fits = fit_presets([h.spec], [h.nominal], [h.data.subset(masks[n])], names,
+                           **coarse_options)[0]
+        wall = (time.perf_counter() - t0) / len(names)
+        for fit in fits:
+            with torch.no_grad():
+                err = normal_errors_mrad(fit.params, h.spec, h.data).numpy()
+            out_rows.append(_row(hid, fit.preset, n, float("nan"), 0, err, labels, masks[n],
+                                 dists[n], fit.preset, wall))
+            if fit.preset == base_preset and n < h.n_full:
+                bases[n] = fit.params
+    val_mask = labels == "validation"
 
-    # selection at the full training size; the coarse model is a candidate
-    coarse_err = normal_errors_mrad(bases[sizes[-1]][0], spec, data).detach().numpy()
-    coarse_val, coarse_test = _stats(coarse_err, val_mask)[0], _stats(coarse_err, labels_full == "test")[0]
-    best = {"model": "coarse", "weight_decay": float("nan"), "seed": 0, "val": coarse_val,
-            "test": coarse_test}
-    full = [k for k, (n, _, _) in enumerate(members) if n == sizes[-1]]
-    # a hybrid replaces the coarse model only if it is better on validation by more than
-    # MIN_IMPROVEMENT (relative); see its comment
-    threshold = coarse_val * (1.0 - MIN_IMPROVEMENT)
-    # the swept hybrid, once per Fourier band set: one batched program for every (n_train,
-    # weight decay, seed) and ensemble network
-    trained = {}
-    for kind, cfg in hybrid_variants(config, extra_bands):
-        trained[kind] = (cfg, *run_members(kind, members, lambda n: bases[n][0],
-                                           [wd for _, wd, _ in members], cfg))
-        err = trained[kind][3]
-        for k in full:
-            v, t = _stats(err[k], val_mask)[0], _stats(err[k], labels_full == "test")[0]
-            if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
-                continue
-            if best["model"] == "coarse" or v < best["val"]:
-                best = {"model": kind, "weight_decay": members[k][1], "seed": members[k][2],
-                        "val": v, "test": t, "member": k}
-    if best["model"] != "coarse":
-        k = best["member"]
-        cfg, problem, result, _ = trained[best["model"]]
-        nets = slice(k * k_ens, (k + 1) * k_ens)
-        layers = [(w[nets], b[nets]) for w, b in result.layers]
-        selected_state = {
-            "state": _layers_to_state(layers),
-            "config": {"mode": "hybrid", "heliostat_id": hid, "seed": int(members[k][2]),
-                       "weight_decay": float(members[k][1]), "fine_config": cfg.to_dict(),
-                       "encoder": problem.encoder.to_dict(), "variant": best["model"],
-                       "base_params": bases[sizes[-1]][0].tolist(), "free": free.tolist(),
-                       "scales": problem.scales.tolist(), "coarse_preset": base_preset,
-                       "sizes": problem.sizes(cfg), "selected_by": "sweep"}}
-        single = dataclasses.replace(problem, base=problem.base[nets])  # that member's base
-        with torch.no_grad():
-            normal, position = predict_ensembles(single, layers)
-        sel_pred = predictions_frame(problem, normal[0], position[0])
-    else:
-        sel_pred = predict(bases[sizes[-1]][0], spec, data).drop(columns=["measurement_id"])
-    sel_pred["measurement_id"] = rows["measurement_id"].astype(str).to_numpy()
-    sel_pred["heliostat_id"], sel_pred["split"] = hid, labels_full
-    sel_pred["model"], sel_pred["selected"] = "selected", True
-    selection = {"heliostat_id": hid, "model": best["model"], "preset": base_preset,
-                 "weight_decay": best["weight_decay"], "seed": int(best["seed"]),
-                 "n_train": int(sizes[-1]), "val_error_mrad": best["val"],
-                 "test_error_mrad": best["test"], "coarse_val_error_mrad": coarse_val,
-                 "coarse_test_error_mrad": coarse_test}
+    def train(kind, cfg, members, base_of, wds, path_=path):
+        """members (n, seed): ensembles of K networks, trained along the weight-decay path."""
+        k_ens = cfg.ensemble
+        nets = [m for m in members for _ in range(k_ens)]
+        problem = build_problem(h.rows, h.hrow, h.selected["params"], h.selected["free"], cfg)
+        problem.base = torch.stack([base_of(n) for n, _ in nets]).unsqueeze(-2)   # (M K, 1, 28)
+        tm = np.stack([masks[n] for n, _ in nets])
+        seeds_ = [x for _, s in members for x in ensemble_seeds(s, k_ens)]
+        for wd, result in train_path(problem, tm, val_mask, seeds_, wds, cfg, path_):
+            wall = result.wall_time_s / len(members)
+            with torch.no_grad():
+                err = ensemble_errors_mrad(problem, result.layers, k_ens).numpy()
+            for k, (n, s) in enumerate(members):
+                out_rows.append(_row(hid, kind, n, wd if kind.startswith("hybrid") else float("nan"),
+                                     s, err[k], labels, masks[n], dists[n], base_preset, wall))
+
+    members = [(n, s) for n in small for s in seeds]
+    if members:
+        for kind, cfg in variants:
+            train(kind, cfg, members, lambda n: bases[n], weight_decays)
     if "nn-only" in baselines:
-        nn_members = [(n, 0.0, s) for n in sizes for s in seeds]
-        run_members("nn-only", nn_members, lambda n: nominal, [0.0] * len(nn_members))
+        train("nn-only", variants[0][1], [(n, s) for n in sizes for s in seeds],
+              lambda n: h.nominal, [0.0])
     if "pretrained-nn" in baselines:
         for n in sizes:
-            labels = np.where(masks[n], "train", np.where(labels_full == "train", "unused", labels_full))
+            lab = np.where(masks[n], "train", np.where(labels == "train", "unused", labels))
             for s in seeds:
                 t0 = time.perf_counter()
-                _, _, normal, position = fit_pretrained(bases[n][0], spec, hrow, rows, data, labels,
-                                                        int(s), pretrain_config)
+                _, _, normal, position = fit_pretrained(bases[n], h.spec, h.hrow, h.rows, h.data,
+                                                        lab, int(s), pretrain_config)
                 with torch.no_grad():
-                    e = error_mrad(normal, measured_normal(data.sun, position, data.focal_spot)).numpy()
-                out_rows.append(_row(hid, "pretrained-nn", n, float("nan"), s, e, labels_full,
+                    e = error_mrad(normal, measured_normal(h.data.sun, position,
+                                                          h.data.focal_spot)).numpy()
+                out_rows.append(_row(hid, "pretrained-nn", n, float("nan"), s, e, labels,
                                      masks[n], dists[n], base_preset, time.perf_counter() - t0))
-    return {"rows": out_rows, "selection": selection, "selected_state": selected_state,
-            "predictions": sel_pred}
+    return {"rows": out_rows}
+
+
+def _sweep_task(task):
+    """One task of the sweep for :func:`map_tasks`: a production chunk or a study heliostat."""
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    kind, args = task
+    if kind == "select":
+        return _select_chunk(*args)
+    return [_study_heliostat(*args)]
+
+
+# ------------------------------------------------------------------------------------------------
+# the stage
+# ------------------------------------------------------------------------------------------------
+#: Heliostats in the training-size study by default (``--study``): enough for the paper's
+#: figures; the production selection covers every heliostat.
+DEFAULT_STUDY = 10
+
+
+def study_heliostats(ids: Sequence[str], study: int | Sequence[str] | None,
+                     seed: int = 0) -> list[str]:
+    """The heliostats of the training-size study: ``study`` ids given, or a seeded random choice
+    of ``study`` of ``ids`` (all of them when there are no more; ``None``: all; 0: none)."""
+    ids = sorted(ids)
+    if study is None:
+        return ids
+    if not isinstance(study, (int, np.integer)):
+        chosen = sorted(set(str(h) for h in study))
+        unknown = [h for h in chosen if h not in ids]
+        if unknown:
+            raise ParameterError(f"The 'study' parameter of sweep must name heliostats of the "
+                                 f"sweep. Got {unknown!r} instead.")
+        return chosen
+    k = check_int(study, "study", "sweep", 0)
+    if k >= len(ids):
+        return ids
+    rng = np.random.default_rng(check_int(seed, "study_seed", "sweep", 0))
+    return sorted(rng.choice(np.array(ids, dtype=object), size=k, replace=False).tolist())
 
 
 def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               weight_decays: Sequence[float] | None = None, seeds: Sequence[int] = (0,),
-              presets: Sequence[str] = AUTO_PRESETS, baselines: Sequence[str] = ("nn-only", "pretrained-nn"),
+              presets: Sequence[str] | None = None, baselines: Sequence[str] = ("nn-only",),
               config: FineConfig | None = None, pretrain_config: PretrainConfig | None = None,
               heliostats: Sequence[str] | None = None, workers: int | None = 1,
               scheduler: str = "local", dask_address: str | None = None, progress=None,
-              extra_bands: Sequence[Sequence[float]] = (OCTAVE_BANDS,)) -> dict:
-    """The ``sweep`` stage: write sweep.parquet and selection.parquet, return a summary.
+              extra_bands: Sequence[Sequence[float]] = (OCTAVE_BANDS,),
+              study: int | Sequence[str] | None = DEFAULT_STUDY, study_seed: int = 0,
+              path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE) -> dict:
+    """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
+    (and ``hybrid/selected/``), return a summary.
 
-    ``extra_bands``: Fourier band sets swept besides ``config.fourier_bands`` (default: the
-    octaves, model ``hybrid-octaves``; see :func:`hybrid_variants`); ``()`` sweeps only the
-    config's bands."""
+    Parameters
+    ----------
+    n_train : training sizes of the study (default :func:`default_ladder`); the full training
+        set is always one of them, and a larger size means the full one.
+    weight_decays : the path (default :func:`weight_decay_grid`), trained strong to weak.
+    seeds : seeds of the ensembles (each ``config.ensemble`` networks).
+    presets : coarse presets refitted in the study (default: those ``fit-coarse`` fitted).
+    baselines : ``nn-only`` and/or ``pretrained-nn``, for the study heliostats.
+    config, pretrain_config : the fine network and the paper-002 baseline.
+    extra_bands : Fourier band sets swept besides ``config.fourier_bands`` (default: the octaves,
+        model ``hybrid-octaves``; see :func:`hybrid_variants`); ``()`` sweeps only the config's.
+    study, study_seed : the study's heliostats (:func:`study_heliostats`); 0 skips the study.
+    path : how the weight-decay path is trained (:class:`PathConfig`).
+    batch_size : heliostats per batched program of the production selection.
+    workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
+    """
     workdir = Path(workdir)
     seeds = [check_int(s, "seeds", "sweep", 0) for s in seeds]
-    weight_decays = list(weight_decays) if weight_decays is not None else weight_decay_grid()
+    if not seeds:
+        raise ParameterError("The 'seeds' parameter of sweep must list at least one seed. Got "
+                             "[] instead.")
+    weight_decays = _path_order(weight_decays if weight_decays is not None
+                                else weight_decay_grid())
     for wd in weight_decays:
         check_float(wd, "weight_decays", "sweep", 0.0, None)
+    if not weight_decays:
+        raise ParameterError("The 'weight_decays' parameter of sweep must list at least one "
+                             "weight decay. Got [] instead.")
+    for b in baselines:
+        if b not in ("nn-only", "pretrained-nn"):
+            raise ParameterError(f"The 'baselines' parameter of sweep must list nn-only and/or "
+                                 f"pretrained-nn. Got {b!r} instead.")
     config = (config or FineConfig()).validated()
     pretrain_config = pretrain_config or PretrainConfig()
+    path = (path or PathConfig()).validated()
+    batch_size = check_int(batch_size, "batch_size", "sweep", 1)
+    variants = hybrid_variants(config, extra_bands)
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
     helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats).set_index("heliostat_id", drop=False)
     check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})
     check_fresh(workdir, COARSE_PARAMS, {"measurements": MEASUREMENTS, "split": SPLIT})
+    check_fresh(workdir, COARSE_PREDICTIONS, {"measurements": MEASUREMENTS, "split": SPLIT})
     split = read_artifact(workdir, SPLIT, heliostats=heliostats)
     selected = load_selected_parameters(workdir, heliostats)
+    coarse_options = coarse_fit_options(workdir)
+    params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
+                           columns=["heliostat_id", "preset", "selected", "val_error_mrad",
+                                    "test_error_mrad"])
+    params = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
+    preds = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats)
+    pred_of = dict(tuple(preds.groupby("heliostat_id", sort=False)))
     merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
                                 on=["heliostat_id", "measurement_id"], how="inner")
-    tasks = []
     rows_of = dict(tuple(merged.groupby("heliostat_id", sort=False)))   # not a scan per heliostat
     split_of = dict(tuple(split.groupby("heliostat_id", sort=False)))
+    items = {}
     for hid in sorted(selected):
-        rows = rows_of.get(hid, merged.iloc[:0])
-        srows = split_of.get(hid, split.iloc[:0])
-        n_avail = int(((srows["split"] == "train") | (srows["split"] == "unused")).sum())
-        if n_avail == 0 or hid not in helio.index:
+        rows = rows_of.get(hid)
+        srows = split_of.get(hid)
+        if rows is None or srows is None or hid not in helio.index or hid not in pred_of:
             continue
-        sizes = sorted({min(int(n), n_avail) for n in n_train}) if n_train else default_ladder(n_avail)
-        for n in sizes:
-            check_int(n, "n_train", "sweep", 2)
-        tasks.append((hid, helio.loc[hid].to_dict(), rows, srows, sizes, tuple(presets),
-                      selected[hid]["preset"], weight_decays, seeds, config, pretrain_config,
-                      tuple(baselines), {"loss": "soft_l1", "robust_start": "auto"},
-                      tuple(extra_bands)))
-    if not tasks:
+        if not (srows["split"] == "train").any():
+            continue
+        items[hid] = (hid, rows, helio.loc[hid].to_dict(), srows, selected[hid],
+                      _coarse_by_model(pred_of[hid], rows),
+                      float(params.loc[hid, "val_error_mrad"]),
+                      float(params.loc[hid, "test_error_mrad"]))
+    if not items:
         raise FitError(f"no heliostat in {workdir} has a coarse fit and training rows; run "
                        f"`heliocal fit-coarse --workdir {workdir}` first")
-    results = map_tasks(sweep_heliostat, tasks, workers=workers, scheduler=scheduler,
-                        dask_address=dask_address,
-                        progress=(lambda d, t: progress(d, t, None)) if progress else None)
+    ids = sorted(items, key=lambda h: (len(items[h][1]), h))
+    chunks = _hybrid_chunks(ids, selected, helio, batch_size)
+    tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path))
+             for chunk in chunks]
+    studied = study_heliostats(list(items), study, study_seed)
+    for hid in studied:
+        n_full = int((items[hid][3]["split"] == "train").sum())
+        sizes = (sorted({min(check_int(n, "n_train", "sweep", 2), n_full) for n in n_train}
+                        | {n_full}) if n_train else default_ladder(n_full))
+        study_presets = tuple(presets) if presets else tuple(
+            m for m in items[hid][5] if m != "nominal")
+        tasks.append(("study", (items[hid], sizes, study_presets, variants, weight_decays, seeds,
+                                path, pretrain_config, tuple(baselines), coarse_options)))
+    parts = map_tasks(_sweep_task, tasks, workers=workers, scheduler=scheduler,
+                      dask_address=dask_address,
+                      progress=(lambda d, t: progress(d, t, None)) if progress else None)
+    results = [r for part in parts for r in part]
+    chosen = sorted((r for r in results if "selection" in r),
+                    key=lambda r: r["selection"]["heliostat_id"])
     rows = [r for res in results for r in res["rows"]]
-    selection = pd.DataFrame([res["selection"] for res in results])
+    selection = pd.DataFrame([res["selection"] for res in chosen])
     inputs = {name: artifact_path(workdir, s) for name, s in
               (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS), ("split", SPLIT),
                ("coarse_params", COARSE_PARAMS))}
     hashes = {k: file_sha256(p) for k, p in inputs.items()}
     out_dir = workdir / "hybrid" / "selected"
-    for res in results:
+    for res in chosen:
         st = res["selected_state"]
         if st is None:
             continue
@@ -364,15 +633,19 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         atomic_write_text(out_dir / f"{hid}.json",
                           json.dumps({**st["config"], "inputs": hashes}, indent=1, sort_keys=True))
     opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
-            "seeds": seeds, "presets": list(presets), "baselines": list(baselines),
-            "extra_bands": [list(b) for b in extra_bands],
-            "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict()}
+            "seeds": seeds, "presets": list(presets) if presets else "fit-coarse's",
+            "baselines": list(baselines), "extra_bands": [list(b) for b in extra_bands],
+            "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict(),
+            "study": study if study is None or isinstance(study, (int, np.integer)) else list(study),
+            "study_seed": study_seed, "study_heliostats": studied, "path": path.to_dict(),
+            "batch_size": batch_size, "coarse_options": coarse_options}
     write_artifact(pd.DataFrame(rows), workdir, SWEEP, stage="sweep", options=opts,
                    seed=seeds[0], inputs=inputs)
     write_artifact(selection, workdir, SELECTION, stage="sweep", options=opts, seed=seeds[0],
                    inputs=inputs)
-    write_artifact(pd.concat([res["predictions"] for res in results], ignore_index=True), workdir,
+    write_artifact(pd.concat([res["predictions"] for res in chosen], ignore_index=True), workdir,
                    SELECTED_PREDICTIONS, stage="sweep", options=opts, seed=seeds[0], inputs=inputs)
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
-            "members_per_heliostat": {t[0]: len(t[4]) * len(weight_decays) * len(seeds)
-                                      * len(hybrid_variants(config, extra_bands)) for t in tasks}}
+            "study_heliostats": studied,
+            "members_per_heliostat": {h: len(weight_decays) * len(seeds) * len(variants)
+                                      for h in sorted(items)}}
