@@ -14,6 +14,7 @@ SOURCES ?= sample_data/juelich/paint
 SEED ?= 0
 PRESET ?= auto
 BASELINES ?= nn-only
+STUDY ?= 10
 
 SOURCE_FILES := $(shell find $(SOURCES) -type f 2>/dev/null)
 CODE := $(shell find pipeline cli -name '*.py' 2>/dev/null)
@@ -98,11 +99,12 @@ $(WORKDIR)/split.parquet: $(WORKDIR)/measurements.parquet
 $(WORKDIR)/coarse_params.parquet $(WORKDIR)/coarse_predictions.parquet &: $(WORKDIR)/split.parquet $(WORKDIR)/heliostats.parquet
 	$(HELIOCAL) fit-coarse --workdir $(WORKDIR) --preset $(PRESET) --quiet
 
-## sweep: weight-decay sweep and training-size study (BASELINES=nn-only,pretrained-nn for both)
+## sweep: every heliostat's model, and the training-size study of STUDY heliostats (default 10;
+##        BASELINES=nn-only,pretrained-nn adds the paper-002 baseline to the study, none drops it)
 sweep: $(WORKDIR)/selection.parquet
 
 $(WORKDIR)/sweep.parquet $(WORKDIR)/selection.parquet $(WORKDIR)/selected_predictions.parquet &: $(WORKDIR)/coarse_params.parquet
-	$(HELIOCAL) sweep --workdir $(WORKDIR) --seeds $(SEED) --baselines $(BASELINES) --quiet
+	$(HELIOCAL) sweep --workdir $(WORKDIR) --seeds $(SEED) --study $(STUDY) --baselines $(BASELINES) --quiet
 
 $(WORKDIR)/report/index.html $(WORKDIR)/report/report.md $(WORKDIR)/report/metrics.json &: $(WORKDIR)/coarse_predictions.parquet $(WORKDIR)/selection.parquet $(wildcard $(WORKDIR)/hybrid_predictions.parquet)
 	$(HELIOCAL) report --workdir $(WORKDIR) --quiet

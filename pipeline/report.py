@@ -455,8 +455,8 @@ def plot_training_size(sweep: pd.DataFrame, heliostat: str,
         return None, "sweep.parquet has no n_train, model or test error column"
     g = sweep[sweep["heliostat_id"].astype(str) == heliostat]
     if g["n_train"].nunique() < 2:
-        return None, (f"the sweep of {heliostat} has a single training size; run the sweep over "
-                      "several --n-train values")
+        return None, (f"the sweep of {heliostat} has a single training size: it is not in the "
+                      "training-size study (`heliocal sweep --study N` samples N heliostats)")
     fig, axes = _figure(7.5, 6.0, 2, 1, sharex=True, height_ratios=(2.2, 1))
     ax, ax2 = axes[0, 0], axes[1, 0]
     for model in sorted(g["model"].astype(str).unique(), key=_model_sort_key):
