@@ -49,8 +49,10 @@ app = typer.Typer(
     rich_markup_mode=None,
 )
 
-stderr = Console(stderr=True, highlight=False, soft_wrap=True)
-stdout = Console(highlight=False, soft_wrap=True)
+# markup=False: text from the data (heliostat ids, target names, paths) is printed as it is,
+# never read as rich markup ("[red]", "[/]" would restyle the terminal or raise).
+stderr = Console(stderr=True, highlight=False, soft_wrap=True, markup=False)
+stdout = Console(highlight=False, soft_wrap=True, markup=False)
 
 DEFAULT_WORKDIR = Path("runs/default")
 

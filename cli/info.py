@@ -29,6 +29,7 @@ from rich.text import Text
 from heliocal.cli.app import JsonFlag, command, emit, stdout
 from heliocal.pipeline.artifacts import SCHEMA_VERSION, file_sha256
 from heliocal.pipeline.errors import InputError, SchemaError
+from heliocal.pipeline.workdir_lock import lock_holder
 
 __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 
@@ -186,6 +187,7 @@ def describe_workdir(workdir: str | Path) -> dict:
         "fresh": all(a["status"] == "fresh" for a in artifacts),
         "not_artifacts": foreign,
         "leftovers": leftovers,
+        "writer": lock_holder(workdir),  # the stage writing it right now, if any (not blocked)
     }
 
 
@@ -279,6 +281,11 @@ def _print_workdir(d: dict) -> None:
     for p in d["leftovers"]:
         stdout.print(Text(f"leftover of an interrupted write (no stage reads it; safe to delete): "
                           f"{p}"))
+    w = d.get("writer")
+    if w is not None:
+        stdout.print(Text(f"being written now by `heliocal {w.get('stage', '?')}` (pid "
+                          f"{w.get('pid', '?')} on {w.get('host', '?')}, started "
+                          f"{w.get('started', '?')}): artifacts may change while you look"))
 
 
 # ------------------------------------------------------------------------------------------------

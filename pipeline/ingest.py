@@ -43,9 +43,11 @@ import pyarrow as pa
 from .artifacts import _to_table, artifact_path, artifact_writer, write_artifact
 from .errors import InputError, check_choice, check_float, check_int
 from .geodesy import wgs84_to_enu
-from .schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
+from .schemas import (HELIOSTAT_ID_RULE, HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS,
+                      heliostat_id_problem, suggest_heliostat_id)
 from .spill import SortedSpill
 from .sun import spa_sun_position, sun_vector_enu, wrap_deg
+from .workdir_lock import locks_workdir
 
 __all__ = [
     "SOURCE_KINDS",
@@ -1007,6 +1009,7 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
 
     for col in ("heliostat_id", "measurement_id", "target_name"):
         df[col] = df[col].map(lambda v: v.strip() if isinstance(v, str) else v)
+    df["heliostat_id"] = df["heliostat_id"].map(_id_text)
     # heliostat position: a log row without one inherits its heliostat's (properties or other rows)
     heliostats = dict(st.heliostats)
     if st.kind in ("wgs84-log", "enu-log"):
@@ -1034,6 +1037,7 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
                 *spot_raw]
     for col in required:
         reject(blank(col), "missing_value", f"{col} is empty")
+    _reject_invalid_ids(df["heliostat_id"], reject)
     sun_given = ~blank("sun_azimuth_deg") & ~blank("sun_elevation_deg")
     ts_given = ~blank("timestamp") if "timestamp" in df else pd.Series(False, index=df.index)
     reject(~sun_given & ~ts_given, "missing_value", "sun angles and timestamp are empty")
@@ -1155,6 +1159,32 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
     cols = MEASUREMENTS.column_names()
     kept = kept[cols + env_cols]
     return kept, rejected, heliostats
+
+
+def _id_text(value):
+    """A heliostat id as text: a Parquet log's integer ids become their digits; missing stays."""
+    if isinstance(value, (bool, np.bool_)) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)) and math.isnan(value):
+        return value
+    return str(value)
+
+
+def _reject_invalid_ids(ids: pd.Series, reject) -> None:
+    """Reject rows whose heliostat id is not a safe file name (invalid_heliostat_id): the detail
+    names the problem and a valid id to rename it to."""
+    problems = {h: heliostat_id_problem(h) for h in ids.dropna().unique() if h != ""}
+    bad = {h: p for h, p in problems.items() if p is not None}
+    if not bad:
+        return
+    detail = {h: (f"heliostat id {h!r} cannot be used as a file name ({p}); rename it in the "
+                  f"source to {HELIOSTAT_ID_RULE}, e.g. {suggest_heliostat_id(h)!r}")
+              for h, p in bad.items()}
+    mask = ids.map(lambda h: h in bad if isinstance(h, str) else False).astype(bool)
+    reject(mask, "invalid_heliostat_id",
+           ids.map(lambda h: detail.get(h) if isinstance(h, str) else None))
 
 
 def _parse_timestamps(values: pd.Series, timezone: str | None):
@@ -1638,6 +1668,7 @@ class _RejectedSink:
             yield table.drop_columns([self._KEY]).to_pandas()
 
 
+@locks_workdir("ingest")
 def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                options: IngestOptions | None = None, batch_rows: int = DEFAULT_BATCH_ROWS) -> dict:
     """The ``ingest`` stage: read ``sources``, write the three artifacts into ``workdir``.
@@ -1698,4 +1729,13 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                     len(info["heliostats_with_default_geometry"]))
     for src, cols in info["ignored_columns"].items():
         log.info("%s: columns not used: %s", src, ", ".join(cols))
+    if info["rejected_by_reason"].get("invalid_heliostat_id"):
+        log.warning("%s", invalid_id_message(info["rejected_by_reason"]["invalid_heliostat_id"]))
     return info
+
+
+def invalid_id_message(n: int) -> str:
+    """One line for the summary: rows rejected for their heliostat id and how to fix them."""
+    return (f"{n} rows rejected as invalid_heliostat_id: heliostat ids must be {HELIOSTAT_ID_RULE} "
+            "(they become file names); rename them in the source (rejected.parquet's detail "
+            "suggests a name) and rerun ingest")

@@ -37,7 +37,7 @@ import pandas as pd
 import torch
 
 from .artifacts import (ArtifactSchema, Column as C, artifact_path, atomic_path, atomic_write_text,
-                        check_fresh, file_sha256, read_artifact, write_artifact)
+                        check_fresh, file_sha256, read_artifact, safe_child, write_artifact)
 from .coarse import (AUTO_PRESETS, COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch,
                      fit_heliostat, load_selected_parameters, normal_errors_mrad, predict)
 from .errors import FitError, check_float, check_int
@@ -49,6 +49,7 @@ from .metrics import error_mrad, measured_normal
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
 from .split import SPLIT, restrict_training
+from .workdir_lock import locks_workdir
 
 __all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder", "weight_decay_grid", "sweep_heliostat",
            "run_sweep", "hybrid_variants", "OCTAVE_BANDS", "MIN_IMPROVEMENT"]
@@ -298,6 +299,7 @@ def sweep_heliostat(task) -> dict:
             "predictions": sel_pred}
 
 
+@locks_workdir("sweep")
 def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               weight_decays: Sequence[float] | None = None, seeds: Sequence[int] = (0,),
               presets: Sequence[str] = AUTO_PRESETS, baselines: Sequence[str] = ("nn-only", "pretrained-nn"),
@@ -359,9 +361,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         if st is None:
             continue
         hid = st["config"]["heliostat_id"]
-        with atomic_path(out_dir / f"{hid}.pt") as tmp:
+        with atomic_path(safe_child(out_dir, f"{hid}.pt")) as tmp:
             torch.save(st["state"], tmp)
-        atomic_write_text(out_dir / f"{hid}.json",
+        atomic_write_text(safe_child(out_dir, f"{hid}.json"),
                           json.dumps({**st["config"], "inputs": hashes}, indent=1, sort_keys=True))
     opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
             "seeds": seeds, "presets": list(presets), "baselines": list(baselines),
