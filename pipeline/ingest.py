@@ -14,6 +14,13 @@ Three source kinds are detected automatically (:func:`detect_source`):
 ``enu-log``
     A flat CSV or Parquet log already in local ENU metres (``focal_spot_e_m`` ...), with the
     heliostat properties (and targets) from a small CSV or TOML file (``--properties``).
+``simulate``
+    A folder written by ``heliocal simulate`` (it holds the simulator's ``ground_truth.json``): read
+    as its logs, each with the folder's own properties (:func:`simulate_sources`).
+
+Heliostat ids become file names later (``hybrid/<mode>/<id>.pt``, report figures), so a row whose
+id does not match :data:`~heliocal.pipeline.schemas.HELIOSTAT_ID_RE` is rejected
+(``invalid_heliostat_id``, with a suggested new name).
 
 Nothing is lost: every input row ends in ``measurements.parquet`` or, with a reason, in
 ``rejected.parquet``. A source that cannot be read at all raises :class:`InputError` (one line
@@ -32,7 +39,7 @@ import re
 import shutil
 import tempfile
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
@@ -54,6 +61,7 @@ __all__ = [
     "IngestOptions",
     "Tower",
     "detect_source",
+    "simulate_sources",
     "find_tower_file",
     "read_tower",
     "read_paint_properties",
@@ -65,7 +73,7 @@ __all__ = [
 
 log = logging.getLogger("heliocal.ingest")
 
-SOURCE_KINDS = ("paint", "wgs84-log", "enu-log")
+SOURCE_KINDS = ("paint", "wgs84-log", "enu-log", "simulate")
 TOWER_FILENAME = "tower-measurements.json"
 TIMESTAMPS_FILENAME = "timestamps.json"
 _CALIB_RE = re.compile(r"^(?P<id>[^-_]+)[-_]calibration[-_]properties\.json$")
@@ -173,6 +181,8 @@ def detect_source(path: str | os.PathLike) -> str:
     if not path.exists():
         raise InputError(f"{path}: no such file or folder; check the path")
     if path.is_dir():
+        if _is_simulate_folder(path):
+            return "simulate"
         if _is_paint_folder(path):
             return "paint"
         raise InputError(f"{path}: a folder without PAINT heliostat folders (<HID>/calibration/); "
@@ -191,6 +201,74 @@ def detect_source(path: str | os.PathLike) -> str:
                          "comma-separated")
     raise InputError(f"{path}: missing required columns: neither focal_spot_lat/lon/alt (WGS84 "
                      "log) nor focal_spot_e_m/n_m/u_m (ENU log); see README 'Input formats'")
+
+
+#: What ``heliocal simulate`` writes into its output folder (see :func:`simulate_sources`).
+_SIMULATE_MARKER = "ground_truth.json"
+
+
+def _is_simulate_folder(path: Path) -> bool:
+    marker = path / _SIMULATE_MARKER
+    if not marker.is_file():
+        return False
+    try:
+        generator = json.loads(marker.read_text(encoding="utf-8")).get("generator", "")
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return False
+    return isinstance(generator, str) and generator.startswith("heliocal")
+
+
+def simulate_sources(folder: str | os.PathLike,
+                     options: IngestOptions) -> list[tuple[Path, IngestOptions]]:
+    """The sources of a ``heliocal simulate`` output folder, each with its own options.
+
+    The folder holds every simulated measurement once per kinematic type: Jülich-type heliostats
+    in ``calibration_log.csv`` (a WGS84 log with the env column ``temperature``; the same
+    measurements are also in ``paint/``, which gives their properties) and az-el heliostats in
+    ``enu_log.csv`` with ``enu_properties.toml`` (sun positions checked against NREL SPA at the
+    plant reference point of ``ground_truth.json`` unless ``--location`` is given). Only these
+    fixed names are read. ``--properties`` is refused: the folder brings its own.
+    """
+    folder = Path(folder)
+    if options.properties is not None:
+        raise InputError(f"{folder}: a heliocal simulate folder brings its own heliostat properties "
+                         "(paint/, enu_properties.toml); drop --properties, or give its logs one "
+                         "by one")
+    out: list[tuple[Path, IngestOptions]] = []
+    log_csv, paint, enu_log, enu_props = (folder / "calibration_log.csv", folder / "paint",
+                                          folder / "enu_log.csv", folder / "enu_properties.toml")
+    if log_csv.is_file():
+        out.append((log_csv, replace(options, properties=paint if paint.is_dir() else None)))
+    elif paint.is_dir():
+        out.append((paint, options))
+    if enu_log.is_file():
+        if not enu_props.is_file():
+            raise InputError(f"{folder}: enu_log.csv without enu_properties.toml; rerun `heliocal "
+                             "simulate` into an empty folder")
+        location = options.location
+        if location is None:
+            ref = _load_json(folder / _SIMULATE_MARKER, "the ground truth").get("reference_wgs84")
+            if isinstance(ref, list) and len(ref) == 3 and all(
+                    isinstance(x, (int, float)) for x in ref):
+                location = tuple(float(x) for x in ref)
+        out.append((enu_log, replace(options, properties=enu_props, location=location)))
+    if not out:
+        raise InputError(f"{folder}: a heliocal simulate folder without calibration_log.csv, "
+                         "paint/ or enu_log.csv; rerun `heliocal simulate` into an empty folder")
+    return out
+
+
+def _expand_sources(sources: Sequence[Path],
+                    options: IngestOptions) -> list[tuple[Path, IngestOptions]]:
+    """Every source with its options; a simulate folder becomes its logs
+    (:func:`simulate_sources`)."""
+    out = []
+    for path in sources:
+        if path.is_dir() and _is_simulate_folder(path):
+            out += simulate_sources(path, options)
+        else:
+            out.append((path, options))
+    return out
 
 
 def _guess_delimiter(header: str) -> str:
@@ -1484,7 +1562,8 @@ class _IngestRun:
     def __init__(self, sources: Sequence[Path], opts: IngestOptions, batch_rows: int | None,
                  spill_dir: Path | None):
         self.opts = opts
-        self.sources = [_Source(i, p, opts, batch_rows, spill_dir) for i, p in enumerate(sources)]
+        self.sources = [_Source(i, p, o, batch_rows, spill_dir)
+                        for i, (p, o) in enumerate(_expand_sources(sources, opts))]
         env: dict[str, bool] = {}
         for s in self.sources:  # first appearance order, as pandas concatenated the sources
             for name, integer in s.env.items():
