@@ -380,6 +380,8 @@ def read_paint_properties(path: Path, reference) -> dict:
         if len(actuators) != 2:
             raise ValueError(f"{len(actuators)} actuators, expected 2")
         orientation = [float(x) for x in data.get("initial_orientation", (0.0, -1.0, 0.0))]
+        if len(orientation) != 3:
+            raise ValueError(f"initial_orientation has {len(orientation)} components, expected 3")
         e, n, u = wgs84_to_enu(lat, lon, alt, reference)
         row = {
             "heliostat_id": hid, "kinematic_type": "juelich",
@@ -393,7 +395,7 @@ def read_paint_properties(path: Path, reference) -> dict:
         types = {str(act.get("type_axis", "linear")).lower() for act in actuators}
         if types != {"linear"}:
             raise ValueError(f"actuator types {sorted(types)}; PAINT heliostats have linear actuators")
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
         raise InputError(f"{path}: malformed heliostat properties ({_short(exc)}); restore the "
                          "original PAINT file or remove the heliostat's folder") from exc
     row.update(actuator_type="linear", primary_axis_e=np.nan, primary_axis_n=np.nan,
@@ -521,6 +523,10 @@ def _stage_paint(folder: Path, opts: IngestOptions) -> _Staged:
     for cand in [folder, *folder.resolve().parents][:3]:
         if (cand / TIMESTAMPS_FILENAME).is_file():
             stamps = _load_json(cand / TIMESTAMPS_FILENAME, "the timestamps map")
+            if not isinstance(stamps, dict):
+                raise InputError(f"{cand / TIMESTAMPS_FILENAME}: the timestamps map is not a JSON "
+                                 'object {"<HID>_<id>": "<UTC time>", ...}; restore the original '
+                                 "file")
             break
     helio_dirs = [folder] if (folder / "calibration").is_dir() or any(
         folder.glob("*-heliostat-properties.json")) else sorted(p for p in folder.iterdir() if p.is_dir())
@@ -557,6 +563,11 @@ def _stage_paint(folder: Path, opts: IngestOptions) -> _Staged:
                 continue
             if not props_ok:
                 rec["_reject"] = ("unknown_heliostat", f"no properties file {prop}")
+            for key in ("motor_position", "focal_spot"):
+                if not isinstance(data.get(key) or {}, dict):
+                    rec["_reject"] = rec["_reject"] or (
+                        "malformed_file", f"{key} is a {type(data[key]).__name__}, not an object")
+                    data[key] = {}
             motor = data.get("motor_position") or {}
             rec["axis_1_steps"] = motor.get("axis_1_motor_position")
             rec["axis_2_steps"] = motor.get("axis_2_motor_position")
@@ -590,6 +601,8 @@ def _stage_paint(folder: Path, opts: IngestOptions) -> _Staged:
         frame.loc[has, "focal_spot_e_m"], frame.loc[has, "focal_spot_n_m"] = e, n
         frame.loc[has, "focal_spot_u_m"] = u
     frame = frame.drop(columns=["_spot_wgs84"], errors="ignore")
+    for a in "enu":  # missing (unknown_heliostat) unless the heliostat has a properties file
+        frame[f"heliostat_{a}_m"] = np.nan
     for hid, row in heliostats.items():
         sel = frame["heliostat_id"] == hid
         for a in "enu":
