@@ -1585,6 +1585,7 @@ class _IngestRun:
             env[name] = env[name] and all(name in s.env for s in self.sources)
         self.env_integer = env
         self.columns = MEASUREMENTS.column_names() + list(env)
+        self.invalid_id_example: str | None = None  # detail of the first invalid_heliostat_id row
 
     def extra_types(self) -> dict:
         types = {"qa_sun_spa_diff_deg": pa.float64(), "qa_sun_mismatch": pa.bool_()}
@@ -1612,6 +1613,9 @@ class _IngestRun:
             n_rejected += len(df)
             for reason, n in df["reason"].value_counts().items():
                 reasons[reason] = reasons.get(reason, 0) + int(n)
+            bad_id = df["reason"] == "invalid_heliostat_id"
+            if self.invalid_id_example is None and bad_id.any():
+                self.invalid_id_example = str(df.loc[bad_id, "detail"].iloc[0])
             if len(df):
                 on_rejected(df)
 
@@ -1798,8 +1802,10 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                            helio.append, rejected.add)
         if info["kept"] == 0:
             reasons = ", ".join(f"{k}: {v}" for k, v in info["rejected_by_reason"].items())
+            how = (f": {run.invalid_id_example}" if run.invalid_id_example
+                   else "; see the reasons and fix the source")
             raise InputError(f"no measurement of {', '.join(map(str, sources))} could be kept "
-                             f"({reasons}); see the reasons and fix the source")
+                             f"({reasons}){how}")
         if rejected.spilled:
             with artifact_writer(workdir, REJECTED, **prov) as writer:
                 for chunk in rejected.chunks():

@@ -140,6 +140,25 @@ def test_suggested_id_is_valid_and_a_safe_file_name(tmp_path_factory, hid):
 GOOD = Path(__file__).resolve().parent / "data" / "good"
 
 
+def test_log_of_only_traversal_ids_is_refused_saying_how_to_rename(runner, tmp_path):
+    """The issue's case: every row of a CSV log has the id ../../../tmp/x/pwned (before: 'rows
+    read 10, kept 10' and files written outside the workdir by later stages)."""
+    text = (GOOD / "juelich_log_small.csv").read_text()
+    lines = text.splitlines()
+    (tmp_path / "log.csv").write_text("\n".join([lines[0]] + [TRAVERSAL + l[l.index(","):]
+                                                             for l in lines[1:]]) + "\n")
+    (tmp_path / "tower-measurements.json").write_text((GOOD / "tower-measurements.json").read_text())
+    wd = tmp_path / "deep" / "wd"
+    result = runner.invoke(app, ["ingest", str(tmp_path / "log.csv"), "--workdir", str(wd)])
+    assert result.exit_code == 1
+    assert result.stderr.splitlines() == [
+        f"Error: no measurement of {tmp_path / 'log.csv'} could be kept (invalid_heliostat_id: 10): "
+        f"heliostat id '{TRAVERSAL}' cannot be used as a file name (it starts with '.'); rename it "
+        "in the source to 1-64 ASCII letters, digits, '_', '-' or '.', starting with a letter, "
+        "digit or '_', e.g. 'tmp_x_pwned'"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log.csv", "tower-measurements.json"]
+
+
 def test_paint_folder_named_like_markup_is_rejected_by_id(tmp_path):
     """A PAINT heliostat folder whose name is not a valid id: its rows are rejected, the
     properties file is still read (the folder is legitimate otherwise)."""
