@@ -4,6 +4,9 @@ The CLI is a thin skin over :mod:`heliocal.pipeline`: a command parses options, 
 library function, and formats the result. Results go to stdout (``--json`` for machines),
 progress and logs to stderr. A :class:`~heliocal.pipeline.errors.HeliocalError` becomes one line
 ``Error: <message>`` on stderr with exit code 1; usage errors exit with 2 (typer's default).
+SIGINT (Ctrl-C) and SIGTERM stop a command cleanly: its worker processes are stopped, no artifact
+is half-written (writes are atomic), and it exits with 130 or 143 (128 + the signal number) after
+one ``Error: ...`` line.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import functools
 import json
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Annotated, Any, Callable, Optional
@@ -49,8 +53,10 @@ app = typer.Typer(
     rich_markup_mode=None,
 )
 
-stderr = Console(stderr=True, highlight=False, soft_wrap=True)
-stdout = Console(highlight=False, soft_wrap=True)
+# markup=False: text from the data (heliostat ids, target names, paths) is printed as it is,
+# never read as rich markup ("[red]", "[/]" would restyle the terminal or raise).
+stderr = Console(stderr=True, highlight=False, soft_wrap=True, markup=False)
+stdout = Console(highlight=False, soft_wrap=True, markup=False)
 
 DEFAULT_WORKDIR = Path("runs/default")
 
@@ -82,20 +88,52 @@ def _setup_logging(quiet: bool) -> None:
     root.propagate = False
 
 
+class Terminated(BaseException):
+    """Raised in the main thread by SIGTERM while a command runs (a BaseException like
+    KeyboardInterrupt, so that cleanup code runs and no ``except Exception`` swallows it)."""
+
+
+INTERRUPTED = ("artifacts written so far are complete, the interrupted one was not replaced, and "
+               "no worker process is left running")
+
+
+@contextlib.contextmanager
+def _sigterm_raises():
+    """While a command runs, SIGTERM raises :class:`Terminated` in the main thread (once: a second
+    SIGTERM during the cleanup is ignored so that the workers are still stopped)."""
+
+    def handler(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise Terminated()
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def command(name: str, **kwargs) -> Callable:
-    """Register a subcommand that turns :class:`HeliocalError` into one stderr line and exit 1."""
+    """Register a subcommand that turns :class:`HeliocalError` into one stderr line and exit 1,
+    and SIGINT / SIGTERM into one line and exit 130 / 143."""
 
     def decorator(func: Callable) -> Callable:
         @functools.wraps(func)
         def wrapper(*args, **kw):
             _setup_logging(bool(kw.get("quiet", False)))
             try:
-                return func(*args, **kw)
+                with _sigterm_raises():
+                    return func(*args, **kw)
             except HeliocalError as exc:
                 fail(str(exc))
             except KeyboardInterrupt:
-                fail("interrupted; artifacts written so far are complete, the interrupted one was "
-                     "not replaced", code=130)
+                fail(f"interrupted (SIGINT); {INTERRUPTED}", code=130)
+            except Terminated:
+                fail(f"terminated (SIGTERM); {INTERRUPTED}", code=128 + signal.SIGTERM)
 
         return app.command(name, **kwargs)(wrapper)
 

@@ -29,6 +29,7 @@ from rich.text import Text
 from heliocal.cli.app import JsonFlag, command, emit, stdout
 from heliocal.pipeline.artifacts import SCHEMA_VERSION, file_sha256
 from heliocal.pipeline.errors import InputError, SchemaError
+from heliocal.pipeline.workdir_lock import lock_holder
 
 __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 
@@ -190,6 +191,7 @@ def describe_workdir(workdir: str | Path) -> dict:
         "leftovers": leftovers,
         "aim_models": [{k: v for k, v in m.items() if k != "model_dir"}
                        for m in aim_models(workdir).values()],
+        "writer": lock_holder(workdir),  # the stage writing it right now, if any (not blocked)
     }
 
 
@@ -283,6 +285,11 @@ def _print_workdir(d: dict) -> None:
     for p in d["leftovers"]:
         stdout.print(Text(f"leftover of an interrupted write (no stage reads it; safe to delete): "
                           f"{p}"))
+    w = d.get("writer")
+    if w is not None:
+        stdout.print(Text(f"being written now by `heliocal {w.get('stage', '?')}` (pid "
+                          f"{w.get('pid', '?')} on {w.get('host', '?')}, started "
+                          f"{w.get('started', '?')}): artifacts may change while you look"))
     if d.get("aim_models"):
         stdout.print(_aim_table(d["aim_models"]))
 

@@ -10,7 +10,8 @@ from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.ingest import DEFAULT_BATCH_ROWS, IngestOptions, run_ingest
+from heliocal.pipeline.ingest import (DEFAULT_BATCH_ROWS, IngestOptions, invalid_id_message,
+                                      run_ingest)
 
 
 def _parse_location(text: Optional[str]):
@@ -35,6 +36,8 @@ def _human(summary: dict) -> None:
                  f"rejected {summary['rejected']}")
     for reason, n in summary["rejected_by_reason"].items():
         stdout.print(f"  rejected {reason}: {n}")
+    if summary["rejected_by_reason"].get("invalid_heliostat_id"):
+        stdout.print(invalid_id_message(summary["rejected_by_reason"]["invalid_heliostat_id"]))
 
 
 @command("ingest")

@@ -26,8 +26,9 @@ def main() -> None:
     except SystemExit:
         raise
     except KeyboardInterrupt:
-        print("Error: interrupted; artifacts written so far are complete, the interrupted one "
-              "was not replaced", file=sys.stderr)
+        from heliocal.cli.app import INTERRUPTED
+
+        print(f"Error: interrupted (SIGINT); {INTERRUPTED}", file=sys.stderr)
         sys.exit(130)
     except Exception as exc:  # noqa: BLE001 - the last line of defence against tracebacks
         if debug_enabled():

@@ -33,7 +33,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from . import __version__
-from .errors import SchemaError, StageInputError
+from .errors import SchemaError, StageInputError, UnsafePathError
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -51,6 +51,8 @@ __all__ = [
     "check_fresh",
     "artifact_path",
     "git_revision",
+    "safe_child",
+    "MAX_NAME_BYTES",
 ]
 
 #: Version of the artifact layout. Bump when a column changes meaning or a required one is added.
@@ -117,6 +119,55 @@ class ArtifactSchema:
 def artifact_path(workdir: str | os.PathLike, schema: ArtifactSchema) -> Path:
     """Path of ``schema``'s artifact inside ``workdir``."""
     return Path(workdir) / schema.filename
+
+
+#: Longest file name (bytes of its UTF-8 encoding) that common file systems accept (NAME_MAX).
+MAX_NAME_BYTES = 255
+
+
+def safe_child(directory: str | os.PathLike, name: str) -> Path:
+    """``directory / name`` for a file name that comes from the data (a heliostat id, say).
+
+    Every writer and reader that puts a data value into a path goes through here, so that no
+    value can reach a file outside its folder, whatever ingest let through. Refused, with
+    :class:`~heliocal.pipeline.errors.UnsafePathError`: a non-string or empty name; ``.``, ``..``
+    and any name starting with ``.`` (hidden: the prefix of heliocal's temporary files); ``/`` or
+    ``\\`` anywhere (so no absolute path and no sub-folder); NUL and other control characters;
+    names longer than :data:`MAX_NAME_BYTES` bytes in UTF-8; and a name whose resolved path
+    (symbolic links followed) is not directly inside ``directory``.
+
+    Returns the path unresolved (``Path(directory) / name``).
+    """
+    why = _unsafe_name_reason(name)
+    if why is None:
+        folder = Path(directory)
+        path = folder / name
+        if path.resolve().parent != folder.resolve():
+            why = "it resolves outside the folder (a symbolic link?)"
+    if why is not None:
+        raise UnsafePathError(
+            f"{name!r} cannot be used as a file name in {directory}: {why}; names taken from the "
+            "data must be plain file names (heliostat ids: letters, digits, '_', '-', '.', see "
+            "docs/input_formats.md; rerun `heliocal ingest`, which rejects other ids)")
+    return path
+
+
+def _unsafe_name_reason(name) -> str | None:
+    if not isinstance(name, str):
+        return f"it is a {type(name).__name__}, not text"
+    if not name:
+        return "it is empty"
+    if name in (".", ".."):
+        return "it names the folder itself or its parent"
+    if name.startswith("."):
+        return "it starts with '.' (hidden)"
+    if "/" in name or "\\" in name:
+        return "it contains a path separator"
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        return "it contains a control character"
+    if len(name.encode("utf-8", "surrogatepass")) > MAX_NAME_BYTES:
+        return f"it is longer than {MAX_NAME_BYTES} bytes"
+    return None
 
 
 # --------------------------------------------------------------------------------------------

@@ -50,6 +50,7 @@ from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRES
                          preset_mask)
 from .metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
 from .schemas import HELIOSTATS, MEASUREMENTS
+from .workdir_lock import locks_workdir
 
 __all__ = [
     "COARSE_PARAMS",
@@ -799,6 +800,7 @@ def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
     return chunks
 
 
+@locks_workdir("fit-coarse")
 def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
                    f_scale_mrad: float = 1.0, robust_start: str = "auto",
                    heliostats: Sequence[str] | None = None, progress=None,

@@ -14,6 +14,8 @@ __all__ = [
     "SchemaError",
     "ParameterError",
     "FitError",
+    "WorkdirBusyError",
+    "UnsafePathError",
     "check_choice",
     "check_int",
     "check_float",
@@ -45,6 +47,16 @@ class ParameterError(HeliocalError, ValueError):
 
 class FitError(HeliocalError):
     """A fit could not be carried out (for example no heliostat has enough measurements)."""
+
+
+class WorkdirBusyError(HeliocalError):
+    """Another stage is writing the work directory (see :mod:`heliocal.pipeline.workdir_lock`):
+    the message names it (stage, pid, host, start time) and what to do."""
+
+
+class UnsafePathError(HeliocalError, ValueError):
+    """A name taken from the data cannot be used as a file name inside its folder (see
+    :func:`heliocal.pipeline.artifacts.safe_child`)."""
 
 
 def _param_error(name: str, func: str, must: str, value) -> ParameterError:

@@ -89,7 +89,7 @@ import pandas as pd
 import torch
 
 from .artifacts import (artifact_path, atomic_path, atomic_write_text, check_fresh, file_sha256,
-                        read_artifact, read_provenance, write_artifact)
+                        read_artifact, read_provenance, safe_child, write_artifact)
 from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, _kind, _load_split,
                      load_selected_parameters, metrics_frame, predict)
 from .errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
@@ -101,6 +101,7 @@ from .metrics import error_mrad, measured_normal, reflect
 from .lm import _SPEC_TENSORS, stack_specs
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
+from .workdir_lock import locks_workdir
 
 __all__ = [
     "MODES",
@@ -1250,6 +1251,7 @@ def _hybrid_chunks(ids, selected, helio, batch_size: int):
     return chunks
 
 
+@locks_workdir("fit-hybrid")
 def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: float = 0.0,
                    seed: int = 0, config: FineConfig | None = None,
                    pretrain_config: PretrainConfig | None = None,
@@ -1308,9 +1310,10 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
         cfg["inputs"] = input_hashes
         preds.append(pred)
         summaries.append(summary)
-        with atomic_path(out_dir / f"{hid}.pt") as tmp:
+        with atomic_path(safe_child(out_dir, f"{hid}.pt")) as tmp:
             torch.save(state, tmp)
-        atomic_write_text(out_dir / f"{hid}.json", json.dumps(cfg, indent=1, sort_keys=True))
+        atomic_write_text(safe_child(out_dir, f"{hid}.json"),
+                          json.dumps(cfg, indent=1, sort_keys=True))
     new = pd.concat(preds, ignore_index=True)
     path = artifact_path(workdir, HYBRID_PREDICTIONS)
     if path.exists():
@@ -1336,7 +1339,8 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
 def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict, Layers]:
     """Config dict and weights of a fitted mode for one heliostat (``None`` if not fitted)."""
     d = _model_dir(Path(workdir), mode)
-    cfg_path, state_path = d / f"{heliostat_id}.json", d / f"{heliostat_id}.pt"
+    cfg_path = safe_child(d, f"{heliostat_id}.json")
+    state_path = safe_child(d, f"{heliostat_id}.pt")
     if not (cfg_path.exists() and state_path.exists()):
         return None
     cfg = json.loads(cfg_path.read_text())

@@ -14,6 +14,13 @@ Three source kinds are detected automatically (:func:`detect_source`):
 ``enu-log``
     A flat CSV or Parquet log already in local ENU metres (``focal_spot_e_m`` ...), with the
     heliostat properties (and targets) from a small CSV or TOML file (``--properties``).
+``simulate``
+    A folder written by ``heliocal simulate`` (it holds the simulator's ``ground_truth.json``): read
+    as its logs, each with the folder's own properties (:func:`simulate_sources`).
+
+Heliostat ids become file names later (``hybrid/<mode>/<id>.pt``, report figures), so a row whose
+id does not match :data:`~heliocal.pipeline.schemas.HELIOSTAT_ID_RE` is rejected
+(``invalid_heliostat_id``, with a suggested new name).
 
 Nothing is lost: every input row ends in ``measurements.parquet`` or, with a reason, in
 ``rejected.parquet``. A source that cannot be read at all raises :class:`InputError` (one line
@@ -32,7 +39,7 @@ import re
 import shutil
 import tempfile
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
 
@@ -43,15 +50,18 @@ import pyarrow as pa
 from .artifacts import _to_table, artifact_path, artifact_writer, write_artifact
 from .errors import InputError, check_choice, check_float, check_int
 from .geodesy import wgs84_to_enu
-from .schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
+from .schemas import (HELIOSTAT_ID_RULE, HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS,
+                      heliostat_id_problem, suggest_heliostat_id)
 from .spill import SortedSpill
 from .sun import spa_sun_position, sun_vector_enu, wrap_deg
+from .workdir_lock import locks_workdir
 
 __all__ = [
     "SOURCE_KINDS",
     "IngestOptions",
     "Tower",
     "detect_source",
+    "simulate_sources",
     "find_tower_file",
     "read_tower",
     "read_paint_properties",
@@ -63,7 +73,7 @@ __all__ = [
 
 log = logging.getLogger("heliocal.ingest")
 
-SOURCE_KINDS = ("paint", "wgs84-log", "enu-log")
+SOURCE_KINDS = ("paint", "wgs84-log", "enu-log", "simulate")
 TOWER_FILENAME = "tower-measurements.json"
 TIMESTAMPS_FILENAME = "timestamps.json"
 _CALIB_RE = re.compile(r"^(?P<id>[^-_]+)[-_]calibration[-_]properties\.json$")
@@ -171,6 +181,8 @@ def detect_source(path: str | os.PathLike) -> str:
     if not path.exists():
         raise InputError(f"{path}: no such file or folder; check the path")
     if path.is_dir():
+        if _is_simulate_folder(path):
+            return "simulate"
         if _is_paint_folder(path):
             return "paint"
         raise InputError(f"{path}: a folder without PAINT heliostat folders (<HID>/calibration/); "
@@ -189,6 +201,74 @@ def detect_source(path: str | os.PathLike) -> str:
                          "comma-separated")
     raise InputError(f"{path}: missing required columns: neither focal_spot_lat/lon/alt (WGS84 "
                      "log) nor focal_spot_e_m/n_m/u_m (ENU log); see README 'Input formats'")
+
+
+#: What ``heliocal simulate`` writes into its output folder (see :func:`simulate_sources`).
+_SIMULATE_MARKER = "ground_truth.json"
+
+
+def _is_simulate_folder(path: Path) -> bool:
+    marker = path / _SIMULATE_MARKER
+    if not marker.is_file():
+        return False
+    try:
+        generator = json.loads(marker.read_text(encoding="utf-8")).get("generator", "")
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError):
+        return False
+    return isinstance(generator, str) and generator.startswith("heliocal")
+
+
+def simulate_sources(folder: str | os.PathLike,
+                     options: IngestOptions) -> list[tuple[Path, IngestOptions]]:
+    """The sources of a ``heliocal simulate`` output folder, each with its own options.
+
+    The folder holds every simulated measurement once per kinematic type: Jülich-type heliostats
+    in ``calibration_log.csv`` (a WGS84 log with the env column ``temperature``; the same
+    measurements are also in ``paint/``, which gives their properties) and az-el heliostats in
+    ``enu_log.csv`` with ``enu_properties.toml`` (sun positions checked against NREL SPA at the
+    plant reference point of ``ground_truth.json`` unless ``--location`` is given). Only these
+    fixed names are read. ``--properties`` is refused: the folder brings its own.
+    """
+    folder = Path(folder)
+    if options.properties is not None:
+        raise InputError(f"{folder}: a heliocal simulate folder brings its own heliostat properties "
+                         "(paint/, enu_properties.toml); drop --properties, or give its logs one "
+                         "by one")
+    out: list[tuple[Path, IngestOptions]] = []
+    log_csv, paint, enu_log, enu_props = (folder / "calibration_log.csv", folder / "paint",
+                                          folder / "enu_log.csv", folder / "enu_properties.toml")
+    if log_csv.is_file():
+        out.append((log_csv, replace(options, properties=paint if paint.is_dir() else None)))
+    elif paint.is_dir():
+        out.append((paint, options))
+    if enu_log.is_file():
+        if not enu_props.is_file():
+            raise InputError(f"{folder}: enu_log.csv without enu_properties.toml; rerun `heliocal "
+                             "simulate` into an empty folder")
+        location = options.location
+        if location is None:
+            ref = _load_json(folder / _SIMULATE_MARKER, "the ground truth").get("reference_wgs84")
+            if isinstance(ref, list) and len(ref) == 3 and all(
+                    isinstance(x, (int, float)) for x in ref):
+                location = tuple(float(x) for x in ref)
+        out.append((enu_log, replace(options, properties=enu_props, location=location)))
+    if not out:
+        raise InputError(f"{folder}: a heliocal simulate folder without calibration_log.csv, "
+                         "paint/ or enu_log.csv; rerun `heliocal simulate` into an empty folder")
+    return out
+
+
+def _expand_sources(sources: Sequence[Path],
+                    options: IngestOptions) -> list[tuple[Path, IngestOptions]]:
+    """Every source with its options; a simulate folder becomes its logs
+    (:func:`simulate_sources`)."""
+    out = []
+    for path in sources:
+        if path.is_dir() and _is_simulate_folder(path):
+            out += simulate_sources(path, options)
+        else:
+            out.append((path, options))
+    return out
 
 
 def _guess_delimiter(header: str) -> str:
@@ -300,6 +380,8 @@ def read_paint_properties(path: Path, reference) -> dict:
         if len(actuators) != 2:
             raise ValueError(f"{len(actuators)} actuators, expected 2")
         orientation = [float(x) for x in data.get("initial_orientation", (0.0, -1.0, 0.0))]
+        if len(orientation) != 3:
+            raise ValueError(f"initial_orientation has {len(orientation)} components, expected 3")
         e, n, u = wgs84_to_enu(lat, lon, alt, reference)
         row = {
             "heliostat_id": hid, "kinematic_type": "juelich",
@@ -313,7 +395,7 @@ def read_paint_properties(path: Path, reference) -> dict:
         types = {str(act.get("type_axis", "linear")).lower() for act in actuators}
         if types != {"linear"}:
             raise ValueError(f"actuator types {sorted(types)}; PAINT heliostats have linear actuators")
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
         raise InputError(f"{path}: malformed heliostat properties ({_short(exc)}); restore the "
                          "original PAINT file or remove the heliostat's folder") from exc
     row.update(actuator_type="linear", primary_axis_e=np.nan, primary_axis_n=np.nan,
@@ -441,6 +523,10 @@ def _stage_paint(folder: Path, opts: IngestOptions) -> _Staged:
     for cand in [folder, *folder.resolve().parents][:3]:
         if (cand / TIMESTAMPS_FILENAME).is_file():
             stamps = _load_json(cand / TIMESTAMPS_FILENAME, "the timestamps map")
+            if not isinstance(stamps, dict):
+                raise InputError(f"{cand / TIMESTAMPS_FILENAME}: the timestamps map is not a JSON "
+                                 'object {"<HID>_<id>": "<UTC time>", ...}; restore the original '
+                                 "file")
             break
     helio_dirs = [folder] if (folder / "calibration").is_dir() or any(
         folder.glob("*-heliostat-properties.json")) else sorted(p for p in folder.iterdir() if p.is_dir())
@@ -477,6 +563,11 @@ def _stage_paint(folder: Path, opts: IngestOptions) -> _Staged:
                 continue
             if not props_ok:
                 rec["_reject"] = ("unknown_heliostat", f"no properties file {prop}")
+            for key in ("motor_position", "focal_spot"):
+                if not isinstance(data.get(key) or {}, dict):
+                    rec["_reject"] = rec["_reject"] or (
+                        "malformed_file", f"{key} is a {type(data[key]).__name__}, not an object")
+                    data[key] = {}
             motor = data.get("motor_position") or {}
             rec["axis_1_steps"] = motor.get("axis_1_motor_position")
             rec["axis_2_steps"] = motor.get("axis_2_motor_position")
@@ -510,6 +601,8 @@ def _stage_paint(folder: Path, opts: IngestOptions) -> _Staged:
         frame.loc[has, "focal_spot_e_m"], frame.loc[has, "focal_spot_n_m"] = e, n
         frame.loc[has, "focal_spot_u_m"] = u
     frame = frame.drop(columns=["_spot_wgs84"], errors="ignore")
+    for a in "enu":  # missing (unknown_heliostat) unless the heliostat has a properties file
+        frame[f"heliostat_{a}_m"] = np.nan
     for hid, row in heliostats.items():
         sel = frame["heliostat_id"] == hid
         for a in "enu":
@@ -1007,6 +1100,7 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
 
     for col in ("heliostat_id", "measurement_id", "target_name"):
         df[col] = df[col].map(lambda v: v.strip() if isinstance(v, str) else v)
+    df["heliostat_id"] = df["heliostat_id"].map(_id_text)
     # heliostat position: a log row without one inherits its heliostat's (properties or other rows)
     heliostats = dict(st.heliostats)
     if st.kind in ("wgs84-log", "enu-log"):
@@ -1034,6 +1128,7 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
                 *spot_raw]
     for col in required:
         reject(blank(col), "missing_value", f"{col} is empty")
+    _reject_invalid_ids(df["heliostat_id"], reject)
     sun_given = ~blank("sun_azimuth_deg") & ~blank("sun_elevation_deg")
     ts_given = ~blank("timestamp") if "timestamp" in df else pd.Series(False, index=df.index)
     reject(~sun_given & ~ts_given, "missing_value", "sun angles and timestamp are empty")
@@ -1155,6 +1250,32 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
     cols = MEASUREMENTS.column_names()
     kept = kept[cols + env_cols]
     return kept, rejected, heliostats
+
+
+def _id_text(value):
+    """A heliostat id as text: a Parquet log's integer ids become their digits; missing stays."""
+    if isinstance(value, (bool, np.bool_)) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)) and math.isnan(value):
+        return value
+    return str(value)
+
+
+def _reject_invalid_ids(ids: pd.Series, reject) -> None:
+    """Reject rows whose heliostat id is not a safe file name (invalid_heliostat_id): the detail
+    names the problem and a valid id to rename it to."""
+    problems = {h: heliostat_id_problem(h) for h in ids.dropna().unique() if h != ""}
+    bad = {h: p for h, p in problems.items() if p is not None}
+    if not bad:
+        return
+    detail = {h: (f"heliostat id {h!r} cannot be used as a file name ({p}); rename it in the "
+                  f"source to {HELIOSTAT_ID_RULE}, e.g. {suggest_heliostat_id(h)!r}")
+              for h, p in bad.items()}
+    mask = ids.map(lambda h: h in bad if isinstance(h, str) else False).astype(bool)
+    reject(mask, "invalid_heliostat_id",
+           ids.map(lambda h: detail.get(h) if isinstance(h, str) else None))
 
 
 def _parse_timestamps(values: pd.Series, timezone: str | None):
@@ -1454,7 +1575,8 @@ class _IngestRun:
     def __init__(self, sources: Sequence[Path], opts: IngestOptions, batch_rows: int | None,
                  spill_dir: Path | None):
         self.opts = opts
-        self.sources = [_Source(i, p, opts, batch_rows, spill_dir) for i, p in enumerate(sources)]
+        self.sources = [_Source(i, p, o, batch_rows, spill_dir)
+                        for i, (p, o) in enumerate(_expand_sources(sources, opts))]
         env: dict[str, bool] = {}
         for s in self.sources:  # first appearance order, as pandas concatenated the sources
             for name, integer in s.env.items():
@@ -1463,6 +1585,7 @@ class _IngestRun:
             env[name] = env[name] and all(name in s.env for s in self.sources)
         self.env_integer = env
         self.columns = MEASUREMENTS.column_names() + list(env)
+        self.invalid_id_example: str | None = None  # detail of the first invalid_heliostat_id row
 
     def extra_types(self) -> dict:
         types = {"qa_sun_spa_diff_deg": pa.float64(), "qa_sun_mismatch": pa.bool_()}
@@ -1490,6 +1613,9 @@ class _IngestRun:
             n_rejected += len(df)
             for reason, n in df["reason"].value_counts().items():
                 reasons[reason] = reasons.get(reason, 0) + int(n)
+            bad_id = df["reason"] == "invalid_heliostat_id"
+            if self.invalid_id_example is None and bad_id.any():
+                self.invalid_id_example = str(df.loc[bad_id, "detail"].iloc[0])
             if len(df):
                 on_rejected(df)
 
@@ -1638,6 +1764,7 @@ class _RejectedSink:
             yield table.drop_columns([self._KEY]).to_pandas()
 
 
+@locks_workdir("ingest")
 def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                options: IngestOptions | None = None, batch_rows: int = DEFAULT_BATCH_ROWS) -> dict:
     """The ``ingest`` stage: read ``sources``, write the three artifacts into ``workdir``.
@@ -1675,8 +1802,10 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                            helio.append, rejected.add)
         if info["kept"] == 0:
             reasons = ", ".join(f"{k}: {v}" for k, v in info["rejected_by_reason"].items())
+            how = (f": {run.invalid_id_example}" if run.invalid_id_example
+                   else "; see the reasons and fix the source")
             raise InputError(f"no measurement of {', '.join(map(str, sources))} could be kept "
-                             f"({reasons}); see the reasons and fix the source")
+                             f"({reasons}){how}")
         if rejected.spilled:
             with artifact_writer(workdir, REJECTED, **prov) as writer:
                 for chunk in rejected.chunks():
@@ -1698,4 +1827,13 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                     len(info["heliostats_with_default_geometry"]))
     for src, cols in info["ignored_columns"].items():
         log.info("%s: columns not used: %s", src, ", ".join(cols))
+    if info["rejected_by_reason"].get("invalid_heliostat_id"):
+        log.warning("%s", invalid_id_message(info["rejected_by_reason"]["invalid_heliostat_id"]))
     return info
+
+
+def invalid_id_message(n: int) -> str:
+    """One line for the summary: rows rejected for their heliostat id and how to fix them."""
+    return (f"{n} rows rejected as invalid_heliostat_id: heliostat ids must be {HELIOSTAT_ID_RULE} "
+            "(they become file names); rename them in the source (rejected.parquet's detail "
+            "suggests a name) and rerun ingest")

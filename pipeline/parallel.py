@@ -11,14 +11,29 @@ function over a list of tasks and returns the results in task order, either
 
 Every task is deterministic (its own seed, no shared state), so the result does not depend on
 where or in which order the tasks ran: artifacts are identical to a sequential run.
+
+Shutdown. When the call is left by an exception (Ctrl-C's ``KeyboardInterrupt``, the CLI's
+SIGTERM handler, an error in a task), the local workers are terminated and waited for, and Dask
+tasks are cancelled (a local cluster closed) before the exception propagates, so no worker keeps
+computing for a caller that is gone. If the caller dies without a chance to clean up (SIGKILL, an
+OOM kill), each local worker notices within a fraction of a second through a watchdog thread
+that waits on the caller's pid (a Linux pidfd, else polling) and exits; workers ignore SIGINT
+(Ctrl-C reaches the whole process group; the caller decides). Dask's local workers exit with
+their cluster's process by themselves (distributed closes them when their parent's pipe closes).
+The one-thread environment variables the workers need are set only while the pool starts and
+restored afterwards, so the caller's environment is unchanged by the call.
 """
 
 from __future__ import annotations
 
 import contextlib
-import pickle
 import os
-from concurrent.futures import ProcessPoolExecutor
+import pickle
+import select
+import signal
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Sequence
 
 from .errors import ParameterError, check_choice, check_int
@@ -37,6 +52,64 @@ def default_workers() -> int:
 
 
 _ONE_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def _environment(values: dict[str, str]):
+    """Set environment variables that are unset, for the duration; restore them afterwards."""
+    added = [k for k in values if k not in os.environ]
+    for k in added:
+        os.environ[k] = values[k]
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
+def _watch_parent(pid: int, poll_seconds: float = 0.5) -> None:
+    """Exit this process as soon as process ``pid`` (the caller of :func:`map_tasks`) ends.
+
+    A daemon thread waits on a pidfd of ``pid`` (readable when the process exits; no pid-reuse
+    race) or, where pidfds are missing, polls ``pid`` every ``poll_seconds``. It ends the worker
+    with ``os._exit``: nothing of a dead caller's task is worth finishing.
+    """
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        os._exit(1)
+    except (AttributeError, OSError):
+        fd = None
+
+    def alive() -> bool:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:  # pragma: no cover - another user's process took the pid
+            return False
+        return True
+
+    def watch() -> None:
+        if fd is not None:
+            while True:
+                readable, _, _ = select.select([fd], [], [])
+                if readable:
+                    break
+        else:  # pragma: no cover - Linux before 5.3, other systems
+            while alive():
+                time.sleep(poll_seconds)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="heliocal-parent-watch", daemon=True).start()
+
+
+def _init_local_worker(parent_pid: int) -> None:
+    """A local pool worker: one thread, ignores Ctrl-C (the caller stops it), dies with the
+    caller."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _watch_parent(parent_pid)
+    _init_worker()
 
 
 def _init_worker() -> None:
@@ -132,25 +205,59 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
                 if progress:
                     progress(k + 1, total)
         return out
+    return _map_local(func, tasks, workers, progress, chunks_per_worker)
+
+
+def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
+    import multiprocessing as mp
+
     chunks = _chunks(tasks, workers * chunks_per_worker)
     results: list = [None] * len(chunks)
     done = 0
-    import multiprocessing as mp
-
-    for var in _ONE_THREAD_ENV:  # inherited by the worker processes before numpy loads
-        os.environ.setdefault(var, "1")
     ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as pool:
-        futures = {pool.submit(_run_chunk_pickled, func, c): i for i, c in enumerate(chunks)}
-        from concurrent.futures import as_completed
-
-        for fut in as_completed(futures):
-            i = futures[fut]
-            results[i] = pickle.loads(fut.result())
-            done += len(chunks[i])
-            if progress:
-                progress(done, total)
+    # the one-thread variables reach the forkserver (started with the first pool) and the workers
+    # before numpy loads there; this process's environment is restored when the pool has started
+    with _environment({var: "1" for var in _ONE_THREAD_ENV}):
+        pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
+                                   initializer=_init_local_worker, initargs=(os.getpid(),))
+        try:
+            pending = {pool.submit(_run_chunk_pickled, func, c): i for i, c in enumerate(chunks)}
+        except BaseException:
+            _stop_pool(pool)
+            raise
+    try:
+        while pending:
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                i = pending.pop(fut)
+                results[i] = pickle.loads(fut.result())
+                done += len(chunks[i])
+                if progress:
+                    progress(done, len(tasks))
+    except BaseException:
+        _stop_pool(pool)
+        raise
+    pool.shutdown(wait=True)
     return [r for chunk in results for r in chunk]
+
+
+def _stop_pool(pool: ProcessPoolExecutor, grace_seconds: float = 2.0) -> None:
+    """Cancel what has not started, terminate the workers (SIGTERM, then SIGKILL after
+    ``grace_seconds``) and wait for them, so none outlives the call."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in processes:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    deadline = time.monotonic() + grace_seconds
+    for p in processes:
+        with contextlib.suppress(Exception):
+            p.join(max(deadline - time.monotonic(), 0.0))
+    for p in processes:
+        with contextlib.suppress(Exception):
+            if p.is_alive():
+                p.kill()
+                p.join(1.0)
 
 
 def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> list:
@@ -169,15 +276,24 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
             n = max(len(client.scheduler_info().get("workers", {})), 1)
             chunks = _chunks(tasks, n * chunks_per_worker)
             futures = [client.submit(_run_chunk, func, c, pure=False) for c in chunks]
-            index = {f.key: i for i, f in enumerate(futures)}
-            results: list = [None] * len(chunks)
-            done = 0
-            for fut in as_completed(futures):
-                i = index[fut.key]
-                results[i] = fut.result()
-                done += len(chunks[i])
-                if progress:
-                    progress(done, len(tasks))
+            try:
+                index = {f.key: i for i, f in enumerate(futures)}
+                results: list = [None] * len(chunks)
+                done = 0
+                for fut in as_completed(futures):
+                    i = index[fut.key]
+                    results[i] = fut.result()
+                    done += len(chunks[i])
+                    if progress:
+                        progress(done, len(tasks))
+            except BaseException:
+                # an interrupted or failed call leaves nothing queued or running on the cluster
+                if cluster is not None:
+                    _kill_local_workers(cluster)
+                else:
+                    with contextlib.suppress(Exception):
+                        client.cancel(futures, force=True)
+                raise
     except OSError as exc:
         raise ParameterError(f"The 'dask_address' parameter of map_tasks must reach a running Dask "
                              f"scheduler. Got {address!r} instead ({exc}).") from exc
@@ -185,3 +301,15 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
         if cluster is not None:
             cluster.close()
     return [r for chunk in results for r in chunk]
+
+
+def _kill_local_workers(cluster) -> None:
+    """End the worker processes of our own LocalCluster at once (a running task cannot be
+    cancelled, and the nannies would give each busy worker 4 s before killing it); the nannies are
+    told first not to restart them, so that ``cluster.close()`` then only tidies up."""
+    for nanny in list(getattr(cluster, "workers", {}).values()):
+        with contextlib.suppress(Exception):
+            pid = nanny.pid
+            nanny.close_gracefully(reason="heliocal: interrupted")
+            if pid:
+                os.kill(pid, signal.SIGKILL)

@@ -36,6 +36,7 @@ import json
 import logging
 import math
 import re
+import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -45,9 +46,10 @@ import pandas as pd
 
 from . import __version__
 from .artifacts import (atomic_write_bytes, atomic_write_text, file_sha256, git_revision,
-                        read_artifact, read_provenance)
-from .errors import SchemaError, StageInputError
+                        read_artifact, read_provenance, safe_child)
+from .errors import SchemaError, StageInputError, UnsafePathError
 from .schemas import MEASUREMENTS, REJECTION_REASONS, all_schemas
+from .workdir_lock import locks_workdir
 
 __all__ = [
     "METRICS_SCHEMA_VERSION",
@@ -149,7 +151,10 @@ def _stale_notes(workdir: Path, filenames: Iterable[str]) -> list[str]:
         except SchemaError:
             continue
         for label, digest in sorted(recorded.items()):
-            up = workdir / f"{label}.parquet"
+            try:
+                up = safe_child(workdir, f"{label}.parquet")
+            except UnsafePathError:  # not an artifact label (a source path, or damaged metadata)
+                continue
             if not digest or not up.exists():
                 continue
             if up not in hashes:
@@ -1013,30 +1018,84 @@ def _figures(inp: ReportInputs, metrics: dict, finals: dict) -> list[tuple]:
     return out
 
 
-def _md_escape(x) -> str:
-    return str(x).replace("|", "\\|").replace("\n", " ")
+#: Characters that start Markdown (CommonMark, GitHub's extensions) or HTML markup anywhere in a
+#: line; :func:`md_text` puts a backslash before each (CommonMark's escape of ASCII punctuation).
+_MD_ALWAYS = frozenset("\\`*[]<>&|~$")
+#: Line starts that open a block (heading, quote, list, setext underline, thematic break).
+_MD_LINE_START = re.compile(r"^(?:([#>+=-])|(\d{1,9})([.)])(?=\s|$))")
+
+
+def md_text(text, line_start: bool = True) -> str:
+    """``text`` as Markdown that renders as exactly that text, on one line.
+
+    Every character that could open markup is backslash-escaped (``<img src=x onerror=...>``
+    renders as those characters, never as HTML); ``_`` only where it could open or close
+    emphasis (not between two letters or digits, so ``joint_1_tilt_n_rad`` stays readable); a
+    leading ``#``, ``>``, ``+``, ``-``, ``=`` or ``1.`` cannot start a block (``line_start``:
+    the text begins a line; not in table cells); runs of white space (newlines too) become one
+    space.
+    """
+    text = re.sub(r"\s+", " ", str(text))
+    if line_start:
+        text = text.lstrip()
+    out = []
+    for i, c in enumerate(text):
+        if c in _MD_ALWAYS:
+            out.append("\\" + c)
+        elif c == "_" and not (0 < i < len(text) - 1 and text[i - 1].isalnum()
+                               and text[i + 1].isalnum()):
+            out.append("\\_")
+        else:
+            out.append(c)
+    escaped = "".join(out)
+    m = _MD_LINE_START.match(escaped) if line_start else None
+    if m and m.group(1):
+        escaped = "\\" + escaped
+    elif m:
+        escaped = m.group(2) + "\\" + escaped[len(m.group(2)):]
+    return escaped
+
+
+def md_inline(text) -> str:
+    """Like :func:`md_text`, but a span in backticks (a command such as
+    `` `heliocal sweep --workdir DIR` `` in the report's own sentences) stays a code span, whose
+    content Markdown shows literally. With an odd number of backticks everything is plain text."""
+    text = " ".join(str(text).split())
+    parts = text.split("`")
+    if len(parts) % 2 == 0:
+        return md_text(text)
+    out = []
+    for i, part in enumerate(parts):
+        if i % 2 == 0:
+            out.append(md_text(part, line_start=i == 0) if part else "")
+        elif part.strip():
+            out.append(f"`{part}`")
+    return "".join(out)
 
 
 def render_markdown(blocks: Sequence[tuple]) -> str:
-    """report.md: figures linked as ``figures/<name>.png``."""
+    """report.md: figures linked as ``figures/<name>.png``; every text from the data escaped
+    (:func:`md_text`), so the file renders as the same text as index.html."""
     lines: list[str] = []
     for b in blocks:
         kind = b[0]
         if kind in ("h1", "h2", "h3"):
-            lines += ["#" * int(kind[1]) + " " + b[1], ""]
+            lines += ["#" * int(kind[1]) + " " + md_inline(b[1]), ""]
         elif kind == "p":
-            lines += [b[1], ""]
+            lines += [md_inline(b[1]), ""]
         elif kind == "note":
-            lines += [f"> **Note:** {b[1]}", ""]
+            lines += [f"> **Note:** {md_inline(b[1])}", ""]
         elif kind == "table":
             headers, rows = b[1], b[2]
-            lines.append("| " + " | ".join(_md_escape(h) for h in headers) + " |")
+            lines.append("| " + " | ".join(md_text(h, False) for h in headers) + " |")
             lines.append("|" + "|".join("---" for _ in headers) + "|")
-            lines += ["| " + " | ".join(_md_escape(_fmt(c)) for c in r) + " |" for r in rows]
+            lines += ["| " + " | ".join(md_text(_fmt(c), False) for c in r) + " |" for r in rows]
             lines.append("")
         elif kind == "figure":
             f: _Figure = b[1]
-            lines += [f"![{f.caption}](figures/{f.filename})", "", f"*{f.caption}*", ""]
+            link = "figures/" + urllib.parse.quote(f.filename)
+            lines += [f"![{md_text(f.caption, False)}]({link})", "",
+                      f"*{md_inline(f.caption)}*", ""]
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -1085,6 +1144,7 @@ def render_html(blocks: Sequence[tuple]) -> str:
 # ------------------------------------------------------------------------------------------------
 # the stage
 # ------------------------------------------------------------------------------------------------
+@locks_workdir("report")
 def run_report(workdir: str | Path, out_dir: str | Path | None = None) -> dict:
     """The ``report`` stage: write index.html, report.md, figures/*.png and metrics.json.
 
@@ -1106,7 +1166,7 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None) -> dict:
     figs = [b[1] for b in blocks if b[0] == "figure"]
     fig_dir = out / "figures"
     for f in figs:
-        atomic_write_bytes(fig_dir / f.filename, f.png)
+        atomic_write_bytes(safe_child(fig_dir, f.filename), f.png)
     keep = {f.filename for f in figs}
     if fig_dir.is_dir():
         for old in fig_dir.glob("*.png"):

@@ -7,10 +7,44 @@ artifacts' schemas in their modules; :func:`nomenclature_markdown` renders all o
 
 from __future__ import annotations
 
+import re
+
 from .artifacts import ArtifactSchema, Column
 
-__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "REJECTION_REASONS", "all_schemas",
+__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
+           "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
            "nomenclature_markdown"]
+
+#: What a heliostat id may be. Ids become file names (``hybrid/<mode>/<id>.pt``, report figures),
+#: so ingest keeps only ids that are safe and portable as such: 1 to 64 ASCII letters, digits,
+#: ``_``, ``-`` and ``.``, the first a letter, digit or ``_`` (not ``.``: hidden files, ``..``;
+#: not ``-``: read as an option on a command line).
+HELIOSTAT_ID_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
+HELIOSTAT_ID_RULE = ("1-64 ASCII letters, digits, '_', '-' or '.', starting with a letter, digit "
+                     "or '_'")
+
+
+def heliostat_id_problem(hid) -> str | None:
+    """Why ``hid`` is not a valid heliostat id (see :data:`HELIOSTAT_ID_RE`), or ``None``."""
+    if not isinstance(hid, str):
+        return f"it is a {type(hid).__name__}, not text"
+    if HELIOSTAT_ID_RE.fullmatch(hid):
+        return None
+    if len(hid) > 64:
+        return f"it has {len(hid)} characters, more than 64"
+    if hid[:1] in (".", "-"):
+        return f"it starts with {hid[0]!r}"
+    bad = sorted({c for c in hid if not (c.isascii() and (c.isalnum() or c in "_.-"))})
+    return "it contains " + ", ".join(repr(c) for c in bad[:5]) + (" ..." if len(bad) > 5 else "")
+
+
+def suggest_heliostat_id(hid: str) -> str:
+    """A valid id close to ``hid``: other characters become ``_``, leading ``.``/``-``/``_`` runs
+    are dropped, cut to 64 characters (``"../../x/pwned"`` -> ``"x_pwned"``)."""
+    text = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(hid))
+    text = re.sub(r"^[._-]+", "", text)[:64]
+    return text or "H1"
+
 
 C = Column
 
@@ -126,6 +160,8 @@ REJECTION_REASONS = {
     "focal_spot_far_from_target": "the focal spot lies implausibly far from its target",
     "malformed_file": "the file (one PAINT measurement) cannot be parsed",
     "sun_angle_out_of_range": "a sun angle is outside its physical range",
+    "invalid_heliostat_id": "the heliostat id is not " + HELIOSTAT_ID_RULE + " (it would be "
+                            "unsafe as a file name): rename the heliostat in the source",
 }
 
 REJECTED = ArtifactSchema(

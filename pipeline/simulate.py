@@ -52,7 +52,7 @@ import pandas as pd
 import torch
 
 from . import __version__
-from .artifacts import atomic_write_text
+from .artifacts import atomic_write_text, safe_child
 from .errors import InputError, ParameterError, check_choice, check_float, check_int
 from .geodesy import enu_to_wgs84, wgs84_to_enu
 from .ingest import paint_kinematics_columns
@@ -61,6 +61,7 @@ from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PRESET_NAMES,
                          nominal_parameters, preset_parameters)
 from .metrics import error_mrad, measured_normal, reflect
 from .sun import spa_sun_position, sun_vector_enu
+from .workdir_lock import LOCK_FILENAME, locks_workdir
 
 __all__ = [
     "SIMULATED_TYPES",
@@ -828,6 +829,7 @@ def _clear_previous(out: Path) -> None:
             paint.rmdir()
 
 
+@locks_workdir("simulate", "out_dir")
 def write_field(field_: SimulatedField, out_dir: str | os.PathLike, *, overwrite: bool = False) -> dict:
     """Write a simulated field into ``out_dir`` (created if needed); every file atomically.
 
@@ -855,7 +857,7 @@ def write_field(field_: SimulatedField, out_dir: str | os.PathLike, *, overwrite
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder; give a folder for the simulation")
-    if out.is_dir() and any(out.iterdir()):
+    if out.is_dir() and any(p.name != LOCK_FILENAME for p in out.iterdir()):
         if not overwrite:
             raise InputError(f"{out}: the folder is not empty; choose an empty or new folder, or "
                              "pass --overwrite to replace a previous simulation there")
@@ -879,7 +881,8 @@ def write_field(field_: SimulatedField, out_dir: str | os.PathLike, *, overwrite
         stamps = {}
         for hid in paint_ids:
             h = field_.heliostats[hid]
-            atomic_write_text(out / "paint" / hid / f"{hid}-heliostat-properties.json",
+            hdir = safe_child(out / "paint", hid)
+            atomic_write_text(safe_child(hdir, f"{hid}-heliostat-properties.json"),
                               _json(h.paint_properties))
         for i in np.flatnonzero(is_paint):
             r = meas.iloc[i]
@@ -890,7 +893,8 @@ def write_field(field_: SimulatedField, out_dir: str | os.PathLike, *, overwrite
                    "sun_elevation": float(r["sun_elevation_deg"]),
                    "sun_azimuth": float(r["sun_azimuth_deg"]),
                    "focal_spot": {"UTIS": [float(v) for v in spot_wgs[i]]}}
-            atomic_write_text(out / "paint" / hid / "calibration" / f"{mid}-calibration-properties.json",
+            atomic_write_text(safe_child(safe_child(out / "paint", hid) / "calibration",
+                                         f"{mid}-calibration-properties.json"),
                               json.dumps(doc) + "\n")
             stamps[f"{hid}_{mid}"] = _iso(r["timestamp"])
         atomic_write_text(out / "paint" / "timestamps.json",

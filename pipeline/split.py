@@ -38,6 +38,7 @@ from sklearn.neighbors import NearestNeighbors
 from .artifacts import ArtifactSchema, Column, artifact_path, read_artifact, write_artifact
 from .errors import FitError, InputError, ParameterError, check_choice, check_int
 from .schemas import MEASUREMENTS
+from .workdir_lock import locks_workdir
 
 __all__ = [
     "SPLIT",
@@ -496,6 +497,7 @@ def summarize_split(split_df: pd.DataFrame) -> list[dict[str, Any]]:
     return rows
 
 
+@locks_workdir("split-knn")
 def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: int = 30,
               n_val: int = 20, n_train: int | None = None, metric: str = "euclidean",
               seed: int = 0) -> dict[str, Any]:

@@ -48,7 +48,8 @@ import pandas as pd
 import torch
 
 from .artifacts import (ArtifactSchema, Column as C, artifact_path, atomic_path, atomic_write_text,
-                        check_fresh, file_sha256, read_artifact, write_artifact)
+                        check_fresh, file_sha256, read_artifact, safe_child,
+                        write_artifact)
 from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, coarse_fit_options,
                      fit_presets, load_selected_parameters, normal_errors_mrad)
 from .errors import FitError, ParameterError, check_float, check_int
@@ -61,6 +62,7 @@ from .metrics import error_mrad, measured_normal
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
 from .split import SPLIT, restrict_training
+from .workdir_lock import locks_workdir
 
 __all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder",
            "weight_decay_grid", "run_sweep", "hybrid_variants", "OCTAVE_BANDS", "MIN_IMPROVEMENT",
@@ -515,6 +517,7 @@ def study_heliostats(ids: Sequence[str], study: int | Sequence[str] | None,
     return sorted(rng.choice(np.array(ids, dtype=object), size=k, replace=False).tolist())
 
 
+@locks_workdir("sweep")
 def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               weight_decays: Sequence[float] | None = None, seeds: Sequence[int] = (0,),
               presets: Sequence[str] | None = None, baselines: Sequence[str] = ("nn-only",),
@@ -628,9 +631,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         if st is None:
             continue
         hid = st["config"]["heliostat_id"]
-        with atomic_path(out_dir / f"{hid}.pt") as tmp:
+        with atomic_path(safe_child(out_dir, f"{hid}.pt")) as tmp:
             torch.save(st["state"], tmp)
-        atomic_write_text(out_dir / f"{hid}.json",
+        atomic_write_text(safe_child(out_dir, f"{hid}.json"),
                           json.dumps({**st["config"], "inputs": hashes}, indent=1, sort_keys=True))
     opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
             "seeds": seeds, "presets": list(presets) if presets else "fit-coarse's",

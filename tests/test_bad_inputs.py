@@ -111,6 +111,8 @@ CASES = {
     "duplicated_measurement_id": ("duplicated_measurement_id.csv", [],
                                   rows(10, duplicate_measurement_id=[4])),
     "unknown_heliostat": ("unknown_heliostat.csv", [], rows(10, unknown_heliostat=[6, 7])),
+    "hostile_heliostat_ids": ("hostile_heliostat_ids.csv", [],
+                              rows(10, invalid_heliostat_id=[2, 3, 4, 5, 8, 9, 10])),
     "unknown_heliostat_enu": ("enu_unknown_heliostat.csv", ENU_PROPS, rows(6, unknown_heliostat=[6])),
     "unknown_target": ("unknown_target.csv", [], rows(10, unknown_target=[7])),
     "quoted_comma_in_target": ("quoted_comma_in_target.csv", [], rows(10, unknown_target=[10])),

@@ -29,6 +29,47 @@ def test_map_tasks_keeps_order_locally():
     assert map_tasks(_square, list(range(5)), workers=1) == [0, 1, 4, 9, 16]
 
 
+def _worker_view(_):
+    import os
+    import signal
+
+    return ({v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                            "MKL_NUM_THREADS")},
+            signal.getsignal(signal.SIGINT) == signal.SIG_IGN)
+
+
+def test_workers_get_one_thread_env_and_the_caller_keeps_its_own(monkeypatch):
+    """The workers see OMP/OpenBLAS/MKL at 1 thread and ignore Ctrl-C; the caller's environment
+    is the same after the call as before (the variables were only set while the pool started)."""
+    import os
+
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "3")  # a value of the caller's is not overwritten
+    before = dict(os.environ)
+    views = map_tasks(_worker_view, list(range(4)), workers=2)
+    assert dict(os.environ) == before
+    for env, ignores_sigint in views:
+        assert env["OMP_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == "1"
+        assert ignores_sigint
+
+
+def _fail_on_3(x):
+    if x == 3:
+        raise ValueError("task 3 failed")
+    return x
+
+
+def test_a_failing_task_stops_the_pool_and_raises():
+    import multiprocessing
+
+    with pytest.raises(ValueError, match="task 3 failed"):
+        map_tasks(_fail_on_3, list(range(8)), workers=2, chunks_per_worker=4)
+    # the pool's workers were terminated and joined, not left behind
+    assert not [p for p in multiprocessing.active_children() if "Process" in type(p).__name__
+                and p.is_alive()]
+
+
 @pytest.fixture(scope="module")
 def workdirs(tmp_path_factory):
     import shutil

@@ -38,6 +38,7 @@ from heliocal.pipeline import __version__
 from heliocal.pipeline.artifacts import SCHEMA_VERSION, check_fresh, read_artifact, read_provenance
 from heliocal.pipeline.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
 from heliocal.pipeline.split import SPLIT
+from heliocal.pipeline.workdir_lock import LOCK_FILENAME, lock_holder
 
 REPO = Path(__file__).resolve().parents[1]
 PAINT = REPO / "sample_data" / "juelich" / "paint"
@@ -265,8 +266,10 @@ def test_kill_inside_a_write_leaves_previous_artifact_intact(stop_in, runner, tm
     # (killed while writing rejected.parquet) that of measurements.parquet, written chunk by chunk
     # while the sources were validated and renamed into place last
     assert tmp.parent == workdir and tmp.name.startswith(f".{stop_in}.tmp-")
-    leftovers = sorted(p.name for p in workdir.iterdir() if p.name not in INGEST_ARTIFACTS)
-    assert tmp.name in leftovers
+    # (the workdir lock's file stays too, unlocked: the kernel released the killed stage's lock)
+    leftovers = sorted(p.name for p in workdir.iterdir()
+                       if p.name not in INGEST_ARTIFACTS and p.name != LOCK_FILENAME)
+    assert tmp.name in leftovers and lock_holder(workdir) is None
     others = {"rejected.parquet": [".measurements.parquet.tmp-"], "measurements.parquet": []}
     assert sorted(n[:n.index(".tmp-") + 5] for n in leftovers if n != tmp.name) == others[stop_in]
     assert tmp.stat().st_size > 0

@@ -16,6 +16,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
+import heliocal.cli.ingest  # noqa: F401  (registers ingest on the app)
 import heliocal.cli.simulate  # noqa: F401  (registers simulate on the app)
 from heliocal.cli.app import app
 from heliocal.pipeline.errors import ParameterError
@@ -229,6 +230,35 @@ def test_enu_log_ingests_completely_with_temperature(mixed):
                                           IngestOptions(properties=out / "enu_properties.toml"))
     j = _check_ingested(field, measurements, helio, info, ids)
     np.testing.assert_array_equal(j["env_temperature"], j["temperature_c"])
+
+
+def test_simulate_folder_ingests_as_it_is(mixed, tmp_path):
+    """`heliocal ingest DIR` of a simulate output: every simulated measurement once (the PAINT
+    copy of the Jülich-type ones is not read twice), both kinematic types, env_temperature,
+    and sun positions checked against SPA at the ground truth's reference point."""
+    field, out = mixed
+    measurements, helio, _, info = ingest([out])
+    j = _check_ingested(field, measurements, helio, info, list(field.heliostats))
+    assert info["rows_read"] == len(field.measurements) == len(measurements)
+    assert info["sources"] == {str(out / "calibration_log.csv"): "wgs84-log",
+                               str(out / "enu_log.csv"): "enu-log"}
+    np.testing.assert_array_equal(j["env_temperature"], j["temperature_c"])
+    assert sorted(helio["kinematic_type"]) == ["az-el", "az-el", "juelich", "juelich"]
+    # az-el rows were compared with SPA (reference point from ground_truth.json): no mismatch
+    azel = measurements["heliostat_id"].isin(helio.loc[helio["kinematic_type"] == "az-el",
+                                                       "heliostat_id"])
+    assert measurements.loc[azel, "qa_sun_spa_diff_deg"].notna().all()
+    assert measurements.loc[azel, "qa_sun_spa_diff_deg"].max() < 0.01
+    # the command line, as documented; --properties is refused for such a folder
+    runner = CliRunner()
+    result = runner.invoke(app, ["ingest", str(out), "--workdir", str(tmp_path / "wd"), "--quiet"])
+    assert result.exit_code == 0, result.stderr
+    assert len(pd.read_parquet(tmp_path / "wd" / "measurements.parquet")) == len(field.measurements)
+    result = runner.invoke(app, ["ingest", str(out), "--properties", str(out / "paint"),
+                                 "--workdir", str(tmp_path / "wd2")])
+    assert result.exit_code == 1 and result.stderr.splitlines() == [
+        f"Error: {out}: a heliocal simulate folder brings its own heliostat properties (paint/, "
+        "enu_properties.toml); drop --properties, or give its logs one by one"]
 
 
 def test_paint_properties_hold_the_unshifted_initial_angle_and_no_facets(mixed):

@@ -133,6 +133,20 @@ def _edit(rows, row, col, value, header):
     return rows
 
 
+#: Data row (0-based) -> heliostat id of hostile_heliostat_ids.csv: ids that would leave the
+#: folder they name a file in, be hidden, be read as an option or be too long are rejected
+#: (invalid_heliostat_id); row 6's odd but valid id is kept.
+HOSTILE_IDS = {1: "../../../tmp/x/pwned", 2: "<img src=x onerror=alert(1)>", 3: ".hidden",
+               4: "H" * 65, 6: "AB27.v2_-x", 7: "AB27/../AA31", 8: "-rf", 9: "AB 27"}
+
+
+def _hostile_ids(rows, header):
+    rows = [list(r) for r in rows]
+    for i, hid in HOSTILE_IDS.items():
+        rows[i][header.index("heliostat_id")] = hid
+    return rows
+
+
 def write_bad(source: Path) -> None:
     for p in BAD.iterdir():
         if p.name not in ("make_corpus.py", "CASES.md"):
@@ -225,6 +239,7 @@ def write_bad(source: Path) -> None:
         for c in ("heliostat_lat", "heliostat_lon", "heliostat_alt"):
             x[H.index(c)] = ""
     log("unknown_heliostat.csv", r)
+    log("hostile_heliostat_ids.csv", _hostile_ids(rows, H))
     r = _edit(rows, 6, "target_name", "moon_target", H)
     for c in ("target_center_lat", "target_center_lon", "target_center_alt"):
         r = _edit(r, 6, c, "", H)

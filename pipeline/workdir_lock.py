@@ -1,0 +1,192 @@
+"""One writing stage per work directory at a time.
+
+Every stage that writes a work directory (``ingest``, ``split-knn``, ``fit-coarse``,
+``fit-hybrid``, ``sweep``, ``report``; ``simulate`` for its output folder) holds
+:func:`workdir_lock` for its whole run. A second writer on the same directory fails at once with
+:class:`~heliocal.pipeline.errors.WorkdirBusyError`, whose one-line message names the running
+stage, its pid, host and start time. Readers (``info``, ``aim``) take no lock and are never
+blocked.
+
+The lock is an exclusive ``fcntl.flock`` on the hidden file ``DIR/.heliocal.lock``: the kernel
+releases it when the holder's process ends, however it ends (also SIGKILL or an OOM kill), so a
+lock can never be left stale. The holder writes its stage, pid, host, start time and command line
+into the file for the message of the next writer; the file is removed when the stage ends (a
+killed holder leaves it behind unlocked, and the next writer takes it over). flock works on local
+file systems and on NFS (Linux emulates it with POSIX locks there).
+
+The lock is re-entrant within one thread (a stage that runs another stage's library function on
+the same directory does not lock itself out) and exclusive between threads and processes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import fcntl
+import functools
+import inspect
+import json
+import os
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+from .errors import InputError, WorkdirBusyError
+
+__all__ = ["LOCK_FILENAME", "workdir_lock", "lock_holder", "locks_workdir"]
+
+#: The lock file inside a work directory (hidden: no stage reads it as an artifact).
+LOCK_FILENAME = ".heliocal.lock"
+
+_held: dict[str, tuple[int, int, int]] = {}  # resolved directory -> (fd, thread id, depth)
+_held_guard = threading.Lock()
+
+
+def lock_holder(workdir: str | os.PathLike) -> dict | None:
+    """The holder recorded in ``workdir``'s lock file while a stage runs there, else ``None``.
+
+    Does not lock; a file left behind by a killed stage is not reported (nobody holds it).
+    """
+    path = Path(workdir) / LOCK_FILENAME
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return _read_holder(path) or {}
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def _read_holder(path: Path) -> dict | None:
+    """The holder's JSON record (retried briefly: a new holder writes it just after locking)."""
+    for _ in range(20):
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+            if isinstance(data, dict) and data.get("pid"):
+                return data
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.01)
+    return None
+
+
+def _busy_message(workdir: Path, holder: dict | None) -> str:
+    if not holder:
+        return (f"{workdir} is being written by another heliocal stage (its details are not "
+                "readable); wait for it to finish, or use another --workdir")
+    pid, host = holder.get("pid"), holder.get("host", "?")
+    where = "this machine" if host == socket.gethostname() else f"host {host}"
+    return (f"{workdir} is being written by `heliocal {holder.get('stage', '?')}` (pid {pid} on "
+            f"{where}, started {holder.get('started', '?')}); wait for it to finish or stop it "
+            f"(kill {pid}), or use another --workdir")
+
+
+@contextlib.contextmanager
+def workdir_lock(workdir: str | os.PathLike, stage: str) -> Iterator[Path]:
+    """Hold the exclusive write lock of ``workdir`` (created if missing) for ``stage``.
+
+    Fails at once, without waiting, with :class:`WorkdirBusyError` when another process or
+    thread holds it. A folder created here and still empty at the end is removed again. Yields
+    the lock file's path.
+    """
+    folder = Path(workdir)
+    created = [p for p in (folder, *folder.parents) if not p.exists()]  # innermost first
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{folder}: cannot use it as a work directory ({exc.strerror or exc}); "
+                         "give a folder you can write") from exc
+    key = str(folder.resolve())
+    path = folder / LOCK_FILENAME
+    me = threading.get_ident()
+    with _held_guard:
+        held = _held.get(key)
+        if held is not None:
+            if held[1] != me:
+                raise WorkdirBusyError(_busy_message(folder, _read_holder(path)))
+            _held[key] = (held[0], me, held[2] + 1)
+    if held is not None:  # re-entered by the same thread
+        try:
+            yield path
+        finally:
+            with _held_guard:
+                fd, owner, depth = _held[key]
+                _held[key] = (fd, owner, depth - 1)
+        return
+    fd = _acquire(folder, path, stage)
+    with _held_guard:
+        _held[key] = (fd, me, 1)
+    try:
+        yield path
+    finally:
+        with _held_guard:
+            del _held[key]
+        _release(fd, path)
+        for made in created:  # a stage that wrote nothing leaves no empty folder behind
+            try:
+                made.rmdir()
+            except OSError:
+                break
+
+
+def _acquire(folder: Path, path: Path, stage: str) -> int:
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise WorkdirBusyError(_busy_message(folder, _read_holder(path))) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        # the previous holder may have removed the file between our open and flock: then we hold
+        # a lock on a deleted file, and must lock the file that is there now instead
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    record = {"stage": stage, "pid": os.getpid(), "host": socket.gethostname(),
+              "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+              "command": " ".join(["heliocal", *sys.argv[1:]])}
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, (json.dumps(record) + "\n").encode(), 0)
+    return fd
+
+
+def _release(fd: int, path: Path) -> None:
+    try:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()  # while still locked: a waiting opener then sees a new file (see _acquire)
+        os.ftruncate(fd, 0)
+    finally:
+        os.close(fd)  # releases the flock
+
+
+def locks_workdir(stage: str, argument: str = "workdir") -> Callable:
+    """Decorator: run a stage function under :func:`workdir_lock` of its ``argument`` folder."""
+
+    def decorator(func: Callable) -> Callable:
+        signature = inspect.signature(func)
+
+        @functools.wraps(func)
+        def wrapper(*args, **kwargs):
+            folder = signature.bind(*args, **kwargs).arguments[argument]
+            with workdir_lock(folder, stage):
+                return func(*args, **kwargs)
+
+        return wrapper
+
+    return decorator

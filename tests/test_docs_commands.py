@@ -1,0 +1,166 @@
+"""Every shell command in README.md, sample_data/README.md and docs/*.md runs as documented.
+
+The commands of every ```sh block are taken from the files in that order (README first, since
+the docs' examples read the work directory its `make sample` makes), one line per command
+(backslash continuations joined), and run with bash in a sandbox: a temporary directory holding
+copies of ``sample_data/`` and ``tests/baseline/`` (commands may write there, e.g. the baseline
+regeneration in docs/report.md) and links to the Makefile, the code and ``.venv``, with
+``.venv/bin`` first on PATH. Each must exit with 0. The commands that genuinely cannot run here
+are listed in NOT_RUN with the reason; a test keeps that list short and current.
+
+A second, quick test checks the command lines that are not run (NOT_RUN, usage synopses in
+plain ``` blocks, commands quoted inline in the text): every ``--option`` they name exists on
+that heliocal subcommand.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", ROOT / "sample_data" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+#: Commands of ```sh blocks that are not run, with the reason.
+NOT_RUN = {
+    "make test": "runs this test suite itself",
+    "dask scheduler --port 8786": "starts a Dask scheduler that serves until stopped (head node of "
+                                  "a cluster)",
+    "dask worker tcp://HEAD:8786 --nworkers 16 --nthreads 1":
+        "needs the scheduler on the machine HEAD of a cluster",
+    "heliocal fit-coarse --workdir runs/field --preset static-20 --dask-address tcp://HEAD:8786":
+        "needs that cluster and a field's work directory",
+    "heliocal fit-hybrid --workdir runs/field --weight-decay 1e-3 --dask-address tcp://HEAD:8786":
+        "needs that cluster and a field's work directory",
+}
+
+
+def _blocks(path: Path, language: str | None) -> list[tuple[int, str]]:
+    """(line number, text) of the lines of fenced blocks of ``language`` (None: no language)."""
+    out, fence = [], None
+    for no, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        m = re.match(r"^(`{3,})\s*(\S*)", line)
+        if m and fence is None:
+            fence = (m.group(1), m.group(2) or None)
+            continue
+        if m and fence is not None and line.strip() == fence[0]:
+            fence = None
+            continue
+        if fence is not None and fence[1] == language:
+            out.append((no, line))
+    return out
+
+
+def shell_commands(path: Path) -> list[tuple[str, int, str]]:
+    """(file, line, command) of every command in ``path``'s ```sh blocks."""
+    commands, pending, start = [], "", 0
+    for no, line in _blocks(path, "sh"):
+        text = line.rstrip()
+        if not pending and (not text.strip() or text.lstrip().startswith("#")):
+            continue
+        if not pending:
+            start = no
+        if text.endswith("\\"):
+            pending += text[:-1] + " "
+            continue
+        commands.append((str(path.relative_to(ROOT)), start, (pending + text).strip()))
+        pending = ""
+    return commands
+
+
+def _strip_comment(command: str) -> str:
+    return re.sub(r"\s+#.*$", "", command).strip()
+
+
+COMMANDS = [c for p in DOCS for c in shell_commands(p)]
+
+
+def test_commands_are_found_and_the_not_run_list_is_short_and_current():
+    texts = [_strip_comment(c) for _, _, c in COMMANDS]
+    assert len(texts) >= 20, texts
+    assert len(NOT_RUN) <= 5
+    assert all(key in texts for key in NOT_RUN), [k for k in NOT_RUN if k not in texts]
+    assert all(reason for reason in NOT_RUN.values())
+
+
+@pytest.fixture(scope="module")
+def sandbox(tmp_path_factory) -> dict:
+    """The temporary directory the commands run in, and their environment."""
+    box = tmp_path_factory.mktemp("docs")
+    shutil.copytree(ROOT / "sample_data", box / "sample_data")
+    shutil.copytree(ROOT / "tests" / "baseline", box / "tests" / "baseline")
+    for name in (".venv", "Makefile", "pipeline", "cli", "pyproject.toml", "requirements.lock"):
+        (box / name).symlink_to(ROOT / name)
+    env = dict(os.environ, PATH=f"{ROOT / '.venv' / 'bin'}{os.pathsep}{os.environ.get('PATH', '')}")
+    env.pop("MAKEFLAGS", None)
+    env.pop("MAKELEVEL", None)
+    # `make sample` must not reinstall the venv: it has to be up to date with the lock
+    fresh = subprocess.run(["make", "-q", ".venv/.installed"], cwd=box, env=env,
+                           capture_output=True, text=True)
+    assert fresh.returncode == 0, ("the venv is older than requirements.lock or pyproject.toml: "
+                                   "run `make install` first")
+    return {"dir": box, "env": env, "seconds": {}}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("source,line,command", COMMANDS,
+                         ids=[f"{s}:{n}" for s, n, _ in COMMANDS])
+def test_documented_command_runs(sandbox, source, line, command):
+    if _strip_comment(command) in NOT_RUN:
+        pytest.skip(f"not run: {NOT_RUN[_strip_comment(command)]}")
+    t0 = time.monotonic()
+    proc = subprocess.run(["bash", "-c", command], cwd=sandbox["dir"], env=sandbox["env"],
+                          capture_output=True, text=True, timeout=900)
+    sandbox["seconds"][f"{source}:{line}"] = time.monotonic() - t0
+    assert proc.returncode == 0, (f"{source}:{line}: `{command}` exited with {proc.returncode}\n"
+                                  f"stdout: {proc.stdout[-2000:]}\nstderr: {proc.stderr[-3000:]}")
+
+
+# ------------------------------------------------------------------------------------------------
+# options of the command lines that are not run
+# ------------------------------------------------------------------------------------------------
+def _heliocal_lines() -> list[tuple[str, str]]:
+    """(where, command line) of heliocal commands that are not run: NOT_RUN entries, usage
+    synopses in plain ``` blocks (continuation lines joined) and inline `heliocal ...` quotes."""
+    out = [(f"NOT_RUN {k}", k) for k in NOT_RUN if k.startswith("heliocal ")]
+    for path in DOCS:
+        rel = str(path.relative_to(ROOT))
+        current = None
+        for no, line in _blocks(path, None):
+            if line.startswith("heliocal "):
+                current = [f"{rel}:{no}", line]
+                out.append(current)
+            elif current is not None and line.startswith(" ") and line.strip().startswith("["):
+                current[1] += " " + line.strip()
+            else:
+                current = None
+        text = path.read_text(encoding="utf-8")
+        for m in re.finditer(r"`(heliocal [^`]+)`", text):
+            out.append((f"{rel}:{text.count(chr(10), 0, m.start()) + 1}", m.group(1)))
+    return [(w, c) for w, c in out]
+
+
+def test_every_quoted_option_exists():
+    import typer.main
+
+    from heliocal.cli.main import app
+
+    group = typer.main.get_command(app)
+    checked = 0
+    for where, line in _heliocal_lines():
+        words = line.replace("\\|", "|").split()
+        if len(words) < 2 or words[1] not in group.commands:
+            continue
+        command = group.commands[words[1]]
+        known = {o for p in command.params for o in (*p.opts, *p.secondary_opts)}
+        used = set(re.findall(r"(?<![\w-])(--[a-z][a-z0-9-]*)", line))
+        missing = sorted(used - known)
+        assert not missing, f"{where}: `{line}` names {missing}, not options of heliocal {words[1]}"
+        checked += 1
+    assert checked >= 30
