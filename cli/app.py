@@ -21,7 +21,7 @@ import typer
 from rich.console import Console
 from rich.logging import RichHandler
 
-from heliocal.pipeline.errors import HeliocalError
+from heliocal.pipeline.errors import HeliocalError, resource_error_message
 
 __all__ = [
     "app",
@@ -93,9 +93,14 @@ def command(name: str, **kwargs) -> Callable:
                 return func(*args, **kw)
             except HeliocalError as exc:
                 fail(str(exc))
+            except OSError as exc:
+                message = resource_error_message(exc)
+                if message is None:
+                    raise
+                fail(message)
             except KeyboardInterrupt:
-                fail("interrupted; artifacts written so far are complete, the interrupted one was "
-                     "not replaced", code=130)
+                fail("interrupted; nothing of this run was committed unless it had finished: each "
+                     "stage's last complete run is the one in use", code=130)
 
         return app.command(name, **kwargs)(wrapper)
 

@@ -40,8 +40,8 @@ import pandas as pd
 import torch
 from scipy.optimize import least_squares
 
-from .artifacts import (ArtifactSchema, Column as C, artifact_path, check_fresh, read_artifact,
-                        write_artifact)
+from .artifacts import (ArtifactSchema, Column as C, artifact_path, artifact_present, check_fresh,
+                        merge_with_previous, read_artifact, write_artifact)
 from .errors import FitError, check_choice, check_float, check_int
 from .jacobian import forward_state, residual_and_jacobian
 from .parallel import map_tasks
@@ -50,6 +50,7 @@ from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRES
                          preset_mask)
 from .metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
 from .schemas import HELIOSTATS, MEASUREMENTS
+from .transaction import stage_transaction
 
 __all__ = [
     "COARSE_PARAMS",
@@ -606,7 +607,7 @@ def _load_split(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
     from .split import SPLIT  # local: split.py is optional at import time
 
     path = artifact_path(workdir, SPLIT)
-    if not path.exists():
+    if not artifact_present(workdir, SPLIT):
         log.warning("no %s: fitting on all measurements (run `heliocal split-knn` for honest "
                     "validation and test errors)", path)
         return pd.Series("train", index=measurements.index)
@@ -750,6 +751,7 @@ def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
     return chunks
 
 
+@stage_transaction("fit-coarse")
 def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
                    f_scale_mrad: float = 1.0, robust_start: str = "auto",
                    heliostats: Sequence[str] | None = None, progress=None,
@@ -815,14 +817,13 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "heliostats": list(heliostats) if heliostats else None}
-    inputs = {"measurements": artifact_path(workdir, MEASUREMENTS),
-              "heliostats": artifact_path(workdir, HELIOSTATS)}
-    from .split import SPLIT
-
-    if artifact_path(workdir, SPLIT).exists():
-        inputs["split"] = artifact_path(workdir, SPLIT)
-    write_artifact(pd.DataFrame(all_params), workdir, COARSE_PARAMS, stage="fit-coarse",
-                   options=opts, inputs=inputs)
-    write_artifact(pd.concat(all_preds, ignore_index=True), workdir, COARSE_PREDICTIONS,
-                   stage="fit-coarse", options=opts, inputs=inputs)
+    # a partial run (--heliostat) keeps the other heliostats' fits when the previous run read
+    # the same inputs (artifacts.merge_with_previous); the inputs are recorded as they were read
+    requested = set(heliostats) if heliostats else set(ids)
+    replaced = lambda old: old["heliostat_id"].isin(requested)  # noqa: E731
+    write_artifact(merge_with_previous(workdir, COARSE_PARAMS, pd.DataFrame(all_params), replaced),
+                   workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
+    write_artifact(merge_with_previous(workdir, COARSE_PREDICTIONS,
+                                       pd.concat(all_preds, ignore_index=True), replaced),
+                   workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries}

@@ -88,8 +88,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import (artifact_path, atomic_path, atomic_write_text, check_fresh, file_sha256,
-                        read_artifact, read_provenance, write_artifact)
+from .artifacts import (artifact_path, artifact_present, check_fresh, committed_fingerprint, merge_with_previous,
+                        previous_run_matches, read_artifact, write_artifact)
 from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, _kind, _load_split,
                      load_selected_parameters, metrics_frame, predict)
 from .errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
@@ -99,8 +99,10 @@ from .kinematics import (PARAMETER_NAMES, HeliostatSpec, ParameterComponents, fo
                          nominal_parameters)
 from .metrics import error_mrad, measured_normal, reflect
 from .lm import _SPEC_TENSORS, stack_specs
+from .modelfiles import read_model, write_model
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
+from .transaction import current_transaction, stage_transaction
 
 __all__ = [
     "MODES",
@@ -1119,25 +1121,28 @@ def _split_means(err: np.ndarray, labels: np.ndarray) -> dict:
     return {sp: _mean(err[labels == sp]) for sp in ("train", "validation", "test")}
 
 
-def _inputs(workdir: Path) -> dict:
+def _current_inputs(workdir: Path) -> dict:
+    """label -> committed content fingerprint of every input a fine model is made from (the labels
+    its run recorded: the artifacts it read)."""
     from .split import SPLIT
 
-    inputs = {"measurements": artifact_path(workdir, MEASUREMENTS),
-              "heliostats": artifact_path(workdir, HELIOSTATS),
-              "coarse_params": artifact_path(workdir, COARSE_PARAMS)}
-    if artifact_path(workdir, SPLIT).exists():
-        inputs["split"] = artifact_path(workdir, SPLIT)
-    return inputs
+    out = {}
+    for label, schema in (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS),
+                          ("coarse_params", COARSE_PARAMS), ("split", SPLIT)):
+        fp = committed_fingerprint(workdir, schema)
+        if fp is not None:
+            out[label] = fp
+    return out
 
 
 def _check_inputs(workdir: Path) -> None:
     from .split import SPLIT
 
-    if not artifact_path(workdir, COARSE_PARAMS).exists():
+    if not artifact_present(workdir, COARSE_PARAMS):
         raise StageInputError(f"{artifact_path(workdir, COARSE_PARAMS)} is missing: run "
                               f"`heliocal fit-coarse --workdir {workdir}` first")
     upstream = {"measurements": MEASUREMENTS, "heliostats": HELIOSTATS}
-    if artifact_path(workdir, SPLIT).exists():
+    if artifact_present(workdir, SPLIT):
         upstream["split"] = SPLIT
     check_fresh(workdir, COARSE_PARAMS, upstream)
 
@@ -1249,6 +1254,7 @@ def _hybrid_chunks(ids, selected, helio, batch_size: int):
     return chunks
 
 
+@stage_transaction("fit-hybrid")
 def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: float = 0.0,
                    seed: int = 0, config: FineConfig | None = None,
                    pretrain_config: PretrainConfig | None = None,
@@ -1288,9 +1294,8 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     if not ids:
         raise FitError(f"no heliostat in {workdir} has a coarse fit with training rows; run "
                        f"`heliocal fit-coarse --workdir {workdir}` first")
-    out_dir = _model_dir(workdir, mode)
-    inputs = _inputs(workdir)
-    input_hashes = {k: file_sha256(p) for k, p in inputs.items()}
+    txn = current_transaction(workdir, "fit-hybrid")
+    input_hashes = txn.input_fingerprints()  # what this run read: the models' recorded inputs
     batch_size = check_int(batch_size, "batch_size", _FUNC, 1)
     groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
     ids = sorted(ids, key=lambda h: (len(groups[h]), h))
@@ -1307,24 +1312,17 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
         cfg["inputs"] = input_hashes
         preds.append(pred)
         summaries.append(summary)
-        with atomic_path(out_dir / f"{hid}.pt") as tmp:
-            torch.save(state, tmp)
-        atomic_write_text(out_dir / f"{hid}.json", json.dumps(cfg, indent=1, sort_keys=True))
-    new = pd.concat(preds, ignore_index=True)
-    path = artifact_path(workdir, HYBRID_PREDICTIONS)
-    if path.exists():
-        old = read_artifact(workdir, HYBRID_PREDICTIONS)
-        recorded = read_provenance(path).get("inputs", {})
-        if all(recorded.get(k) == v for k, v in input_hashes.items()):
-            keep = ~((old["model"] == mode) & old["heliostat_id"].isin(ids))
-            new = pd.concat([old[keep], new], ignore_index=True)
-        else:
-            log.warning("%s was made from other inputs: its rows of other modes are dropped", path)
+        write_model(txn, mode, hid, state, cfg)
+    # rows and models of other modes and heliostats are kept when they were made from the same
+    # inputs (the run merges into the previous one); otherwise they are dropped
+    new = merge_with_previous(workdir, HYBRID_PREDICTIONS, pd.concat(preds, ignore_index=True),
+                              lambda old: (old["model"] == mode) & old["heliostat_id"].isin(ids))
+    if previous_run_matches(workdir, "fit-hybrid"):
+        txn.carry_over(txn.previous_files("hybrid"))
     opts = {"mode": mode, "weight_decay": weight_decay, "fine_config": config.to_dict(),
             "pretrain_config": pretrain_config.to_dict(),
             "heliostats": list(heliostats) if heliostats else None}
-    write_artifact(new, workdir, HYBRID_PREDICTIONS, stage="fit-hybrid", options=opts, seed=seed,
-                   inputs=inputs)
+    write_artifact(new, workdir, HYBRID_PREDICTIONS, stage="fit-hybrid", options=opts, seed=seed)
     return {"workdir": str(workdir), "mode": mode, "weight_decay": weight_decay, "seed": seed,
             "heliostats": summaries}
 
@@ -1332,15 +1330,39 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
 # ------------------------------------------------------------------------------------------------
 # loading a fitted model and aiming
 # ------------------------------------------------------------------------------------------------
-def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict, Layers]:
-    """Config dict and weights of a fitted mode for one heliostat (``None`` if not fitted)."""
-    d = _model_dir(Path(workdir), mode)
-    cfg_path, state_path = d / f"{heliostat_id}.json", d / f"{heliostat_id}.pt"
-    if not (cfg_path.exists() and state_path.exists()):
+def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict, Layers] | None:
+    """Config dict and weights of a fitted mode for one heliostat (``None`` if not fitted).
+
+    ``mode`` ``selected`` is the sweep's selected model (``DIR/hybrid/selected/``). The files are
+    read through their stage's manifest and checked (:func:`heliocal.pipeline.modelfiles.read_model`):
+    a changed, corrupt or foreign file gives a one-line error naming it and the command to rerun.
+    """
+    workdir = Path(workdir)
+    if mode == "selected":
+        stage, hint = "sweep", f"`heliocal sweep --workdir {workdir}`"
+    else:
+        stage, hint = "fit-hybrid", f"`heliocal fit-hybrid --workdir {workdir} --mode {mode}`"
+    found = read_model(workdir, stage, mode, heliostat_id, hint=hint)
+    if found is None:
         return None
-    cfg = json.loads(cfg_path.read_text())
-    state = torch.load(state_path, weights_only=True)
+    cfg, state = found
     return cfg, _state_to_layers(state)
+
+
+def _sweep_choice(workdir: Path, heliostat_id: str) -> str | None:
+    """The sweep's selected model for ``heliostat_id`` (``None`` without a sweep, or when the sweep
+    left the heliostat out). selection.parquet is read like every artifact: committed by a complete
+    sweep run, unchanged since, and made from the current inputs (else a one-line error)."""
+    from .split import SPLIT
+    from .sweep import SELECTION
+
+    if not artifact_present(workdir, SELECTION):
+        return None
+    sel = read_artifact(workdir, SELECTION)   # refuses a file no complete sweep committed
+    check_fresh(workdir, SELECTION, {"measurements": MEASUREMENTS, "heliostats": HELIOSTATS,
+                                     "split": SPLIT, "coarse_params": COARSE_PARAMS})
+    sel = sel[sel["heliostat_id"] == heliostat_id]
+    return str(sel["model"].iloc[0]) if len(sel) else None
 
 
 def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Tensor) -> FineProblem:
@@ -1407,17 +1429,16 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     if model == "auto":
         # the sweep's selection wins (the model that is never worse than coarse on validation);
         # without a sweep: the fit-hybrid model where fitted, else the coarse model
-        selection_path = Path(workdir) / "selection.parquet"
-        choice = None
-        if selection_path.exists():
-            sel_df = pd.read_parquet(selection_path)
-            sel_df = sel_df[sel_df["heliostat_id"] == heliostat_id]
-            choice = str(sel_df["model"].iloc[0]) if len(sel_df) else None
+        choice = _sweep_choice(workdir, heliostat_id)
         if choice == "coarse":
             fitted = None
         elif choice is not None and choice.startswith("hybrid"):   # hybrid, hybrid-octaves
             fitted = load_model(workdir, "selected", heliostat_id)
             rerun = f"`heliocal sweep --workdir {workdir}`"
+            if fitted is None:
+                raise StageInputError(f"{workdir}/selection.parquet selects {choice} for "
+                                      f"{heliostat_id}, but the sweep committed no model for it; "
+                                      f"rerun {rerun}")
         else:
             fitted = load_model(workdir, "hybrid", heliostat_id)
         chosen = "hybrid" if fitted is not None else "coarse"
@@ -1428,7 +1449,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
                                   f"--workdir {workdir} --mode {model}` first")
     if fitted is not None:
         cfg = fitted[0]
-        current = {k: file_sha256(p) for k, p in _inputs(workdir).items()}
+        current = _current_inputs(workdir)
         if any(cfg.get("inputs", {}).get(k) != v for k, v in current.items()):
             rerun = rerun or f"`heliocal fit-hybrid --workdir {workdir} --mode {chosen}`"
             raise StageInputError(f"the {chosen} model of {heliostat_id} is stale (its inputs "

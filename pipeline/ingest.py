@@ -46,6 +46,7 @@ from .geodesy import wgs84_to_enu
 from .schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
 from .spill import SortedSpill
 from .sun import spa_sun_position, sun_vector_enu, wrap_deg
+from .transaction import stage_transaction
 
 __all__ = [
     "SOURCE_KINDS",
@@ -1638,6 +1639,7 @@ class _RejectedSink:
             yield table.drop_columns([self._KEY]).to_pandas()
 
 
+@stage_transaction("ingest")
 def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                options: IngestOptions | None = None, batch_rows: int = DEFAULT_BATCH_ROWS) -> dict:
     """The ``ingest`` stage: read ``sources``, write the three artifacts into ``workdir``.

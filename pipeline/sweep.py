@@ -25,7 +25,6 @@ ensemble's weights are written to ``DIR/hybrid/selected/<HID>.pt`` (+ JSON), in 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -36,8 +35,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import (ArtifactSchema, Column as C, artifact_path, atomic_path, atomic_write_text,
-                        check_fresh, file_sha256, read_artifact, write_artifact)
+from .artifacts import (ArtifactSchema, Column as C, check_fresh, merge_with_previous,
+                        previous_run_matches, read_artifact, write_artifact)
 from .coarse import (AUTO_PRESETS, COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch,
                      fit_heliostat, load_selected_parameters, normal_errors_mrad, predict)
 from .errors import FitError, check_float, check_int
@@ -48,7 +47,9 @@ from .kinematics import HeliostatSpec, nominal_parameters
 from .metrics import error_mrad, measured_normal
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
+from .modelfiles import write_model
 from .split import SPLIT, restrict_training
+from .transaction import current_transaction, stage_transaction
 
 __all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder", "weight_decay_grid", "sweep_heliostat",
            "run_sweep", "hybrid_variants", "OCTAVE_BANDS", "MIN_IMPROVEMENT"]
@@ -58,6 +59,7 @@ log = logging.getLogger("heliocal.sweep")
 SWEEP = ArtifactSchema(
     name="sweep", filename="sweep.parquet", producer="sweep",
     sort_by=("heliostat_id", "model", "n_train", "weight_decay", "seed"),
+    volatile=("wall_time_s",),
     description="One row per heliostat, model, training size, weight decay and seed: mean and "
                 "median error_mrad per split (means over the split's rows).",
     columns=(
@@ -298,6 +300,7 @@ def sweep_heliostat(task) -> dict:
             "predictions": sel_pred}
 
 
+@stage_transaction("sweep")
 def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               weight_decays: Sequence[float] | None = None, seeds: Sequence[int] = (0,),
               presets: Sequence[str] = AUTO_PRESETS, baselines: Sequence[str] = ("nn-only", "pretrained-nn"),
@@ -349,30 +352,34 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                         progress=(lambda d, t: progress(d, t, None)) if progress else None)
     rows = [r for res in results for r in res["rows"]]
     selection = pd.DataFrame([res["selection"] for res in results])
-    inputs = {name: artifact_path(workdir, s) for name, s in
-              (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS), ("split", SPLIT),
-               ("coarse_params", COARSE_PARAMS))}
-    hashes = {k: file_sha256(p) for k, p in inputs.items()}
-    out_dir = workdir / "hybrid" / "selected"
+    txn = current_transaction(workdir, "sweep")
+    hashes = txn.input_fingerprints()  # what this run read: the selected models' recorded inputs
     for res in results:
         st = res["selected_state"]
         if st is None:
             continue
         hid = st["config"]["heliostat_id"]
-        with atomic_path(out_dir / f"{hid}.pt") as tmp:
-            torch.save(st["state"], tmp)
-        atomic_write_text(out_dir / f"{hid}.json",
-                          json.dumps({**st["config"], "inputs": hashes}, indent=1, sort_keys=True))
+        write_model(txn, "selected", hid, st["state"], {**st["config"], "inputs": hashes})
     opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
             "seeds": seeds, "presets": list(presets), "baselines": list(baselines),
             "extra_bands": [list(b) for b in extra_bands],
-            "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict()}
-    write_artifact(pd.DataFrame(rows), workdir, SWEEP, stage="sweep", options=opts,
-                   seed=seeds[0], inputs=inputs)
-    write_artifact(selection, workdir, SELECTION, stage="sweep", options=opts, seed=seeds[0],
-                   inputs=inputs)
-    write_artifact(pd.concat([res["predictions"] for res in results], ignore_index=True), workdir,
-                   SELECTED_PREDICTIONS, stage="sweep", options=opts, seed=seeds[0], inputs=inputs)
+            "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict(),
+            "heliostats": list(heliostats) if heliostats else None}
+    # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
+    # previous sweep read the same inputs
+    swept = [t[0] for t in tasks]
+    replaced = lambda old: old["heliostat_id"].isin(swept)  # noqa: E731
+    if previous_run_matches(workdir, "sweep"):
+        txn.carry_over(r for r in txn.previous_files("hybrid/selected")
+                       if r.rsplit("/", 1)[-1].rsplit(".", 1)[0] not in swept)
+    write_artifact(merge_with_previous(workdir, SWEEP, pd.DataFrame(rows), replaced), workdir,
+                   SWEEP, stage="sweep", options=opts, seed=seeds[0])
+    write_artifact(merge_with_previous(workdir, SELECTION, selection, replaced), workdir,
+                   SELECTION, stage="sweep", options=opts, seed=seeds[0])
+    write_artifact(merge_with_previous(
+        workdir, SELECTED_PREDICTIONS,
+        pd.concat([res["predictions"] for res in results], ignore_index=True), replaced),
+        workdir, SELECTED_PREDICTIONS, stage="sweep", options=opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "members_per_heliostat": {t[0]: len(t[4]) * len(weight_decays) * len(seeds)
                                       * len(hybrid_variants(config, extra_bands)) for t in tasks}}
