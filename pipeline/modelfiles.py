@@ -87,7 +87,8 @@ def read_model(workdir: str | os.PathLike, stage: str, mode: str, heliostat_id: 
     listed = m is not None and cfg_rel in m.files and pt_rel in m.files
     if not listed:
         for rel in (cfg_rel, pt_rel):
-            if (workdir / rel).exists():  # present but not committed: refused with the reason
+            # present but not committed (and not just being removed by the last commit): refused
+            if (workdir / rel).exists() and not (m is not None and m.removes(rel)):
                 read_committed(workdir, stage, rel, hint=hint)
         return None
     cfg_file = read_committed(workdir, stage, cfg_rel, hint=hint)

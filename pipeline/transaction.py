@@ -130,6 +130,11 @@ class Manifest:
         """label -> recorded fingerprint of every input (what freshness compares)."""
         return {k: v.get("fingerprint") for k, v in self.inputs.items()}
 
+    def removes(self, rel: str) -> bool:
+        """Whether this run dropped ``rel`` of the run before it (the file may still be on disk
+        until the commit is applied; it counts as absent)."""
+        return rel in self.data.get("removed", ())
+
 
 def load_manifest(root: str | os.PathLike, stage: str) -> Manifest | None:
     """The committed run of ``stage`` in ``root`` (``None`` if the stage never committed there).
@@ -261,7 +266,7 @@ def read_committed(root: str | os.PathLike, stage: str, rel: str, *, hint: str |
         if m is None or rel not in m.files:
             if path.exists() and m is None:
                 raise StageInputError(_not_committed_message(path, stage, root, hint))
-            if path.exists():
+            if path.exists() and not m.removes(rel):
                 raise StageInputError(
                     f"{path} is not part of the last `heliocal {stage}` run ({m.run_id}, see "
                     f"{m.path.name}): it is left over or made by hand; rerun {hint}")
@@ -680,7 +685,7 @@ class StageTransaction:
         _fsync_dir(self.staging)
         text = json.dumps(data, indent=1, sort_keys=True) + "\n"
         target = manifest_path(self.root, self.stage)
-        tmp = self.root / f".{target.name}.tmp-{self.run_id}"
+        tmp = self.staging / f".{target.name}.tmp"  # removed with the staging folder
         with open(tmp, "w", encoding="utf-8") as fh:
             fh.write(text)
             fh.flush()
