@@ -68,7 +68,7 @@ __all__ = [
 log = logging.getLogger("heliocal.artifacts")
 
 #: Version of the artifact layout. Bump when a column changes meaning or a required one is added.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 _META_KEY = b"heliocal"
 
 _ARROW_TYPES = {
@@ -740,7 +740,12 @@ def merge_with_previous(workdir: str | os.PathLike, schema: ArtifactSchema, new:
                     "heliostats or modes are dropped (rerun `heliocal %s` without --heliostat "
                     "to make them again)", artifact_path(workdir, schema), schema.producer)
         return new
-    old = read_artifact(workdir, schema)
+    try:
+        old = read_artifact(workdir, schema)
+    except (SchemaError, StageInputError) as exc:  # e.g. written by an older heliocal
+        log.warning("the previous %s cannot be read, so only this run's rows are kept: %s",
+                    schema.filename, exc)
+        return new
     keep = ~replaced(old).to_numpy(bool)
     return pd.concat([old[keep], new], ignore_index=True)
 

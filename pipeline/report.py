@@ -785,6 +785,16 @@ def _fmt_g(x) -> str:
     return f"{float(x):.6g}"
 
 
+def _degenerate(inp: ReportInputs) -> dict:
+    """heliostat -> why its training data cannot determine the coarse model (coarse_params'
+    ``fit_degenerate``), for the heliostats where they cannot."""
+    cp = inp.coarse_params
+    if cp is None or "fit_degenerate" not in cp.columns:
+        return {}
+    first = cp.groupby("heliostat_id", sort=True)["fit_degenerate"].first()
+    return {str(h): str(w) for h, w in first.items() if isinstance(w, str) and w}
+
+
 def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
     """The report as blocks: ``("h1"|"h2"|"h3"|"p"|"note", text)``, ``("table", headers, rows)``
     and ``("figure", _Figure)``."""
@@ -830,6 +840,11 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
 
     # --- accuracy tables
     blocks.append(("h2", "Accuracy"))
+    degenerate = _degenerate(inp)
+    for hid, why in degenerate.items():
+        blocks.append(("note", f"{hid}: degenerate training data ({why}). Its errors below say "
+                               "nothing about its accuracy, however small they are: calibrate "
+                               "it at more sun positions."))
     if inp.predictions is None:
         blocks.append(("note", "No predictions: run "
                                f"{inp.run_hint('coarse_predictions.parquet')} for the error "
@@ -842,10 +857,11 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                    "p95 [mrad]", "beam [mrad]", "spot offset [m]"]
         rows = []
         for hid, h in helios.items():
+            label = hid + (" (degenerate data)" if hid in degenerate else "")
             for model, mm in h["models"].items():
                 name = model + (" ★" if mm["selected"] else "")
                 for sp, st in mm["splits"].items():
-                    rows.append([hid, name, sp, st["n"], _fmt(st["mean_error_mrad"]),
+                    rows.append([label, name, sp, st["n"], _fmt(st["mean_error_mrad"]),
                                  _fmt(st["median_error_mrad"]), _fmt(st["p95_error_mrad"]),
                                  _fmt(st["mean_beam_error_mrad"]), _fmt(st["mean_spot_offset_m"])])
         blocks.append(("table", headers, rows))

@@ -366,20 +366,19 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict(),
             "heliostats": list(heliostats) if heliostats else None}
     # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
-    # previous sweep read the same inputs
-    swept = [t[0] for t in tasks]
-    replaced = lambda old: old["heliostat_id"].isin(swept)  # noqa: E731
-    if previous_run_matches(workdir, "sweep"):
-        txn.carry_over(r for r in txn.previous_files("hybrid/selected")
-                       if r.rsplit("/", 1)[-1].rsplit(".", 1)[0] not in swept)
-    write_artifact(merge_with_previous(workdir, SWEEP, pd.DataFrame(rows), replaced), workdir,
-                   SWEEP, stage="sweep", options=opts, seed=seeds[0])
-    write_artifact(merge_with_previous(workdir, SELECTION, selection, replaced), workdir,
-                   SELECTION, stage="sweep", options=opts, seed=seeds[0])
-    write_artifact(merge_with_previous(
-        workdir, SELECTED_PREDICTIONS,
-        pd.concat([res["predictions"] for res in results], ignore_index=True), replaced),
-        workdir, SELECTED_PREDICTIONS, stage="sweep", options=opts, seed=seeds[0])
+    # previous sweep read the same inputs (artifacts.merge_with_previous)
+    tables = {SWEEP: pd.DataFrame(rows), SELECTION: selection,
+              SELECTED_PREDICTIONS: pd.concat([res["predictions"] for res in results],
+                                              ignore_index=True)}
+    if heliostats:
+        requested = set(heliostats)
+        replaced = lambda old: old["heliostat_id"].isin(requested)  # noqa: E731
+        tables = {s: merge_with_previous(workdir, s, df, replaced) for s, df in tables.items()}
+        if previous_run_matches(workdir, "sweep"):
+            txn.carry_over(r for r in txn.previous_files("hybrid/selected")
+                           if r.rsplit("/", 1)[-1].rsplit(".", 1)[0] not in requested)
+    for schema, df in tables.items():
+        write_artifact(df, workdir, schema, stage="sweep", options=opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "members_per_heliostat": {t[0]: len(t[4]) * len(weight_decays) * len(seeds)
                                       * len(hybrid_variants(config, extra_bands)) for t in tasks}}

@@ -51,7 +51,8 @@ def _write(df: pd.DataFrame, workdir: Path, schema) -> None:
     df = df.copy()
     for c in schema.columns:
         if c.name not in df.columns:
-            df[c.name] = _DEFAULTS[c.dtype]
+            # fit_degenerate: empty means the data are fine (a text would flag the heliostat)
+            df[c.name] = "" if c.name == "fit_degenerate" else _DEFAULTS[c.dtype]
     write_artifact(df, workdir, schema, stage=schema.producer, inputs={})
 
 
