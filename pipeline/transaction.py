@@ -35,8 +35,9 @@ fingerprints it recorded equal those of the current upstream manifests; rerunnin
 with other spellings of the same command (``--workdir ./a`` or ``a``) gives the same fingerprints.
 
 One writer per ROOT at a time is the job of the workdir lock (``pipeline/workdir_lock.py``); under
-it the protocol above is exact. Without it, a run that merged its predecessor's outputs (a partial
-``--heliostat`` run) refuses to commit if another run of its stage committed in between.
+it the protocol above is exact. Without it, a run refuses to commit if another run of its stage
+committed after it began (it would replace that run's outputs, or drop what that run merged),
+and recovery leaves alone the staging folder of a run that is still alive.
 """
 
 from __future__ import annotations
@@ -524,7 +525,6 @@ class StageTransaction:
         self._read_inputs: dict[str, dict] = {}  # label -> the recorded inputs of what was read
         self._sources: dict[str, tuple[Path, list]] = {}
         self.previous: Manifest | None = None
-        self.based_on_previous = False
         self.options: Mapping | None = None
         self.seed: int | None = None
         self.command: str | None = None
@@ -564,8 +564,7 @@ class StageTransaction:
     def record_read(self, label: str, m: Manifest, rel: str) -> None:
         """Record that this run read ``rel`` of committed run ``m`` as input ``label``."""
         if m.root.absolute() == self.root.absolute() and m.stage == self.stage:
-            self.based_on_previous = True  # its own previous outputs: not an input
-            return
+            return  # its own previous outputs (a partial run merging them): not an input
         entry = m.files[rel]
         rec = {"fingerprint": entry.get("fingerprint") or entry.get("sha256"),
                "sha256": entry.get("sha256"), "run_id": entry.get("run_id", m.run_id),
@@ -627,7 +626,6 @@ class StageTransaction:
             rel = _rel(rel)
             if rel in self.previous.files and rel not in self.files:
                 self.files[rel] = dict(self.previous.files[rel])
-                self.based_on_previous = True
 
     def previous_files(self, under: str = "") -> list[str]:
         """Files of the previous committed run (optionally only those under folder ``under``)."""
@@ -661,11 +659,14 @@ class StageTransaction:
         self._check_inputs()
         current = load_manifest(self.root, self.stage)
         prev_id = self.previous.run_id if self.previous else None
-        if self.based_on_previous and (current.run_id if current else None) != prev_id:
+        if (current.run_id if current else None) != prev_id:
+            # two runs of one stage at once: committing this one would silently replace the
+            # other's outputs (or drop what it merged), so this one is not committed
             raise StageInputError(
                 f"another `heliocal {self.stage}` run committed to {self.root} while this one ran "
-                f"(run {current.run_id if current else None}); this run merged the outputs of the "
-                f"run before it, so it is not committed: rerun `heliocal {self.stage}`")
+                f"(run {current.run_id if current else None}); this run's outputs were not "
+                f"committed, so nothing of the other run is lost: rerun `heliocal {self.stage} "
+                f"--workdir {self.root}` when it has finished")
         base = current.files if current is not None else {}
         data = {
             "manifest_version": MANIFEST_VERSION,
