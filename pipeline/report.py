@@ -17,7 +17,7 @@ selection.parquet          hybrid against coarse per heliostat (fig. 8), the sel
 
 A figure whose inputs are absent is omitted, and the report says which stage to run for it.
 
-Outputs in ``DIR/report/`` (every file written atomically): ``index.html`` (self-contained, the
+Outputs in ``DIR/report/`` (one stage transaction, see :mod:`heliocal.pipeline.transaction`): ``index.html`` (self-contained, the
 figures embedded as base64 PNG), ``report.md`` (the same content, figures linked), ``figures/*.png``
 and ``metrics.json`` (schema: ``docs/metrics_schema.json``; sorted keys and rounded floats, so two
 runs of the same pipeline give the same numbers and :mod:`heliocal.pipeline.regression` can diff

@@ -350,3 +350,94 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
         print(f"{row[1]:>3}  {row[2]:<14} {row[3]:<52} {row[4]:<9} {row[5]}")
     if same:
         print(f"(equal in both runs: {', '.join(same)})")
+
+
+# ------------------------------------------------------------------------------------------------
+# the moments issue 22 names (cases 1-3), each checked with what the issue saw going wrong
+# ------------------------------------------------------------------------------------------------
+def _killed_copies(zygote, base: Path, tmp_path: Path, argv: list[str], moments) -> dict:
+    """Work directories where ``argv`` was killed right after each (event, path) of ``moments``."""
+    complete = tmp_path / "complete"
+    shutil.copytree(base, complete)
+    status, points = zygote.run(argv, complete)
+    assert status["code"] == 0, status["log"]
+    out = {}
+    for moment in moments:
+        n = points.index(moment) + 1
+        workdir = tmp_path / f"{moment[0]}-{n}"
+        shutil.copytree(base, workdir)
+        status, _ = zygote.run(argv, workdir, kill_at=n)
+        assert status["signal"] == signal.SIGKILL
+        out[moment] = workdir
+    return out
+
+
+def _committed_provenance(workdir: Path, stage: str, rel: str) -> dict:
+    from heliocal.pipeline.transaction import read_committed
+
+    data = read_committed(workdir, stage, rel).data
+    return json.loads(pq.read_schema(pa.BufferReader(data)).metadata[b"heliocal"])
+
+
+@pytest.mark.slow
+def test_case_1_fit_coarse_killed_between_its_writes(zygote, base, tmp_path):
+    """Issue case 1: coarse_params of the new run beside coarse_predictions of the old, both
+    'fresh', the report selecting another preset than aim. Now one run or the other."""
+    from heliocal.cli.info import describe_workdir
+    from heliocal.pipeline.coarse import load_selected_parameters
+    from heliocal.pipeline.report import compute_metrics, load_inputs
+    from heliocal.pipeline.transaction import load_manifest
+
+    argv = ["fit-coarse", "--preset", "stone-8", "--workers", "1"]
+    moments = [("staged", ".txn-fit-coarse-<run>/coarse_params.parquet"),  # between the writes
+               ("apply", "coarse_params.parquet")]  # between the renames
+    for moment, wd in _killed_copies(zygote, base, tmp_path, argv, moments).items():
+        run = load_manifest(wd, "fit-coarse").run_id
+        provs = [_committed_provenance(wd, "fit-coarse", f) for f in
+                 ("coarse_params.parquet", "coarse_predictions.parquet")]
+        assert provs[0]["options"] == provs[1]["options"]  # one run's options in both
+        expected = "static-6" if moment[0] == "staged" else "stone-8"
+        assert provs[0]["options"]["preset"] == expected
+        d = describe_workdir(wd)
+        status = {a["path"].rsplit("/", 1)[-1]: a["status"] for a in d["artifacts"]}
+        assert status["coarse_params.parquet"] == status["coarse_predictions.parquet"] == "fresh"
+        preset = load_selected_parameters(wd)["BE36"]["preset"]  # what aim and fit-hybrid use
+        metrics = compute_metrics(load_inputs(wd))  # what the report shows
+        assert metrics["heliostats"]["BE36"]["selection"]["coarse_preset"] == preset == expected
+        assert run  # the manifest names the run readers see
+
+
+@pytest.mark.slow
+def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygote, base, tmp_path):
+    """Issue case 2: new weights with the old config (aim: 'mat1 and mat2 shapes cannot be
+    multiplied'), and models of one run beside predictions of another. Now one run or the other,
+    and aim works at every moment."""
+    from heliocal.pipeline.hybrid import aim_steps, load_model
+
+    argv = ["fit-hybrid", "--max-epochs", "20", "--seed", "1", "--workers", "1",
+            "--depth", "3", "--width", "4"]  # other layer sizes than the previous run's 14 x 2
+    moments = [("staged", ".txn-fit-hybrid-<run>/hybrid/hybrid/BE36.pt"),  # .pt, not yet .json
+               ("apply", "hybrid/hybrid/BE36.pt"),  # weights and config in place, predictions not
+               ("apply", "hybrid/hybrid/BE36.json")]
+    for moment, wd in _killed_copies(zygote, base, tmp_path, argv, moments).items():
+        cfg, layers = load_model(wd, "hybrid", "BE36")
+        pred = _committed_provenance(wd, "fit-hybrid", "hybrid_predictions.parquet")
+        assert cfg["seed"] == pred["seed"] == (0 if moment[0] == "staged" else 1)
+        assert len(layers) == (15 if moment[0] == "staged" else 4)
+        out = aim_steps(wd, "BE36", aim_point_enu=[0.0, 0.0, 50.0], model="hybrid",
+                        time_utc="2023-06-21T10:00:00Z")
+        assert out["model"] == "hybrid" and out["aim_error_mrad"] < 1e-6
+
+
+@pytest.mark.slow
+def test_case_3_sweep_killed_between_sweep_and_selection(zygote, base, tmp_path):
+    """Issue case 3: sweep.parquet and selection.parquet from different runs. Now one run."""
+    argv = ["sweep", "--n-train", "100", "--wd-max", "1", "--wd-min", "0.1", "--ensemble", "1",
+            "--baselines", "none", "--no-octaves", "--max-epochs", "20", "--seeds", "1",
+            "--workers", "1"]
+    moments = [("staged", ".txn-sweep-<run>/sweep.parquet"), ("apply", "sweep.parquet"),
+               ("apply", "selection.parquet")]
+    for moment, wd in _killed_copies(zygote, base, tmp_path, argv, moments).items():
+        opts = [_committed_provenance(wd, "sweep", f)["options"]["n_train"]
+                for f in ("sweep.parquet", "selection.parquet", "selected_predictions.parquet")]
+        assert opts == [[60] if moment[0] == "staged" else [100]] * 3
