@@ -76,7 +76,6 @@ import contextlib
 import copy
 import dataclasses
 import functools
-import json
 import logging
 import math
 import time

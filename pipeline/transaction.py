@@ -196,7 +196,9 @@ def _rel(rel: str | os.PathLike) -> str:
     p = PurePosixPath(text.replace(os.sep, "/"))
     if "\0" in text or p.is_absolute() or not p.parts or any(part in ("", ".", "..")
                                                               for part in p.parts):
-        raise ValueError(f"{text!r} is not a plain relative path inside the work directory")
+        raise InputError(f"{text!r} cannot name a file inside the work directory (a heliostat id "
+                         "or name with '/', '..' or NUL?); rename it in the source and ingest "
+                         "again")
     return p.as_posix()
 
 

@@ -658,3 +658,15 @@ def test_case_9_degenerate_heliostat_is_flagged_in_fit_and_report(kind, tmp_path
     note = "SYN1: degenerate training data ("
     assert (note in text) == (kind != "wide")
     assert ("SYN1 (degenerate data)" in text) == (kind != "wide")
+
+
+def test_output_names_cannot_leave_the_work_directory(wd):
+    """Defence in depth (ingest validates heliostat ids): a model file named from an id with '..'
+    or '/' is refused with a one-line error, not written outside the work directory."""
+    from heliocal.pipeline.errors import InputError
+    from heliocal.pipeline.modelfiles import write_model
+
+    with pytest.raises(InputError, match="cannot name a file inside the work directory"):
+        with transaction(wd, "fit-hybrid") as txn:
+            write_model(txn, "hybrid", "../../escaped", {}, {})
+    assert not (wd.parent / "escaped.pt").exists() and not list(wd.glob(".txn-*"))
