@@ -87,8 +87,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import (artifact_path, artifact_present, check_fresh, committed_fingerprint, merge_with_previous,
-                        previous_run_matches, read_artifact, write_artifact)
+from .artifacts import (artifact_path, artifact_present, check_fresh, committed_fingerprint,
+                        merge_with_previous, previous_run_matches, read_artifact, write_artifact)
 from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, _kind, _load_split,
                      load_selected_parameters, metrics_frame, predict)
 from .errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
@@ -1107,10 +1107,6 @@ def fit_pretrained(coarse: torch.Tensor, spec: HeliostatSpec, hrow, rows: pd.Dat
 # ------------------------------------------------------------------------------------------------
 # the stage
 # ------------------------------------------------------------------------------------------------
-def _model_dir(workdir: Path, mode: str) -> Path:
-    return Path(workdir) / "hybrid" / mode
-
-
 def _mean(values) -> float:
     values = np.asarray(values, np.float64)
     return float(values.mean()) if len(values) else float("nan")
