@@ -434,7 +434,7 @@ def test_case_7_damaged_model_files_give_one_line_errors(damage, expected, wd, r
     line = _one_line_error(_run(runner, "aim", "--workdir", wd, "--heliostat", "BE36", "--model",
                                 "hybrid", "--target", "0,0,50", "--time", "2023-06-21T10:00Z"))
     assert line.startswith("Error: " + expected.format(pt=pt, cfg=cfg, hint=hint)), line
-    assert line.endswith(hint) or "rerun" in line
+    assert line.endswith(hint), line  # what to do: the command that writes the model again
     assert "weights_only=False" not in line
 
 
@@ -529,7 +529,6 @@ def test_case_8_workdir_spelled_differently_keeps_models_fresh(tmp_path, monkeyp
     _ok(runner, "fit-coarse", "--workdir", "a", *COARSE)
     _ok(runner, "fit-hybrid", "--workdir", "a", *HYBRID)
     fp = fingerprint(Path("a/coarse_params.parquet"))
-    before = sha256(Path("a/coarse_params.parquet"))
     _ok(runner, "fit-coarse", "--workdir", "./a", *COARSE)
     assert fingerprint(Path("a/coarse_params.parquet")) == fp  # the same fit
     from heliocal.cli.info import describe_workdir
@@ -543,7 +542,6 @@ def test_case_8_workdir_spelled_differently_keeps_models_fresh(tmp_path, monkeyp
                   "--target", "0,0,50", "--time", "2023-06-21T10:00Z")
     assert result.exit_code == 0, result.stderr
     assert json.loads(result.stdout)["model"] == "hybrid"
-    del before  # the bytes may differ (the command line is in the provenance); freshness does not
 
 
 # ------------------------------------------------------------------------------------------------
