@@ -25,7 +25,7 @@ import typer
 from rich.console import Console
 from rich.logging import RichHandler
 
-from heliocal.pipeline.errors import HeliocalError
+from heliocal.pipeline.errors import HeliocalError, resource_error_message
 
 __all__ = [
     "app",
@@ -93,8 +93,8 @@ class Terminated(BaseException):
     KeyboardInterrupt, so that cleanup code runs and no ``except Exception`` swallows it)."""
 
 
-INTERRUPTED = ("artifacts written so far are complete, the interrupted one was not replaced, and "
-               "no worker process is left running")
+INTERRUPTED = ("nothing of this run was committed unless it had finished (each stage's last "
+               "complete run is the one in use), and no worker process is left running")
 
 
 @contextlib.contextmanager
@@ -130,6 +130,11 @@ def command(name: str, **kwargs) -> Callable:
                     return func(*args, **kw)
             except HeliocalError as exc:
                 fail(str(exc))
+            except OSError as exc:
+                message = resource_error_message(exc)
+                if message is None:
+                    raise
+                fail(message)
             except KeyboardInterrupt:
                 fail(f"interrupted (SIGINT); {INTERRUPTED}", code=130)
             except Terminated:

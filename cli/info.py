@@ -2,9 +2,12 @@
 
 For a Parquet artifact it prints what pipeline/artifacts.py recorded in the file's metadata
 (schema version, stage, heliocal version and git revision, command, resolved options, seed and
-the SHA-256 of every input), its rows and columns, and whether each input is still the file it was
-made from (*freshness*). For a work directory it lists every artifact with its stage, rows and
-freshness, and the hidden ``.<name>.tmp-*`` leftovers of interrupted writes (no stage reads them).
+the fingerprint of every input the run read), its rows and columns, the run that committed it
+(from ``<stage>.manifest.json``, see pipeline/transaction.py) and whether each input is still the
+one it was made from (*freshness*). For a work directory it lists every artifact with its stage,
+run, rows and freshness; every committed run with its files (each verified against the manifest's
+SHA-256); a commit that was interrupted after its commit point; and the leftovers of runs that
+stopped before their commit (no stage reads them).
 
 ``--json`` prints the same as one JSON document. A file that is not a heliocal artifact gives one
 line ``Error: ...`` and exit code 1.
@@ -30,6 +33,8 @@ from heliocal.cli.app import JsonFlag, command, emit, stdout
 from heliocal.pipeline.artifacts import SCHEMA_VERSION, file_sha256
 from heliocal.pipeline.errors import InputError, SchemaError
 from heliocal.pipeline.workdir_lock import lock_holder
+from heliocal.pipeline.transaction import (all_manifests, pending_commits, stale_staging_folders,
+                                           staging_in_use, verify_files)
 
 __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 
@@ -38,10 +43,13 @@ _SOURCE_PREFIX = "source:"  # ingest records each source as "source:<path as giv
 
 #: Status of one artifact, best first: fresh, then the reasons it may not be.
 STATUSES = {
-    "fresh": "every recorded input hash equals the current input file's hash",
+    "fresh": "committed by its stage's last run, and every recorded input equals the current one",
     "stale": "an input changed after the artifact was written: rerun its stage",
     "unknown": "an input cannot be found to compare (moved source, or none recorded)",
     "incompatible": "written with another schema version: rerun its stage",
+    "modified": "its bytes differ from what its run committed (changed by hand?): rerun its stage",
+    "uncommitted": "no complete run of its stage lists it (made by hand, by an older heliocal, or "
+                   "by an interrupted run): rerun its stage",
 }
 
 
@@ -55,7 +63,7 @@ def _schemas_by_name() -> dict:
 
 
 class _HashCache:
-    """SHA-256 of input files, each computed once per ``info`` call (sources can be large)."""
+    """SHA-256 of source files, each computed once per ``info`` call (sources can be large)."""
 
     def __init__(self) -> None:
         self._cache: dict[Path, str] = {}
@@ -65,6 +73,33 @@ class _HashCache:
         if key not in self._cache:
             self._cache[key] = file_sha256(key)
         return self._cache[key]
+
+
+class _Manifests:
+    """The committed runs of one folder, loaded and verified once per ``info`` call."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.runs = all_manifests(folder)
+        self._problems: dict[str, dict] = {}
+
+    def owner(self, rel: str):
+        """(manifest, entry) of the run that lists ``rel``, or ``None``."""
+        for m in self.runs:
+            if rel in m.files:
+                return m, m.files[rel]
+        return None
+
+    def problems(self, m) -> dict:
+        if m.stage not in self._problems:
+            self._problems[m.stage] = verify_files(m)
+        return self._problems[m.stage]
+
+    def fingerprint(self, schema) -> str | None:
+        for m in self.runs:
+            if m.stage == schema.producer and schema.filename in m.files:
+                return m.files[schema.filename].get("fingerprint")
+        return None
 
 
 def _read_metadata(path: Path) -> tuple[pq.FileMetaData, dict]:
@@ -90,36 +125,54 @@ def _read_metadata(path: Path) -> tuple[pq.FileMetaData, dict]:
     return meta, prov
 
 
-def _input_path(label: str, prov: dict, folder: Path, schemas: dict) -> Path | None:
-    """The file an input label of ``prov`` refers to now (``None`` if it cannot be told)."""
-    if label.startswith(_SOURCE_PREFIX):
-        return Path(label[len(_SOURCE_PREFIX):])
-    if label in schemas:  # an upstream artifact in the same work directory
-        return folder / schemas[label].filename
-    value = (prov.get("options") or {}).get(label)  # e.g. ingest's tower/properties
-    if isinstance(value, str) and value:
-        return Path(value)
-    return None
-
-
-def _inputs_freshness(prov: dict, folder: Path, schemas: dict, sha: _HashCache) -> dict:
-    """Per recorded input: its path now, the recorded and the current hash, and a status."""
+def _inputs_freshness(prov: dict, folder: Path, schemas: dict, sha: _HashCache,
+                      manifests: _Manifests) -> dict:
+    """Per recorded input: its path now, the recorded and the current fingerprint (an upstream
+    artifact: its content fingerprint as its stage committed it; a source: its SHA-256), and a
+    status."""
     out = {}
     for label, recorded in sorted((prov.get("inputs") or {}).items()):
-        path = _input_path(label, prov, folder, schemas)
-        current = sha(path) if path is not None and path.exists() else None
+        path, current = None, None
+        if label.startswith(_SOURCE_PREFIX):
+            path = Path(label[len(_SOURCE_PREFIX):])
+            current = sha(path) if path.exists() else None
+        elif label in schemas:  # an upstream artifact in the same work directory
+            path = folder / schemas[label].filename
+            current = manifests.fingerprint(schemas[label])
+        else:
+            value = (prov.get("options") or {}).get(label)  # e.g. ingest's tower/properties
+            if isinstance(value, str) and value:
+                path = Path(value)
+                current = sha(path) if path.exists() else None
         if recorded is None or current is None:
             status = "unknown"
         else:
             status = "fresh" if current == recorded else "stale"
-        out[label] = {"path": None if path is None else str(path), "recorded_sha256": recorded,
-                      "current_sha256": current, "status": status}
+        out[label] = {"path": None if path is None else str(path), "recorded": recorded,
+                      "current": current, "status": status}
     return out
 
 
-def _status(prov: dict, inputs: dict) -> str:
+def _commit(path: Path, manifests: _Manifests) -> dict:
+    """Which run committed ``path`` and whether the file is still what it wrote."""
+    try:
+        rel = path.absolute().relative_to(manifests.folder.absolute()).as_posix()
+    except ValueError:
+        rel = path.name
+    found = manifests.owner(rel)
+    if found is None:
+        return {"status": "uncommitted", "stage": None, "run_id": None, "manifest": None}
+    m, _ = found
+    problem = manifests.problems(m).get(rel)
+    return {"status": "modified" if problem else "committed", "stage": m.stage,
+            "run_id": m.run_id, "manifest": str(m.path)}
+
+
+def _status(prov: dict, inputs: dict, commit: dict) -> str:
     if prov.get("schema_version") != SCHEMA_VERSION:
         return "incompatible"
+    if commit["status"] != "committed":
+        return commit["status"]
     states = {i["status"] for i in inputs.values()}
     for status in ("stale", "unknown"):
         if status in states:
@@ -128,14 +181,14 @@ def _status(prov: dict, inputs: dict) -> str:
 
 
 def _hint(status: str, prov: dict, folder: Path) -> str | None:
-    if status in ("stale", "incompatible"):
+    if status in ("stale", "incompatible", "modified", "uncommitted"):
         return f"rerun `heliocal {prov.get('stage', '?')} --workdir {folder}`"
     return None
 
 
 def describe_artifact(path: str | Path, *, _sha: _HashCache | None = None,
-                      _schemas: dict | None = None) -> dict:
-    """Provenance, shape and freshness of one heliocal Parquet artifact.
+                      _schemas: dict | None = None, _manifests: _Manifests | None = None) -> dict:
+    """Provenance, shape, commit and freshness of one heliocal Parquet artifact.
 
     Raises
     ------
@@ -145,8 +198,10 @@ def describe_artifact(path: str | Path, *, _sha: _HashCache | None = None,
     path = Path(path)
     meta, prov = _read_metadata(path)
     schemas = _schemas if _schemas is not None else _schemas_by_name()
-    inputs = _inputs_freshness(prov, path.parent, schemas, _sha or _HashCache())
-    status = _status(prov, inputs)
+    manifests = _manifests if _manifests is not None else _Manifests(path.parent)
+    inputs = _inputs_freshness(prov, path.parent, schemas, _sha or _HashCache(), manifests)
+    commit = _commit(path, manifests)
+    status = _status(prov, inputs, commit)
     arrow = meta.schema.to_arrow_schema()
     return {
         "path": str(path),
@@ -159,35 +214,56 @@ def describe_artifact(path: str | Path, *, _sha: _HashCache | None = None,
         "status": status,
         "hint": _hint(status, prov, path.parent),
         "reads_schema_version": SCHEMA_VERSION,
+        "commit": commit,
         "inputs": inputs,
         "provenance": prov,
     }
 
 
 def describe_workdir(workdir: str | Path) -> dict:
-    """Every artifact of ``workdir`` (stage, rows, freshness), foreign files and leftovers."""
+    """Every artifact of ``workdir`` (stage, run, rows, freshness), every committed run (files
+    verified), interrupted commits, foreign files and leftovers."""
     workdir = Path(workdir)
     sha, schemas = _HashCache(), _schemas_by_name()
+    manifests = _Manifests(workdir)
     artifacts, foreign = [], []
     for path in sorted(workdir.glob("*.parquet")):
         if path.name.startswith("."):
             continue
         try:
-            d = describe_artifact(path, _sha=sha, _schemas=schemas)
+            d = describe_artifact(path, _sha=sha, _schemas=schemas, _manifests=manifests)
         except SchemaError as exc:
             foreign.append({"path": str(path), "reason": str(exc)})
             continue
         artifacts.append({k: d[k] for k in ("path", "artifact", "stage", "rows", "status", "hint",
                                              "inputs")}
-                         | {"schema_version": d["provenance"].get("schema_version")})
+                         | {"schema_version": d["provenance"].get("schema_version"),
+                            "run_id": d["commit"]["run_id"]})
+    runs = []
+    for m in manifests.runs:
+        problems = manifests.problems(m)
+        runs.append({"stage": m.stage, "run_id": m.run_id, "manifest": str(m.path),
+                     "created_utc": m.data.get("created_utc"), "command": m.data.get("command"),
+                     "files": len(m.files), "pending": m.pending(),
+                     "problems": [{"path": str(workdir / r), "problem": p}
+                                  for r, p in problems.items()]})
+    pending = [{"stage": m.stage, "run_id": m.run_id, "staging": str(m.staging),
+                "staged_files": sum(1 for r in m.files if (m.staging / r).is_file())}
+               for m in pending_commits(workdir)]
     leftovers = sorted(str(p) for p in workdir.glob(".*.tmp-*"))
     from heliocal.pipeline.hybrid import aim_models
 
+    stopped = [{"path": str(p), "in_progress": staging_in_use(p)}
+               for p in stale_staging_folders(workdir)]
     return {
         "workdir": str(workdir),
         "artifacts": artifacts,
-        "fresh": all(a["status"] == "fresh" for a in artifacts),
+        "runs": runs,
+        "fresh": all(a["status"] == "fresh" for a in artifacts)
+        and not any(r["problems"] for r in runs),
         "not_artifacts": foreign,
+        "pending_commits": pending,
+        "uncommitted_runs": stopped,
         "leftovers": leftovers,
         "aim_models": [{k: v for k, v in m.items() if k != "model_dir"}
                        for m in aim_models(workdir).values()],
@@ -198,7 +274,8 @@ def describe_workdir(workdir: str | Path) -> dict:
 # ------------------------------------------------------------------------------------------------
 # formatting
 # ------------------------------------------------------------------------------------------------
-_STYLE = {"fresh": "green", "stale": "bold red", "unknown": "yellow", "incompatible": "bold red"}
+_STYLE = {"fresh": "green", "stale": "bold red", "unknown": "yellow", "incompatible": "bold red",
+          "modified": "bold red", "uncommitted": "bold red"}
 
 
 def _short(sha: str | None) -> str:
@@ -207,13 +284,22 @@ def _short(sha: str | None) -> str:
 
 def _inputs_table(inputs: dict) -> Table:
     table = Table(box=box.SIMPLE_HEAD, pad_edge=False, show_edge=False)
-    for col in ("input", "path", "recorded sha256", "current sha256", "status"):
+    for col in ("input", "path", "recorded", "current", "status"):
         table.add_column(col, overflow="fold")
     for label, i in inputs.items():
-        table.add_row(Text(label), Text(i["path"] or "-"), Text(_short(i["recorded_sha256"])),
-                      Text(_short(i["current_sha256"])),
+        table.add_row(Text(label), Text(i["path"] or "-"), Text(_short(i["recorded"])),
+                      Text(_short(i["current"])),
                       Text(i["status"], style=_STYLE.get(i["status"], "")))
     return table
+
+
+def _run_text(commit: dict) -> str:
+    if commit["status"] == "uncommitted":
+        return "not committed (no manifest of its stage lists it)"
+    text = f"{commit['run_id']} ({Path(commit['manifest']).name})"
+    if commit["status"] == "modified":
+        text += ": the file differs from what this run wrote"
+    return text
 
 
 def _print_artifact(d: dict) -> None:
@@ -234,6 +320,7 @@ def _print_artifact(d: dict) -> None:
         ("heliocal", f"{prov.get('heliocal_version')} (git {prov.get('git_revision')})"),
         ("command", str(prov.get("command"))),
         ("seed", "-" if prov.get("seed") is None else str(prov.get("seed"))),
+        ("run", _run_text(d["commit"])),
     ]
     for key, value in rows:
         head.add_row(Text(key), Text(value))
@@ -248,7 +335,8 @@ def _print_artifact(d: dict) -> None:
         stdout.print(Text("  (none)"))
     for key, value in sorted(options.items()):
         stdout.print(Text(f"  {key} = {json.dumps(value)}"))
-    stdout.print(Text("inputs", style="bold"))
+    stdout.print(Text("inputs (content fingerprint of an artifact, SHA-256 of a source)",
+                      style="bold"))
     if d["inputs"]:
         stdout.print(_inputs_table(d["inputs"]))
     else:
@@ -258,7 +346,7 @@ def _print_artifact(d: dict) -> None:
 
 
 def _print_workdir(d: dict) -> None:
-    if not d["artifacts"] and not d["not_artifacts"]:
+    if not d["artifacts"] and not d["not_artifacts"] and not d["runs"]:
         stdout.print(Text(f"{d['workdir']}: no heliocal artifacts (run `heliocal ingest SOURCE "
                           f"--workdir {d['workdir']}` first)"))
     else:
@@ -270,8 +358,8 @@ def _print_workdir(d: dict) -> None:
         for a in d["artifacts"]:
             changed = ", ".join(k for k, i in a["inputs"].items() if i["status"] != "fresh")
             status = Text(a["status"], style=_STYLE.get(a["status"], ""))
-            table.add_row(Text(Path(a["path"]).name), Text(str(a["stage"])), Text(str(a["rows"])),
-                          status, Text(changed or "-"))
+            table.add_row(Text(Path(a["path"]).name), Text(str(a["stage"])),
+                          Text(str(a["rows"])), status, Text(changed or "-"))
         stdout.print(table)
         for a in d["artifacts"]:
             if a["hint"]:
@@ -280,8 +368,34 @@ def _print_workdir(d: dict) -> None:
                     why += (f" (schema version {a['schema_version']}, this heliocal reads "
                             f"{SCHEMA_VERSION})")
                 stdout.print(Text(f"{Path(a['path']).name}: {why}; {a['hint']}"))
+    if d["runs"]:
+        runs = Table(title=Text("committed runs"), box=box.SIMPLE_HEAD, pad_edge=False)
+        for col in ("stage", "run (UTC time and id)", "files", "check"):
+            runs.add_column(col, justify="right" if col == "files" else "left",
+                            no_wrap=col != "check", overflow="fold")
+        for r in d["runs"]:
+            check = "ok" if not r["problems"] else f"{len(r['problems'])} file(s) differ"
+            if r["pending"]:
+                check += ", commit not applied yet"
+            runs.add_row(Text(r["stage"]), Text(r["run_id"]), Text(str(r["files"])), Text(check))
+        stdout.print(runs)
+        for r in d["runs"]:
+            for p in r["problems"]:
+                stdout.print(Text(f"{p['path']}: {p['problem']} since `heliocal {r['stage']}` "
+                                  f"committed it (run {r['run_id']}); rerun `heliocal {r['stage']} "
+                                  f"--workdir {d['workdir']}`"))
+    for p in d["pending_commits"]:
+        stdout.print(Text(f"the `heliocal {p['stage']}` run {p['run_id']} was interrupted after "
+                          f"its commit: {p['staged_files']} file(s) are still in {p['staging']} "
+                          "(readers use them; the next stage run moves them into place)"))
     for f in d["not_artifacts"]:
         stdout.print(Text(f"not an artifact: {f['reason']}"))
+    for u in d["uncommitted_runs"]:
+        if u["in_progress"]:
+            stdout.print(Text(f"a run in progress is writing {u['path']}"))
+        else:
+            stdout.print(Text(f"leftover of a run that stopped before its commit (no stage reads "
+                              f"it; the next run removes it; safe to delete): {u['path']}"))
     for p in d["leftovers"]:
         stdout.print(Text(f"leftover of an interrupted write (no stage reads it; safe to delete): "
                           f"{p}"))

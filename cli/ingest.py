@@ -10,7 +10,8 @@ from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.ingest import (DEFAULT_BATCH_ROWS, IngestOptions, invalid_id_message,
+from heliocal.pipeline.ingest import (DEFAULT_BATCH_ROWS, DEFAULT_TIME_MIN, IngestOptions,
+                                      invalid_id_message,
                                       run_ingest)
 
 
@@ -60,6 +61,13 @@ def ingest_cmd(
         help="Time zone of timestamps that carry none (e.g. Europe/Berlin).")] = None,
     location: Annotated[Optional[str], typer.Option(
         help="Plant location LAT,LON,ALT for ENU logs (for NREL SPA sun positions).")] = None,
+    date_format: Annotated[Optional[str], typer.Option(
+        help="strptime format of the timestamps, e.g. '%d.%m.%Y %H:%M:%S%z'; needed when they "
+             "write day and month as numbers first (02.03.2023), which is ambiguous.")] = None,
+    time_min: Annotated[str, typer.Option(
+        help="Reject measurements before this time (implausible_timestamp).")] = DEFAULT_TIME_MIN,
+    time_max: Annotated[Optional[str], typer.Option(
+        help="Reject measurements after this time (default: now + 1 day).")] = None,
     batch_rows: Annotated[int, typer.Option(
         help="Rows of a log read and validated at a time; peak memory grows with it, not with the "
              "log (a longer log is sorted by heliostat in a hidden folder of the workdir). "
@@ -71,6 +79,7 @@ def ingest_cmd(
     opts = IngestOptions(tower=tower, properties=properties, focal_spot=focal_spot,
                          max_spot_distance_m=max_spot_distance, sun_tolerance_deg=sun_tolerance,
                          azimuth_convention=azimuth_convention, timezone=timezone,
-                         location=_parse_location(location))
+                         location=_parse_location(location), date_format=date_format,
+                         time_min=time_min, time_max=time_max)
     summary = run_ingest(sources, workdir, opts, batch_rows=batch_rows)
     emit(summary, json_, _human)

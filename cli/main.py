@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 from heliocal.cli.app import app, debug_enabled
+from heliocal.pipeline.errors import resource_error_message
 
 # Each module registers its subcommand(s) on import.
 from heliocal.cli import ingest as _ingest  # noqa: F401,E402
@@ -33,6 +34,10 @@ def main() -> None:
     except Exception as exc:  # noqa: BLE001 - the last line of defence against tracebacks
         if debug_enabled():
             raise
+        message = resource_error_message(exc)
+        if message is not None:  # the machine's resources or permissions: the user's to fix
+            print(f"Error: {' '.join(message.split())}", file=sys.stderr)
+            sys.exit(1)
         print(f"Error: internal error {type(exc).__name__}: {' '.join(str(exc).split())} "
               "(a bug in heliocal: rerun with HELIOCAL_DEBUG=1 for the traceback and report it)",
               file=sys.stderr)

@@ -4,15 +4,18 @@ Every stage reads its inputs from a work directory and writes its outputs there 
 names (the *workdir contract*). Each Parquet artifact has a declared :class:`ArtifactSchema`
 (declared once, in the module of the stage that writes it) that is checked on write and on read.
 
-Writes are atomic: the table goes to a temporary file in the same folder and is renamed into
-place with :func:`os.replace`, so a killed stage leaves the previous artifact intact or none at
-all, never a half-written file.
+Writes are transactional (:mod:`heliocal.pipeline.transaction`): inside a stage run every
+artifact is written to the run's staging folder and all of them replace the previous ones at one
+atomic step, the rename of the stage's manifest ``<stage>.manifest.json``. Reads go through that
+manifest: :func:`read_artifact` reads only a file the last complete run of its producer listed,
+and only if its bytes still have the SHA-256 the manifest records.
 
 Each artifact carries its provenance in the Parquet key-value metadata under the key
 ``heliocal``: schema version, artifact name, stage, heliocal version and git revision, the
-command line and its resolved options, the seed, and SHA-256 content hashes of its inputs. A
-stage that reads an artifact checks that it was made from the current version of *its* inputs
-(:func:`check_fresh`), so a stale artifact is refused with the stage to rerun.
+command line and its resolved options, the seed, and the content fingerprints of the inputs the
+run *read* (:func:`table_fingerprint`; a source file or folder: its SHA-256). A stage that reads an
+artifact checks that it was made from the current version of *its* inputs (:func:`check_fresh`),
+so a stale artifact is refused with the stage to rerun.
 """
 
 from __future__ import annotations
@@ -20,13 +23,14 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import os
 import subprocess
 import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator, Mapping, Sequence
+from typing import Callable, Iterable, Iterator, Mapping, Sequence
 
 import pandas as pd
 import pyarrow as pa
@@ -34,9 +38,13 @@ import pyarrow.parquet as pq
 
 from . import __version__
 from .errors import SchemaError, StageInputError, UnsafePathError
+from .transaction import (committed_entry, current_transaction, load_manifest, read_committed,
+                          transaction)
 
 __all__ = [
     "SCHEMA_VERSION",
+    "committed_fingerprint",
+    "recorded_inputs",
     "Column",
     "ArtifactSchema",
     "atomic_path",
@@ -48,15 +56,22 @@ __all__ = [
     "read_artifact",
     "read_provenance",
     "file_sha256",
+    "table_fingerprint",
     "check_fresh",
+    "artifact_present",
+    "previous_run_matches",
+    "merge_with_previous",
     "artifact_path",
     "git_revision",
     "safe_child",
+    "safe_name",
     "MAX_NAME_BYTES",
 ]
 
+log = logging.getLogger("heliocal.artifacts")
+
 #: Version of the artifact layout. Bump when a column changes meaning or a required one is added.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 _META_KEY = b"heliocal"
 
 _ARROW_TYPES = {
@@ -94,7 +109,9 @@ class ArtifactSchema:
 
     ``producer`` is the subcommand that writes it; it is named in "run ... first" messages.
     Columns whose names start with one of ``extra_prefixes`` may be added freely (for example
-    ``env_*`` inputs of the fine model and ``qa_*`` flags).
+    ``env_*`` inputs of the fine model and ``qa_*`` flags). ``volatile`` columns measure the run,
+    not its result (wall-clock seconds): they are left out of the content fingerprint, so a rerun
+    that computes the same result does not make downstream artifacts stale.
     """
 
     name: str
@@ -104,6 +121,7 @@ class ArtifactSchema:
     extra_prefixes: tuple[str, ...] = ()
     sort_by: tuple[str, ...] = ()
     description: str = ""
+    volatile: tuple[str, ...] = ()
     _by_name: dict = field(default_factory=dict, compare=False, repr=False)
 
     def column_names(self) -> list[str]:
@@ -123,6 +141,22 @@ def artifact_path(workdir: str | os.PathLike, schema: ArtifactSchema) -> Path:
 
 #: Longest file name (bytes of its UTF-8 encoding) that common file systems accept (NAME_MAX).
 MAX_NAME_BYTES = 255
+
+
+def safe_name(name: str, where: str = "the work directory") -> str:
+    """``name`` itself if it can be used as a plain file name (the rules of :func:`safe_child`,
+    without a folder to resolve against: for names staged in a stage transaction), else
+    :class:`~heliocal.pipeline.errors.UnsafePathError`."""
+    why = _unsafe_name_reason(name)
+    if why is not None:
+        raise UnsafePathError(_unsafe_message(name, where, why))
+    return name
+
+
+def _unsafe_message(name, where, why: str) -> str:
+    return (f"{name!r} cannot be used as a file name in {where}: {why}; names taken from the "
+            "data must be plain file names (heliostat ids: letters, digits, '_', '-', '.', see "
+            "docs/input_formats.md; rerun `heliocal ingest`, which rejects other ids)")
 
 
 def safe_child(directory: str | os.PathLike, name: str) -> Path:
@@ -145,10 +179,7 @@ def safe_child(directory: str | os.PathLike, name: str) -> Path:
         if path.resolve().parent != folder.resolve():
             why = "it resolves outside the folder (a symbolic link?)"
     if why is not None:
-        raise UnsafePathError(
-            f"{name!r} cannot be used as a file name in {directory}: {why}; names taken from the "
-            "data must be plain file names (heliostat ids: letters, digits, '_', '-', '.', see "
-            "docs/input_formats.md; rerun `heliocal ingest`, which rejects other ids)")
+        raise UnsafePathError(_unsafe_message(name, directory, why))
     return path
 
 
@@ -261,10 +292,8 @@ def git_revision() -> str:
 
 
 def _provenance(schema: ArtifactSchema, stage: str, options: Mapping | None, seed: int | None,
-                inputs: Mapping[str, str | os.PathLike] | None) -> dict:
-    hashes = {}
-    for label, p in (inputs or {}).items():
-        hashes[label] = file_sha256(p) if Path(p).exists() else None
+                inputs: Mapping[str, str | None]) -> dict:
+    """The ``heliocal`` metadata of an artifact; ``inputs`` maps label -> fingerprint (hex)."""
     return {
         "schema_version": SCHEMA_VERSION,
         "artifact": schema.name,
@@ -274,8 +303,27 @@ def _provenance(schema: ArtifactSchema, stage: str, options: Mapping | None, see
         "command": _command_line(stage),
         "options": _jsonable(dict(options or {})),
         "seed": seed,
-        "inputs": hashes,
+        "inputs": dict(sorted(inputs.items())),
     }
+
+
+def _record_inputs(txn, workdir: Path, inputs: Mapping[str, str | os.PathLike] | None) -> None:
+    """Record inputs named explicitly by a writer (``ingest``'s sources, scripts and tests) in the
+    transaction: an artifact committed in ``workdir`` by its fingerprint (read and verified now),
+    any other file or folder by its SHA-256 (hashed once per transaction)."""
+    for label, p in (inputs or {}).items():
+        p = Path(p)
+        if label in txn.inputs and txn.inputs[label].get("path") in (str(p), None):
+            continue
+        try:
+            rel = p.absolute().relative_to(workdir.absolute()).as_posix()
+        except ValueError:
+            rel = None
+        found = committed_entry(workdir, rel) if rel else None
+        if found is not None:
+            read_committed(workdir, found[0].stage, rel, label=label)
+        else:
+            txn.add_source(label, p, file_sha256(p) if p.exists() else None)
 
 
 def _command_line(stage: str) -> str:
@@ -349,11 +397,126 @@ def _to_table(df: pd.DataFrame, schema: ArtifactSchema) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=pa.schema(fields))
 
 
+class _Fingerprint:
+    """SHA-256 of a table's data, fed chunk by chunk; see :func:`table_fingerprint`.
+
+    The data are put in a canonical form before hashing, so equal data give equal fingerprints
+    however they were chunked or stored: every column becomes its values with nulls filled by the
+    type's zero plus a non-null validity column, the rows are cut into record batches of
+    :attr:`BATCH_ROWS`, and the batches are hashed as an Arrow IPC stream (without the schema's
+    metadata and without the schema's volatile columns).
+    """
+
+    BATCH_ROWS = 65536
+
+    def __init__(self, arrow_schema: pa.Schema, schema: ArtifactSchema):
+        self._names = [f.name for f in arrow_schema if f.name not in schema.volatile]
+        fields = []
+        for f in arrow_schema:
+            if f.name in schema.volatile:
+                continue
+            if not pa.types.is_null(f.type):
+                fields.append(pa.field(f.name, f.type, nullable=False))
+            fields.append(pa.field(f.name + "\0valid", pa.bool_(), nullable=False))
+        self._schema = pa.schema(fields)
+        self._hash = hashlib.sha256()
+        self._writer = pa.ipc.new_stream(self, self._schema)
+        self._pending: list[pa.Table] = []
+        self._rows = 0
+
+    # the file-like interface pyarrow writes the stream to
+    closed = False
+
+    def write(self, data) -> int:
+        self._hash.update(data)
+        return len(data)
+
+    def flush(self) -> None:
+        pass
+
+    def _canonical(self, table: pa.Table) -> pa.Table:
+        import pyarrow.compute as pc
+
+        arrays = []
+        for name in self._names:
+            col = table.column(name)
+            if not pa.types.is_null(col.type):
+                arrays.append(pc.fill_null(col, pa.scalar(_zero(col.type), type=col.type))
+                              if col.null_count else col)
+            arrays.append(pc.is_valid(col))
+        return pa.Table.from_arrays(arrays, schema=self._schema)
+
+    def _emit(self, n: int) -> None:
+        table = pa.concat_tables(self._pending)
+        self._writer.write_table(table.slice(0, n).combine_chunks())
+        rest = table.slice(n)
+        self._pending, self._rows = ([rest] if rest.num_rows else []), rest.num_rows
+
+    def add(self, table: pa.Table) -> None:
+        if not table.num_rows:
+            return
+        self._pending.append(self._canonical(table))
+        self._rows += table.num_rows
+        while self._rows >= self.BATCH_ROWS:
+            self._emit(self.BATCH_ROWS)
+
+    def hexdigest(self) -> str:
+        if self._rows:
+            self._emit(self._rows)
+        self._writer.close()
+        return self._hash.hexdigest()
+
+
+def _zero(typ: pa.DataType):
+    if pa.types.is_string(typ) or pa.types.is_large_string(typ):
+        return ""
+    if pa.types.is_binary(typ) or pa.types.is_large_binary(typ):
+        return b""
+    if pa.types.is_boolean(typ):
+        return False
+    if pa.types.is_floating(typ):
+        return 0.0
+    return 0  # integers, timestamps, dates, durations
+
+
+def table_fingerprint(table: pa.Table, schema: ArtifactSchema) -> str:
+    """Content fingerprint of an artifact's table: what freshness compares.
+
+    The SHA-256 of the table's data in a canonical form (:class:`_Fingerprint`), without the
+    provenance metadata and without ``schema.volatile`` columns, so the command line, the git
+    revision and wall-clock times do not make downstream artifacts stale; the data do. Equal data
+    give equal fingerprints however they were chunked, written or read back.
+    """
+    fp = _Fingerprint(table.schema, schema)
+    fp.add(table)
+    return fp.hexdigest()
+
+
+@contextlib.contextmanager
+def _artifact_transaction(workdir: Path, schema: ArtifactSchema, options, seed):
+    """The active transaction of ``schema``'s producer in ``workdir``, or a one-file transaction
+    that keeps the producer's other committed files (a write outside a stage run)."""
+    active = current_transaction(workdir, schema.producer)
+    with transaction(workdir, schema.producer) as txn:
+        if active is None:
+            txn.carry_over(txn.previous_files())
+            if txn.previous is not None:
+                for label, rec in txn.previous.inputs.items():
+                    txn.inputs.setdefault(label, rec)
+        if txn.options is None:
+            txn.options, txn.seed = options, seed
+        yield txn
+
+
 def write_artifact(df: pd.DataFrame, workdir: str | os.PathLike, schema: ArtifactSchema, *,
                    stage: str, options: Mapping | None = None, seed: int | None = None,
                    inputs: Mapping[str, str | os.PathLike] | None = None,
                    row_group_size: int | None = None) -> Path:
-    """Check ``df`` against ``schema`` and write it atomically to ``workdir/schema.filename``.
+    """Check ``df`` against ``schema`` and write it as ``workdir/schema.filename``.
+
+    Inside a stage run (:func:`heliocal.pipeline.transaction.transaction`) the file is staged and
+    becomes visible with the run's other outputs when the run commits. Outside one, the write is
+    its own transaction of ``schema.producer`` (the producer's other committed files are kept).
 
     Parameters
     ----------
@@ -362,23 +525,28 @@ def write_artifact(df: pd.DataFrame, workdir: str | os.PathLike, schema: Artifac
     stage : the subcommand writing it (recorded in the provenance).
     options : resolved options of the run (recorded).
     seed : the seed of the run, if it has random steps.
-    inputs : label -> path of every input file or folder; their SHA-256 is recorded and later
-        compared by :func:`check_fresh`.
+    inputs : label -> path of inputs that were not read with :func:`read_artifact` (ingest's
+        sources). Artifacts read with :func:`read_artifact` in the same run are recorded
+        without being named here, with the fingerprint of what was read.
     row_group_size : rows per Parquet row group (default: pyarrow's).
 
     Returns
     -------
     The artifact's path.
     """
+    workdir = Path(workdir)
     table = _to_table(df, schema)
-    meta = dict(table.schema.metadata or {})
-    meta[_META_KEY] = json.dumps(_provenance(schema, stage, options, seed, inputs),
-                                 sort_keys=True).encode()
-    table = table.replace_schema_metadata(meta)
-    path = artifact_path(workdir, schema)
-    with atomic_path(path) as tmp:
+    with _artifact_transaction(workdir, schema, options, seed) as txn:
+        _record_inputs(txn, workdir, inputs)
+        meta = dict(table.schema.metadata or {})
+        meta[_META_KEY] = json.dumps(_provenance(schema, stage, options, seed,
+                                                 txn.input_fingerprints()), sort_keys=True).encode()
+        table = table.replace_schema_metadata(meta)
+        tmp = txn.staging_path(schema.filename)
         pq.write_table(table, tmp, row_group_size=row_group_size, compression="zstd")
-    return path
+        txn.add_file(schema.filename, fingerprint=table_fingerprint(table, schema),
+                     artifact=schema.name)
+    return artifact_path(workdir, schema)
 
 
 class ArtifactWriter:
@@ -391,6 +559,7 @@ class ArtifactWriter:
         self.arrow_schema = arrow_schema
         self.row_group_size = row_group_size
         self.rows = 0
+        self.fingerprint = _Fingerprint(arrow_schema, schema)
 
     def write(self, df: pd.DataFrame) -> None:
         """Check ``df`` against the schema, sort it by ``schema.sort_by`` and append it.
@@ -416,6 +585,7 @@ class ArtifactWriter:
                 f"when the file was opened ({exc}); this is a bug in heliocal, please report it"
             ) from exc
         self._writer.write_table(table, row_group_size=self.row_group_size)
+        self.fingerprint.add(table)
         self.rows += table.num_rows
 
 
@@ -425,28 +595,36 @@ def artifact_writer(workdir: str | os.PathLike, schema: ArtifactSchema, *, stage
                     options: Mapping | None = None, seed: int | None = None,
                     inputs: Mapping[str, str | os.PathLike] | None = None,
                     row_group_size: int | None = None) -> Iterator[ArtifactWriter]:
-    """Write ``schema``'s artifact chunk by chunk, atomically, with provenance metadata.
+    """Write ``schema``'s artifact chunk by chunk, with provenance metadata.
 
     The streaming twin of :func:`write_artifact`: yields an :class:`ArtifactWriter` whose
-    ``write(df)`` checks and appends one chunk. The file goes to a hidden temporary name and
-    replaces ``workdir/schema.filename`` only when the ``with`` block ends without an exception;
-    on an exception the temporary file is removed and the previous artifact is left as it was.
+    ``write(df)`` checks and appends one chunk. The file is staged in the run's transaction and
+    becomes ``workdir/schema.filename`` when the run commits; on an exception nothing replaces the
+    previous artifact.
 
     Parameters
     ----------
     extra : name -> Arrow type of the extra columns (``env_*``, ``qa_*``) the chunks may hold; a
         chunk without one of them gets it empty.
+    inputs : see :func:`write_artifact` (recorded when the writer is opened, i.e. before the
+        chunks are read from the sources).
     row_group_size : rows per Parquet row group at most (a chunk never shares a row group with
         the next one).
     """
+    workdir = Path(workdir)
     arrow_schema = schema.arrow_schema(extra)
-    meta = {_META_KEY: json.dumps(_provenance(schema, stage, options, seed, inputs),
-                                  sort_keys=True).encode()}
-    arrow_schema = arrow_schema.with_metadata(meta)
-    path = artifact_path(workdir, schema)
-    with atomic_path(path) as tmp:
+    with _artifact_transaction(workdir, schema, options, seed) as txn:
+        _record_inputs(txn, workdir, inputs)
+        meta = {_META_KEY: json.dumps(_provenance(schema, stage, options, seed,
+                                                  txn.input_fingerprints()),
+                                      sort_keys=True).encode()}
+        arrow_schema = arrow_schema.with_metadata(meta)
+        tmp = txn.staging_path(schema.filename)
         with pq.ParquetWriter(tmp, arrow_schema, compression="zstd") as writer:
-            yield ArtifactWriter(writer, schema, arrow_schema, row_group_size)
+            out = ArtifactWriter(writer, schema, arrow_schema, row_group_size)
+            yield out
+        txn.add_file(schema.filename, fingerprint=out.fingerprint.hexdigest(),
+                     artifact=schema.name)
 
 
 def read_provenance(path: str | os.PathLike) -> dict:
@@ -457,16 +635,30 @@ def read_provenance(path: str | os.PathLike) -> dict:
     except (pa.ArrowInvalid, OSError) as exc:
         raise SchemaError(f"{path} is not a readable Parquet file ({exc}); rerun the stage "
                           "that writes it") from exc
+    return _provenance_of(meta, path)
+
+
+def _provenance_of(meta: Mapping, path: Path) -> dict:
     if _META_KEY not in meta:
         raise SchemaError(f"{path} was not written by heliocal (no provenance metadata); rerun "
                           "the stage that writes it")
-    return json.loads(meta[_META_KEY])
+    try:
+        prov = json.loads(meta[_META_KEY])
+        if not isinstance(prov, dict):
+            raise ValueError("not a JSON object")
+    except ValueError as exc:
+        raise SchemaError(f"{path} has unreadable heliocal provenance metadata ({exc}); rerun the "
+                          "stage that writes it") from exc
+    return prov
+
+
+def _rerun(schema: ArtifactSchema, workdir: Path) -> str:
+    args = " SOURCE..." if schema.producer == "ingest" else ""
+    return f"`heliocal {schema.producer}{args} --workdir {workdir}`"
 
 
 def _missing_message(path: Path, schema: ArtifactSchema) -> str:
-    args = " SOURCE..." if schema.producer == "ingest" else ""
-    return (f"{path} is missing: run `heliocal {schema.producer}{args} --workdir {path.parent}` "
-            "first")
+    return f"{path} is missing: run {_rerun(schema, path.parent)} first"
 
 
 def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
@@ -474,33 +666,44 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
                   heliostats: Iterable[str] | None = None) -> pd.DataFrame:
     """Read and check ``schema``'s artifact from ``workdir``.
 
+    Only the file the last complete run of ``schema.producer`` committed is read, and only if its
+    bytes still have the SHA-256 recorded in the producer's manifest. Inside a stage run the read is
+    recorded as an input of the run (with the file's content fingerprint).
+
     Parameters
     ----------
     columns : read only these columns (default all).
     heliostats : read only rows of these heliostat ids (uses Parquet row-group statistics, so a
-        large field is not loaded whole).
+        large field is not decoded whole).
 
     Raises
     ------
-    StageInputError : the file is missing (the message names the stage to run).
-    SchemaError : it was written by an incompatible schema version or lacks declared columns.
+    StageInputError : the file is missing or not committed (the message names the stage to run).
+    SchemaError : it was changed after its run, was written by an incompatible schema version, or
+        lacks declared columns.
     """
+    workdir = Path(workdir)
     path = artifact_path(workdir, schema)
-    if not path.exists():
-        raise StageInputError(_missing_message(path, schema))
+    committed = read_committed(workdir, schema.producer, schema.filename,
+                               hint=_rerun(schema, workdir),
+                               missing=_missing_message(path, schema), label=schema.name)
     try:
-        prov = read_provenance(path)
+        file_schema = pq.read_schema(pa.BufferReader(committed.data))
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise SchemaError(f"{path} is not a readable Parquet file ({' '.join(str(exc).split())}); "
+                          f"rerun {_rerun(schema, workdir)}") from exc
+    try:
+        prov = _provenance_of(file_schema.metadata or {}, path)
     except SchemaError as exc:
-        raise SchemaError(f"{exc}: `heliocal {schema.producer} --workdir {path.parent}`") from exc
+        raise SchemaError(f"{exc}: {_rerun(schema, workdir)}") from exc
     if prov.get("artifact") != schema.name:
         raise SchemaError(f"{path} holds a {prov.get('artifact')!r} artifact, not "
-                          f"{schema.name!r}; rerun `heliocal {schema.producer}`")
+                          f"{schema.name!r}; rerun {_rerun(schema, workdir)}")
     if prov.get("schema_version") != SCHEMA_VERSION:
         raise SchemaError(
             f"{path} was written by heliocal {prov.get('heliocal_version')} with schema version "
             f"{prov.get('schema_version')}, but this heliocal reads version {SCHEMA_VERSION}: "
             f"rerun `heliocal {schema.producer} --workdir {path.parent}`")
-    file_schema = pq.read_schema(path)
     absent = [c for c in schema.column_names() if c not in file_schema.names]
     if absent:
         raise SchemaError(f"{path} lacks columns {absent}: rerun `heliocal {schema.producer} "
@@ -508,7 +711,12 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
     filters = None
     if heliostats is not None:
         filters = [("heliostat_id", "in", list(heliostats))]
-    table = pq.read_table(path, columns=list(columns) if columns else None, filters=filters)
+    try:
+        table = pq.read_table(pa.BufferReader(committed.data),
+                              columns=list(columns) if columns else None, filters=filters)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise SchemaError(f"{path} is not a readable Parquet file ({' '.join(str(exc).split())}); "
+                          f"rerun {_rerun(schema, workdir)}") from exc
     df = table.to_pandas()
     for c in schema.columns:
         if c.name in df.columns and c.dtype == "string":
@@ -516,26 +724,99 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
     return df
 
 
+def committed_fingerprint(workdir: str | os.PathLike, schema: ArtifactSchema) -> str | None:
+    """The content fingerprint of ``schema``'s artifact as its producer's last run committed it
+    (``None`` if it did not)."""
+    m = load_manifest(workdir, schema.producer)
+    entry = m.files.get(schema.filename) if m is not None else None
+    return None if entry is None else entry.get("fingerprint")
+
+
+def recorded_inputs(workdir: str | os.PathLike, schema: ArtifactSchema) -> dict:
+    """label -> fingerprint of the inputs ``schema``'s committed artifact was made from.
+
+    Raises
+    ------
+    StageInputError : the artifact is not committed.
+    """
+    workdir = Path(workdir)
+    path = artifact_path(workdir, schema)
+    m = load_manifest(workdir, schema.producer)
+    if m is None or schema.filename not in m.files:
+        if path.exists():
+            read_committed(workdir, schema.producer, schema.filename, hint=_rerun(schema, workdir))
+        raise StageInputError(_missing_message(path, schema))
+    return m.input_fingerprints()
+
+
 def check_fresh(workdir: str | os.PathLike, schema: ArtifactSchema,
                 upstream: Mapping[str, ArtifactSchema]) -> None:
     """Raise :class:`StageInputError` if ``schema``'s artifact was made from older inputs.
 
-    ``upstream`` maps the input labels recorded at write time (see :func:`write_artifact`) to the
-    schemas of the artifacts they name; each recorded hash must equal the current file's hash.
+    ``upstream`` maps the input labels the artifact's run recorded (the artifact names it read) to
+    the schemas of those artifacts; each recorded content fingerprint must equal the fingerprint of
+    the upstream artifact its producer committed last. Nothing is hashed: the manifests hold the
+    fingerprints (and every read verifies the bytes against them).
     """
+    workdir = Path(workdir)
     path = artifact_path(workdir, schema)
-    if not path.exists():
-        raise StageInputError(_missing_message(path, schema))
-    recorded = read_provenance(path).get("inputs", {})
+    recorded = recorded_inputs(workdir, schema)
     for label, up in upstream.items():
+        current = committed_fingerprint(workdir, up)
         up_path = artifact_path(workdir, up)
-        if not up_path.exists():
+        if current is None:
+            if up_path.exists():
+                read_committed(workdir, up.producer, up.filename, hint=_rerun(up, workdir))
             raise StageInputError(_missing_message(up_path, up))
         if label not in recorded:
             raise StageInputError(
                 f"{path} was made without {up.filename}; rerun "
                 f"`heliocal {schema.producer} --workdir {path.parent}` first")
-        if recorded[label] != file_sha256(up_path):
+        if recorded[label] != current:
             raise StageInputError(
                 f"{path} is stale: {up.filename} changed after it was written; rerun "
                 f"`heliocal {schema.producer} --workdir {path.parent}` first")
+
+
+def previous_run_matches(workdir: str | os.PathLike, stage: str) -> bool:
+    """True when the last committed run of ``stage`` read the same inputs (same labels, same
+    fingerprints) as the active run of ``stage`` has read so far: only then may the active run keep
+    outputs of the previous one (a partial ``--heliostat`` run)."""
+    txn = current_transaction(workdir, stage)
+    if txn is None or txn.previous is None:
+        return False
+    return txn.previous.input_fingerprints() == txn.input_fingerprints()
+
+
+def merge_with_previous(workdir: str | os.PathLike, schema: ArtifactSchema, new: pd.DataFrame,
+                        replaced: Callable[[pd.DataFrame], pd.Series]) -> pd.DataFrame:
+    """``new`` plus the rows of the previous committed ``schema`` artifact that this run does not
+    replace (``replaced(old)`` is False), for a partial run of the artifact's producer.
+
+    The previous rows are kept only if the previous run read the same inputs as this one
+    (:func:`previous_run_matches`); otherwise they were made from other data, and are dropped with
+    a warning (a complete rerun of the stage makes them again).
+    """
+    txn = current_transaction(workdir, schema.producer)
+    if txn is None or txn.previous is None or schema.filename not in txn.previous.files:
+        return new
+    if not previous_run_matches(workdir, schema.producer):
+        log.warning("%s was made from other inputs than this run read: its rows of other "
+                    "heliostats or modes are dropped (rerun `heliocal %s` without --heliostat "
+                    "to make them again)", artifact_path(workdir, schema), schema.producer)
+        return new
+    try:
+        old = read_artifact(workdir, schema)
+    except (SchemaError, StageInputError) as exc:  # e.g. written by an older heliocal
+        log.warning("the previous %s cannot be read, so only this run's rows are kept: %s",
+                    schema.filename, exc)
+        return new
+    keep = ~replaced(old).to_numpy(bool)
+    return pd.concat([old[keep], new], ignore_index=True)
+
+
+def artifact_present(workdir: str | os.PathLike, schema: ArtifactSchema) -> bool:
+    """Whether ``schema``'s artifact is there to be read: committed by its producer's last run, or
+    at least a file of its name (which :func:`read_artifact` then refuses with the reason)."""
+    m = load_manifest(workdir, schema.producer)
+    return (m is not None and schema.filename in m.files) or artifact_path(workdir, schema).exists()

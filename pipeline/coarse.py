@@ -40,8 +40,8 @@ import pandas as pd
 import torch
 from scipy.optimize import least_squares
 
-from .artifacts import (ArtifactSchema, Column as C, artifact_path, check_fresh, read_artifact,
-                        write_artifact)
+from .artifacts import (ArtifactSchema, Column as C, artifact_path, artifact_present, check_fresh,
+                        merge_with_previous, read_artifact, write_artifact)
 from .errors import FitError, check_choice, check_float, check_int
 from .jacobian import forward_state, residual_and_jacobian
 from .parallel import map_tasks
@@ -50,6 +50,7 @@ from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRES
                          preset_mask)
 from .metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
 from .schemas import HELIOSTATS, MEASUREMENTS
+from .transaction import stage_transaction
 from .workdir_lock import locks_workdir
 
 __all__ = [
@@ -132,6 +133,10 @@ COARSE_PARAMS = ArtifactSchema(
         C("fit_status", "string", "", "Solver message."),
         C("fit_implausible", "string", "", "Parameters corrected by more than a plausible amount "
           "(empty if none)."),
+        C("fit_degenerate", "string", "", "Why the heliostat's training rows cannot determine "
+          "the parameters of the simplest preset (static-6): all rows identical, or too little "
+          "spread in sun position; its errors then say nothing about accuracy (empty if the "
+          "data are fine)."),
         C("n_train", "int64", "", "Training measurements."),
         C("train_error_mrad", "float64", "mrad", "Mean error on the training rows."),
         C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows (NaN if none).",
@@ -588,6 +593,44 @@ def _fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
     return std, determined, cond
 
 
+#: The simplest preset. Training rows that cannot determine its parameters are degenerate (all
+#: alike, or too little spread in sun position): a larger preset is determined less still, and a
+#: small error of such a fit only says that the fit reproduces the few directions it saw.
+IDENTIFIABILITY_PRESET = "static-6"
+
+
+def data_degeneracy(spec: HeliostatSpec, params: torch.Tensor, nominal: torch.Tensor,
+                    train: MeasurementBatch) -> str:
+    """Why ``train`` cannot determine the parameters of :data:`IDENTIFIABILITY_PRESET` (``""`` if
+    it can), judged with the data-only Jacobian at ``params`` and the same 'determined' rule as
+    the fit's (a parameter is determined when 1 mrad noise leaves it less than half its prior
+    sigma uncertain, :func:`_fit_diagnostics`)."""
+    n = len(train)
+    if n == 0:
+        return "no training rows"
+    rows = torch.cat([train.steps, train.sun, train.focal_spot], dim=1).numpy()
+    distinct = len(np.unique(rows, axis=0))
+    sun = train.sun.numpy() / np.linalg.norm(train.sun.numpy(), axis=1, keepdims=True)
+    spread = float(np.degrees(np.arccos(np.clip((sun @ sun.T).min(), -1.0, 1.0))))
+    if distinct == 1:
+        return "only one training row" if n == 1 else f"all {n} training rows are identical"
+    free = preset_mask(IDENTIFIABILITY_PRESET, spec.actuator_type, spec.kinematic_type).numpy()
+    free_idx = np.flatnonzero(free)
+    with torch.no_grad():
+        r, jac = residual_and_jacobian(params.to(torch.float64), spec, train.steps, train.sun,
+                                       train.focal_spot)
+    J = torch.nan_to_num(jac[:, :, torch.as_tensor(free_idx)].reshape(-1, len(free_idx)),
+                         nan=0.0, posinf=0.0, neginf=0.0).numpy()
+    r = torch.nan_to_num(r.reshape(-1), nan=0.0).numpy()
+    _, determined, _ = _fit_diagnostics(J, r, len(r), free_idx, _prior_sigma(nominal))
+    n_det = int(determined[free_idx].sum())
+    if n_det == len(free_idx):
+        return ""
+    return (f"the {n} training rows ({distinct} distinct, sun positions within {spread:.2g} deg "
+            f"of each other) determine only {n_det} of the {len(free_idx)} parameters of "
+            f"{IDENTIFIABILITY_PRESET}")
+
+
 def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarray) -> list[str]:
     """Free parameters corrected beyond :data:`PLAUSIBLE_CORRECTION`, as text."""
     implausible = []
@@ -610,7 +653,7 @@ def _load_split(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
     from .split import SPLIT  # local: split.py is optional at import time
 
     path = artifact_path(workdir, SPLIT)
-    if not path.exists():
+    if not artifact_present(workdir, SPLIT):
         log.warning("no %s: fitting on all measurements (run `heliocal split-knn` for honest "
                     "validation and test errors)", path)
         return pd.Series("train", index=measurements.index)
@@ -714,6 +757,7 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
         chosen = len(fits) - 1
     else:
         chosen = int(np.nanargmin(vals))
+    degenerate = data_degeneracy(spec, fits[chosen].params, nominal, train)
     param_rows = []
     for k, (fit, s) in enumerate(zip(fits, summaries)):
         for i, name in enumerate(PARAMETER_NAMES):
@@ -725,6 +769,7 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
                 "determined": bool(fit.determined[i]), "fit_iterations": fit.iterations,
                 "fit_cost": fit.cost, "fit_condition_number": fit.condition_number,
                 "fit_status": fit.status, "fit_implausible": "; ".join(fit.implausible),
+                "fit_degenerate": degenerate,
                 "n_train": len(train), "train_error_mrad": s["train"],
                 "val_error_mrad": s["validation"], "test_error_mrad": s["test"]})
     pred = pd.concat(preds, ignore_index=True)
@@ -737,6 +782,7 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
                     for sp in ("train", "validation", "test")},
         "presets": {s["preset"]: {k: s[k] for k in ("train", "validation", "test")} for s in summaries},
         "implausible": {f.preset: f.implausible for f in fits if f.implausible},
+        "degenerate": degenerate,
         "wall_time_s": float(sum(f.wall_time_s for f in fits)),
     }
     return param_rows, pred, summary
@@ -801,6 +847,7 @@ def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
 
 
 @locks_workdir("fit-coarse")
+@stage_transaction("fit-coarse")
 def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
                    f_scale_mrad: float = 1.0, robust_start: str = "auto",
                    heliostats: Sequence[str] | None = None, progress=None,
@@ -857,6 +904,10 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
              for h, res in zip(chunk, results)}
     all_params, all_preds, summaries = [], [], []
     for params, preds, summary in (by_id[h] for h in ids):
+        if summary["degenerate"]:
+            log.warning("%s: degenerate training data: %s; its errors say nothing about accuracy "
+                        "(calibrate it at more sun positions)", summary["heliostat_id"],
+                        summary["degenerate"])
         for name, items in summary["implausible"].items():
             if name == summary["selected"]:
                 log.warning("%s: the nominal geometry needed a large correction (%s)",
@@ -866,14 +917,13 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "heliostats": list(heliostats) if heliostats else None}
-    inputs = {"measurements": artifact_path(workdir, MEASUREMENTS),
-              "heliostats": artifact_path(workdir, HELIOSTATS)}
-    from .split import SPLIT
-
-    if artifact_path(workdir, SPLIT).exists():
-        inputs["split"] = artifact_path(workdir, SPLIT)
-    write_artifact(pd.DataFrame(all_params), workdir, COARSE_PARAMS, stage="fit-coarse",
-                   options=opts, inputs=inputs)
-    write_artifact(pd.concat(all_preds, ignore_index=True), workdir, COARSE_PREDICTIONS,
-                   stage="fit-coarse", options=opts, inputs=inputs)
+    params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
+    if heliostats:
+        # a partial run keeps the other heliostats' fits when the previous run read the same
+        # inputs (artifacts.merge_with_previous); the inputs are recorded as they were read
+        replaced = lambda old: old["heliostat_id"].isin(set(heliostats))  # noqa: E731
+        params = merge_with_previous(workdir, COARSE_PARAMS, params, replaced)
+        preds = merge_with_previous(workdir, COARSE_PREDICTIONS, preds, replaced)
+    write_artifact(params, workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
+    write_artifact(preds, workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries}

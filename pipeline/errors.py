@@ -7,6 +7,9 @@ printing.
 
 from __future__ import annotations
 
+import errno as _errno
+import re
+
 __all__ = [
     "HeliocalError",
     "InputError",
@@ -19,6 +22,7 @@ __all__ = [
     "check_choice",
     "check_int",
     "check_float",
+    "resource_error_message",
 ]
 
 
@@ -54,7 +58,7 @@ class WorkdirBusyError(HeliocalError):
     the message names it (stage, pid, host, start time) and what to do."""
 
 
-class UnsafePathError(HeliocalError, ValueError):
+class UnsafePathError(InputError, ValueError):
     """A name taken from the data cannot be used as a file name inside its folder (see
     :func:`heliocal.pipeline.artifacts.safe_child`)."""
 
@@ -103,3 +107,44 @@ def check_float(value, name: str, func: str, low: float | None = None, high: flo
 def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) or (
         hasattr(value, "dtype") and getattr(value.dtype, "kind", "") in "iuf")
+
+
+#: Operating-system errors that are the user's to fix (the machine's resources or permissions),
+#: with what they mean and what to do.
+_RESOURCE_ERRNOS = {
+    _errno.ENOSPC: ("no space left on the device",
+                    "free space on that disk or use another --workdir"),
+    _errno.EDQUOT: ("disk quota exceeded", "free space on that disk or use another --workdir"),
+    _errno.EFBIG: ("file too large for the file system", "use another --workdir"),
+    _errno.EROFS: ("the file system is read-only", "use a writable --workdir"),
+    _errno.EACCES: ("permission denied", "make it writable (and readable) for this user or use "
+                                         "another --workdir"),
+    _errno.EPERM: ("operation not permitted", "make it writable for this user or use another "
+                                              "--workdir"),
+    _errno.EMFILE: ("too many open files", "raise the limit (ulimit -n) or use fewer --workers"),
+    _errno.ENFILE: ("too many open files in the system", "close other programs or use fewer "
+                                                         "--workers"),
+}
+
+
+def resource_error_message(exc: BaseException) -> str | None:
+    """A one-line message for an :class:`OSError` that is the user's to fix (full disk, read-only
+    or forbidden work directory, too many open files), ``None`` for any other exception.
+
+    pyarrow reports such errors as ``OSError`` without ``errno`` but with ``[errno N]`` in the
+    text; both forms are recognised.
+    """
+    if not isinstance(exc, OSError):
+        return None
+    code = exc.errno
+    if code is None:
+        m = re.search(r"\[?errno[ :]*(\d+)", str(exc), re.IGNORECASE)
+        code = int(m.group(1)) if m else None
+    if code not in _RESOURCE_ERRNOS:
+        return None
+    what, fix = _RESOURCE_ERRNOS[code]
+    where = exc.filename if getattr(exc, "filename", None) else None
+    name = _errno.errorcode.get(code, str(code))
+    place = f"{where}: " if where else ""
+    return (f"{place}{what} ({name}); {fix}, then rerun the command. This is not a bug in heliocal: "
+            "nothing was committed, the stage's previous outputs are still the ones in use")

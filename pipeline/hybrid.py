@@ -88,8 +88,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import (artifact_path, atomic_path, atomic_write_text, check_fresh, file_sha256,
-                        read_artifact, read_provenance, safe_child, write_artifact)
+from .artifacts import (artifact_path, artifact_present, check_fresh, committed_fingerprint,
+                        merge_with_previous, previous_run_matches, read_artifact, write_artifact)
 from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, _kind, _load_split,
                      load_selected_parameters, metrics_frame, predict)
 from .errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
@@ -99,8 +99,10 @@ from .kinematics import (PARAMETER_NAMES, HeliostatSpec, ParameterComponents, fo
                          nominal_parameters)
 from .metrics import error_mrad, measured_normal, reflect
 from .lm import _SPEC_TENSORS, stack_specs
+from .modelfiles import model_files, read_model, write_model
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
+from .transaction import current_transaction, load_manifest, read_committed, stage_transaction
 from .workdir_lock import locks_workdir
 
 __all__ = [
@@ -1108,10 +1110,6 @@ def fit_pretrained(coarse: torch.Tensor, spec: HeliostatSpec, hrow, rows: pd.Dat
 # ------------------------------------------------------------------------------------------------
 # the stage
 # ------------------------------------------------------------------------------------------------
-def _model_dir(workdir: Path, mode: str) -> Path:
-    return Path(workdir) / "hybrid" / mode
-
-
 def _mean(values) -> float:
     values = np.asarray(values, np.float64)
     return float(values.mean()) if len(values) else float("nan")
@@ -1121,25 +1119,28 @@ def _split_means(err: np.ndarray, labels: np.ndarray) -> dict:
     return {sp: _mean(err[labels == sp]) for sp in ("train", "validation", "test")}
 
 
-def _inputs(workdir: Path) -> dict:
+def _current_inputs(workdir: Path) -> dict:
+    """label -> committed content fingerprint of every input a fine model is made from (the labels
+    its run recorded: the artifacts it read)."""
     from .split import SPLIT
 
-    inputs = {"measurements": artifact_path(workdir, MEASUREMENTS),
-              "heliostats": artifact_path(workdir, HELIOSTATS),
-              "coarse_params": artifact_path(workdir, COARSE_PARAMS)}
-    if artifact_path(workdir, SPLIT).exists():
-        inputs["split"] = artifact_path(workdir, SPLIT)
-    return inputs
+    out = {}
+    for label, schema in (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS),
+                          ("coarse_params", COARSE_PARAMS), ("split", SPLIT)):
+        fp = committed_fingerprint(workdir, schema)
+        if fp is not None:
+            out[label] = fp
+    return out
 
 
 def _check_inputs(workdir: Path) -> None:
     from .split import SPLIT
 
-    if not artifact_path(workdir, COARSE_PARAMS).exists():
+    if not artifact_present(workdir, COARSE_PARAMS):
         raise StageInputError(f"{artifact_path(workdir, COARSE_PARAMS)} is missing: run "
                               f"`heliocal fit-coarse --workdir {workdir}` first")
     upstream = {"measurements": MEASUREMENTS, "heliostats": HELIOSTATS}
-    if artifact_path(workdir, SPLIT).exists():
+    if artifact_present(workdir, SPLIT):
         upstream["split"] = SPLIT
     check_fresh(workdir, COARSE_PARAMS, upstream)
 
@@ -1252,6 +1253,7 @@ def _hybrid_chunks(ids, selected, helio, batch_size: int):
 
 
 @locks_workdir("fit-hybrid")
+@stage_transaction("fit-hybrid")
 def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: float = 0.0,
                    seed: int = 0, config: FineConfig | None = None,
                    pretrain_config: PretrainConfig | None = None,
@@ -1291,9 +1293,8 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     if not ids:
         raise FitError(f"no heliostat in {workdir} has a coarse fit with training rows; run "
                        f"`heliocal fit-coarse --workdir {workdir}` first")
-    out_dir = _model_dir(workdir, mode)
-    inputs = _inputs(workdir)
-    input_hashes = {k: file_sha256(p) for k, p in inputs.items()}
+    txn = current_transaction(workdir, "fit-hybrid")
+    input_hashes = txn.input_fingerprints()  # what this run read: the models' recorded inputs
     batch_size = check_int(batch_size, "batch_size", _FUNC, 1)
     groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
     ids = sorted(ids, key=lambda h: (len(groups[h]), h))
@@ -1310,25 +1311,17 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
         cfg["inputs"] = input_hashes
         preds.append(pred)
         summaries.append(summary)
-        with atomic_path(safe_child(out_dir, f"{hid}.pt")) as tmp:
-            torch.save(state, tmp)
-        atomic_write_text(safe_child(out_dir, f"{hid}.json"),
-                          json.dumps(cfg, indent=1, sort_keys=True))
-    new = pd.concat(preds, ignore_index=True)
-    path = artifact_path(workdir, HYBRID_PREDICTIONS)
-    if path.exists():
-        old = read_artifact(workdir, HYBRID_PREDICTIONS)
-        recorded = read_provenance(path).get("inputs", {})
-        if all(recorded.get(k) == v for k, v in input_hashes.items()):
-            keep = ~((old["model"] == mode) & old["heliostat_id"].isin(ids))
-            new = pd.concat([old[keep], new], ignore_index=True)
-        else:
-            log.warning("%s was made from other inputs: its rows of other modes are dropped", path)
+        write_model(txn, mode, hid, state, cfg)
+    # rows and models of other modes and heliostats are kept when they were made from the same
+    # inputs (the run merges into the previous one); otherwise they are dropped
+    new = merge_with_previous(workdir, HYBRID_PREDICTIONS, pd.concat(preds, ignore_index=True),
+                              lambda old: (old["model"] == mode) & old["heliostat_id"].isin(ids))
+    if previous_run_matches(workdir, "fit-hybrid"):
+        txn.carry_over(txn.previous_files("hybrid"))
     opts = {"mode": mode, "weight_decay": weight_decay, "fine_config": config.to_dict(),
             "pretrain_config": pretrain_config.to_dict(),
             "heliostats": list(heliostats) if heliostats else None}
-    write_artifact(new, workdir, HYBRID_PREDICTIONS, stage="fit-hybrid", options=opts, seed=seed,
-                   inputs=inputs)
+    write_artifact(new, workdir, HYBRID_PREDICTIONS, stage="fit-hybrid", options=opts, seed=seed)
     return {"workdir": str(workdir), "mode": mode, "weight_decay": weight_decay, "seed": seed,
             "heliostats": summaries}
 
@@ -1336,25 +1329,35 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
 # ------------------------------------------------------------------------------------------------
 # loading a fitted model and aiming
 # ------------------------------------------------------------------------------------------------
-def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict, Layers]:
-    """Config dict and weights of a fitted mode for one heliostat (``None`` if not fitted)."""
-    d = _model_dir(Path(workdir), mode)
-    cfg_path = safe_child(d, f"{heliostat_id}.json")
-    state_path = safe_child(d, f"{heliostat_id}.pt")
-    if not (cfg_path.exists() and state_path.exists()):
+def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict, Layers] | None:
+    """Config dict and weights of a fitted mode for one heliostat (``None`` if not fitted).
+
+    ``mode`` ``selected`` is the sweep's selected model (``DIR/hybrid/selected/``). The files are
+    read through their stage's manifest and checked (:func:`heliocal.pipeline.modelfiles.read_model`):
+    a changed, corrupt or foreign file gives a one-line error naming it and the command to rerun.
+    """
+    workdir = Path(workdir)
+    if mode == "selected":
+        stage, hint = "sweep", f"`heliocal sweep --workdir {workdir}`"
+    else:
+        stage, hint = "fit-hybrid", f"`heliocal fit-hybrid --workdir {workdir} --mode {mode}`"
+    found = read_model(workdir, stage, mode, heliostat_id, hint=hint)
+    if found is None:
         return None
-    cfg = json.loads(cfg_path.read_text())
-    state = torch.load(state_path, weights_only=True)
+    cfg, state = found
     return cfg, _state_to_layers(state)
 
 
-def _model_fitted(workdir: Path, mode: str, heliostat_id: str) -> bool:
-    """Whether :func:`load_model` finds a model (both its files)."""
-    d = _model_dir(workdir, mode)
-    return (d / f"{heliostat_id}.json").exists() and (d / f"{heliostat_id}.pt").exists()
+def _model_committed(workdir: Path, mode: str, heliostat_id: str) -> bool:
+    """Whether the stage that writes ``mode``'s models committed one for the heliostat (both its
+    files listed in the stage's manifest; :func:`load_model` checks their content)."""
+    cfg_rel, pt_rel = model_files(mode, heliostat_id)
+    m = load_manifest(workdir, "sweep" if mode == "selected" else "fit-hybrid")
+    return m is not None and cfg_rel in m.files and pt_rel in m.files
 
 
-def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None) -> dict:
+def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
+               strict: bool = False) -> dict:
     """Per heliostat the model ``aim --model auto`` uses, and its mean validation and test error.
 
     The one decision both :func:`aim_steps` and ``heliocal info WORKDIR`` use: the sweep's
@@ -1362,6 +1365,9 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None) -> 
     ensemble (``hybrid/selected/``) if that was written; without a selection row for the
     heliostat, the ``fit-hybrid`` hybrid (``hybrid/hybrid/``) where fitted; otherwise (and when a
     selected hybrid's files are missing) the coarse model, ``fit-coarse``'s selected preset.
+    Every artifact and model is read through its stage's manifest. With ``strict`` (``aim``),
+    selection.parquet must also be fresh and a selected hybrid's model committed, else a
+    one-line :class:`StageInputError` says what to rerun (``info`` shows what is there).
 
     Returns
     -------
@@ -1372,16 +1378,23 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None) -> 
     such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
     empty without coarse_params.parquet.
     """
+    from .split import SPLIT
+    from .sweep import SELECTION
+
     workdir = Path(workdir)
-    if not artifact_path(workdir, COARSE_PARAMS).exists():
+    if not artifact_present(workdir, COARSE_PARAMS):
         return {}
     params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
                            columns=["heliostat_id", "preset", "selected", "val_error_mrad",
                                     "test_error_mrad"])
     coarse = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
-    selection_path = workdir / "selection.parquet"
-    selection = (pd.read_parquet(selection_path).drop_duplicates("heliostat_id")
-                 .set_index("heliostat_id") if selection_path.exists() else None)
+    selection = None
+    if artifact_present(workdir, SELECTION):
+        selection = read_artifact(workdir, SELECTION, heliostats=heliostats)  # a committed sweep's
+        if strict:
+            check_fresh(workdir, SELECTION, {"measurements": MEASUREMENTS, "heliostats": HELIOSTATS,
+                                             "split": SPLIT, "coarse_params": COARSE_PARAMS})
+        selection = selection.drop_duplicates("heliostat_id").set_index("heliostat_id")
     fit_hybrid_errors = None
     out = {}
     for hid in sorted(coarse.index):
@@ -1397,14 +1410,21 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None) -> 
             entry.update(source="sweep", val_error_mrad=float(row["coarse_val_error_mrad"]),
                          test_error_mrad=float(row["coarse_test_error_mrad"]))
         elif choice is not None and choice.startswith("hybrid"):
-            if _model_fitted(workdir, "selected", hid):
+            if _model_committed(workdir, "selected", hid):
                 row = selection.loc[hid]
                 entry.update(model="hybrid", variant=choice, source="sweep",
                              weight_decay=float(row["weight_decay"]),
                              val_error_mrad=float(row["val_error_mrad"]),
                              test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
-        elif _model_fitted(workdir, "hybrid", hid):
-            cfg = json.loads((_model_dir(workdir, "hybrid") / f"{hid}.json").read_text())
+            elif strict:
+                raise StageInputError(f"{workdir}/selection.parquet selects {choice} for {hid}, "
+                                      f"but the sweep committed no model for it; rerun `heliocal "
+                                      f"sweep --workdir {workdir}`")
+        elif _model_committed(workdir, "hybrid", hid):
+            cfg_rel = model_files("hybrid", hid)[0]
+            cfg = json.loads(read_committed(
+                workdir, "fit-hybrid", cfg_rel,
+                hint=f"`heliocal fit-hybrid --workdir {workdir} --mode hybrid`").data)
             if fit_hybrid_errors is None:
                 fit_hybrid_errors = _fit_hybrid_errors(workdir)
             val, test = fit_hybrid_errors.get(hid, (float("nan"), float("nan")))
@@ -1417,7 +1437,7 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None) -> 
 
 def _fit_hybrid_errors(workdir: Path) -> dict:
     """Mean validation and test error_mrad of fit-hybrid's ``hybrid`` mode per heliostat."""
-    if not artifact_path(workdir, HYBRID_PREDICTIONS).exists():
+    if not artifact_present(workdir, HYBRID_PREDICTIONS):
         return {}
     p = read_artifact(workdir, HYBRID_PREDICTIONS,
                       columns=["heliostat_id", "split", "model", "error_mrad"])
@@ -1490,7 +1510,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     fitted = None
     rerun = None
     if model == "auto":
-        choice = aim_models(workdir, [heliostat_id]).get(heliostat_id, {})
+        choice = aim_models(workdir, [heliostat_id], strict=True).get(heliostat_id, {})
         if choice.get("model") == "hybrid":
             fitted = load_model(workdir, choice["model_dir"], heliostat_id)
             if choice["source"] == "sweep":
@@ -1503,7 +1523,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
                                   f"--workdir {workdir} --mode {model}` first")
     if fitted is not None:
         cfg = fitted[0]
-        current = {k: file_sha256(p) for k, p in _inputs(workdir).items()}
+        current = _current_inputs(workdir)
         if any(cfg.get("inputs", {}).get(k) != v for k, v in current.items()):
             rerun = rerun or f"`heliocal fit-hybrid --workdir {workdir} --mode {chosen}`"
             raise StageInputError(f"the {chosen} model of {heliostat_id} is stale (its inputs "

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import datetime
 import json
 import logging
 import math
@@ -48,12 +49,13 @@ import pandas as pd
 import pyarrow as pa
 
 from .artifacts import _to_table, artifact_path, artifact_writer, write_artifact
-from .errors import InputError, check_choice, check_float, check_int
+from .errors import InputError, ParameterError, check_choice, check_float, check_int
 from .geodesy import wgs84_to_enu
 from .schemas import (HELIOSTAT_ID_RULE, HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS,
                       heliostat_id_problem, suggest_heliostat_id)
 from .spill import SortedSpill
 from .sun import spa_sun_position, sun_vector_enu, wrap_deg
+from .transaction import stage_transaction
 from .workdir_lock import locks_workdir
 
 __all__ = [
@@ -104,6 +106,37 @@ PAINT_AXIS_1_INITIAL_ANGLE_SHIFT_RAD = -math.pi / 2
 # ------------------------------------------------------------------------------------------------
 # options and small types
 # ------------------------------------------------------------------------------------------------
+#: Earliest plausible measurement time (``--time-min``): camera-target calibration logs of today's
+#: heliostat fields start decades later; a year like 1700 or 1970 is a logger or export fault.
+DEFAULT_TIME_MIN = "1990-01-01T00:00:00Z"
+#: The latest plausible time is now plus this margin (``--time-max`` overrides it): a calibration
+#: cannot have been measured in the future; the margin covers clocks and time zones set wrong.
+TIME_MAX_MARGIN = pd.Timedelta(days=1)
+#: An env value beyond this magnitude is blanked (``qa_env_blanked``): the fine model standardises
+#: its inputs with the mean and standard deviation of the column, and squares of values this large
+#: overflow float64, which would make the input constant for every row (1e308 is what a logger
+#: writes on overflow). No physical reading in any unit comes near it.
+ENV_ABS_MAX = 1e100
+
+
+def _utc_bound(value, name: str = "") -> pd.Timestamp | None:
+    """``value`` (text or timestamp) as a UTC timestamp (naive means UTC); ``None`` if it is not
+    a readable time."""
+    try:
+        stamp = pd.Timestamp(value)
+    except (ValueError, TypeError, OverflowError):
+        return None
+    if stamp is pd.NaT:
+        return None
+    return stamp.tz_localize("UTC") if stamp.tzinfo is None else stamp.tz_convert("UTC")
+
+
+def _time_bounds(opts: "IngestOptions") -> tuple[pd.Timestamp, pd.Timestamp]:
+    """(earliest, latest) plausible timestamp of a run."""
+    lo = _utc_bound(opts.time_min)
+    hi = (_utc_bound(opts.time_max) if opts.time_max is not None
+          else pd.Timestamp.now(tz="UTC") + TIME_MAX_MARGIN)
+    return lo, hi
 @dataclass
 class IngestOptions:
     """Resolved options of ``ingest`` (see the CLI's help for each)."""
@@ -116,8 +149,21 @@ class IngestOptions:
     azimuth_convention: str = "south"  # or "north-clockwise"
     timezone: str | None = None
     location: tuple[float, float, float] | None = None
+    date_format: str | None = None  # strptime format of every timestamp (e.g. "%d.%m.%Y %H:%M:%S%z")
+    time_min: str = DEFAULT_TIME_MIN  # earliest plausible timestamp (UTC unless it has a zone)
+    time_max: str | None = None  # latest plausible timestamp; None: now + TIME_MAX_MARGIN
 
     def validate(self) -> "IngestOptions":
+        for name in ("time_min", "time_max"):
+            value = getattr(self, name)
+            if value is not None and _utc_bound(value, name) is None:
+                raise ParameterError(f"The '{name}' parameter of ingest must be a date or time "
+                                     f"such as 1990-01-01 or 2024-06-01T12:00Z. Got {value!r} "
+                                     "instead.")
+        if self.date_format is not None and "%" not in str(self.date_format):
+            raise ParameterError(f"The 'date_format' parameter of ingest must be a strptime "
+                                 f"format such as '%d.%m.%Y %H:%M:%S%z'. Got {self.date_format!r} "
+                                 "instead.")
         check_choice(self.focal_spot, "focal_spot", "ingest", ("utis", "helios"))
         check_choice(self.azimuth_convention, "azimuth_convention", "ingest",
                      ("south", "north-clockwise"))
@@ -1155,15 +1201,34 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
         df[col] = val
     env_cols = [c for c in df.columns if c.startswith("env_")]
 
+    # env values: non-finite or overflowing cells are blanked (the row is kept), and flagged
+    if env_cols:
+        blanked = pd.Series("", index=df.index, dtype=object)
+        for col in env_cols:
+            v = pd.to_numeric(df[col], errors="coerce").astype(float)
+            faulty = np.isinf(v) | (v.abs() > ENV_ABS_MAX)
+            if faulty.any():
+                blanked[faulty] = blanked[faulty] + [f"{col}={x:g}; " for x in v[faulty]]
+                df[col] = v.where(~faulty)
+        df["qa_env_blanked"] = blanked.str.rstrip("; ")
+
     # timestamps
     ts = pd.Series(pd.NaT, index=df.index, dtype="datetime64[us, UTC]")
     if "timestamp" in df:
-        ts, bad_ts, naive = _parse_timestamps(df["timestamp"], opts.timezone)
-        checks.add_timestamps(df, ts_given, naive)  # all without a zone: the source is refused
+        ts, bad_ts, naive, ambiguous, implausible = _parse_timestamps(
+            df["timestamp"], opts.timezone, opts.date_format, _time_bounds(opts))
+        checks.add_timestamps(df, ts_given, naive, ambiguous)  # all naive/ambiguous: refused
         reject(bad_ts & ts_given, "unparsable_timestamp",
-               df["timestamp"].map(lambda v: f"timestamp {v!r} is not a UTC time"))
+               df["timestamp"].map(lambda v: f"timestamp {v!r} does not match --date-format "
+                                             f"{opts.date_format!r}" if opts.date_format else
+                                   f"timestamp {v!r} is not a UTC time"))
+        reject(ambiguous & ts_given, "ambiguous_timestamp",
+               df["timestamp"].map(lambda v: f"timestamp {v!r} has day and month as numbers, "
+                                             "which heliocal cannot tell apart: give "
+                                             "--date-format (e.g. '%d.%m.%Y %H:%M:%S%z')"))
         reject(naive & ts_given, "unparsable_timestamp",
                df["timestamp"].map(lambda v: f"timestamp {v!r} has no time zone"))
+        reject(implausible.notna() & ts_given, "implausible_timestamp", implausible)
     df["timestamp"] = ts
 
     # heliostat and target known
@@ -1248,7 +1313,7 @@ def _validate(st: _Staged, opts: IngestOptions, checks: "_SourceChecks"):
         "measurement_id": df["measurement_id"].map(lambda v: v if isinstance(v, str) and v else None),
         "reason": reason, "detail": detail, "raw": df["raw"]}).loc[reason.notna()]
     cols = MEASUREMENTS.column_names()
-    kept = kept[cols + env_cols]
+    kept = kept[cols + env_cols + (["qa_env_blanked"] if env_cols else [])]
     return kept, rejected, heliostats
 
 
@@ -1278,22 +1343,50 @@ def _reject_invalid_ids(ids: pd.Series, reject) -> None:
            ids.map(lambda h: detail.get(h) if isinstance(h, str) else None))
 
 
-def _parse_timestamps(values: pd.Series, timezone: str | None):
-    """Parse to UTC; returns (timestamps, unparsable mask, no-zone mask)."""
+#: Day and month as numbers first (02.03.2023, 3/2/2023, 02-03-2023 ...): day.month or month/day
+#: cannot be told from the text. Year-first forms (ISO 8601, 2023/03/02) are unambiguous.
+_DAY_MONTH_FIRST = re.compile(r"^\s*\d{1,2}[./-]\d{1,2}[./-]\d{2,4}(?!\d)")
+
+
+def _parse_one(t: str, date_format: str | None):
+    """One timestamp text as a pandas Timestamp (``None``: unreadable; ``"ambiguous"``)."""
+    if date_format is not None:
+        try:
+            return pd.Timestamp(datetime.datetime.strptime(t, date_format))
+        except (ValueError, TypeError, OverflowError):
+            return None
+    if _DAY_MONTH_FIRST.match(t):
+        return "ambiguous"
+    try:
+        stamp = pd.Timestamp(t)
+    except (ValueError, TypeError, OverflowError):
+        return None
+    return None if stamp is pd.NaT else stamp
+
+
+def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str | None = None,
+                      bounds: tuple[pd.Timestamp, pd.Timestamp] | None = None):
+    """Parse to UTC; returns (timestamps, unparsable, no-zone, ambiguous, implausible) where the
+    last is a Series of reasons (``None`` for a plausible or missing time).
+
+    A time outside ``bounds`` is reported as implausible and left missing; each time is converted
+    to microseconds on its own, so a year outside pandas' nanosecond range never fails the whole
+    column."""
     text = values.map(lambda v: v.strip() if isinstance(v, str) else ("" if v is None else str(v)))
-    stamps = [pd.NaT] * len(text)  # filled in a list: a Series item assignment per row is slow
+    stamps = [None] * len(text)  # filled in a list: a Series item assignment per row is slow
     bad = np.zeros(len(text), bool)
     naive = np.zeros(len(text), bool)
+    ambiguous = np.zeros(len(text), bool)
+    implausible = [None] * len(text)
     for i, t in enumerate(text):
         if not t or t.lower() in ("nan", "nat", "none"):
             continue
-        try:
-            stamp = pd.Timestamp(t)
-        except (ValueError, TypeError, OverflowError):
+        stamp = _parse_one(t, date_format)
+        if stamp is None:
             bad[i] = True
             continue
-        if stamp is pd.NaT:
-            bad[i] = True
+        if isinstance(stamp, str):
+            ambiguous[i] = True
             continue
         if stamp.tzinfo is None:
             if timezone is None:
@@ -1304,12 +1397,20 @@ def _parse_timestamps(values: pd.Series, timezone: str | None):
             except Exception:  # noqa: BLE001 - invalid/ambiguous local time
                 bad[i] = True
                 continue
-        stamps[i] = stamp.tz_convert("UTC")
-    ts = pd.Series(pd.NaT, index=values.index, dtype="datetime64[us, UTC]")
-    ok = [i for i, s in enumerate(stamps) if s is not pd.NaT]
-    if ok:
-        ts.iloc[ok] = pd.DatetimeIndex([stamps[i] for i in ok]).as_unit("us")
-    return ts, pd.Series(bad, index=values.index), pd.Series(naive, index=values.index)
+        stamp = stamp.tz_convert("UTC")
+        if bounds is not None and not bounds[0] <= stamp <= bounds[1]:
+            which, bound = (("before --time-min", bounds[0]) if stamp < bounds[0]
+                            else ("after --time-max", bounds[1]))
+            implausible[i] = (f"timestamp {t!r} is {which} {bound.isoformat(timespec='seconds')}"
+                              " (the plausible range of a calibration)")
+            continue
+        stamps[i] = stamp.to_datetime64().astype("datetime64[us]")
+    micro = np.array([np.datetime64("NaT", "us") if s is None else s for s in stamps],
+                     dtype="datetime64[us]")
+    ts = pd.Series(pd.DatetimeIndex(micro).tz_localize("UTC"), index=values.index)
+    return (ts, pd.Series(bad, index=values.index), pd.Series(naive, index=values.index),
+            pd.Series(ambiguous, index=values.index), pd.Series(implausible, index=values.index,
+                                                                dtype=object))
 
 
 def _resolve_targets(df: pd.DataFrame, targets: dict[str, Target]) -> pd.Series:
@@ -1407,6 +1508,8 @@ class _SourceChecks:
         self.ts_given = 0
         self.naive = 0
         self.naive_example: tuple | None = None  # (row label, timestamp)
+        self.ambiguous = 0
+        self.ambiguous_example: tuple | None = None
         self.sun_diff = _MedianVsThreshold(5 * opts.sun_tolerance_deg + 1.0)
         self.sun_alt_diff = _MedianVsThreshold(1.0)
 
@@ -1416,9 +1519,15 @@ class _SourceChecks:
             if self.first is None or label < self.first[0]:
                 self.first = (label, df.loc[label, "source_file"])
 
-    def add_timestamps(self, df: pd.DataFrame, ts_given: pd.Series, naive: pd.Series) -> None:
+    def add_timestamps(self, df: pd.DataFrame, ts_given: pd.Series, naive: pd.Series,
+                       ambiguous: pd.Series | None = None) -> None:
         self.ts_given += int(ts_given.sum())
         self.naive += int((naive & ts_given).sum())
+        if ambiguous is not None and ambiguous.any():
+            self.ambiguous += int((ambiguous & ts_given).sum())
+            label = ambiguous[ambiguous].index.min()
+            if self.ambiguous_example is None or label < self.ambiguous_example[0]:
+                self.ambiguous_example = (label, df.loc[label, "timestamp"])
         if naive.any():
             label = naive[naive].index.min()
             if self.naive_example is None or label < self.naive_example[0]:
@@ -1438,6 +1547,11 @@ class _SourceChecks:
             raise InputError(f"{source}: timestamps have no time zone (e.g. "
                              f"{self.naive_example[1]!r}); add a UTC offset such as 'Z' or pass "
                              "--timezone Europe/Berlin")
+        if self.ambiguous and self.ambiguous == self.ts_given:
+            raise InputError(f"{source}: timestamps such as {self.ambiguous_example[1]!r} write "
+                             "day and month as numbers, and heliocal cannot tell which is which; "
+                             "pass --date-format, e.g. '%d.%m.%Y %H:%M:%S%z' (day first) or "
+                             "'%m/%d/%Y %H:%M:%S%z' (month first)")
         # a log whose azimuths are clearly north-clockwise (0 = north) is refused
         if (self.opts.azimuth_convention == "south" and self.sun_diff.n >= 3
                 and not self.sun_diff.median() <= self.sun_diff.threshold
@@ -1584,11 +1698,12 @@ class _IngestRun:
         for name in env:  # a source without the column gives it missing values: float
             env[name] = env[name] and all(name in s.env for s in self.sources)
         self.env_integer = env
-        self.columns = MEASUREMENTS.column_names() + list(env)
+        self.columns = MEASUREMENTS.column_names() + list(env) + (["qa_env_blanked"] if env else [])
         self.invalid_id_example: str | None = None  # detail of the first invalid_heliostat_id row
 
     def extra_types(self) -> dict:
-        types = {"qa_sun_spa_diff_deg": pa.float64(), "qa_sun_mismatch": pa.bool_()}
+        types = {"qa_sun_spa_diff_deg": pa.float64(), "qa_sun_mismatch": pa.bool_(),
+                 "qa_env_blanked": pa.string()}
         types.update({n: pa.int64() if i else pa.float64() for n, i in self.env_integer.items()})
         return {n: types[n] for n in self.columns if n not in MEASUREMENTS.column_names()}
 
@@ -1598,6 +1713,8 @@ class _IngestRun:
         for name, integer in self.env_integer.items():
             if not integer:
                 df[name] = df[name].astype(float)
+        if self.env_integer:  # a source without env columns has nothing blanked
+            df["qa_env_blanked"] = df["qa_env_blanked"].fillna("")
         return df
 
     def execute(self, on_measurements, on_heliostats, on_rejected) -> dict:
@@ -1765,6 +1882,7 @@ class _RejectedSink:
 
 
 @locks_workdir("ingest")
+@stage_transaction("ingest")
 def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                options: IngestOptions | None = None, batch_rows: int = DEFAULT_BATCH_ROWS) -> dict:
     """The ``ingest`` stage: read ``sources``, write the three artifacts into ``workdir``.

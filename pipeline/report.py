@@ -17,7 +17,7 @@ selection.parquet          hybrid against coarse per heliostat (fig. 8), the sel
 
 A figure whose inputs are absent is omitted, and the report says which stage to run for it.
 
-Outputs in ``DIR/report/`` (every file written atomically): ``index.html`` (self-contained, the
+Outputs in ``DIR/report/`` (one stage transaction, see :mod:`heliocal.pipeline.transaction`): ``index.html`` (self-contained, the
 figures embedded as base64 PNG), ``report.md`` (the same content, figures linked), ``figures/*.png``
 and ``metrics.json`` (schema: ``docs/metrics_schema.json``; sorted keys and rounded floats, so two
 runs of the same pipeline give the same numbers and :mod:`heliocal.pipeline.regression` can diff
@@ -45,10 +45,11 @@ import numpy as np
 import pandas as pd
 
 from . import __version__
-from .artifacts import (atomic_write_bytes, atomic_write_text, file_sha256, git_revision,
-                        read_artifact, read_provenance, safe_child)
-from .errors import SchemaError, StageInputError, UnsafePathError
+from .artifacts import (artifact_present, committed_fingerprint, git_revision, read_artifact,
+                        recorded_inputs, safe_name)
+from .errors import SchemaError, StageInputError
 from .schemas import MEASUREMENTS, REJECTION_REASONS, all_schemas
+from .transaction import committed_entry, current_transaction, stage_transaction
 from .workdir_lock import locks_workdir
 
 __all__ = [
@@ -128,39 +129,33 @@ def _schema_for(filename: str):
 
 
 def _read(workdir: Path, filename: str) -> pd.DataFrame | None:
-    """An artifact through its declared schema when one is importable, else plain pandas."""
+    """An artifact through its declared schema (``None`` when its stage has not written it). A file
+    that exists but that no complete run of its stage committed is refused, as every reader does."""
     path = workdir / filename
-    if not path.exists():
-        return None
     schema = _schema_for(filename)
-    if schema is not None:
-        return read_artifact(workdir, schema)
-    try:
-        return pd.read_parquet(path)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is the same user error
-        raise SchemaError(f"{path} is not a readable Parquet file ({exc}); rerun "
-                          f"`heliocal {_PRODUCERS.get(filename, '?')} --workdir {workdir}`") from exc
+    if schema is None:  # pragma: no cover - every artifact the report reads has a schema
+        raise SchemaError(f"{path}: no declared schema (this is a bug in heliocal; please report it)")
+    if not artifact_present(workdir, schema):
+        return None
+    return read_artifact(workdir, schema)
 
 
 def _stale_notes(workdir: Path, filenames: Iterable[str]) -> list[str]:
-    """One note per artifact whose recorded input hashes differ from the current inputs."""
-    notes, hashes = [], {}
+    """One note per artifact whose recorded input fingerprints differ from the inputs' committed
+    ones (nothing is hashed: the manifests hold the fingerprints)."""
+    notes = []
+    by_name = {s.name: s for s in all_schemas()}
     for name in filenames:
-        try:
-            recorded = read_provenance(workdir / name).get("inputs", {}) or {}
-        except SchemaError:
+        schema = _schema_for(name)
+        if schema is None:
             continue
-        for label, digest in sorted(recorded.items()):
-            try:
-                up = safe_child(workdir, f"{label}.parquet")
-            except UnsafePathError:  # not an artifact label (a source path, or damaged metadata)
+        for label, fp in sorted(recorded_inputs(workdir, schema).items()):
+            up = by_name.get(label)
+            if up is None or fp is None:
                 continue
-            if not digest or not up.exists():
-                continue
-            if up not in hashes:
-                hashes[up] = file_sha256(up)
-            if hashes[up] != digest:
-                notes.append(f"{name} is stale: {up.name} changed after it was written (rerun "
+            current = committed_fingerprint(workdir, up)
+            if current is not None and current != fp:
+                notes.append(f"{name} is stale: {up.filename} changed after it was written (rerun "
                              f"`heliocal {_PRODUCERS.get(name, '?')}`).")
     return notes
 
@@ -174,7 +169,7 @@ def load_inputs(workdir: str | Path) -> ReportInputs:
     SchemaError : an artifact that exists cannot be read.
     """
     workdir = Path(workdir)
-    if not (workdir / MEASUREMENTS.filename).exists():
+    if not artifact_present(workdir, MEASUREMENTS):
         raise StageInputError(f"{workdir / MEASUREMENTS.filename} is missing: run `heliocal ingest "
                               f"SOURCE... --workdir {workdir}` first")
     inp = ReportInputs(workdir=workdir, measurements=_read(workdir, MEASUREMENTS.filename))
@@ -406,10 +401,16 @@ def compute_metrics(inp: ReportInputs) -> dict:
         "metrics_schema_version": METRICS_SCHEMA_VERSION,
         "heliocal_version": __version__,
         "git_revision": git_revision(),
-        "inputs": {name: file_sha256(path) for name, path in sorted(inp.paths.items())},
+        "inputs": {name: _committed_sha256(inp.workdir, name) for name in sorted(inp.paths)},
         "data": data,
         "heliostats": helios,
     }
+
+
+def _committed_sha256(workdir: Path, filename: str) -> str | None:
+    """SHA-256 of an input artifact as its run committed it (verified when it was read)."""
+    found = committed_entry(workdir, filename)
+    return None if found is None else found[1]["sha256"]
 
 
 def metrics_json(metrics: dict) -> str:
@@ -786,6 +787,16 @@ def _fmt_g(x) -> str:
     return f"{float(x):.6g}"
 
 
+def _degenerate(inp: ReportInputs) -> dict:
+    """heliostat -> why its training data cannot determine the coarse model (coarse_params'
+    ``fit_degenerate``), for the heliostats where they cannot."""
+    cp = inp.coarse_params
+    if cp is None or "fit_degenerate" not in cp.columns:
+        return {}
+    first = cp.groupby("heliostat_id", sort=True)["fit_degenerate"].first()
+    return {str(h): str(w) for h, w in first.items() if isinstance(w, str) and w}
+
+
 def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
     """The report as blocks: ``("h1"|"h2"|"h3"|"p"|"note", text)``, ``("table", headers, rows)``
     and ``("figure", _Figure)``."""
@@ -831,6 +842,11 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
 
     # --- accuracy tables
     blocks.append(("h2", "Accuracy"))
+    degenerate = _degenerate(inp)
+    for hid, why in degenerate.items():
+        blocks.append(("note", f"{hid}: degenerate training data ({why}). Its errors below say "
+                               "nothing about its accuracy, however small they are: calibrate "
+                               "it at more sun positions."))
     if inp.predictions is None:
         blocks.append(("note", "No predictions: run "
                                f"{inp.run_hint('coarse_predictions.parquet')} for the error "
@@ -843,10 +859,11 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                    "p95 [mrad]", "beam [mrad]", "spot offset [m]"]
         rows = []
         for hid, h in helios.items():
+            label = hid + (" (degenerate data)" if hid in degenerate else "")
             for model, mm in h["models"].items():
                 name = model + (" ★" if mm["selected"] else "")
                 for sp, st in mm["splits"].items():
-                    rows.append([hid, name, sp, st["n"], _fmt(st["mean_error_mrad"]),
+                    rows.append([label, name, sp, st["n"], _fmt(st["mean_error_mrad"]),
                                  _fmt(st["median_error_mrad"]), _fmt(st["p95_error_mrad"]),
                                  _fmt(st["mean_beam_error_mrad"]), _fmt(st["mean_spot_offset_m"])])
         blocks.append(("table", headers, rows))
@@ -1151,8 +1168,10 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None) -> dict:
     Parameters
     ----------
     workdir : the work directory (needs at least measurements.parquet).
-    out_dir : where to write (default ``workdir/report``). PNGs of figures no longer produced
-        are removed from ``out_dir/figures`` so the folder matches the report.
+    out_dir : where to write (default ``workdir/report``). The files are one transaction on
+        ``out_dir`` (manifest ``out_dir/report.manifest.json``): a report is replaced whole or not
+        at all. PNGs of figures no longer produced are removed from ``out_dir/figures`` so the
+        folder matches the report.
 
     Returns
     -------
@@ -1160,21 +1179,29 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None) -> dict:
     """
     workdir = Path(workdir)
     out = Path(out_dir) if out_dir is not None else workdir / "report"
+    summary = _write_report(workdir, out)
+    # figures of a report written before reports were transactions (not in any manifest)
+    keep = {Path(f).name for f in summary["figures"]}
+    if (out / "figures").is_dir():
+        for old in (out / "figures").glob("*.png"):
+            if old.name not in keep:
+                old.unlink()
+    return summary
+
+
+@stage_transaction("report", root=lambda a: a["out"], consistent_inputs=False)
+def _write_report(workdir: Path, out: Path) -> dict:
+    txn = current_transaction(out, "report")
     inp = load_inputs(workdir)
     metrics = compute_metrics(inp)
     blocks = build_report(inp, metrics)
     figs = [b[1] for b in blocks if b[0] == "figure"]
     fig_dir = out / "figures"
     for f in figs:
-        atomic_write_bytes(safe_child(fig_dir, f.filename), f.png)
-    keep = {f.filename for f in figs}
-    if fig_dir.is_dir():
-        for old in fig_dir.glob("*.png"):
-            if old.name not in keep:
-                old.unlink()
-    atomic_write_text(out / "metrics.json", metrics_json(metrics))
-    atomic_write_text(out / "report.md", render_markdown(blocks))
-    atomic_write_text(out / "index.html", render_html(blocks))
+        txn.write_bytes(f"figures/{safe_name(f.filename)}", f.png)
+    txn.write_bytes("metrics.json", metrics_json(metrics).encode("utf-8"))
+    txn.write_bytes("report.md", render_markdown(blocks).encode("utf-8"))
+    txn.write_bytes("index.html", render_html(blocks).encode("utf-8"))
     notes = [b[1] for b in blocks if b[0] == "note"]
     heliostats = []
     for hid, h in metrics["heliostats"].items():

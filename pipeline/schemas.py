@@ -55,7 +55,10 @@ MEASUREMENTS = ArtifactSchema(
     sort_by=("heliostat_id", "timestamp", "measurement_id"),
     extra_prefixes=("env_", "qa_"),
     description="One row per kept calibration measurement (camera-target method), all positions in "
-                "ENU metres relative to the plant reference point.",
+                "ENU metres relative to the plant reference point. A log's extra numeric columns "
+                "are kept as `env_<name>`; with them comes `qa_env_blanked`: the env cells of the "
+                "row that were blanked because they are infinite or beyond 1e100 in magnitude "
+                "(`env_x=inf; ...`, empty if none).",
     columns=(
         C("heliostat_id", "string", "", "Heliostat name, e.g. BE36."),
         C("measurement_id", "string", "", "The source's own id of the measurement (PAINT calibration "
@@ -162,6 +165,11 @@ REJECTION_REASONS = {
     "sun_angle_out_of_range": "a sun angle is outside its physical range",
     "invalid_heliostat_id": "the heliostat id is not " + HELIOSTAT_ID_RULE + " (it would be "
                             "unsafe as a file name): rename the heliostat in the source",
+    # plausibility of timestamps (ingest --time-min/--time-max/--date-format)
+    "implausible_timestamp": "the timestamp lies outside the plausible range of the instrument "
+                             "(default 1990 to now + 1 day; ingest --time-min, --time-max)",
+    "ambiguous_timestamp": "the timestamp writes day and month as numbers in an order heliocal "
+                           "cannot tell (02.03.2023, 3/2/2023): give ingest --date-format",
 }
 
 REJECTED = ArtifactSchema(

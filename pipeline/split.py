@@ -35,9 +35,10 @@ import numpy as np
 import pandas as pd
 from sklearn.neighbors import NearestNeighbors
 
-from .artifacts import ArtifactSchema, Column, artifact_path, read_artifact, write_artifact
+from .artifacts import ArtifactSchema, Column, read_artifact, write_artifact
 from .errors import FitError, InputError, ParameterError, check_choice, check_int
 from .schemas import MEASUREMENTS
+from .transaction import stage_transaction
 from .workdir_lock import locks_workdir
 
 __all__ = [
@@ -498,6 +499,7 @@ def summarize_split(split_df: pd.DataFrame) -> list[dict[str, Any]]:
 
 
 @locks_workdir("split-knn")
+@stage_transaction("split-knn")
 def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: int = 30,
               n_val: int = 20, n_train: int | None = None, metric: str = "euclidean",
               seed: int = 0) -> dict[str, Any]:
@@ -513,8 +515,7 @@ def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: i
                                         n_val=n_val, n_train=n_train, metric=metric, seed=seed)
     options = {"method": method, "k": k, "n_test": n_test, "n_val": n_val, "n_train": n_train,
                "metric": metric, "seed": seed}
-    path = write_artifact(table, workdir, SPLIT, stage="split-knn", options=options, seed=seed,
-                          inputs={"measurements": artifact_path(workdir, MEASUREMENTS)})
+    path = write_artifact(table, workdir, SPLIT, stage="split-knn", options=options, seed=seed)
     return {
         "artifact": str(path),
         **options,

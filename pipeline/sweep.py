@@ -35,7 +35,6 @@ points of a study heliostat are its production rows.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import time
@@ -47,9 +46,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import (ArtifactSchema, Column as C, artifact_path, atomic_path, atomic_write_text,
-                        check_fresh, file_sha256, read_artifact, safe_child,
-                        write_artifact)
+from .artifacts import (ArtifactSchema, Column as C, check_fresh, merge_with_previous,
+                        previous_run_matches, read_artifact, write_artifact)
 from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, coarse_fit_options,
                      fit_presets, load_selected_parameters, normal_errors_mrad)
 from .errors import FitError, ParameterError, check_float, check_int
@@ -61,7 +59,9 @@ from .kinematics import HeliostatSpec, nominal_parameters
 from .metrics import error_mrad, measured_normal
 from .parallel import map_tasks
 from .schemas import HELIOSTATS, MEASUREMENTS
+from .modelfiles import write_model
 from .split import SPLIT, restrict_training
+from .transaction import current_transaction, stage_transaction
 from .workdir_lock import locks_workdir
 
 __all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder",
@@ -73,6 +73,7 @@ log = logging.getLogger("heliocal.sweep")
 SWEEP = ArtifactSchema(
     name="sweep", filename="sweep.parquet", producer="sweep",
     sort_by=("heliostat_id", "model", "n_train", "weight_decay", "seed"),
+    volatile=("wall_time_s",),
     description="One row per heliostat, model, training size, weight decay and seed: mean and "
                 "median error_mrad per split (means over the split's rows). Every heliostat has "
                 "its full-size rows (fit-coarse's presets and the hybrid candidates of the "
@@ -518,6 +519,7 @@ def study_heliostats(ids: Sequence[str], study: int | Sequence[str] | None,
 
 
 @locks_workdir("sweep")
+@stage_transaction("sweep")
 def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               weight_decays: Sequence[float] | None = None, seeds: Sequence[int] = (0,),
               presets: Sequence[str] | None = None, baselines: Sequence[str] = ("nn-only",),
@@ -621,33 +623,36 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                     key=lambda r: r["selection"]["heliostat_id"])
     rows = [r for res in results for r in res["rows"]]
     selection = pd.DataFrame([res["selection"] for res in chosen])
-    inputs = {name: artifact_path(workdir, s) for name, s in
-              (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS), ("split", SPLIT),
-               ("coarse_params", COARSE_PARAMS))}
-    hashes = {k: file_sha256(p) for k, p in inputs.items()}
-    out_dir = workdir / "hybrid" / "selected"
+    txn = current_transaction(workdir, "sweep")
+    hashes = txn.input_fingerprints()  # what this run read: the selected models' recorded inputs
     for res in chosen:
         st = res["selected_state"]
         if st is None:
             continue
         hid = st["config"]["heliostat_id"]
-        with atomic_path(safe_child(out_dir, f"{hid}.pt")) as tmp:
-            torch.save(st["state"], tmp)
-        atomic_write_text(safe_child(out_dir, f"{hid}.json"),
-                          json.dumps({**st["config"], "inputs": hashes}, indent=1, sort_keys=True))
+        write_model(txn, "selected", hid, st["state"], {**st["config"], "inputs": hashes})
     opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
             "seeds": seeds, "presets": list(presets) if presets else "fit-coarse's",
             "baselines": list(baselines), "extra_bands": [list(b) for b in extra_bands],
             "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict(),
             "study": study if study is None or isinstance(study, (int, np.integer)) else list(study),
             "study_seed": study_seed, "study_heliostats": studied, "path": path.to_dict(),
-            "batch_size": batch_size, "coarse_options": coarse_options}
-    write_artifact(pd.DataFrame(rows), workdir, SWEEP, stage="sweep", options=opts,
-                   seed=seeds[0], inputs=inputs)
-    write_artifact(selection, workdir, SELECTION, stage="sweep", options=opts, seed=seeds[0],
-                   inputs=inputs)
-    write_artifact(pd.concat([res["predictions"] for res in chosen], ignore_index=True), workdir,
-                   SELECTED_PREDICTIONS, stage="sweep", options=opts, seed=seeds[0], inputs=inputs)
+            "batch_size": batch_size, "coarse_options": coarse_options,
+            "heliostats": list(heliostats) if heliostats else None}
+    # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
+    # previous sweep read the same inputs (artifacts.merge_with_previous)
+    tables = {SWEEP: pd.DataFrame(rows), SELECTION: selection,
+              SELECTED_PREDICTIONS: pd.concat([res["predictions"] for res in chosen],
+                                              ignore_index=True)}
+    if heliostats:
+        requested = set(heliostats)
+        replaced = lambda old: old["heliostat_id"].isin(requested)  # noqa: E731
+        tables = {s: merge_with_previous(workdir, s, df, replaced) for s, df in tables.items()}
+        if previous_run_matches(workdir, "sweep"):
+            txn.carry_over(r for r in txn.previous_files("hybrid/selected")
+                           if r.rsplit("/", 1)[-1].rsplit(".", 1)[0] not in requested)
+    for schema, df in tables.items():
+        write_artifact(df, workdir, schema, stage="sweep", options=opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "study_heliostats": studied,
             "members_per_heliostat": {h: len(weight_decays) * len(seeds) * len(variants)

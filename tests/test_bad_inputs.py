@@ -70,6 +70,9 @@ CASES = {
                                                               ".csv or .parquet")),
     "no_such_file": ("no_such_file.csv", [], error("no such file or folder; check the path")),
     "parquet_garbage": ("parquet_garbage.parquet", [], error("not a readable Parquet file")),
+    "timestamps_day_month": ("timestamps_day_month.csv", [], error(
+        "timestamps such as '03.06.2022 09:20:02Z' write day and month as numbers, and heliocal "
+        "cannot tell which is which; pass --date-format")),
     "every_row_rejected": ("all_rows_rejected.csv", [], error(
         "could be kept (sun_below_horizon: 10); see the reasons and fix the source")),
     "enu_log_without_properties": ("enu_log.csv", [], error(
@@ -101,6 +104,11 @@ CASES = {
     "timestamp_unparsable": ("timestamp_unparsable.csv", [], rows(10, unparsable_timestamp=[3, 4])),
     "timestamp_one_without_zone": ("timestamp_one_without_zone.csv", [],
                                    rows(10, unparsable_timestamp=[8])),
+    "timestamps_implausible": ("timestamps_implausible.csv", [],
+                               rows(10, implausible_timestamp=[1, 3, 5])),
+    "timestamp_day_month": ("timestamp_day_month.csv", [], rows(10, ambiguous_timestamp=[4])),
+    "timestamps_day_month_with_format": ("timestamps_day_month.csv",
+                                         ["--date-format", "%d.%m.%Y %H:%M:%S%z"], rows(10)),
     "sun_below_horizon": ("sun_below_horizon.csv", [], rows(10, sun_below_horizon=[2])),
     "sun_angle_out_of_range": ("sun_elevation_out_of_range.csv", [],
                                rows(10, sun_angle_out_of_range=[9])),

@@ -21,6 +21,7 @@ from heliocal.cli.main import app
 from heliocal.pipeline import __version__
 from heliocal.pipeline.artifacts import SCHEMA_VERSION, git_revision
 from heliocal.pipeline.split import SPLIT
+from workdir_tools import fingerprint, recommit
 
 PAINT_SMALL = Path(__file__).resolve().parent / "data" / "good" / "paint_small"
 SPLIT_ARGS = ["--n-test", "0", "--n-val", "0", "--k", "1"]
@@ -80,11 +81,17 @@ def test_artifact_provenance_json(runner, made_workdir):
     # the resolved options: those given and every default
     assert prov["options"] == {"method": "knn", "k": 1, "n_test": 0, "n_val": 0, "n_train": None,
                                "metric": "euclidean", "seed": 0}
-    measurements_sha = _sha(made_workdir / "measurements.parquet")
-    assert prov["inputs"] == {"measurements": measurements_sha}
+    # the input is recorded by the content fingerprint of the measurements table that was read
+    measurements_fp = fingerprint(made_workdir / "measurements.parquet")
+    assert prov["inputs"] == {"measurements": measurements_fp}
     assert d["inputs"] == {"measurements": {
-        "path": str(made_workdir / "measurements.parquet"), "recorded_sha256": measurements_sha,
-        "current_sha256": measurements_sha, "status": "fresh"}}
+        "path": str(made_workdir / "measurements.parquet"), "recorded": measurements_fp,
+        "current": measurements_fp, "status": "fresh"}}
+    manifest = json.loads((made_workdir / "split-knn.manifest.json").read_text())
+    assert d["commit"] == {"status": "committed", "stage": "split-knn",
+                           "run_id": manifest["run_id"],
+                           "manifest": str(made_workdir / "split-knn.manifest.json")}
+    assert manifest["files"]["split.parquet"]["sha256"] == _sha(made_workdir / "split.parquet")
 
 
 def test_ingest_artifact_records_source_and_options(runner, made_workdir):
@@ -93,7 +100,7 @@ def test_ingest_artifact_records_source_and_options(runner, made_workdir):
     assert list(d["inputs"]) == [f"source:{PAINT_SMALL}"]
     source = d["inputs"][f"source:{PAINT_SMALL}"]
     assert source["path"] == str(PAINT_SMALL) and source["status"] == "fresh"
-    assert source["recorded_sha256"] == source["current_sha256"]
+    assert source["recorded"] == source["current"]
     assert d["provenance"]["seed"] is None  # ingest has no random step
     opts = d["provenance"]["options"]
     assert (opts["sources"], opts["focal_spot"], opts["max_spot_distance_m"], opts["tower"]) == (
@@ -107,10 +114,12 @@ def test_artifact_human_output(runner, made_workdir):
     for expected in ("artifact split", "stage heliocal split-knn", "seed 0", "status fresh",
                      f"schema version {SCHEMA_VERSION}", f"heliocal {__version__} (git "
                      f"{git_revision()})", "options", "k = 1", 'method = "knn"', "n_train = null",
-                     "inputs"):
+                     "inputs (content fingerprint of an artifact, SHA-256 of a source)"):
         assert expected in lines, (expected, result.stdout)
-    sha = _sha(made_workdir / "measurements.parquet")[:12]
-    assert any(line.startswith("measurements") and f"{sha} {sha} fresh" in line for line in lines)
+    fp = fingerprint(made_workdir / "measurements.parquet")[:12]
+    assert any(line.startswith("measurements") and f"{fp} {fp} fresh" in line for line in lines)
+    run_id = json.loads((made_workdir / "split-knn.manifest.json").read_text())["run_id"]
+    assert f"run {run_id} (split-knn.manifest.json)" in lines
     assert result.stderr == ""
 
 
@@ -122,21 +131,28 @@ def test_workdir_listing(runner, made_workdir):
                     ("rejected.parquet", "ingest", 0, "fresh"),
                     ("split.parquet", "split-knn", 3, "fresh")]
     assert (d["fresh"], d["leftovers"], d["not_artifacts"]) == (True, [], [])
+    assert (d["pending_commits"], d["uncommitted_runs"]) == ([], [])
+    runs = {r["stage"]: (r["files"], r["pending"], r["problems"]) for r in d["runs"]}
+    assert runs == {"ingest": (3, False, []), "split-knn": (1, False, [])}
     result = _run(runner, "info", made_workdir)
     lines = [" ".join(line.split()) for line in result.stdout.splitlines()]
     assert "split.parquet split-knn 3 fresh -" in lines, result.stdout
+    split_run = json.loads((made_workdir / "split-knn.manifest.json").read_text())
+    assert any(line.startswith(f"split-knn {split_run['run_id']} 1 ") and line.endswith(" ok")
+               for line in lines), result.stdout  # the committed runs, each file verified
 
 
 def test_workdir_listing_flags_stale_incompatible_leftovers_and_foreign(runner, workdir):
     # ingest other data (HeliOS spots): split.parquet no longer matches measurements.parquet
     assert _run(runner, "ingest", PAINT_SMALL, "--focal-spot", "helios", "--workdir", workdir,
                 "--quiet").exit_code == 0
-    # rejected.parquet claims another schema version
+    # rejected.parquet claims another schema version (and is committed so: recommit)
     table = pq.read_table(workdir / "rejected.parquet")
     prov = json.loads(table.schema.metadata[b"heliocal"])
     pq.write_table(table.replace_schema_metadata(
         {b"heliocal": json.dumps({**prov, "schema_version": 999}).encode()}),
         workdir / "rejected.parquet")
+    recommit(workdir, "rejected.parquet")
     (workdir / ".split.parquet.tmp-abc123").write_bytes(b"PAR1 half")  # an interrupted write
     pd.DataFrame({"a": [1]}).to_parquet(workdir / "notes.parquet")  # not heliocal's
 
@@ -146,7 +162,7 @@ def test_workdir_listing_flags_stale_incompatible_leftovers_and_foreign(runner, 
                       "rejected.parquet": "incompatible", "split.parquet": "stale"}
     split = next(a for a in d["artifacts"] if a["path"].endswith("split.parquet"))
     assert split["inputs"]["measurements"]["status"] == "stale"
-    assert split["inputs"]["measurements"]["current_sha256"] == _sha(workdir / "measurements.parquet")
+    assert split["inputs"]["measurements"]["current"] == fingerprint(workdir / "measurements.parquet")
     assert split["hint"] == f"rerun `heliocal split-knn --workdir {workdir}`"
     assert d["fresh"] is False
     assert d["leftovers"] == [str(workdir / ".split.parquet.tmp-abc123")]
@@ -175,7 +191,7 @@ def test_moved_source_is_unknown(runner, tmp_path):
     shutil.rmtree(source)
     d = _info_json(runner, workdir / "measurements.parquet")
     assert d["status"] == "unknown"
-    assert d["inputs"][f"source:{source}"]["current_sha256"] is None
+    assert d["inputs"][f"source:{source}"]["current"] is None
 
 
 def test_empty_workdir(runner, tmp_path):

@@ -229,5 +229,5 @@ def test_failed_ingest_keeps_previous_artifacts(tmp_path):
     result = CliRunner().invoke(app, ["ingest", str(BAD / "empty.csv"), "--workdir", str(tmp_path)])
     assert result.exit_code == 1
     assert (tmp_path / "measurements.parquet").read_bytes() == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["heliostats.parquet", "measurements.parquet",
-                                                         "rejected.parquet"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["heliostats.parquet", "ingest.manifest.json",
+                                                         "measurements.parquet", "rejected.parquet"]

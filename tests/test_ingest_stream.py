@@ -209,7 +209,8 @@ def test_failure_in_the_third_batch_keeps_previous_artifacts(tmp_path, monkeypat
         run_ingest(sources, tmp_path, IngestOptions(properties=SYNTHETIC_PAINT,
                                                     max_spot_distance_m=5.0), batch_rows=7)
     assert len(staged) == 3  # it failed while streaming, after two chunks were written
-    assert sorted(os.listdir(tmp_path)) == sorted(ARTIFACTS)  # no temp file, no spill folder
+    # no staging folder, no spill folder: the previous run's files and its manifest
+    assert sorted(os.listdir(tmp_path)) == sorted([*ARTIFACTS, "ingest.manifest.json"])
     assert {name: (tmp_path / name).read_bytes() for name in ARTIFACTS} == previous
     assert read_provenance(tmp_path / "measurements.parquet")["options"]["max_spot_distance_m"] == 25.0
 

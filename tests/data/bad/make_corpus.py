@@ -225,6 +225,21 @@ def write_bad(source: Path) -> None:
     r = _edit(rows, 2, "timestamp", "2022-13-45T99:00:00Z", H)
     log("timestamp_unparsable.csv", _edit(r, 3, "timestamp", "yesterday noon", H))
     log("timestamp_one_without_zone.csv", _edit(rows, 7, "timestamp", rows[7][t].rstrip("Z"), H))
+    # timestamps outside the plausible range (1990 .. now + 1 day); one valid with nanoseconds,
+    # whose unit pandas would otherwise extend to the years outside 1677-2262
+    r = _edit(rows, 0, "timestamp", "1700-06-03T09:20:02Z", H)
+    r = _edit(r, 2, "timestamp", "2300-06-03T09:38:50Z", H)
+    r = _edit(r, 4, "timestamp", "9999-12-31T23:59:59Z", H)
+    log("timestamps_implausible.csv",
+        _edit(r, 5, "timestamp", rows[5][t].replace("Z", ".123456789Z"), H))
+
+    def day_month(stamp: str) -> str:  # 2022-06-03T09:20:02Z -> 03.06.2022 09:20:02Z
+        date, clock = stamp.rstrip("Z").split("T")
+        y, m, d = date.split("-")
+        return f"{d}.{m}.{y} {clock}Z"
+
+    log("timestamp_day_month.csv", _edit(rows, 3, "timestamp", day_month(rows[3][t]), H))
+    log("timestamps_day_month.csv", [r[:t] + [day_month(r[t])] + r[t + 1:] for r in rows])
     log("sun_below_horizon.csv", _edit(rows, 1, "sun_elevation", "-3.2", H))
     log("sun_elevation_out_of_range.csv", _edit(rows, 8, "sun_elevation", "123.0", H))
     lat = H.index("focal_spot_lat")

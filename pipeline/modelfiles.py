@@ -1,0 +1,127 @@
+"""Model files of ``fit-hybrid`` and ``sweep``: ``hybrid/<mode>/<HID>.pt`` and ``<HID>.json``.
+
+The ``.pt`` file holds the networks' tensors (a state dict saved with :func:`torch.save`); the
+``.json`` file holds the model's configuration and records the SHA-256 of the ``.pt`` file's bytes
+(``weights_sha256``). Both are outputs of the stage's transaction
+(:mod:`heliocal.pipeline.transaction`), so they are committed together; :func:`read_model` reads
+both through the stage's manifest and checks that the weights are the ones the configuration was
+written with. Loading never runs code from a file: :func:`torch.load` with ``weights_only=True``
+accepts tensors and plain containers only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Mapping
+
+from .errors import SchemaError
+from .transaction import load_manifest, read_committed
+
+__all__ = ["model_files", "write_model", "read_model"]
+
+
+def model_files(mode: str, heliostat_id: str) -> tuple[str, str]:
+    """(config, weights) paths of a model relative to the work directory; an id that is not a plain
+    file name is refused (:func:`heliocal.pipeline.artifacts.safe_name`)."""
+    from .artifacts import safe_name
+
+    hid = safe_name(heliostat_id, f"hybrid/{mode}")
+    return f"hybrid/{mode}/{hid}.json", f"hybrid/{mode}/{hid}.pt"
+
+
+def write_model(txn, mode: str, heliostat_id: str, state: Mapping, config: dict) -> None:
+    """Stage one model (weights and configuration) in transaction ``txn``."""
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save(dict(state), buffer)
+    weights = buffer.getvalue()
+    cfg_rel, pt_rel = model_files(mode, heliostat_id)
+    config = {**config, "weights_sha256": hashlib.sha256(weights).hexdigest()}
+    txn.write_bytes(pt_rel, weights)
+    txn.write_bytes(cfg_rel, json.dumps(config, indent=1, sort_keys=True).encode())
+
+
+def _short(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return (text[:160] + "...") if len(text) > 160 else text or type(exc).__name__
+
+
+def _check_shapes(state: Mapping, cfg: dict, path: Path, hint: str) -> None:
+    """The tensors form a chain of layers, and match the configuration's layer sizes."""
+    n = len([k for k in state if k.endswith(".weight")])
+    try:
+        shapes = [(tuple(state[f"layers.{k}.weight"].shape), tuple(state[f"layers.{k}.bias"].shape))
+                  for k in range(n)]
+    except (KeyError, AttributeError) as exc:
+        raise SchemaError(f"{path} does not hold heliocal network weights (missing {exc}); rerun "
+                          f"{hint}") from None
+    ok = n > 0 and all(len(w) == 3 and b == (w[0], w[1]) for w, b in shapes)
+    ok = ok and all(shapes[k][0][1] == shapes[k + 1][0][2] for k in range(n - 1))
+    sizes = cfg.get("sizes")
+    if ok and sizes is not None:
+        ok = list(sizes) == [shapes[0][0][2]] + [w[1] for w, _ in shapes]
+    if not ok:
+        raise SchemaError(f"{path} holds weights of other layer sizes than its configuration "
+                          f"{path.with_suffix('.json').name} describes; rerun {hint}")
+
+
+def read_model(workdir: str | os.PathLike, stage: str, mode: str, heliostat_id: str, *,
+               hint: str) -> tuple[dict, dict] | None:
+    """(configuration, state dict) of a committed model, or ``None`` if ``stage`` committed none.
+
+    Raises
+    ------
+    StageInputError : a model file exists but no complete run of ``stage`` wrote it.
+    SchemaError : a file was changed after the run, is empty or corrupt, holds something other
+        than tensors, or the weights are not the ones the configuration records. Every message
+        names the file and the command that writes it again (``hint``).
+    """
+    import torch
+
+    workdir = Path(workdir)
+    cfg_rel, pt_rel = model_files(mode, heliostat_id)
+    m = load_manifest(workdir, stage)
+    listed = m is not None and cfg_rel in m.files and pt_rel in m.files
+    if not listed:
+        for rel in (cfg_rel, pt_rel):
+            # present but not committed (and not just being removed by the last commit): refused
+            if (workdir / rel).exists() and not (m is not None and m.removes(rel)):
+                read_committed(workdir, stage, rel, hint=hint)
+        return None
+    cfg_file = read_committed(workdir, stage, cfg_rel, hint=hint)
+    pt_file = read_committed(workdir, stage, pt_rel, hint=hint)
+    try:
+        cfg = json.loads(cfg_file.data.decode("utf-8"))
+        if not isinstance(cfg, dict):
+            raise ValueError("not a JSON object")
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise SchemaError(f"{cfg_file.path} is not a valid model configuration ({_short(exc)}); "
+                          f"rerun {hint}") from None
+    if cfg.get("weights_sha256") != hashlib.sha256(pt_file.data).hexdigest():
+        raise SchemaError(f"{pt_file.path} is not the weights file its configuration "
+                          f"{cfg_file.path.name} was written with (weights_sha256 differs); rerun "
+                          f"{hint}")
+    if not pt_file.data:
+        raise SchemaError(f"{pt_file.path} is empty, not a torch model file; rerun {hint}")
+    try:
+        state = torch.load(io.BytesIO(pt_file.data), weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise SchemaError(
+            f"{pt_file.path} was refused: it holds objects other than tensors (heliocal loads "
+            f"model files with weights_only=True and never runs code from them: "
+            f"{_short(exc).split('.')[0]}); delete it and rerun {hint}") from None
+    except (RuntimeError, EOFError, ValueError, OSError, zipfile.BadZipFile, KeyError,
+            AttributeError, TypeError) as exc:
+        raise SchemaError(f"{pt_file.path} is not a readable torch model file (truncated or "
+                          f"corrupt: {_short(exc)}); rerun {hint}") from None
+    if not isinstance(state, dict):
+        raise SchemaError(f"{pt_file.path} does not hold a state dict of tensors; rerun {hint}")
+    _check_shapes(state, cfg, pt_file.path, hint)
+    return cfg, state
