@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Callable, Iterator, Mapping
 
-from .errors import SchemaError, StageInputError, UnsafePathError
+from .errors import InputError, SchemaError, StageInputError, UnsafePathError
 
 __all__ = [
     "MANIFEST_VERSION",
