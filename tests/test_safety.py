@@ -410,6 +410,10 @@ NOT_DATA = {
         "hdir comes from listing the output folder (removing a previous simulation)",
     ("spill.py", "Path(self.folder) / f'{self.name}-{len(self.runs):06d}.parquet'"):
         "a fixed prefix and a counter",
+    ("transaction.py", "Path(root) / f'{stage}.manifest.json'"):
+        "stage is one of heliocal's stage names (ingest ... report), never data",
+    ("transaction.py", "self.staging / f'.{target.name}.tmp'"):
+        "target is a staged output whose relative path transaction._rel already checked",
 }
 
 

@@ -244,19 +244,50 @@ def test_case_4_reingest_during_fit_coarse_leaves_a_stale_fit(wd, monkeypatch):
 # ------------------------------------------------------------------------------------------------
 # case 5: two fit-hybrid runs at once
 # ------------------------------------------------------------------------------------------------
-def test_case_5_second_of_two_concurrent_fit_hybrid_runs_is_not_committed(wd, monkeypatch):
-    """An nn-only run and a hybrid run at once: the hybrid run (another process) commits while
-    the nn-only run trains; the nn-only run then refuses to commit instead of dropping the
-    hybrid run's rows. (With the workdir lock of issue 21 the second run fails at its start.)"""
+def test_case_5_second_of_two_concurrent_fit_hybrid_runs_is_refused_by_the_lock(wd, monkeypatch):
+    """Issue 22's case 5 (an nn-only run and a hybrid run at once on one workdir): the workdir lock
+    of issue 21 refuses the second writer at its start with a one-line error naming the running
+    one, and the first run commits; nothing of either is lost."""
+    import heliocal.pipeline.hybrid as hybrid
+
+    real = hybrid.map_tasks
+    seen = {}
+
+    def second_run_while_the_first_trains(*args, **kwargs):
+        seen["out"] = subprocess.run(
+            [sys.executable, "-m", "heliocal.cli.main", "fit-hybrid", "--mode", "hybrid",
+             "--heliostat", "BF41", *HYBRID, "--workdir", str(wd), "--quiet"],
+            capture_output=True, text=True, timeout=300)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(hybrid, "map_tasks", second_run_while_the_first_trains)
+    run_fit_hybrid(wd, mode="nn-only", heliostats=["BE36"],
+                   config=hybrid.FineConfig(max_epochs=20), workers=1)
+    out = seen["out"]
+    assert out.returncode == 1
+    assert out.stderr.count("\n") == 1 and "is being written by `heliocal fit-hybrid`" in out.stderr
+    pred = read_artifact(wd, HYBRID_PREDICTIONS)
+    assert sorted(set(zip(pred["heliostat_id"], pred["model"]))) == [("BE36", "hybrid"),
+                                                                     ("BE36", "nn-only")]
+    assert not list(wd.glob(".txn-*"))
+
+
+def test_case_5_without_a_working_lock_the_second_run_does_not_commit(wd, monkeypatch):
+    """Where the lock cannot work (two machines on a file system without locks), the
+    transaction's own check remains: the hybrid run (another process, run past the lock as such
+    a machine would) commits while the nn-only run trains; the nn-only run then refuses to commit
+    instead of dropping the hybrid run's rows."""
     import heliocal.pipeline.hybrid as hybrid
 
     before = load_manifest(wd, "fit-hybrid").run_id
     real = hybrid.map_tasks
+    unlocked = ("import sys; from heliocal.pipeline.hybrid import FineConfig, run_fit_hybrid; "
+                "run_fit_hybrid.__wrapped__(sys.argv[1], mode='hybrid', heliostats=['BF41'], "
+                "config=FineConfig(max_epochs=20), workers=1)")
 
     def other_process_commits(*args, **kwargs):
-        out = subprocess.run([sys.executable, "-m", "heliocal.cli.main", "fit-hybrid", "--mode",
-                              "hybrid", "--heliostat", "BF41", *HYBRID, "--workdir", str(wd),
-                              "--quiet"], capture_output=True, text=True, timeout=300)
+        out = subprocess.run([sys.executable, "-c", unlocked, str(wd)], capture_output=True,
+                             text=True, timeout=300)
         assert out.returncode == 0, out.stderr
         return real(*args, **kwargs)
 
@@ -665,7 +696,12 @@ def test_output_names_cannot_leave_the_work_directory(wd):
     from heliocal.pipeline.errors import InputError
     from heliocal.pipeline.modelfiles import write_model
 
-    with pytest.raises(InputError, match="cannot name a file inside the work directory"):
+    # (modelfiles refuses the id as a file name first; the transaction refuses any path leaving it)
+    with pytest.raises(InputError, match="cannot be used as a file name in hybrid/hybrid"):
         with transaction(wd, "fit-hybrid") as txn:
             write_model(txn, "hybrid", "../../escaped", {}, {})
+    assert not (wd.parent / "escaped.pt").exists() and not list(wd.glob(".txn-*"))
+    with pytest.raises(InputError, match="cannot name a file inside the work directory"):
+        with transaction(wd, "fit-hybrid") as txn:
+            txn.write_bytes("hybrid/../../escaped.pt", b"x")
     assert not (wd.parent / "escaped.pt").exists() and not list(wd.glob(".txn-*"))
