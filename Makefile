@@ -88,7 +88,7 @@ test: $(VENV)/.installed
 
 ## regression: run the sample pipeline and compare its metrics.json with the committed baseline
 regression: $(WORKDIR)/report/index.html
-	$(VENV)/bin/python -m heliocal.pipeline.regression $(WORKDIR)/report/metrics.json tests/baseline/metrics_sample.json
+	$(VENV)/bin/python -m heliocal.pipeline.report.regression $(WORKDIR)/report/metrics.json tests/baseline/metrics_sample.json
 
 $(WORKDIR)/measurements.parquet $(WORKDIR)/heliostats.parquet $(WORKDIR)/rejected.parquet &: $(SOURCE_FILES) $(CODE) $(VENV)/.installed
 	$(HELIOCAL) ingest $(SOURCES) --workdir $(WORKDIR) --quiet

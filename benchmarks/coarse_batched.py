@@ -3,8 +3,8 @@
 Builds ``--heliostats`` synthetic Jülich-type heliostats (benchmarks/coarse_fit.py's generator,
 one seed each: own true deviations, ``--min-rows`` to ``--max-rows`` measurements, 0.2 mrad spot
 noise), fits preset ``--preset`` with the stage's default loss (soft_l1, 1 mrad) from the nominal
-geometry, once with :func:`heliocal.pipeline.coarse.fit_heliostat` per heliostat (scipy) and once
-with :func:`heliocal.pipeline.coarse.fit_heliostats_batched` in chunks of ``--batch-size``, in one
+geometry, once with :func:`heliocal.pipeline.models.coarse.fit_heliostat` per heliostat (scipy) and once
+with :func:`heliocal.pipeline.models.coarse.fit_heliostats_batched` in chunks of ``--batch-size``, in one
 process on one thread, alternating, ``--repeats`` times. Prints the median wall time per
 heliostat of each, their ratio, and the largest per-heliostat difference of the mean training
 error and of the relative cost between the two. Usage::
@@ -26,7 +26,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from coarse_fit import make_data  # noqa: E402
 
-from heliocal.pipeline.coarse import fit_heliostat, fit_heliostats_batched, normal_errors_mrad  # noqa: E402
+from heliocal.pipeline.models.coarse import (fit_heliostat, fit_heliostats_batched,
+                                             normal_errors_mrad)  # noqa: E402
 
 
 def main() -> None:

@@ -18,10 +18,10 @@ import time
 
 import torch
 
-from heliocal.pipeline.coarse import MeasurementBatch, fit_heliostat, normal_errors_mrad
-from heliocal.pipeline.kinematics import (HeliostatSpec, forward_kinematics, inverse_kinematics,
-                                          nominal_parameters)
-from heliocal.pipeline.metrics import reflect
+from heliocal.pipeline.models.coarse import MeasurementBatch, fit_heliostat, normal_errors_mrad
+from heliocal.pipeline.physics.kinematics import (HeliostatSpec, forward_kinematics,
+                                                  inverse_kinematics, nominal_parameters)
+from heliocal.pipeline.physics.metrics import reflect
 
 ROW = {
     "heliostat_id": "BENCH", "kinematic_type": "juelich", "actuator_type": "linear",

@@ -36,7 +36,7 @@ HELIOCAL = str(Path(sys.executable).parent / "heliocal")
 
 
 def _simulate_chunk(args):
-    from heliocal.pipeline.simulate import simulate_field
+    from heliocal.pipeline.stages.simulate import simulate_field
 
     n, seed = args
     return simulate_field(n, seed=seed, measurements=(100, 400), dynamic_fraction=0.5)
@@ -44,9 +44,9 @@ def _simulate_chunk(args):
 
 def write_field(out: Path, n: int, seed: int = 0) -> dict:
     """Simulate ``n`` heliostats (in chunks over 2 processes) and write the log and properties."""
-    from heliocal.pipeline.geodesy import enu_to_wgs84
-    from heliocal.pipeline.parallel import map_tasks
-    from heliocal.pipeline.simulate import _json, _tower_json
+    from heliocal.pipeline.physics.geodesy import enu_to_wgs84
+    from heliocal.pipeline.runtime.parallel import map_tasks
+    from heliocal.pipeline.stages.simulate import _json, _tower_json
 
     if (out / "done.json").exists():
         return json.loads((out / "done.json").read_text())

@@ -55,8 +55,8 @@ def _timed(func):
 
 
 def _instrument() -> None:
-    import heliocal.pipeline.artifacts as artifacts
-    import heliocal.pipeline.transaction as transaction
+    import heliocal.pipeline.artifacts.store as artifacts
+    import heliocal.pipeline.artifacts.transaction as transaction
 
     for name in ("_sha_file", "_fsync_file", "_fsync_dir", "_read_and_hash", "load_manifest",
                  "recover", "_apply"):
@@ -70,11 +70,11 @@ def _instrument() -> None:
 
 
 def _stages(workdir: Path):
-    from heliocal.pipeline.coarse import run_fit_coarse
-    from heliocal.pipeline.hybrid import FineConfig, run_fit_hybrid
-    from heliocal.pipeline.ingest import run_ingest
-    from heliocal.pipeline.report import run_report
-    from heliocal.pipeline.split import run_split
+    from heliocal.pipeline.models.coarse import run_fit_coarse
+    from heliocal.pipeline.models.hybrid import FineConfig, run_fit_hybrid
+    from heliocal.pipeline.stages.ingest import run_ingest
+    from heliocal.pipeline.stages.report import run_report
+    from heliocal.pipeline.stages.split import run_split
 
     return [
         ("ingest", lambda: run_ingest([PAINT], workdir)),
@@ -114,9 +114,9 @@ def part2(rows: int) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from heliocal.pipeline.artifacts import table_fingerprint
-    from heliocal.pipeline.ingest import run_ingest
-    from heliocal.pipeline.schemas import MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import table_fingerprint
+    from heliocal.pipeline.stages.ingest import run_ingest
+    from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
 
     with tempfile.TemporaryDirectory() as tmp:
         run_ingest([PAINT], Path(tmp) / "wd")

@@ -1,6 +1,6 @@
 """``heliocal fit-hybrid`` (fine model / baselines) and ``heliocal aim`` (steps for an aim point).
 
-See docs/hybrid.md. Library: :mod:`heliocal.pipeline.hybrid`.
+See docs/hybrid.md. Library: :mod:`heliocal.pipeline.models.hybrid`.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from rich.table import Table
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler, Seed,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import InputError, ParameterError
-from heliocal.pipeline.hybrid import (HYBRID_BATCH_SIZE, MODES, FineConfig, aim_steps,
-                                      run_fit_hybrid)
+from heliocal.pipeline.models.hybrid import (HYBRID_BATCH_SIZE, MODES, FineConfig, aim_steps,
+                                             run_fit_hybrid)
 
 __all__ = ["fit_hybrid_cmd", "aim_cmd"]
 
@@ -119,8 +119,8 @@ def _target(text: str, workdir) -> tuple[list[float], str | None]:
             return [float(p) for p in parts], None
         except ValueError:
             pass
-    from heliocal.pipeline.artifacts import read_artifact
-    from heliocal.pipeline.schemas import MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
 
     m = read_artifact(workdir, MEASUREMENTS, columns=["target_name", "target_e_m", "target_n_m",
                                                        "target_u_m"])
@@ -151,7 +151,7 @@ def aim_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Motor steps that put the reflected beam on an aim point (printed as JSON)."""
-    from heliocal.pipeline.sun import sun_vector_enu
+    from heliocal.pipeline.physics.sun import sun_vector_enu
 
     if (sun_azimuth is None) != (sun_elevation is None):
         raise ParameterError("give both --sun-azimuth and --sun-elevation, or neither")

@@ -30,11 +30,12 @@ from rich.table import Table
 from rich.text import Text
 
 from heliocal.cli.app import JsonFlag, command, emit, stdout
-from heliocal.pipeline.artifacts import SCHEMA_VERSION, file_sha256
+from heliocal.pipeline.artifacts.store import SCHEMA_VERSION, file_sha256
 from heliocal.pipeline.errors import InputError, SchemaError
-from heliocal.pipeline.workdir_lock import lock_holder
-from heliocal.pipeline.transaction import (all_manifests, pending_commits, stale_staging_folders,
-                                           staging_in_use, verify_files)
+from heliocal.pipeline.artifacts.workdir_lock import lock_holder
+from heliocal.pipeline.artifacts.transaction import (all_manifests, pending_commits,
+                                                     stale_staging_folders, staging_in_use,
+                                                     verify_files)
 
 __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 
@@ -57,7 +58,7 @@ STATUSES = {
 # gathering (plain data)
 # ------------------------------------------------------------------------------------------------
 def _schemas_by_name() -> dict:
-    from heliocal.pipeline.schemas import all_schemas
+    from heliocal.pipeline.artifacts.schemas import all_schemas
 
     return {s.name: s for s in all_schemas()}
 
@@ -251,7 +252,7 @@ def describe_workdir(workdir: str | Path) -> dict:
                 "staged_files": sum(1 for r in m.files if (m.staging / r).is_file())}
                for m in pending_commits(workdir)]
     leftovers = sorted(str(p) for p in workdir.glob(".*.tmp-*"))
-    from heliocal.pipeline.hybrid import aim_models
+    from heliocal.pipeline.models.hybrid import aim_models
 
     stopped = [{"path": str(p), "in_progress": staging_in_use(p)}
                for p in stale_staging_folders(workdir)]

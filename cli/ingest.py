@@ -10,9 +10,8 @@ from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.ingest import (DEFAULT_BATCH_ROWS, DEFAULT_TIME_MIN, IngestOptions,
-                                      invalid_id_message,
-                                      run_ingest)
+from heliocal.pipeline.stages.ingest import (DEFAULT_BATCH_ROWS, DEFAULT_TIME_MIN, IngestOptions,
+                                             invalid_id_message, run_ingest)
 
 
 def _parse_location(text: Optional[str]):

@@ -9,8 +9,8 @@ from typing import Annotated, Optional
 import typer
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, fail, stdout
-from heliocal.pipeline.regression import compare_metrics, format_report, load_metrics
-from heliocal.pipeline.report import run_report
+from heliocal.pipeline.report.regression import compare_metrics, format_report, load_metrics
+from heliocal.pipeline.stages.report import run_report
 
 __all__ = ["report_cmd"]
 

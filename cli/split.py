@@ -12,7 +12,7 @@ from rich import box
 from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Seed, Workdir, command, emit, stdout
-from heliocal.pipeline.split import METHODS, METRICS, run_split
+from heliocal.pipeline.stages.split import METHODS, METRICS, run_split
 
 __all__ = ["split_knn"]
 

@@ -11,10 +11,10 @@ from rich.table import Table
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.hybrid import FineConfig
-from heliocal.pipeline.hybrid import HYBRID_BATCH_SIZE
-from heliocal.pipeline.sweep import (DEFAULT_STUDY, OCTAVE_BANDS, PathConfig, run_sweep,
-                                     weight_decay_grid)
+from heliocal.pipeline.models.hybrid import FineConfig
+from heliocal.pipeline.models.hybrid import HYBRID_BATCH_SIZE
+from heliocal.pipeline.stages.sweep import (DEFAULT_STUDY, OCTAVE_BANDS, PathConfig, run_sweep,
+                                            weight_decay_grid)
 
 
 def _ints(text: Optional[str], name: str):

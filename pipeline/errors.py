@@ -54,13 +54,13 @@ class FitError(HeliocalError):
 
 
 class WorkdirBusyError(HeliocalError):
-    """Another stage is writing the work directory (see :mod:`heliocal.pipeline.workdir_lock`):
+    """Another stage is writing the work directory (see :mod:`heliocal.pipeline.artifacts.workdir_lock`):
     the message names it (stage, pid, host, start time) and what to do."""
 
 
 class UnsafePathError(InputError, ValueError):
     """A name taken from the data cannot be used as a file name inside its folder (see
-    :func:`heliocal.pipeline.artifacts.safe_child`)."""
+    :func:`heliocal.pipeline.artifacts.store.safe_child`)."""
 
 
 def _param_error(name: str, func: str, must: str, value) -> ParameterError:

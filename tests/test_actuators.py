@@ -1,4 +1,4 @@
-"""Tests of heliocal.pipeline.actuators (ideal and linear actuator laws)."""
+"""Tests of heliocal.pipeline.physics.actuators (ideal and linear actuator laws)."""
 
 import math
 
@@ -6,13 +6,9 @@ import pytest
 import torch
 from torch.func import jacfwd, vmap
 
-from heliocal.pipeline.actuators import (
-    ideal_angle_to_steps,
-    ideal_steps_to_angle,
-    linear_angle_to_steps,
-    linear_steps_to_angle,
-    linear_stroke_length,
-)
+from heliocal.pipeline.physics.actuators import (ideal_angle_to_steps, ideal_steps_to_angle,
+                                                 linear_angle_to_steps, linear_steps_to_angle,
+                                                 linear_stroke_length)
 
 F64 = torch.float64
 

@@ -9,10 +9,10 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from heliocal.pipeline.artifacts import (SCHEMA_VERSION, atomic_path, check_fresh,
-                                         read_artifact, read_provenance, write_artifact)
+from heliocal.pipeline.artifacts.store import (SCHEMA_VERSION, atomic_path, check_fresh,
+                                               read_artifact, read_provenance, write_artifact)
 from heliocal.pipeline.errors import SchemaError, StageInputError
-from heliocal.pipeline.schemas import MEASUREMENTS, REJECTED
+from heliocal.pipeline.artifacts.schemas import MEASUREMENTS, REJECTED
 
 
 def _rejected(n=2) -> pd.DataFrame:

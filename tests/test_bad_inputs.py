@@ -22,7 +22,7 @@ import pandas as pd
 import pytest
 
 from heliocal.cli.main import app
-from heliocal.pipeline.schemas import REJECTION_REASONS
+from heliocal.pipeline.artifacts.schemas import REJECTION_REASONS
 
 BAD = Path(__file__).resolve().parent / "data" / "bad"
 GOOD = Path(__file__).resolve().parent / "data" / "good"

@@ -23,13 +23,14 @@ import pandas as pd
 import pytest
 import torch
 
-from heliocal.pipeline.coarse import (COARSE_PARAMS, MeasurementBatch, fit_heliostat,
-                                      fit_heliostats_batched, normal_errors_mrad, run_fit_coarse)
-from heliocal.pipeline.ingest import IngestOptions, run_ingest
-from heliocal.pipeline.kinematics import HeliostatSpec, PARAMETER_NAMES, nominal_parameters
-from heliocal.pipeline.artifacts import read_artifact
-from heliocal.pipeline.schemas import HELIOSTATS, MEASUREMENTS
-from heliocal.pipeline.split import run_split
+from heliocal.pipeline.models.coarse import (COARSE_PARAMS, MeasurementBatch, fit_heliostat,
+                                             fit_heliostats_batched, normal_errors_mrad,
+                                             run_fit_coarse)
+from heliocal.pipeline.stages.ingest import IngestOptions, run_ingest
+from heliocal.pipeline.physics.kinematics import HeliostatSpec, PARAMETER_NAMES, nominal_parameters
+from heliocal.pipeline.artifacts.store import read_artifact
+from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
+from heliocal.pipeline.stages.split import run_split
 
 from test_coarse_recovery import _ingested
 

@@ -21,14 +21,14 @@ import numpy as np
 import pytest
 import torch
 
-from heliocal.pipeline.artifacts import read_artifact
-from heliocal.pipeline.coarse import (COARSE_PARAMS, MeasurementBatch, fit_heliostat,
-                                      normal_errors_mrad, run_fit_coarse)
-from heliocal.pipeline.ingest import IngestOptions, ingest, run_ingest
-from heliocal.pipeline.kinematics import (PARAMETER_NAMES, HeliostatSpec, joint_angles,
-                                          nominal_parameters)
-from heliocal.pipeline.simulate import simulate_field, write_field
-from heliocal.pipeline.split import run_split
+from heliocal.pipeline.artifacts.store import read_artifact
+from heliocal.pipeline.models.coarse import (COARSE_PARAMS, MeasurementBatch, fit_heliostat,
+                                             normal_errors_mrad, run_fit_coarse)
+from heliocal.pipeline.stages.ingest import IngestOptions, ingest, run_ingest
+from heliocal.pipeline.physics.kinematics import (PARAMETER_NAMES, HeliostatSpec, joint_angles,
+                                                  nominal_parameters)
+from heliocal.pipeline.stages.simulate import simulate_field, write_field
+from heliocal.pipeline.stages.split import run_split
 
 _ACTUATOR_FIELDS = ("increment", "initial_stroke_length_m", "offset_m", "pivot_radius_m",
                     "initial_angle_rad")

@@ -2,7 +2,7 @@
 and removals, and every reader must then see the complete previous run or the complete new one.
 
 How (no timing involved): a *zygote* child process imports heliocal once; for each run it forks,
-and the fork replaces ``heliocal.pipeline.transaction._write_point`` (called after every write of a
+and the fork replaces ``heliocal.pipeline.artifacts.transaction._write_point`` (called after every write of a
 transaction) by a counter that SIGKILLs the process at the N-th write point. A complete run first
 lists the stage's write points; then the stage is run once per write point on a fresh copy of the
 work directory and killed there. After each kill the test reads the stage's outputs the way every
@@ -78,7 +78,7 @@ ZYGOTE = textwrap.dedent("""
     import json, os, signal, sys
     import heliocal.cli.main  # registers every command and imports torch; no torch op runs here
     from heliocal.cli.app import app
-    import heliocal.pipeline.transaction as transaction
+    import heliocal.pipeline.artifacts.transaction as transaction
 
     for line in sys.stdin:
         job = json.loads(line)
@@ -159,8 +159,8 @@ def _content(rel: str, data: bytes, workdir: Path) -> str:
     """A digest of what a reader gets from a file: a table's content fingerprint (timing columns
     left out), a model's tensors, a JSON document's parsed value, other files' bytes (the text
     files of the report with the work directory's path, which they name, replaced)."""
-    from heliocal.pipeline.artifacts import table_fingerprint
-    from heliocal.pipeline.schemas import all_schemas
+    from heliocal.pipeline.artifacts.store import table_fingerprint
+    from heliocal.pipeline.artifacts.schemas import all_schemas
 
     name = rel.rsplit("/", 1)[-1]
     if name.endswith(".parquet"):
@@ -187,7 +187,7 @@ def reader_view(workdir: Path, stage: str, fresh: bool = True) -> dict:
     """Everything the readers get from ``stage``'s outputs: ``files``: {file: content digest}
     read through the manifest (the committed run); ``readers``: what the stage's high-level
     readers return (those that check freshness only when the inputs are ``fresh``)."""
-    from heliocal.pipeline.transaction import load_manifest, read_committed
+    from heliocal.pipeline.artifacts.transaction import load_manifest, read_committed
 
     root = _root(workdir, stage)
     m = load_manifest(root, stage)
@@ -201,12 +201,13 @@ def reader_view(workdir: Path, stage: str, fresh: bool = True) -> dict:
 def _high_level_readers(workdir: Path, stage: str, view: dict, fresh: bool) -> None:
     """The stage's outputs through the functions the other stages and commands use; each must
     work, and agree with the files."""
-    from heliocal.pipeline.artifacts import check_fresh, read_artifact
-    from heliocal.pipeline.coarse import COARSE_PARAMS, COARSE_PREDICTIONS, load_selected_parameters
-    from heliocal.pipeline.hybrid import HYBRID_PREDICTIONS, aim_steps, load_model
-    from heliocal.pipeline.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
-    from heliocal.pipeline.split import SPLIT
-    from heliocal.pipeline.sweep import SELECTED_PREDICTIONS, SELECTION, SWEEP
+    from heliocal.pipeline.artifacts.store import check_fresh, read_artifact
+    from heliocal.pipeline.models.coarse import (COARSE_PARAMS, COARSE_PREDICTIONS,
+                                                 load_selected_parameters)
+    from heliocal.pipeline.models.hybrid import HYBRID_PREDICTIONS, aim_steps, load_model
+    from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
+    from heliocal.pipeline.stages.split import SPLIT
+    from heliocal.pipeline.stages.sweep import SELECTED_PREDICTIONS, SELECTION, SWEEP
 
     if stage == "ingest":
         for s in (MEASUREMENTS, HELIOSTATS, REJECTED):
@@ -246,7 +247,7 @@ def _high_level_readers(workdir: Path, stage: str, view: dict, fresh: bool) -> N
 
 
 def read_committed_bytes(root: Path, rel: str) -> bytes:
-    from heliocal.pipeline.transaction import read_committed
+    from heliocal.pipeline.artifacts.transaction import read_committed
 
     return read_committed(root, "report", rel).data
 
@@ -292,8 +293,8 @@ def _differences(a: dict, b: dict) -> list[str]:
 @pytest.mark.parametrize("name, stage, prepare, argv", CASES, ids=[c[0] for c in CASES])
 def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, argv, zygote, base,
                                                          tmp_path):
-    from heliocal.pipeline.transaction import (all_manifests, load_manifest, recover,
-                                               stale_staging_folders)
+    from heliocal.pipeline.artifacts.transaction import (all_manifests, load_manifest, recover,
+                                                         stale_staging_folders)
 
     template = tmp_path / "template"
     shutil.copytree(base, template)
@@ -372,7 +373,7 @@ def _killed_copies(zygote, base: Path, tmp_path: Path, argv: list[str], moments)
 
 
 def _committed_provenance(workdir: Path, stage: str, rel: str) -> dict:
-    from heliocal.pipeline.transaction import read_committed
+    from heliocal.pipeline.artifacts.transaction import read_committed
 
     data = read_committed(workdir, stage, rel).data
     return json.loads(pq.read_schema(pa.BufferReader(data)).metadata[b"heliocal"])
@@ -383,9 +384,9 @@ def test_case_1_fit_coarse_killed_between_its_writes(zygote, base, tmp_path):
     """Issue case 1: coarse_params of the new run beside coarse_predictions of the old, both
     'fresh', the report selecting another preset than aim. Now one run or the other."""
     from heliocal.cli.info import describe_workdir
-    from heliocal.pipeline.coarse import load_selected_parameters
-    from heliocal.pipeline.report import compute_metrics, load_inputs
-    from heliocal.pipeline.transaction import load_manifest
+    from heliocal.pipeline.models.coarse import load_selected_parameters
+    from heliocal.pipeline.stages.report import compute_metrics, load_inputs
+    from heliocal.pipeline.artifacts.transaction import load_manifest
 
     argv = ["fit-coarse", "--preset", "stone-8", "--workers", "1"]
     moments = [("staged", ".txn-fit-coarse-<run>/coarse_params.parquet"),  # between the writes
@@ -411,7 +412,7 @@ def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygote, ba
     """Issue case 2: new weights with the old config (aim: 'mat1 and mat2 shapes cannot be
     multiplied'), and models of one run beside predictions of another. Now one run or the other,
     and aim works at every moment."""
-    from heliocal.pipeline.hybrid import aim_steps, load_model
+    from heliocal.pipeline.models.hybrid import aim_steps, load_model
 
     argv = ["fit-hybrid", "--max-epochs", "20", "--seed", "1", "--workers", "1",
             "--depth", "3", "--width", "4"]  # other layer sizes than the previous run's 14 x 2

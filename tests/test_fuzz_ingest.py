@@ -2,7 +2,7 @@
 
 Starting from tests/data/good/juelich_log_small.csv (10 rows), hypothesis deletes, duplicates
 and swaps cells, writes garbage strings, NaN, inf and huge numbers, swaps header names and cuts
-lines short. For every input, :func:`heliocal.pipeline.ingest.ingest` either raises a
+lines short. For every input, :func:`heliocal.pipeline.stages.ingest.ingest` either raises a
 :class:`HeliocalError` with a one-line message naming the file, or keeps and rejects rows that
 add up to the number of data rows of the file (counted here with Python's csv module: non-blank
 records after the header).
@@ -23,7 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from heliocal.pipeline.errors import HeliocalError
-from heliocal.pipeline.ingest import ingest
+from heliocal.pipeline.stages.ingest import ingest
 
 GOOD = Path(__file__).resolve().parent / "data" / "good"
 ROWS = list(csv.reader(io.StringIO((GOOD / "juelich_log_small.csv").read_text(encoding="utf-8"))))
@@ -193,7 +193,7 @@ def _encode(text: str, encoding: str) -> bytes:
 
 def _check_outcome(path: Path, run, n_rows_if_ok, heliocal_error_prefix: str):
     """Run ``run()``: our one-line error naming the source, or every row kept or rejected."""
-    from heliocal.pipeline.schemas import HELIOSTAT_ID_RE, REJECTION_REASONS
+    from heliocal.pipeline.artifacts.schemas import HELIOSTAT_ID_RE, REJECTION_REASONS
 
     try:
         measurements, heliostats, rejected, info = run()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from heliocal.pipeline.geodesy import enu_to_wgs84, wgs84_to_enu
+from heliocal.pipeline.physics.geodesy import enu_to_wgs84, wgs84_to_enu
 
 # Reference point used in the issue; the multi_focus_tower centre from tower-measurements.json.
 REF = (50.913421630859, 6.387824755874856, 87.0)

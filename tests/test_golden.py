@@ -1,4 +1,4 @@
-"""The structural golden-file comparison (heliocal.pipeline.golden): rounding noise passes, a real
+"""The structural golden-file comparison (heliocal.pipeline.report.golden): rounding noise passes, a real
 change of one number, key, column, dtype, row or string fails.
 
 The golden copy is the committed ``sample_data/synthetic``; the perturbed copies are made here by
@@ -14,7 +14,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from heliocal.pipeline.golden import close, compare_csv, compare_json, compare_trees
+from heliocal.pipeline.report.golden import close, compare_csv, compare_json, compare_trees
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic"
 

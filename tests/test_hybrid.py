@@ -27,21 +27,23 @@ import torch
 
 import heliocal.cli.hybrid  # noqa: F401  (registers fit-hybrid and aim on the app)
 from heliocal.cli.app import app
-from heliocal.pipeline.artifacts import read_artifact, write_artifact
-from heliocal.pipeline.coarse import (MeasurementBatch, fit_heliostat, normal_errors_mrad,
-                                      run_fit_coarse)
+from heliocal.pipeline.artifacts.store import read_artifact, write_artifact
+from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat, normal_errors_mrad,
+                                             run_fit_coarse)
 from heliocal.pipeline.errors import StageInputError
-from heliocal.pipeline.hybrid import (HYBRID_PREDICTIONS, FineConfig, FineProblem, FeatureEncoder,
-                                      build_problem, ensemble_errors_mrad, ensemble_seeds, init_mlp,
-                                      load_model, member_errors_mrad, predict_ensembles,
-                                      member_parameters, output_scales, predict_members,
-                                      run_fit_hybrid, train_members)
-from heliocal.pipeline.kinematics import (PARAMETER_INDEX, HeliostatSpec, forward_kinematics,
-                                          inverse_kinematics, nominal_parameters, preset_mask)
-from heliocal.pipeline.metrics import error_mrad, reflect
-from heliocal.pipeline.schemas import HELIOSTATS, MEASUREMENTS
-from heliocal.pipeline.coarse import COARSE_PREDICTIONS
-from heliocal.pipeline.split import run_split
+from heliocal.pipeline.models.hybrid import (HYBRID_PREDICTIONS, FineConfig, FineProblem,
+                                             FeatureEncoder, build_problem, ensemble_errors_mrad,
+                                             ensemble_seeds, init_mlp, load_model,
+                                             member_errors_mrad, predict_ensembles,
+                                             member_parameters, output_scales, predict_members,
+                                             run_fit_hybrid, train_members)
+from heliocal.pipeline.physics.kinematics import (PARAMETER_INDEX, HeliostatSpec,
+                                                  forward_kinematics, inverse_kinematics,
+                                                  nominal_parameters, preset_mask)
+from heliocal.pipeline.physics.metrics import error_mrad, reflect
+from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
+from heliocal.pipeline.models.coarse import COARSE_PREDICTIONS
+from heliocal.pipeline.stages.split import run_split
 
 # --------------------------------------------------------------------------------------------
 # a written-out synthetic heliostat
@@ -390,7 +392,7 @@ def test_aim_round_trip(workdir, runner):
     assert layers[0][0].shape[0] == FAST.ensemble > 1
     params = member_parameters(problem, layers, problem.encoder.encode(steps, ctx)).mean(0).detach()
     normal, position = forward_kinematics(params, spec, steps)
-    from heliocal.pipeline.sun import spa_sun_position, sun_vector_enu
+    from heliocal.pipeline.physics.sun import spa_sun_position, sun_vector_enu
     az, el = spa_sun_position(["2024-05-03T11:00Z"], 50.915305, 6.387838, 88.7)
     sun = torch.tensor(sun_vector_enu(az, el))
     beam = reflect(-sun, normal)

@@ -18,14 +18,14 @@ import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
-import heliocal.pipeline.ingest as ingest_mod
-import heliocal.pipeline.spill as spill_mod
+import heliocal.pipeline.stages.ingest as ingest_mod
+import heliocal.pipeline.io.spill as spill_mod
 from heliocal.cli.main import app
-from heliocal.pipeline.artifacts import read_artifact, read_provenance
+from heliocal.pipeline.artifacts.store import read_artifact, read_provenance
 from heliocal.pipeline.errors import InputError
-from heliocal.pipeline.ingest import IngestOptions, ingest, run_ingest
-from heliocal.pipeline.schemas import MEASUREMENTS
-from heliocal.pipeline.spill import SortedSpill
+from heliocal.pipeline.stages.ingest import IngestOptions, ingest, run_ingest
+from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
+from heliocal.pipeline.io.spill import SortedSpill
 
 ROOT = Path(__file__).resolve().parents[1]
 SYNTHETIC_LOG = ROOT / "sample_data" / "synthetic" / "calibration_log.csv"

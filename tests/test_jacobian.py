@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from heliocal.pipeline.jacobian import residual_and_jacobian
-from heliocal.pipeline.kinematics import (PARAMETER_NAMES, HeliostatSpec, forward_kinematics,
-                                          nominal_parameters)
-from heliocal.pipeline.metrics import measured_normal
+from heliocal.pipeline.physics.jacobian import residual_and_jacobian
+from heliocal.pipeline.physics.kinematics import (PARAMETER_NAMES, HeliostatSpec,
+                                                  forward_kinematics, nominal_parameters)
+from heliocal.pipeline.physics.metrics import measured_normal
 
 JUELICH = {
     "heliostat_id": "T1", "kinematic_type": "juelich", "actuator_type": "linear",

@@ -1,4 +1,4 @@
-"""Tests of heliocal.pipeline.kinematics: ARTIST reference values, conventions, invariants.
+"""Tests of heliocal.pipeline.physics.kinematics: ARTIST reference values, conventions, invariants.
 
 Reference values carry their source in a comment; fixtures are written out by hand (the BE36
 actuator values are copied from PAINT's ``BE36-heliostat-properties.json``, with ARTIST's -pi/2
@@ -13,29 +13,15 @@ import torch
 from torch.func import jacfwd, vmap
 
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.kinematics import (
-    IDEAL_UNUSED_PARAMETERS,
-    KINEMATIC_PRESETS,
-    KINEMATIC_TYPES,
-    PARAMETER_INDEX,
-    PARAMETER_NAMES,
-    PRESET_NAMES,
-    PRESETS,
-    REFERENCE_NORMALS,
-    STONE_MAPPING,
-    HeliostatSpec,
-    forward_kinematics,
-    inverse_kinematics,
-    joint_angles,
-    nominal_parameters,
-    orientation_matrices,
-    preset_mask,
-    preset_parameters,
-    rotation_e,
-    rotation_n,
-    rotation_u,
-)
-from heliocal.pipeline.metrics import angle_between_mrad, reflect
+from heliocal.pipeline.physics.kinematics import (IDEAL_UNUSED_PARAMETERS, KINEMATIC_PRESETS,
+                                                  KINEMATIC_TYPES, PARAMETER_INDEX, PARAMETER_NAMES,
+                                                  PRESET_NAMES, PRESETS, REFERENCE_NORMALS,
+                                                  STONE_MAPPING, HeliostatSpec, forward_kinematics,
+                                                  inverse_kinematics, joint_angles,
+                                                  nominal_parameters, orientation_matrices,
+                                                  preset_mask, preset_parameters, rotation_e,
+                                                  rotation_n, rotation_u)
+from heliocal.pipeline.physics.metrics import angle_between_mrad, reflect
 
 F64 = torch.float64
 I = PARAMETER_INDEX

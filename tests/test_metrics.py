@@ -1,4 +1,4 @@
-"""Tests of heliocal.pipeline.metrics: closed-form cases written out by hand."""
+"""Tests of heliocal.pipeline.physics.metrics: closed-form cases written out by hand."""
 
 import math
 
@@ -6,14 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from heliocal.pipeline.metrics import (
-    angle_between_mrad,
-    beam_error_mrad,
-    error_mrad,
-    measured_normal,
-    reflect,
-    spot_offset_m,
-)
+from heliocal.pipeline.physics.metrics import (angle_between_mrad, beam_error_mrad, error_mrad,
+                                               measured_normal, reflect, spot_offset_m)
 
 F64 = torch.float64
 S2 = math.sqrt(0.5)

@@ -1,11 +1,11 @@
 """docs/nomenclature.md is generated from the declared schemas and must stay in sync.
 
-Regenerate with ``.venv/bin/python -m heliocal.pipeline.schemas > docs/nomenclature.md``.
+Regenerate with ``.venv/bin/python -m heliocal.pipeline.artifacts.schemas > docs/nomenclature.md``.
 """
 
 from pathlib import Path
 
-from heliocal.pipeline.schemas import all_schemas, nomenclature_markdown
+from heliocal.pipeline.artifacts.schemas import all_schemas, nomenclature_markdown
 
 
 def test_nomenclature_file_is_current():

@@ -11,11 +11,11 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from heliocal.pipeline.coarse import COARSE_PARAMS, COARSE_PREDICTIONS, run_fit_coarse
-from heliocal.pipeline.hybrid import HYBRID_PREDICTIONS, FineConfig, run_fit_hybrid
-from heliocal.pipeline.ingest import run_ingest
-from heliocal.pipeline.parallel import map_tasks
-from heliocal.pipeline.split import run_split
+from heliocal.pipeline.models.coarse import COARSE_PARAMS, COARSE_PREDICTIONS, run_fit_coarse
+from heliocal.pipeline.models.hybrid import HYBRID_PREDICTIONS, FineConfig, run_fit_hybrid
+from heliocal.pipeline.stages.ingest import run_ingest
+from heliocal.pipeline.runtime.parallel import map_tasks
+from heliocal.pipeline.stages.split import run_split
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "juelich" / "paint"
 

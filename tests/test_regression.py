@@ -1,4 +1,4 @@
-"""Tests of heliocal.pipeline.regression: the accuracy comparison against a baseline.
+"""Tests of heliocal.pipeline.report.regression: the accuracy comparison against a baseline.
 
 The metrics dictionaries are written out by hand (one heliostat, two models); the committed
 sample baseline (tests/baseline/metrics_sample.json) must pass against itself.
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from heliocal.pipeline.regression import Tolerances, compare_metrics, main
+from heliocal.pipeline.report.regression import Tolerances, compare_metrics, main
 
 BASELINE = Path(__file__).resolve().parent / "baseline" / "metrics_sample.json"
 

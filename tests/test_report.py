@@ -1,4 +1,4 @@
-"""Tests of heliocal.pipeline.report and ``heliocal report``.
+"""Tests of heliocal.pipeline.stages.report and ``heliocal report``.
 
 Every input is a small fake work directory written out here (two heliostats, 40 measurements
 each, errors chosen by hand), so the expected numbers are known without running the pipeline;
@@ -18,13 +18,13 @@ import pytest
 
 import heliocal.cli.report  # noqa: F401 - registers `heliocal report` on the app
 from heliocal.cli.app import app
-from heliocal.pipeline.artifacts import write_artifact
-from heliocal.pipeline.coarse import COARSE_PARAMS, COARSE_PREDICTIONS
+from heliocal.pipeline.artifacts.store import write_artifact
+from heliocal.pipeline.models.coarse import COARSE_PARAMS, COARSE_PREDICTIONS
 from heliocal.pipeline.errors import StageInputError
-from heliocal.pipeline.report import (_col, compute_metrics, load_inputs, metrics_json,
-                                      run_report)
-from heliocal.pipeline.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, all_schemas
-from heliocal.pipeline.split import SPLIT
+from heliocal.pipeline.stages.report import (_col, compute_metrics, load_inputs, metrics_json,
+                                             run_report)
+from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, all_schemas
+from heliocal.pipeline.stages.split import SPLIT
 
 ROOT = Path(__file__).resolve().parents[1]
 SCHEMA = json.loads((ROOT / "docs" / "metrics_schema.json").read_text())

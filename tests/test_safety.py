@@ -25,12 +25,14 @@ from hypothesis import strategies as st
 from markdown_it import MarkdownIt
 
 from heliocal.cli.main import app
-from heliocal.pipeline.artifacts import MAX_NAME_BYTES, safe_child, write_artifact
+from heliocal.pipeline.artifacts.store import MAX_NAME_BYTES, safe_child, write_artifact
 from heliocal.pipeline.errors import UnsafePathError
-from heliocal.pipeline.report import md_inline, md_text, render_html, render_markdown, run_report
-from heliocal.pipeline.schemas import (HELIOSTAT_ID_RE, HELIOSTATS, MEASUREMENTS, REJECTED,
-                                       heliostat_id_problem, suggest_heliostat_id)
-from heliocal.pipeline.simulate import simulate_field, write_field
+from heliocal.pipeline.stages.report import (md_inline, md_text, render_html, render_markdown,
+                                             run_report)
+from heliocal.pipeline.artifacts.schemas import (HELIOSTAT_ID_RE, HELIOSTATS, MEASUREMENTS,
+                                                 REJECTED, heliostat_id_problem,
+                                                 suggest_heliostat_id)
+from heliocal.pipeline.stages.simulate import simulate_field, write_field
 
 HOSTILE_HTML = "<img src=x onerror=alert(1)>"
 TRAVERSAL = "../../../tmp/x/pwned"
@@ -164,7 +166,7 @@ def test_paint_folder_named_like_markup_is_rejected_by_id(tmp_path):
     properties file is still read (the folder is legitimate otherwise)."""
     import shutil
 
-    from heliocal.pipeline.ingest import ingest
+    from heliocal.pipeline.stages.ingest import ingest
 
     paint = tmp_path / "paint"
     shutil.copytree(GOOD / "paint_small", paint)
@@ -180,7 +182,7 @@ def test_paint_folder_named_like_markup_is_rejected_by_id(tmp_path):
 
 
 def test_enu_log_and_toml_properties_with_a_traversal_id(tmp_path):
-    from heliocal.pipeline.ingest import IngestOptions, ingest
+    from heliocal.pipeline.stages.ingest import IngestOptions, ingest
 
     props = (GOOD / "enu_properties.toml").read_text().replace("[heliostats.H01]",
                                                                 '[heliostats."../H01"]')
@@ -194,7 +196,7 @@ def test_enu_log_and_toml_properties_with_a_traversal_id(tmp_path):
 
 
 def test_parquet_log_integer_ids_are_read_as_digits_and_bad_ones_rejected(tmp_path):
-    from heliocal.pipeline.ingest import ingest
+    from heliocal.pipeline.stages.ingest import ingest
 
     log = pd.read_csv(GOOD / "juelich_log_small.csv")
     ints = log.assign(heliostat_id=log["heliostat_id"].map({"AA31": 31, "AB27": 27}))
@@ -402,17 +404,18 @@ def test_hostile_log_end_to_end(runner, tmp_path):
 # ------------------------------------------------------------------------------------------------
 # static guard: data reaches paths only through safe_child
 # ------------------------------------------------------------------------------------------------
-#: Path joins with a formatted name that are not data-derived, with the reason.
+#: Path joins with a formatted name that are not data-derived, with the reason; keyed by the module's
+#: path relative to pipeline/ (cli/ modules as "cli/NAME.py").
 NOT_DATA = {
-    ("ingest.py", "hdir / f'{hid}-heliostat-properties.json'"):
+    ("stages/ingest.py", "hdir / f'{hid}-heliostat-properties.json'"):
         "hid is the name of a folder listed from the source, a plain name by construction",
-    ("simulate.py", "hdir / f'{hdir.name}-heliostat-properties.json'"):
+    ("stages/simulate.py", "hdir / f'{hdir.name}-heliostat-properties.json'"):
         "hdir comes from listing the output folder (removing a previous simulation)",
-    ("spill.py", "Path(self.folder) / f'{self.name}-{len(self.runs):06d}.parquet'"):
+    ("io/spill.py", "Path(self.folder) / f'{self.name}-{len(self.runs):06d}.parquet'"):
         "a fixed prefix and a counter",
-    ("transaction.py", "Path(root) / f'{stage}.manifest.json'"):
+    ("artifacts/transaction.py", "Path(root) / f'{stage}.manifest.json'"):
         "stage is one of heliocal's stage names (ingest ... report), never data",
-    ("transaction.py", "self.staging / f'.{target.name}.tmp'"):
+    ("artifacts/transaction.py", "self.staging / f'.{target.name}.tmp'"):
         "target is a staged output whose relative path transaction._rel already checked",
 }
 
@@ -424,10 +427,14 @@ def test_every_formatted_path_join_goes_through_safe_child():
 
     root = Path(__file__).resolve().parents[1]
     found = set()
-    for f in sorted(root.glob("pipeline/*.py")) + sorted(root.glob("cli/*.py")):
+    modules = [(f, f.relative_to(root / "pipeline").as_posix())
+               for f in sorted((root / "pipeline").rglob("*.py"))]
+    modules += [(f, f.relative_to(root).as_posix()) for f in sorted((root / "cli").rglob("*.py"))]
+    assert len(modules) > 30, "the guard reads every module of pipeline/ and cli/"
+    for f, key in modules:
         for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
             if (isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div)
                     and isinstance(node.right, ast.JoinedStr)
                     and any(isinstance(v, ast.FormattedValue) for v in node.right.values)):
-                found.add((f.name, ast.unparse(node)))
+                found.add((key, ast.unparse(node)))
     assert found == set(NOT_DATA)

@@ -32,13 +32,13 @@ from pathlib import Path
 
 import pytest
 
-from heliocal.pipeline.coarse import run_fit_coarse
-from heliocal.pipeline.ingest import run_ingest
-from heliocal.pipeline.simulate import simulate_field, write_field
-from heliocal.pipeline.split import run_split
-from heliocal.pipeline.sweep import run_sweep
-from heliocal.pipeline.transaction import staging_in_use
-from heliocal.pipeline.workdir_lock import LOCK_FILENAME, lock_holder, workdir_lock
+from heliocal.pipeline.models.coarse import run_fit_coarse
+from heliocal.pipeline.stages.ingest import run_ingest
+from heliocal.pipeline.stages.simulate import simulate_field, write_field
+from heliocal.pipeline.stages.split import run_split
+from heliocal.pipeline.stages.sweep import run_sweep
+from heliocal.pipeline.artifacts.transaction import staging_in_use
+from heliocal.pipeline.artifacts.workdir_lock import LOCK_FILENAME, lock_holder, workdir_lock
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs /proc")]
@@ -84,7 +84,7 @@ def field_workdir(tmp_path_factory) -> Path:
     run_ingest([root / "field"], wd)
     run_split(wd, n_test=15, n_val=10)
     run_fit_coarse(wd, preset="static-6", workers=1)
-    from heliocal.pipeline.hybrid import FineConfig
+    from heliocal.pipeline.models.hybrid import FineConfig
 
     run_sweep(wd, n_train=[20], weight_decays=[1.0, 0.0], seeds=[0], baselines=(),
               config=FineConfig(max_epochs=20, ensemble=1), workers=1)

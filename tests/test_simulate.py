@@ -20,12 +20,12 @@ import heliocal.cli.ingest  # noqa: F401  (registers ingest on the app)
 import heliocal.cli.simulate  # noqa: F401  (registers simulate on the app)
 from heliocal.cli.app import app
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.golden import compare_trees
-from heliocal.pipeline.ingest import IngestOptions, ingest
-from heliocal.pipeline.kinematics import PARAMETER_INDEX, preset_parameters
-from heliocal.pipeline.simulate import (DEVIATION_SIZES, SimulatedField, simulate_field,
-                                        write_field)
-from heliocal.pipeline.sun import spa_sun_position
+from heliocal.pipeline.report.golden import compare_trees
+from heliocal.pipeline.stages.ingest import IngestOptions, ingest
+from heliocal.pipeline.physics.kinematics import PARAMETER_INDEX, preset_parameters
+from heliocal.pipeline.stages.simulate import (DEVIATION_SIZES, SimulatedField, simulate_field,
+                                               write_field)
+from heliocal.pipeline.physics.sun import spa_sun_position
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "sample_data" / "synthetic"
@@ -394,7 +394,7 @@ def test_help_text():
 def test_committed_sample_is_reproducible(tmp_path):
     """sample_data/synthetic is what the command in sample_data/README.md writes: the same files,
     keys, columns, dtypes, row order and strings, and numbers within relative 1e-9
-    (heliocal.pipeline.golden says why); not the same bytes, which a library update may change."""
+    (heliocal.pipeline.report.golden says why); not the same bytes, which a library update may change."""
     out = tmp_path / "synthetic"
     result = CliRunner().invoke(app, [a.format(out=out) for a in SAMPLE_ARGS])
     assert result.exit_code == 0, result.stderr

@@ -18,17 +18,11 @@ from typer.testing import CliRunner
 
 import heliocal.cli.split  # noqa: F401  (registers split-knn on the app)
 from heliocal.cli.app import app
-from heliocal.pipeline.artifacts import read_artifact, read_provenance, write_artifact
+from heliocal.pipeline.artifacts.store import read_artifact, read_provenance, write_artifact
 from heliocal.pipeline.errors import FitError, InputError, ParameterError
-from heliocal.pipeline.schemas import MEASUREMENTS
-from heliocal.pipeline.split import (
-    METHODS,
-    SPLIT,
-    knn_distance_deg,
-    required_measurements,
-    restrict_training,
-    split_measurements,
-)
+from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
+from heliocal.pipeline.stages.split import (METHODS, SPLIT, knn_distance_deg, required_measurements,
+                                            restrict_training, split_measurements)
 
 # --------------------------------------------------------------------------------------------
 # fixtures

@@ -38,15 +38,16 @@ import pytest
 import torch
 
 from heliocal.cli.main import app
-from heliocal.pipeline.artifacts import (check_fresh, read_artifact, read_provenance,
-                                         recorded_inputs, table_fingerprint, write_artifact)
-from heliocal.pipeline.coarse import COARSE_PARAMS, COARSE_PREDICTIONS, run_fit_coarse
+from heliocal.pipeline.artifacts.store import (check_fresh, read_artifact, read_provenance,
+                                               recorded_inputs, table_fingerprint, write_artifact)
+from heliocal.pipeline.models.coarse import COARSE_PARAMS, COARSE_PREDICTIONS, run_fit_coarse
 from heliocal.pipeline.errors import SchemaError, StageInputError
-from heliocal.pipeline.hybrid import HYBRID_PREDICTIONS, aim_steps, load_model, run_fit_hybrid
-from heliocal.pipeline.ingest import run_ingest
-from heliocal.pipeline.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
-from heliocal.pipeline.split import SPLIT
-from heliocal.pipeline.transaction import load_manifest, transaction
+from heliocal.pipeline.models.hybrid import (HYBRID_PREDICTIONS, aim_steps, load_model,
+                                             run_fit_hybrid)
+from heliocal.pipeline.stages.ingest import run_ingest
+from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
+from heliocal.pipeline.stages.split import SPLIT
+from heliocal.pipeline.artifacts.transaction import load_manifest, transaction
 from workdir_tools import fingerprint, recommit, sha256
 
 REPO = Path(__file__).resolve().parents[1]
@@ -152,7 +153,7 @@ def test_fingerprint_is_the_data_not_the_bytes_or_chunks(wd, tmp_path):
 def test_exception_inside_a_stage_commits_nothing(wd, monkeypatch):
     before = {p: sha256(wd / p) for p in ("coarse_params.parquet", "coarse_predictions.parquet",
                                           "fit-coarse.manifest.json")}
-    import heliocal.pipeline.coarse as coarse
+    import heliocal.pipeline.models.coarse as coarse
 
     real = coarse.write_artifact
     calls = []
@@ -188,7 +189,7 @@ def test_listed_file_deleted_is_refused_and_unlisted_file_is_not_read(wd):
                                           "last `heliocal fit-coarse` run"):
         read_artifact(wd, COARSE_PREDICTIONS)
     shutil.copy(wd / "coarse_params.parquet", wd / "sweep.parquet")  # no sweep ever ran
-    from heliocal.pipeline.sweep import SWEEP as SWEEP_SCHEMA
+    from heliocal.pipeline.stages.sweep import SWEEP as SWEEP_SCHEMA
 
     with pytest.raises(StageInputError, match="sweep.parquet was not written by a complete "
                                               "`heliocal sweep` run"):
@@ -214,7 +215,7 @@ def test_inputs_that_disagree_are_refused_at_commit(wd):
 # case 4: measurements re-ingested while fit-coarse runs
 # ------------------------------------------------------------------------------------------------
 def test_case_4_reingest_during_fit_coarse_leaves_a_stale_fit(wd, monkeypatch):
-    import heliocal.pipeline.coarse as coarse
+    import heliocal.pipeline.models.coarse as coarse
 
     old_fp = fingerprint(wd / "measurements.parquet")
     old_ids = set(read_artifact(wd, MEASUREMENTS)["measurement_id"])
@@ -248,7 +249,7 @@ def test_case_5_second_of_two_concurrent_fit_hybrid_runs_is_refused_by_the_lock(
     """Issue 22's case 5 (an nn-only run and a hybrid run at once on one workdir): the workdir lock
     of issue 21 refuses the second writer at its start with a one-line error naming the running
     one, and the first run commits; nothing of either is lost."""
-    import heliocal.pipeline.hybrid as hybrid
+    import heliocal.pipeline.models.hybrid as hybrid
 
     real = hybrid.map_tasks
     seen = {}
@@ -277,11 +278,11 @@ def test_case_5_without_a_working_lock_the_second_run_does_not_commit(wd, monkey
     transaction's own check remains: the hybrid run (another process, run past the lock as such
     a machine would) commits while the nn-only run trains; the nn-only run then refuses to commit
     instead of dropping the hybrid run's rows."""
-    import heliocal.pipeline.hybrid as hybrid
+    import heliocal.pipeline.models.hybrid as hybrid
 
     before = load_manifest(wd, "fit-hybrid").run_id
     real = hybrid.map_tasks
-    unlocked = ("import sys; from heliocal.pipeline.hybrid import FineConfig, run_fit_hybrid; "
+    unlocked = ("import sys; from heliocal.pipeline.models.hybrid import FineConfig, run_fit_hybrid; "
                 "run_fit_hybrid.__wrapped__(sys.argv[1], mode='hybrid', heliostats=['BF41'], "
                 "config=FineConfig(max_epochs=20), workers=1)")
 
@@ -347,7 +348,8 @@ def test_case_6_fit_hybrid_and_sweep_for_one_heliostat_keep_the_others(wd, runne
     pred = read_artifact(wd, HYBRID_PREDICTIONS)
     assert sorted(pred["heliostat_id"].unique()) == ["BE36", "BF41"]
     assert load_model(wd, "hybrid", "BE36") is not None and load_model(wd, "hybrid", "BF41")
-    from heliocal.pipeline.sweep import SELECTED_PREDICTIONS, SELECTION, SWEEP as SWEEP_SCHEMA
+    from heliocal.pipeline.stages.sweep import (SELECTED_PREDICTIONS, SELECTION,
+                                                SWEEP as SWEEP_SCHEMA)
 
     _ok(runner, "sweep", "--workdir", wd, "--heliostat", "BE36", *SWEEP)
     first = {s.name: read_artifact(wd, s) for s in (SWEEP_SCHEMA, SELECTION, SELECTED_PREDICTIONS)}
@@ -488,7 +490,7 @@ RESOURCE_CASES = [
 def test_case_7_full_disk_and_read_only_workdir_are_the_users_to_fix(argv, where, code, wd,
                                                                       monkeypatch, capsys):
     from heliocal.cli.main import main
-    import heliocal.pipeline.transaction as transaction
+    import heliocal.pipeline.artifacts.transaction as transaction
 
     before = {p.name: sha256(p) for p in wd.iterdir() if p.is_file()}
     text = os.strerror(code)
@@ -653,8 +655,8 @@ def _synthetic_workdir(tmp_path: Path, rows: pd.DataFrame) -> Path:
 
 @pytest.mark.parametrize("kind", ["identical", "narrow", "wide"])
 def test_case_9_degenerate_heliostat_is_flagged_in_fit_and_report(kind, tmp_path):
-    from heliocal.pipeline.report import run_report
-    from heliocal.pipeline.split import run_split
+    from heliocal.pipeline.stages.report import run_report
+    from heliocal.pipeline.stages.split import run_split
     from test_hybrid import synthetic_measurements
 
     rows = synthetic_measurements(150)
@@ -694,7 +696,7 @@ def test_output_names_cannot_leave_the_work_directory(wd):
     """Defence in depth (ingest validates heliostat ids): a model file named from an id with '..'
     or '/' is refused with a one-line error, not written outside the work directory."""
     from heliocal.pipeline.errors import InputError
-    from heliocal.pipeline.modelfiles import write_model
+    from heliocal.pipeline.artifacts.modelfiles import write_model
 
     # (modelfiles refuses the id as a file name first; the transaction refuses any path leaving it)
     with pytest.raises(InputError, match="cannot be used as a file name in hybrid/hybrid"):

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from heliocal.pipeline.sun import spa_sun_position, sun_angles_from_vector, sun_vector_enu, wrap_deg
+from heliocal.pipeline.physics.sun import (spa_sun_position, sun_angles_from_vector, sun_vector_enu,
+                                           wrap_deg)
 
 # Plant reference point of the Jülich tower (tower-measurements.json).
 JUELICH = (50.913421122592574, 6.387824755874856, 87.0)

@@ -16,15 +16,16 @@ import pandas as pd
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from heliocal.pipeline.artifacts import read_provenance
-from heliocal.pipeline.coarse import COARSE_PARAMS, COARSE_PREDICTIONS, coarse_fit_options, run_fit_coarse
-from heliocal.pipeline.hybrid import FineConfig, aim_models, aim_steps, run_fit_hybrid
-from heliocal.pipeline.ingest import IngestOptions, run_ingest
-from heliocal.pipeline.simulate import simulate_field, write_field
-from heliocal.pipeline.split import run_split
-from heliocal.pipeline.sweep import (MIN_IMPROVEMENT, SELECTED_PREDICTIONS, SELECTION, SWEEP,
-                                     PathConfig, default_ladder, run_sweep, study_heliostats,
-                                     weight_decay_grid)
+from heliocal.pipeline.artifacts.store import read_provenance
+from heliocal.pipeline.models.coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, coarse_fit_options,
+                                             run_fit_coarse)
+from heliocal.pipeline.models.hybrid import FineConfig, aim_models, aim_steps, run_fit_hybrid
+from heliocal.pipeline.stages.ingest import IngestOptions, run_ingest
+from heliocal.pipeline.stages.simulate import simulate_field, write_field
+from heliocal.pipeline.stages.split import run_split
+from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, SELECTED_PREDICTIONS, SELECTION, SWEEP,
+                                            PathConfig, default_ladder, run_sweep, study_heliostats,
+                                            weight_decay_grid)
 
 SYNTHETIC = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic" / "paint"
 
@@ -93,8 +94,8 @@ def test_selected_predictions_match_the_selection(static_workdir, monkeypatch):
     # the per-measurement predictions of the selected model reproduce the selection's means
     # (same model, same rows): a check that the right member, ensemble and base were used. A
     # negative margin forces a hybrid choice on this static heliostat.
-    from heliocal.pipeline import sweep as sweep_module
-    from heliocal.pipeline.sweep import SELECTED_PREDICTIONS
+    from heliocal.pipeline.stages import sweep as sweep_module
+    from heliocal.pipeline.stages.sweep import SELECTED_PREDICTIONS
 
     monkeypatch.setattr(sweep_module, "MIN_IMPROVEMENT", -1.0)
     run_sweep(static_workdir, n_train=[10, 10_000], weight_decays=[1e-3, 0.0], presets=("static-20",),
@@ -115,7 +116,7 @@ def test_selected_predictions_match_the_selection(static_workdir, monkeypatch):
 def temperature_workdir(tmp_path_factory):
     """The synthetic sample as the accuracy figures in docs/hybrid.md use it: the log with the
     PAINT properties (temperature as env_temperature), split-knn, the auto-selected preset."""
-    from heliocal.pipeline.ingest import IngestOptions
+    from heliocal.pipeline.stages.ingest import IngestOptions
 
     w = tmp_path_factory.mktemp("sweep_env")
     log = SYNTHETIC.parent / "calibration_log.csv"
@@ -294,7 +295,7 @@ def test_selection_never_worse_than_fit_coarse_on_validation(tmp_path_factory, s
     root = tmp_path_factory.mktemp("prop")
     shift = {"angle_shift": (0.24, 0.58), "stroke_shift": (0.2, 0.16)} if shifted else {}
     w = _simulated_workdir(root, seed, n, dynamic=dynamic, **shift)
-    import heliocal.pipeline.sweep as sweep_module
+    import heliocal.pipeline.stages.sweep as sweep_module
 
     saved = sweep_module.MIN_IMPROVEMENT
     sweep_module.MIN_IMPROVEMENT = -0.5

@@ -21,11 +21,12 @@ import pytest
 
 from heliocal.cli.main import app
 from heliocal.pipeline.errors import HeliocalError, InputError, WorkdirBusyError
-from heliocal.pipeline.workdir_lock import LOCK_FILENAME, lock_holder, locks_workdir, workdir_lock
+from heliocal.pipeline.artifacts.workdir_lock import (LOCK_FILENAME, lock_holder, locks_workdir,
+                                                      workdir_lock)
 
 HOLDER = """
 import sys, time
-from heliocal.pipeline.workdir_lock import workdir_lock
+from heliocal.pipeline.artifacts.workdir_lock import workdir_lock
 with workdir_lock(sys.argv[1], sys.argv[2]):
     print("locked", flush=True)
     time.sleep(600)

@@ -39,10 +39,10 @@ def fingerprint(path: Path) -> str:
     test_transactions.py checks, so a test can compute it from the file alone)."""
     import pyarrow.parquet as pq
 
-    from heliocal.pipeline.schemas import all_schemas
+    from heliocal.pipeline.artifacts.schemas import all_schemas
 
     table = pq.read_table(path)
-    from heliocal.pipeline.artifacts import table_fingerprint
+    from heliocal.pipeline.artifacts.store import table_fingerprint
 
     schema = next(s for s in all_schemas() if s.filename == Path(path).name)
     return table_fingerprint(table, schema)

@@ -8,10 +8,10 @@ selected fit, read from coarse_params.parquet and not refitted: its errors in sw
 selection.parquet are ``fit-coarse``'s, computed from the same predictions
 (coarse_predictions.parquet). The hybrid is trained on top of it, for every Fourier band set
 (:func:`hybrid_variants`), weight decay and seed, each an ensemble of ``FineConfig.ensemble``
-networks whose deviations are averaged (:func:`heliocal.pipeline.hybrid.ensemble_seeds`).
+networks whose deviations are averaged (:func:`heliocal.pipeline.models.hybrid.ensemble_seeds`).
 Heliostats of one kinematic type, actuator type and coarse preset train together, ``batch_size``
 at a time, as one batched torch program per weight decay (as ``fit-hybrid`` does, with
-:func:`heliocal.pipeline.hybrid.stack_problems`); the weight decays are trained along a path
+:func:`heliocal.pipeline.models.hybrid.stack_problems`); the weight decays are trained along a path
 from strong to weak (:func:`train_path`, :class:`PathConfig`). The selection
 (``selection.parquet``) is the candidate ensemble with the lowest mean validation error, where
 the coarse model is always a candidate, so the selected model is never worse than
@@ -22,8 +22,8 @@ the coarse model is always a candidate, so the selected model is never worse tha
 
 **Training-size study** (paper 000, figs. 6 and 9a; a seeded sample of ``study`` heliostats,
 :func:`study_heliostats`). Per training size below the full one (the ``n_train`` training rows
-with the largest kNN distance, :func:`heliocal.pipeline.split.restrict_training`) every coarse
-preset is refitted with :func:`heliocal.pipeline.coarse.fit_presets`, the function
+with the largest kNN distance, :func:`heliocal.pipeline.stages.split.restrict_training`) every coarse
+preset is refitted with :func:`heliocal.pipeline.models.coarse.fit_presets`, the function
 ``fit-coarse`` fits with, with the solver and options ``fit-coarse`` recorded in
 coarse_params.parquet and each size its own robust start, so a study point is what
 ``fit-coarse`` would give with that many rows. The hybrid of each size trains on that size's
@@ -46,23 +46,24 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import (ArtifactSchema, Column as C, check_fresh, merge_with_previous,
-                        previous_run_matches, read_artifact, write_artifact)
-from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, coarse_fit_options,
-                     fit_presets, load_selected_parameters, normal_errors_mrad)
-from .errors import FitError, ParameterError, check_float, check_int
-from .hybrid import (HYBRID_BATCH_SIZE, FineConfig, FineProblem, MemberResult, PretrainConfig,
-                     _hybrid_chunks, _layers_to_state, _take_rows, build_problem,
-                     ensemble_errors_mrad, ensemble_seeds, fit_pretrained, predict_ensembles,
-                     predictions_frame, stack_problems, train_members)
-from .kinematics import HeliostatSpec, nominal_parameters
-from .metrics import error_mrad, measured_normal
-from .parallel import map_tasks
-from .schemas import HELIOSTATS, MEASUREMENTS
-from .modelfiles import write_model
+from ..artifacts.store import (ArtifactSchema, Column as C, check_fresh, merge_with_previous,
+                               previous_run_matches, read_artifact, write_artifact)
+from ..models.coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch,
+                             coarse_fit_options, fit_presets, load_selected_parameters,
+                             normal_errors_mrad)
+from ..errors import FitError, ParameterError, check_float, check_int
+from ..models.hybrid import (HYBRID_BATCH_SIZE, FineConfig, FineProblem, MemberResult,
+                             PretrainConfig, _hybrid_chunks, _layers_to_state, _take_rows,
+                             build_problem, ensemble_errors_mrad, ensemble_seeds, fit_pretrained,
+                             predict_ensembles, predictions_frame, stack_problems, train_members)
+from ..physics.kinematics import HeliostatSpec, nominal_parameters
+from ..physics.metrics import error_mrad, measured_normal
+from ..runtime.parallel import map_tasks
+from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
+from ..artifacts.modelfiles import write_model
 from .split import SPLIT, restrict_training
-from .transaction import current_transaction, stage_transaction
-from .workdir_lock import locks_workdir
+from ..artifacts.transaction import current_transaction, stage_transaction
+from ..artifacts.workdir_lock import locks_workdir
 
 __all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder",
            "weight_decay_grid", "run_sweep", "hybrid_variants", "OCTAVE_BANDS", "MIN_IMPROVEMENT",
@@ -238,7 +239,7 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
                path: PathConfig = PathConfig()) -> Iterator[tuple[float, MemberResult]]:
     """Train M networks at every weight decay, strong to weak; yield ``(weight_decay, result)``.
 
-    Each weight decay is one :func:`heliocal.pipeline.hybrid.train_members` program of the M
+    Each weight decay is one :func:`heliocal.pipeline.models.hybrid.train_members` program of the M
     networks (``seeds`` (M,), masks as there). With ``path.warm_start`` the first weight decay
     starts from the seeded weights and every later one from the previous weight decay's
     best-validation weights, each with the budget of ``path``; since the start is the epoch-0

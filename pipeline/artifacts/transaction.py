@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Callable, Iterator, Mapping
 
-from .errors import InputError, SchemaError, StageInputError, UnsafePathError
+from ..errors import InputError, SchemaError, StageInputError, UnsafePathError
 
 __all__ = [
     "MANIFEST_VERSION",
@@ -504,7 +504,7 @@ class StageTransaction:
 
     Use :func:`transaction` (a context manager) or :func:`stage_transaction` (a decorator); code
     inside writes outputs with :meth:`write_bytes` / :meth:`staging_path` + :meth:`add_file`
-    (Parquet: :func:`heliocal.pipeline.artifacts.write_artifact`, which finds the active
+    (Parquet: :func:`heliocal.pipeline.artifacts.store.write_artifact`, which finds the active
     transaction) and keeps files of the previous run with :meth:`carry_over`.
 
     Parameters
@@ -655,8 +655,8 @@ class StageTransaction:
 
     def commit(self) -> Manifest:
         """Check the inputs, write the manifest (the commit point), move the files into place."""
-        from . import __version__
-        from .artifacts import _command_line, _jsonable, git_revision
+        from .. import __version__
+        from .store import _command_line, _jsonable, git_revision
 
         self._check_inputs()
         current = load_manifest(self.root, self.stage)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 
-from .artifacts import ArtifactSchema, Column
+from .store import ArtifactSchema, Column
 
 __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
@@ -196,9 +196,9 @@ def all_schemas() -> list[ArtifactSchema]:
     import importlib
 
     schemas = [MEASUREMENTS, HELIOSTATS, REJECTED]
-    for module in ("split", "coarse", "hybrid", "sweep"):
+    for module in ("stages.split", "models.coarse", "models.hybrid", "stages.sweep"):
         try:
-            mod = importlib.import_module(f"{__package__}.{module}")
+            mod = importlib.import_module(f"heliocal.pipeline.{module}")
         except ImportError:
             continue
         schemas.extend(getattr(mod, "SCHEMAS", ()))
@@ -208,7 +208,7 @@ def all_schemas() -> list[ArtifactSchema]:
 def nomenclature_markdown() -> str:
     """Render the nomenclature (every artifact column with unit and meaning) as Markdown."""
     lines = ["# Nomenclature", "",
-             "Generated from the declared schemas by `python -m heliocal.pipeline.schemas`; "
+             "Generated from the declared schemas by `python -m heliocal.pipeline.artifacts.schemas`; "
              "a test keeps it in sync.", "",
              "Conventions: ENU metres relative to the plant reference point; sun azimuth 0 = south, "
              "positive toward east; sun vector e = cos(el) sin(az), n = -cos(el) cos(az), "

@@ -4,7 +4,7 @@
 of a tower, calibration targets on the tower, realistic calibration times (daylight, several per
 day on days spread over the period, sun elevation above 10 deg from NREL SPA) and, per
 measurement, the motor steps and the focal spot that a *true* heliostat geometry produces.
-:func:`write_field` writes it in the formats :mod:`heliocal.pipeline.ingest` reads, plus the
+:func:`write_field` writes it in the formats :mod:`heliocal.pipeline.stages.ingest` reads, plus the
 ground truth.
 
 The model of one measurement
@@ -19,16 +19,16 @@ The model of one measurement
 2. Steps. The sun vector comes from SPA (pvlib) at the plant reference point for the UTC time
    (the angles are logged, so ingest finds no SPA mismatch); the aim point is the centre of a
    tower target. The motor steps are the true (disturbed) model's inverse kinematics
-   (:func:`heliocal.pipeline.kinematics.inverse_kinematics`), rounded to integer steps.
+   (:func:`heliocal.pipeline.physics.kinematics.inverse_kinematics`), rounded to integer steps.
 3. Focal spot. The true model's mirror normal and mirror centre at those rounded steps reflect
    the sun; the beam's intersection with the target plane is the noiseless spot. Noise: the spot
    moves by ``d * noise_mrad / 1000 * z`` along each of the target plane's two axes (horizontal
-   ``unit(normal x up)`` and vertical, as in :func:`heliocal.pipeline.metrics.spot_offset_m`),
+   ``unit(normal x up)`` and vertical, as in :func:`heliocal.pipeline.physics.metrics.spot_offset_m`),
    with ``d`` the mirror-to-spot distance [m] and ``z`` independent standard normal numbers. So
    ``noise_mrad`` is the standard deviation per axis of the *beam* direction's noise; the mirror
    normal's noise is about half of it.
 4. Noise floor. ``noise_floor_mrad`` is the mean ``error_mrad`` (heliocal's metric,
-   :func:`heliocal.pipeline.metrics.error_mrad` of the measured normal) of the true model itself
+   :func:`heliocal.pipeline.physics.metrics.error_mrad` of the measured normal) of the true model itself
    on the noisy data: no calibration can be expected to get below it on average. For Gaussian
    noise it is about ``noise_mrad / 2 * sqrt(pi / 2)`` (a Rayleigh mean).
 
@@ -51,17 +51,17 @@ import numpy as np
 import pandas as pd
 import torch
 
-from . import __version__
-from .artifacts import atomic_write_text, safe_child
-from .errors import InputError, ParameterError, check_choice, check_float, check_int
-from .geodesy import enu_to_wgs84, wgs84_to_enu
+from .. import __version__
+from ..artifacts.store import atomic_write_text, safe_child
+from ..errors import InputError, ParameterError, check_choice, check_float, check_int
+from ..physics.geodesy import enu_to_wgs84, wgs84_to_enu
 from .ingest import paint_kinematics_columns
-from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PRESET_NAMES,
-                         STONE_MAPPING, HeliostatSpec, forward_kinematics, inverse_kinematics,
-                         nominal_parameters, preset_parameters)
-from .metrics import error_mrad, measured_normal, reflect
-from .sun import spa_sun_position, sun_vector_enu
-from .workdir_lock import LOCK_FILENAME, locks_workdir
+from ..physics.kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PRESET_NAMES, STONE_MAPPING,
+                                  HeliostatSpec, forward_kinematics, inverse_kinematics,
+                                  nominal_parameters, preset_parameters)
+from ..physics.metrics import error_mrad, measured_normal, reflect
+from ..physics.sun import spa_sun_position, sun_vector_enu
+from ..artifacts.workdir_lock import LOCK_FILENAME, locks_workdir
 
 __all__ = [
     "SIMULATED_TYPES",
@@ -187,7 +187,7 @@ class SimulatedHeliostat:
 
     ``row`` is its ``heliostats.parquet`` row as ingest will read it (positions after the WGS84
     round trip, axis-1 initial angle in ARTIST's convention); ``nominal`` and ``true`` are
-    28-parameter vectors in :data:`~heliocal.pipeline.kinematics.PARAMETER_NAMES` order;
+    28-parameter vectors in :data:`~heliocal.pipeline.physics.kinematics.PARAMETER_NAMES` order;
     ``params`` (N, 28) is the true geometry of each of its measurements (``true`` plus the
     disturbances; equal to ``true`` for a static heliostat), in the order of its rows of
     :attr:`SimulatedField.measurements`.
@@ -763,7 +763,7 @@ def _ground_truth(field_: SimulatedField, files: dict) -> dict:
         "generator": f"heliocal {__version__} simulate",
         "settings": field_.settings,
         "conventions": {
-            "parameters": "heliocal's 28 kinematic parameters (heliocal.pipeline.kinematics."
+            "parameters": "heliocal's 28 kinematic parameters (heliocal.pipeline.physics.kinematics."
                           "PARAMETER_NAMES, units in the names; increments in steps/m for linear "
                           "and steps/rad for ideal actuators); axis_1_initial_angle_rad in ARTIST's "
                           "convention, i.e. the PAINT file's initial_angle minus pi/2, as ingest "
@@ -773,7 +773,7 @@ def _ground_truth(field_: SimulatedField, files: dict) -> dict:
             "noise_mrad": "standard deviation per target-plane axis (horizontal, vertical) of the "
                           "beam direction's noise: the focal spot moves by distance(mirror centre, "
                           "spot) * noise_mrad / 1000 along each axis",
-            "noise_floor_mrad": "mean error_mrad (heliocal.pipeline.metrics) of the true model, "
+            "noise_floor_mrad": "mean error_mrad (heliocal.pipeline.physics.metrics) of the true model, "
                                 "disturbances included, on the noisy measurements",
             "error_true_static_mrad": "same for the true static geometry without disturbances",
             "error_nominal_mrad": "same for the nominal geometry",

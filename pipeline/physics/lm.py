@@ -2,7 +2,7 @@
 
 :func:`solve_batched` minimises, for each of ``H`` heliostats of one kinematic and actuator type
 and one preset (the same free parameters), the objective of the scipy path of
-:func:`heliocal.pipeline.coarse.fit_heliostat`:
+:func:`heliocal.pipeline.models.coarse.fit_heliostat`:
 
 * residuals ``1000 (n_pred - n_meas)`` [mrad] of the heliostat's measurements (NaN, where an
   actuator leaves its geometric range, replaced by 1e4 as there), followed by the prior rows
@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .errors import check_choice
+from ..errors import check_choice
 from .jacobian import forward_state, residual_and_jacobian
 from .kinematics import HeliostatSpec
 from .metrics import measured_normal
@@ -66,7 +66,7 @@ def stack_specs(specs: list[HeliostatSpec]) -> HeliostatSpec:
     """
     types = {(s.kinematic_type, s.actuator_type) for s in specs}
     if len(types) != 1:
-        from .errors import ParameterError
+        from ..errors import ParameterError
 
         raise ParameterError("The 'specs' parameter of stack_specs must share one kinematic_type "
                              f"and actuator_type. Got {sorted(types)!r} instead.")

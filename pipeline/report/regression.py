@@ -17,7 +17,7 @@ Versions, git revision, workdir and input hashes are not compared.
 
 Command line::
 
-    python -m heliocal.pipeline.regression CURRENT_METRICS_JSON BASELINE_METRICS_JSON
+    python -m heliocal.pipeline.report.regression CURRENT_METRICS_JSON BASELINE_METRICS_JSON
 
 exits 0 when within tolerance, 1 with the differences on stderr, 2 when a file is unreadable.
 """
@@ -183,7 +183,7 @@ def format_report(diffs: list[str], current: str, baseline: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m heliocal.pipeline.regression",
+        prog="python -m heliocal.pipeline.report.regression",
         description="Compare a run's metrics.json with a baseline; exit 1 on an accuracy "
                     "regression.")
     parser.add_argument("current", help="metrics.json of the run to check")

@@ -4,7 +4,7 @@ Every stage reads its inputs from a work directory and writes its outputs there 
 names (the *workdir contract*). Each Parquet artifact has a declared :class:`ArtifactSchema`
 (declared once, in the module of the stage that writes it) that is checked on write and on read.
 
-Writes are transactional (:mod:`heliocal.pipeline.transaction`): inside a stage run every
+Writes are transactional (:mod:`heliocal.pipeline.artifacts.transaction`): inside a stage run every
 artifact is written to the run's staging folder and all of them replace the previous ones at one
 atomic step, the rename of the stage's manifest ``<stage>.manifest.json``. Reads go through that
 manifest: :func:`read_artifact` reads only a file the last complete run of its producer listed,
@@ -36,8 +36,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from . import __version__
-from .errors import SchemaError, StageInputError, UnsafePathError
+from .. import __version__
+from ..errors import SchemaError, StageInputError, UnsafePathError
 from .transaction import (committed_entry, current_transaction, load_manifest, read_committed,
                           transaction)
 
@@ -514,7 +514,7 @@ def write_artifact(df: pd.DataFrame, workdir: str | os.PathLike, schema: Artifac
                    row_group_size: int | None = None) -> Path:
     """Check ``df`` against ``schema`` and write it as ``workdir/schema.filename``.
 
-    Inside a stage run (:func:`heliocal.pipeline.transaction.transaction`) the file is staged and
+    Inside a stage run (:func:`heliocal.pipeline.artifacts.transaction.transaction`) the file is staged and
     becomes visible with the run's other outputs when the run commits. Outside one, the write is
     its own transaction of ``schema.producer`` (the producer's other committed files are kept).
 

@@ -15,7 +15,7 @@ section 3.1), laid out like ARTIST's ``RigidBody`` kinematics
 
 ``R_e``, ``R_n``, ``R_u`` are *right-handed* rotations about the east, north and up axes of the
 parent frame (positive angle = counter-clockwise looking down the axis toward the origin). Angles
-come from the actuators (:mod:`heliocal.pipeline.actuators`). ``B`` is the identity except for the
+come from the actuators (:mod:`heliocal.pipeline.physics.actuators`). ``B`` is the identity except for the
 target-aligned type. Everything is batched over heliostats and measurements, float64 and
 differentiable, and free of in-place operations so that :mod:`torch.func` (``vmap``, ``jacrev``,
 ``jacfwd``) works on :func:`forward_kinematics`.
@@ -54,14 +54,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .actuators import (
-    ACTUATOR_TYPES,
-    ideal_angle_to_steps,
-    ideal_steps_to_angle,
-    linear_angle_to_steps,
-    linear_steps_to_angle,
-)
-from .errors import ParameterError, check_choice
+from .actuators import (ACTUATOR_TYPES, ideal_angle_to_steps, ideal_steps_to_angle,
+                        linear_angle_to_steps, linear_steps_to_angle)
+from ..errors import ParameterError, check_choice
 
 __all__ = [
     "PARAMETER_NAMES",

@@ -17,10 +17,10 @@ selection.parquet          hybrid against coarse per heliostat (fig. 8), the sel
 
 A figure whose inputs are absent is omitted, and the report says which stage to run for it.
 
-Outputs in ``DIR/report/`` (one stage transaction, see :mod:`heliocal.pipeline.transaction`): ``index.html`` (self-contained, the
+Outputs in ``DIR/report/`` (one stage transaction, see :mod:`heliocal.pipeline.artifacts.transaction`): ``index.html`` (self-contained, the
 figures embedded as base64 PNG), ``report.md`` (the same content, figures linked), ``figures/*.png``
 and ``metrics.json`` (schema: ``docs/metrics_schema.json``; sorted keys and rounded floats, so two
-runs of the same pipeline give the same numbers and :mod:`heliocal.pipeline.regression` can diff
+runs of the same pipeline give the same numbers and :mod:`heliocal.pipeline.report.regression` can diff
 them).
 
 Figures are drawn on :class:`matplotlib.figure.Figure` objects directly (the non-interactive Agg
@@ -44,13 +44,13 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from . import __version__
-from .artifacts import (artifact_present, committed_fingerprint, git_revision, read_artifact,
-                        recorded_inputs, safe_name)
-from .errors import SchemaError, StageInputError
-from .schemas import MEASUREMENTS, REJECTION_REASONS, all_schemas
-from .transaction import committed_entry, current_transaction, stage_transaction
-from .workdir_lock import locks_workdir
+from .. import __version__
+from ..artifacts.store import (artifact_present, committed_fingerprint, git_revision, read_artifact,
+                               recorded_inputs, safe_name)
+from ..errors import SchemaError, StageInputError
+from ..artifacts.schemas import MEASUREMENTS, REJECTION_REASONS, all_schemas
+from ..artifacts.transaction import committed_entry, current_transaction, stage_transaction
+from ..artifacts.workdir_lock import locks_workdir
 
 __all__ = [
     "METRICS_SCHEMA_VERSION",

@@ -3,7 +3,7 @@
 The ``.pt`` file holds the networks' tensors (a state dict saved with :func:`torch.save`); the
 ``.json`` file holds the model's configuration and records the SHA-256 of the ``.pt`` file's bytes
 (``weights_sha256``). Both are outputs of the stage's transaction
-(:mod:`heliocal.pipeline.transaction`), so they are committed together; :func:`read_model` reads
+(:mod:`heliocal.pipeline.artifacts.transaction`), so they are committed together; :func:`read_model` reads
 both through the stage's manifest and checks that the weights are the ones the configuration was
 written with. Loading never runs code from a file: :func:`torch.load` with ``weights_only=True``
 accepts tensors and plain containers only.
@@ -20,7 +20,7 @@ import zipfile
 from pathlib import Path
 from typing import Mapping
 
-from .errors import SchemaError
+from ..errors import SchemaError
 from .transaction import load_manifest, read_committed
 
 __all__ = ["model_files", "write_model", "read_model"]
@@ -28,8 +28,8 @@ __all__ = ["model_files", "write_model", "read_model"]
 
 def model_files(mode: str, heliostat_id: str) -> tuple[str, str]:
     """(config, weights) paths of a model relative to the work directory; an id that is not a plain
-    file name is refused (:func:`heliocal.pipeline.artifacts.safe_name`)."""
-    from .artifacts import safe_name
+    file name is refused (:func:`heliocal.pipeline.artifacts.store.safe_name`)."""
+    from .store import safe_name
 
     hid = safe_name(heliostat_id, f"hybrid/{mode}")
     return f"hybrid/{mode}/{hid}.json", f"hybrid/{mode}/{hid}.pt"

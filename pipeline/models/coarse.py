@@ -1,11 +1,11 @@
 """``fit-coarse``: the rigid-body coarse model fitted by Levenberg-Marquardt.
 
-For every heliostat the free parameters of a preset (:data:`~heliocal.pipeline.kinematics.PRESETS`)
+For every heliostat the free parameters of a preset (:data:`~heliocal.pipeline.physics.kinematics.PRESETS`)
 are fitted on its training rows with :func:`scipy.optimize.least_squares`:
 
 * residuals: per measurement the three components of ``1000 * (n_pred - n_meas)`` [mrad], where
   ``n_meas`` is the bisector of the sun direction and the direction from the predicted mirror
-  centre to the measured focal spot (:func:`heliocal.pipeline.metrics.measured_normal`); their
+  centre to the measured focal spot (:func:`heliocal.pipeline.physics.metrics.measured_normal`); their
   norm is ``2000 sin(error/2)``, i.e. the angular error in mrad to third order;
 * Jacobian: exact, from torch's forward-mode autodiff (:func:`torch.func.jacfwd`), no finite
   differences;
@@ -40,18 +40,18 @@ import pandas as pd
 import torch
 from scipy.optimize import least_squares
 
-from .artifacts import (ArtifactSchema, Column as C, artifact_path, artifact_present, check_fresh,
-                        merge_with_previous, read_artifact, write_artifact)
-from .errors import FitError, check_choice, check_float, check_int
-from .jacobian import forward_state, residual_and_jacobian
-from .parallel import map_tasks
-from .kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
-                         HeliostatSpec, forward_kinematics, joint_angles, nominal_parameters,
-                         preset_mask)
-from .metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
-from .schemas import HELIOSTATS, MEASUREMENTS
-from .transaction import stage_transaction
-from .workdir_lock import locks_workdir
+from ..artifacts.store import (ArtifactSchema, Column as C, artifact_path, artifact_present,
+                               check_fresh, merge_with_previous, read_artifact, write_artifact)
+from ..errors import FitError, check_choice, check_float, check_int
+from ..physics.jacobian import forward_state, residual_and_jacobian
+from ..runtime.parallel import map_tasks
+from ..physics.kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
+                                  HeliostatSpec, forward_kinematics, joint_angles,
+                                  nominal_parameters, preset_mask)
+from ..physics.metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
+from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
+from ..artifacts.transaction import stage_transaction
+from ..artifacts.workdir_lock import locks_workdir
 
 __all__ = [
     "COARSE_PARAMS",
@@ -83,7 +83,7 @@ log = logging.getLogger("heliocal.coarse")
 AUTO_PRESETS = ("static-6", "stone-8", "static-14", "static-20", "static-28")
 
 LOSSES = ("linear", "soft_l1", "huber")
-#: Solvers of ``fit-coarse``: the batched LM (:mod:`heliocal.pipeline.lm`) or scipy per heliostat.
+#: Solvers of ``fit-coarse``: the batched LM (:mod:`heliocal.pipeline.physics.lm`) or scipy per heliostat.
 SOLVERS = ("batched", "scipy")
 
 
@@ -152,7 +152,7 @@ COARSE_PREDICTIONS = ArtifactSchema(
     producer="fit-coarse",
     sort_by=("heliostat_id", "model", "measurement_id"),
     description="Per measurement and model (nominal geometry and each fitted preset): the errors "
-                "defined once in heliocal.pipeline.metrics.",
+                "defined once in heliocal.pipeline.physics.metrics.",
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
         C("measurement_id", "string", "", "Measurement."),
@@ -280,7 +280,7 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
     a finer grid around the best. Axes decouple, so each search is 2-D and cheap. The result is
     kept only if it lowers the median normal error of the start.
     """
-    from .kinematics import _solve_angles  # the closed-form inverse of the chain
+    from ..physics.kinematics import _solve_angles  # the closed-form inverse of the chain
 
     with torch.no_grad():
         _, position = forward_kinematics(p0, spec, data.steps)
@@ -373,7 +373,7 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     spec : the heliostat's fixed description.
     nominal : (28,) nominal parameters (prior mean and default start).
     train : training measurements.
-    preset : one of :data:`~heliocal.pipeline.kinematics.PRESET_NAMES`.
+    preset : one of :data:`~heliocal.pipeline.physics.kinematics.PRESET_NAMES`.
     loss : ``linear`` (MINPACK LM), ``soft_l1`` or ``huber`` (trust-region reflective).
     f_scale_mrad : residual scale of the robust loss [mrad].
     robust_start : ``True``/``"always"`` grid-searches the actuator zero points first (see
@@ -381,7 +381,7 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         :data:`ROBUST_START_THRESHOLD_MRAD` (a wrong nominal geometry); ``False``/``"never"``
         starts LM from the nominal values.
     start : explicit start (28,) instead of the nominal/grid start.
-    jacobian : ``exact`` (geometric Jacobian, :mod:`heliocal.pipeline.jacobian`) or scipy's
+    jacobian : ``exact`` (geometric Jacobian, :mod:`heliocal.pipeline.physics.jacobian`) or scipy's
         ``2-point`` finite differences (only for the benchmark's comparison).
     start_cache : dict shared between the presets of one heliostat, so the robust start is
         searched once per set of free zero-point parameters.
@@ -434,7 +434,7 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         return _prior_rows(x, r)[0]
 
     def jac(x):
-        """Exact Jacobian at x (geometric, :mod:`heliocal.pipeline.jacobian`)."""
+        """Exact Jacobian at x (geometric, :mod:`heliocal.pipeline.physics.jacobian`)."""
         key = np.asarray(x, dtype=np.float64).tobytes()
         if key not in cache:
             cache.clear()
@@ -482,12 +482,12 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
 
     The objective (data rows, prior rows, loss) and the start (including the robust start, per
     heliostat) are those of :func:`fit_heliostat`; the minimisation is one batched
-    Levenberg-Marquardt program (:func:`heliocal.pipeline.lm.solve_batched`) instead of one
+    Levenberg-Marquardt program (:func:`heliocal.pipeline.physics.lm.solve_batched`) instead of one
     scipy solve per heliostat. Standard errors, 'determined' flags and the condition number
     come from the same per-heliostat diagnostics at the solution. Heliostats without training
     rows are left to :func:`fit_heliostat` ("nothing to fit").
     """
-    from .lm import BatchedProblem, solve_batched, stack_specs
+    from ..physics.lm import BatchedProblem, solve_batched, stack_specs
 
     check_choice(preset, "preset", "fit_heliostat", PRESET_NAMES)
     check_choice(loss, "loss", "fit_heliostat", LOSSES)
@@ -650,7 +650,7 @@ def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarr
 # ------------------------------------------------------------------------------------------------
 def _load_split(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
     """Split label per measurement row: split.parquet's if present, else all ``train``."""
-    from .split import SPLIT  # local: split.py is optional at import time
+    from ..stages.split import SPLIT  # local: split.py is optional at import time
 
     path = artifact_path(workdir, SPLIT)
     if not artifact_present(workdir, SPLIT):
@@ -818,7 +818,7 @@ FIT_OPTIONS = {"solver": "batched", "loss": "soft_l1", "f_scale_mrad": 1.0, "rob
 def coarse_fit_options(workdir: str | Path) -> dict:
     """The solver, loss, ``f_scale_mrad`` and robust start ``fit-coarse`` used in ``workdir``
     (from coarse_params.parquet's provenance), as keyword arguments of :func:`fit_presets`."""
-    from .artifacts import read_provenance
+    from ..artifacts.store import read_provenance
 
     recorded = read_provenance(artifact_path(workdir, COARSE_PARAMS)).get("options") or {}
     return {k: recorded.get(k, default) for k, default in FIT_OPTIONS.items()}
@@ -826,7 +826,7 @@ def coarse_fit_options(workdir: str | Path) -> dict:
 
 def _fit_task(task) -> list[tuple]:
     """Fits of one heliostat (scipy) or of one chunk of heliostats (batched): a picklable task
-    for :func:`~heliocal.pipeline.parallel.map_tasks`; a list of per-heliostat results."""
+    for :func:`~heliocal.pipeline.runtime.parallel.map_tasks`; a list of per-heliostat results."""
     solver, hrows, rows, presets, kwargs = task
     if solver == "scipy":
         return [fit_one_heliostat(pd.Series(hrows[0]), rows[0], presets, **kwargs)]
@@ -864,9 +864,9 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     heliostats : restrict to these ids.
     progress : optional callable ``progress(done, total, heliostat_id)``.
     workers, scheduler, dask_address : where the per-heliostat fits run
-        (:func:`heliocal.pipeline.parallel.map_tasks`); results do not depend on it.
+        (:func:`heliocal.pipeline.runtime.parallel.map_tasks`); results do not depend on it.
     solver : ``batched`` (heliostats of one type in chunks of ``batch_size``, one vectorized
-        Levenberg-Marquardt program per chunk and preset, :mod:`heliocal.pipeline.lm`) or
+        Levenberg-Marquardt program per chunk and preset, :mod:`heliocal.pipeline.physics.lm`) or
         ``scipy`` (one :func:`scipy.optimize.least_squares` per heliostat, the reference).
     batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
     """

@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 ACTUATOR_TYPES = ("linear", "ideal")
-"""Actuator types understood by :mod:`heliocal.pipeline.kinematics`."""
+"""Actuator types understood by :mod:`heliocal.pipeline.physics.kinematics`."""
 
 
 def _t(x) -> torch.Tensor:
@@ -170,7 +170,7 @@ def linear_angle_to_steps(angle_rad, increment_steps_per_m, initial_stroke_lengt
     angle ``absolute_angle(0) - delta`` must lie in [0, pi]. Outside that interval the cosine
     folds back and the returned steps belong to a different angle; callers that are not sure
     should check ``linear_steps_to_angle(result) == angle`` (as
-    :func:`heliocal.pipeline.kinematics.inverse_kinematics` does).
+    :func:`heliocal.pipeline.physics.kinematics.inverse_kinematics` does).
     """
     offset_m = _t(offset_m)
     pivot_radius_m = _t(pivot_radius_m)

@@ -1,6 +1,6 @@
 """Exact residuals and Jacobian of the coarse fit, from the chain's geometry (no finite differences).
 
-Autodiff through :func:`~heliocal.pipeline.kinematics.forward_kinematics` (``torch.func.jacfwd``)
+Autodiff through :func:`~heliocal.pipeline.physics.kinematics.forward_kinematics` (``torch.func.jacfwd``)
 costs about 10 ms per Jacobian on 300 measurements, dominated by per-operation overhead. The
 Jacobian of a rigid-body chain has a closed form (the robot manipulator's *geometric Jacobian*),
 which this module evaluates with a handful of batched tensor operations:
@@ -12,7 +12,7 @@ which this module evaluates with a handful of batched tensor operations:
 * the actuator parameters act through the joint angles: ``dn/dq = (w_i x n) s_i dtheta_i/dq``,
   with ``dtheta_i/dq`` from torch autograd through the (elementwise) actuator law.
 
-The chain (see :mod:`heliocal.pipeline.kinematics`) is, for the mirror centre ``P`` and normal
+The chain (see :mod:`heliocal.pipeline.physics.kinematics`) is, for the mirror centre ``P`` and normal
 ``n``::
 
     P = pos + F Tilt1 ( R1 ( Tilt2 ( R2 tc + t2 ) ) + t1 )
@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import torch
 
-from .kinematics import (PARAMETER_INDEX, HeliostatSpec, _JOINT_AXES, _SENSES, _base_frame,
-                         _chain, _tilt_matrices, joint_angles)
+from .kinematics import (PARAMETER_INDEX, HeliostatSpec, _JOINT_AXES, _SENSES, _base_frame, _chain,
+                         _tilt_matrices, joint_angles)
 from .metrics import measured_normal
 
 __all__ = ["residual_and_jacobian", "forward_state"]
@@ -54,7 +54,7 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     """Residuals ``1000 (n_pred - n_meas)`` [mrad] and their exact Jacobian.
 
     Every tensor may carry a leading batch shape ``S`` (heliostats of one kinematic and actuator
-    type, e.g. ``S = (H,)``, as :func:`heliocal.pipeline.lm.solve_batched` uses it); ``S = ()``
+    type, e.g. ``S = (H,)``, as :func:`heliocal.pipeline.physics.lm.solve_batched` uses it); ``S = ()``
     is one heliostat.
 
     Parameters
@@ -186,7 +186,7 @@ def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     """d(joint angle i)/d(parameters), closed form, as a list of two (*S, N, 28) tensors.
 
     Ideal: ``theta = steps / g + theta0``. Linear (law of cosines, see
-    :func:`heliocal.pipeline.actuators.linear_steps_to_angle`):
+    :func:`heliocal.pipeline.physics.actuators.linear_steps_to_angle`):
     ``theta = theta0 + sigma (A(s0) - A(s))``, ``s = steps / inc + s0``,
     ``A(x) = arccos(c(x))``, ``c(x) = (o^2 + r^2 - x^2) / (2 o r)``; where the cosine is clamped
     (a stroke that cannot close the triangle) the derivative is 0, as in the forward model.

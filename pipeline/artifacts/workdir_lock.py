@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .errors import InputError, WorkdirBusyError
+from ..errors import InputError, WorkdirBusyError
 
 __all__ = ["LOCK_FILENAME", "workdir_lock", "lock_holder", "locks_workdir"]
 

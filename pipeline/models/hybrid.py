@@ -30,7 +30,7 @@ Training minimises, per member ``m``::
 
     L_m = mean_{n in train_m} error_mrad(n)^2 + weight_decay_m * sum(theta_m^2)
 
-(``error_mrad`` from :mod:`heliocal.pipeline.metrics`, exactly as ``fit-coarse`` defines it; the
+(``error_mrad`` from :mod:`heliocal.pipeline.physics.metrics`, exactly as ``fit-coarse`` defines it; the
 explicit L2 penalty covers every weight and bias, so a large weight decay pulls the network to
 zero output, i.e. the hybrid back to the coarse model, paper 000 section 4). Adam, full batch,
 float64. After every epoch the validation error (mean error_mrad on the validation rows) is
@@ -88,22 +88,23 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import (artifact_path, artifact_present, check_fresh, committed_fingerprint,
-                        merge_with_previous, previous_run_matches, read_artifact, write_artifact)
+from ..artifacts.store import (artifact_path, artifact_present, check_fresh, committed_fingerprint,
+                               merge_with_previous, previous_run_matches, read_artifact,
+                               write_artifact)
 from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, _kind, _load_split,
                      load_selected_parameters, metrics_frame, predict)
-from .errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
-                     check_float, check_int)
-from .kinematics import (PARAMETER_NAMES, HeliostatSpec, ParameterComponents, forward_kinematics,
-                         inverse_kinematics,
-                         nominal_parameters)
-from .metrics import error_mrad, measured_normal, reflect
-from .lm import _SPEC_TENSORS, stack_specs
-from .modelfiles import model_files, read_model, write_model
-from .parallel import map_tasks
-from .schemas import HELIOSTATS, MEASUREMENTS
-from .transaction import current_transaction, load_manifest, read_committed, stage_transaction
-from .workdir_lock import locks_workdir
+from ..errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
+                      check_float, check_int)
+from ..physics.kinematics import (PARAMETER_NAMES, HeliostatSpec, ParameterComponents,
+                                  forward_kinematics, inverse_kinematics, nominal_parameters)
+from ..physics.metrics import error_mrad, measured_normal, reflect
+from ..physics.lm import _SPEC_TENSORS, stack_specs
+from ..artifacts.modelfiles import model_files, read_model, write_model
+from ..runtime.parallel import map_tasks
+from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
+from ..artifacts.transaction import (current_transaction, load_manifest, read_committed,
+                                     stage_transaction)
+from ..artifacts.workdir_lock import locks_workdir
 
 __all__ = [
     "MODES",
@@ -148,7 +149,7 @@ HYBRID_PREDICTIONS = dataclasses.replace(
     filename="hybrid_predictions.parquet",
     producer="fit-hybrid",
     description="Per measurement and fitted mode (hybrid, nn-only, pretrained-nn): the errors "
-                "defined once in heliocal.pipeline.metrics, same columns as "
+                "defined once in heliocal.pipeline.physics.metrics, same columns as "
                 "coarse_predictions.parquet; `model` is the mode, `selected` is True for the "
                 "hybrid mode (the one `aim` uses).",
 )
@@ -960,7 +961,7 @@ class PretrainedModel:
 def _simulate_pretraining(coarse: torch.Tensor, spec: HeliostatSpec, hrow, rows: pd.DataFrame,
                           train: np.ndarray, n: int, rng: np.random.Generator):
     """Sun vectors, focal spots and coarse-model steps of ``n`` simulated calibrations."""
-    from .sun import spa_sun_position, sun_vector_enu
+    from ..physics.sun import spa_sun_position, sun_vector_enu
 
     tr = rows[train]
     el_min = float(tr["sun_elevation_deg"].min())
@@ -1122,7 +1123,7 @@ def _split_means(err: np.ndarray, labels: np.ndarray) -> dict:
 def _current_inputs(workdir: Path) -> dict:
     """label -> committed content fingerprint of every input a fine model is made from (the labels
     its run recorded: the artifacts it read)."""
-    from .split import SPLIT
+    from ..stages.split import SPLIT
 
     out = {}
     for label, schema in (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS),
@@ -1134,7 +1135,7 @@ def _current_inputs(workdir: Path) -> dict:
 
 
 def _check_inputs(workdir: Path) -> None:
-    from .split import SPLIT
+    from ..stages.split import SPLIT
 
     if not artifact_present(workdir, COARSE_PARAMS):
         raise StageInputError(f"{artifact_path(workdir, COARSE_PARAMS)} is missing: run "
@@ -1333,7 +1334,7 @@ def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict,
     """Config dict and weights of a fitted mode for one heliostat (``None`` if not fitted).
 
     ``mode`` ``selected`` is the sweep's selected model (``DIR/hybrid/selected/``). The files are
-    read through their stage's manifest and checked (:func:`heliocal.pipeline.modelfiles.read_model`):
+    read through their stage's manifest and checked (:func:`heliocal.pipeline.artifacts.modelfiles.read_model`):
     a changed, corrupt or foreign file gives a one-line error naming it and the command to rerun.
     """
     workdir = Path(workdir)
@@ -1378,8 +1379,8 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
     such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
     empty without coarse_params.parquet.
     """
-    from .split import SPLIT
-    from .sweep import SELECTION
+    from ..stages.split import SPLIT
+    from ..stages.sweep import SELECTION
 
     workdir = Path(workdir)
     if not artifact_present(workdir, COARSE_PARAMS):
@@ -1477,7 +1478,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     (angle between the forward model's reflected beam at those steps and the direction to the aim
     point), ``sun_azimuth_deg``, ``sun_elevation_deg``.
     """
-    from .sun import spa_sun_position, sun_angles_from_vector, sun_vector_enu as _sunvec
+    from ..physics.sun import spa_sun_position, sun_angles_from_vector, sun_vector_enu as _sunvec
 
     check_choice(model, "model", "aim", ("auto", "coarse") + MODES)
     workdir = Path(workdir)

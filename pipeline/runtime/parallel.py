@@ -36,7 +36,7 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Sequence
 
-from .errors import ParameterError, check_choice, check_int
+from ..errors import ParameterError, check_choice, check_int
 
 __all__ = ["default_workers", "map_tasks", "SCHEDULERS"]
 

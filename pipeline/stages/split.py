@@ -35,11 +35,11 @@ import numpy as np
 import pandas as pd
 from sklearn.neighbors import NearestNeighbors
 
-from .artifacts import ArtifactSchema, Column, read_artifact, write_artifact
-from .errors import FitError, InputError, ParameterError, check_choice, check_int
-from .schemas import MEASUREMENTS
-from .transaction import stage_transaction
-from .workdir_lock import locks_workdir
+from ..artifacts.store import ArtifactSchema, Column, read_artifact, write_artifact
+from ..errors import FitError, InputError, ParameterError, check_choice, check_int
+from ..artifacts.schemas import MEASUREMENTS
+from ..artifacts.transaction import stage_transaction
+from ..artifacts.workdir_lock import locks_workdir
 
 __all__ = [
     "SPLIT",

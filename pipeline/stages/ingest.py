@@ -19,7 +19,7 @@ Three source kinds are detected automatically (:func:`detect_source`):
     as its logs, each with the folder's own properties (:func:`simulate_sources`).
 
 Heliostat ids become file names later (``hybrid/<mode>/<id>.pt``, report figures), so a row whose
-id does not match :data:`~heliocal.pipeline.schemas.HELIOSTAT_ID_RE` is rejected
+id does not match :data:`~heliocal.pipeline.artifacts.schemas.HELIOSTAT_ID_RE` is rejected
 (``invalid_heliostat_id``, with a suggested new name).
 
 Nothing is lost: every input row ends in ``measurements.parquet`` or, with a reason, in
@@ -48,15 +48,15 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from .artifacts import _to_table, artifact_path, artifact_writer, write_artifact
-from .errors import InputError, ParameterError, check_choice, check_float, check_int
-from .geodesy import wgs84_to_enu
-from .schemas import (HELIOSTAT_ID_RULE, HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS,
-                      heliostat_id_problem, suggest_heliostat_id)
-from .spill import SortedSpill
-from .sun import spa_sun_position, sun_vector_enu, wrap_deg
-from .transaction import stage_transaction
-from .workdir_lock import locks_workdir
+from ..artifacts.store import _to_table, artifact_path, artifact_writer, write_artifact
+from ..errors import InputError, ParameterError, check_choice, check_float, check_int
+from ..physics.geodesy import wgs84_to_enu
+from ..artifacts.schemas import (HELIOSTAT_ID_RULE, HELIOSTATS, MEASUREMENTS, REJECTED,
+                                 REJECTION_REASONS, heliostat_id_problem, suggest_heliostat_id)
+from ..io.spill import SortedSpill
+from ..physics.sun import spa_sun_position, sun_vector_enu, wrap_deg
+from ..artifacts.transaction import stage_transaction
+from ..artifacts.workdir_lock import locks_workdir
 
 __all__ = [
     "SOURCE_KINDS",
@@ -1794,7 +1794,7 @@ def ingest(sources: Iterable[str | os.PathLike], options: IngestOptions | None =
 
     Everything is held in memory (see :func:`run_ingest` for the streaming stage). Raises
     :class:`InputError` when a source cannot be read at all; row-level problems become rows of
-    ``rejected`` with a reason from :data:`~heliocal.pipeline.schemas.REJECTION_REASONS`.
+    ``rejected`` with a reason from :data:`~heliocal.pipeline.artifacts.schemas.REJECTION_REASONS`.
     Rows come in source order (the artifacts sort them).
     """
     opts = (options or IngestOptions()).validate()
