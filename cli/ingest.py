@@ -10,8 +10,9 @@ from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.stages.ingest import (DEFAULT_BATCH_ROWS, DEFAULT_TIME_MIN, IngestOptions,
-                                             invalid_id_message, run_ingest)
+from heliocal.pipeline.stages.ingest import DEFAULT_BATCH_ROWS, run_ingest
+from heliocal.pipeline.io.staged import DEFAULT_TIME_MIN, IngestOptions
+from heliocal.pipeline.io.validation import invalid_id_message
 
 
 def _parse_location(text: Optional[str]):

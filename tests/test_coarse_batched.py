@@ -26,7 +26,8 @@ import torch
 from heliocal.pipeline.models.coarse import (COARSE_PARAMS, MeasurementBatch, fit_heliostat,
                                              fit_heliostats_batched, normal_errors_mrad,
                                              run_fit_coarse)
-from heliocal.pipeline.stages.ingest import IngestOptions, run_ingest
+from heliocal.pipeline.io.staged import IngestOptions
+from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.physics.kinematics import HeliostatSpec, PARAMETER_NAMES, nominal_parameters
 from heliocal.pipeline.artifacts.store import read_artifact
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS

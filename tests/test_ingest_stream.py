@@ -23,7 +23,9 @@ import heliocal.pipeline.io.spill as spill_mod
 from heliocal.cli.main import app
 from heliocal.pipeline.artifacts.store import read_artifact, read_provenance
 from heliocal.pipeline.errors import InputError
-from heliocal.pipeline.stages.ingest import IngestOptions, ingest, run_ingest
+from heliocal.pipeline.io.staged import IngestOptions
+from heliocal.pipeline.io.validation import MedianVsThreshold
+from heliocal.pipeline.stages.ingest import ingest, run_ingest
 from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
 from heliocal.pipeline.io.spill import SortedSpill
 
@@ -53,15 +55,15 @@ def _assert_same(a: dict, b: dict) -> None:
 
 @pytest.fixture
 def validate_calls(monkeypatch):
-    """Row counts of every frame _validate judged (one per chunk)."""
+    """Row counts of every frame validate_rows judged (one per chunk)."""
     calls: list[int] = []
-    real = ingest_mod._validate
+    real = ingest_mod.validate_rows
 
     def counting(st, opts, checks):
         calls.append(len(st.frame))
         return real(st, opts, checks)
 
-    monkeypatch.setattr(ingest_mod, "_validate", counting)
+    monkeypatch.setattr(ingest_mod, "validate_rows", counting)
     return calls
 
 
@@ -196,7 +198,7 @@ def test_failure_in_the_third_batch_keeps_previous_artifacts(tmp_path, monkeypat
     run_ingest(sources, tmp_path, opts, batch_rows=7)
     previous = {name: (tmp_path / name).read_bytes() for name in ARTIFACTS}
     staged = []
-    real = ingest_mod._stage_log_rows
+    real = ingest_mod.stage_log_rows
 
     def failing(raw, ctx):  # the WGS84 -> ENU staging of the third chunk fails
         staged.append(len(raw))
@@ -204,7 +206,7 @@ def test_failure_in_the_third_batch_keeps_previous_artifacts(tmp_path, monkeypat
             raise OSError(28, "No space left on device")
         return real(raw, ctx)
 
-    monkeypatch.setattr(ingest_mod, "_stage_log_rows", failing)
+    monkeypatch.setattr(ingest_mod, "stage_log_rows", failing)
     with pytest.raises(OSError):
         run_ingest(sources, tmp_path, IngestOptions(properties=SYNTHETIC_PAINT,
                                                     max_spot_distance_m=5.0), batch_rows=7)
@@ -309,7 +311,7 @@ def test_sorted_spill_merges_runs_into_whole_key_ranges(tmp_path, monkeypatch):
     [1.0, np.nan, 3.0],
 ])
 def test_median_against_a_threshold_streamed(values):
-    tracker = ingest_mod._MedianVsThreshold(2.5)
+    tracker = MedianVsThreshold(2.5)
     for part in np.array_split(np.asarray(values, float), 3):
         tracker.add(part)
     truth = np.median(values)

@@ -182,7 +182,8 @@ def test_paint_folder_named_like_markup_is_rejected_by_id(tmp_path):
 
 
 def test_enu_log_and_toml_properties_with_a_traversal_id(tmp_path):
-    from heliocal.pipeline.stages.ingest import IngestOptions, ingest
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.stages.ingest import ingest
 
     props = (GOOD / "enu_properties.toml").read_text().replace("[heliostats.H01]",
                                                                 '[heliostats."../H01"]')
@@ -407,7 +408,7 @@ def test_hostile_log_end_to_end(runner, tmp_path):
 #: Path joins with a formatted name that are not data-derived, with the reason; keyed by the module's
 #: path relative to pipeline/ (cli/ modules as "cli/NAME.py").
 NOT_DATA = {
-    ("stages/ingest.py", "hdir / f'{hid}-heliostat-properties.json'"):
+    ("io/paint.py", "hdir / f'{hid}-heliostat-properties.json'"):
         "hid is the name of a folder listed from the source, a plain name by construction",
     ("stages/simulate.py", "hdir / f'{hdir.name}-heliostat-properties.json'"):
         "hdir comes from listing the output folder (removing a previous simulation)",

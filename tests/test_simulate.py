@@ -21,7 +21,8 @@ import heliocal.cli.simulate  # noqa: F401  (registers simulate on the app)
 from heliocal.cli.app import app
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.report.golden import compare_trees
-from heliocal.pipeline.stages.ingest import IngestOptions, ingest
+from heliocal.pipeline.io.staged import IngestOptions
+from heliocal.pipeline.stages.ingest import ingest
 from heliocal.pipeline.physics.kinematics import PARAMETER_INDEX, preset_parameters
 from heliocal.pipeline.stages.simulate import (DEVIATION_SIZES, SimulatedField, simulate_field,
                                                write_field)

@@ -20,7 +20,8 @@ from heliocal.pipeline.artifacts.store import read_provenance
 from heliocal.pipeline.models.coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, coarse_fit_options,
                                              run_fit_coarse)
 from heliocal.pipeline.models.hybrid import FineConfig, aim_models, aim_steps, run_fit_hybrid
-from heliocal.pipeline.stages.ingest import IngestOptions, run_ingest
+from heliocal.pipeline.io.staged import IngestOptions
+from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.stages.simulate import simulate_field, write_field
 from heliocal.pipeline.stages.split import run_split
 from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, SELECTED_PREDICTIONS, SELECTION, SWEEP,
@@ -116,7 +117,7 @@ def test_selected_predictions_match_the_selection(static_workdir, monkeypatch):
 def temperature_workdir(tmp_path_factory):
     """The synthetic sample as the accuracy figures in docs/hybrid.md use it: the log with the
     PAINT properties (temperature as env_temperature), split-knn, the auto-selected preset."""
-    from heliocal.pipeline.stages.ingest import IngestOptions
+    from heliocal.pipeline.io.staged import IngestOptions
 
     w = tmp_path_factory.mktemp("sweep_env")
     log = SYNTHETIC.parent / "calibration_log.csv"

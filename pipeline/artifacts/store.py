@@ -42,6 +42,7 @@ from .transaction import (committed_entry, current_transaction, load_manifest, r
                           transaction)
 
 __all__ = [
+    "to_table",
     "SCHEMA_VERSION",
     "committed_fingerprint",
     "recorded_inputs",
@@ -354,7 +355,7 @@ def _jsonable(obj):
 # --------------------------------------------------------------------------------------------
 # write / read
 # --------------------------------------------------------------------------------------------
-def _to_table(df: pd.DataFrame, schema: ArtifactSchema) -> pa.Table:
+def to_table(df: pd.DataFrame, schema: ArtifactSchema) -> pa.Table:
     missing = [c for c in schema.column_names() if c not in df.columns]
     if missing:
         raise SchemaError(
@@ -535,7 +536,7 @@ def write_artifact(df: pd.DataFrame, workdir: str | os.PathLike, schema: Artifac
     The artifact's path.
     """
     workdir = Path(workdir)
-    table = _to_table(df, schema)
+    table = to_table(df, schema)
     with _artifact_transaction(workdir, schema, options, seed) as txn:
         _record_inputs(txn, workdir, inputs)
         meta = dict(table.schema.metadata or {})
@@ -567,7 +568,7 @@ class ArtifactWriter:
         Chunks must come in ``sort_by`` order (each one sorted within itself here), so the file
         is sorted as :func:`write_artifact` would sort the whole table.
         """
-        table = _to_table(df, self.schema)
+        table = to_table(df, self.schema)
         extra = [f.name for f in self.arrow_schema][len(self.schema.columns):]
         unexpected = [n for n in table.column_names[len(self.schema.columns):] if n not in extra]
         if unexpected:

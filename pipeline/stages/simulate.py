@@ -55,7 +55,7 @@ from .. import __version__
 from ..artifacts.store import atomic_write_text, safe_child
 from ..errors import InputError, ParameterError, check_choice, check_float, check_int
 from ..physics.geodesy import enu_to_wgs84, wgs84_to_enu
-from .ingest import paint_kinematics_columns
+from ..io.paint import paint_kinematics_columns
 from ..physics.kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PRESET_NAMES, STONE_MAPPING,
                                   HeliostatSpec, forward_kinematics, inverse_kinematics,
                                   nominal_parameters, preset_parameters)
