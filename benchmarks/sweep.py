@@ -30,7 +30,8 @@ from heliocal.pipeline.models.hybrid import (FineConfig, build_problem, member_e
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from heliocal.pipeline.artifacts.store import read_artifact
-from heliocal.pipeline.stages.split import SPLIT, run_split
+from heliocal.pipeline.artifacts.schemas import SPLIT
+from heliocal.pipeline.stages.split import run_split
 
 ROOT = Path(__file__).resolve().parents[1]
 

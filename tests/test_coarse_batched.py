@@ -23,7 +23,8 @@ import pandas as pd
 import pytest
 import torch
 
-from heliocal.pipeline.models.coarse import (COARSE_PARAMS, MeasurementBatch, fit_heliostat,
+from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS
+from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat,
                                              fit_heliostats_batched, normal_errors_mrad,
                                              run_fit_coarse)
 from heliocal.pipeline.io.staged import IngestOptions

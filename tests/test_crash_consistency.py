@@ -202,12 +202,13 @@ def _high_level_readers(workdir: Path, stage: str, view: dict, fresh: bool) -> N
     """The stage's outputs through the functions the other stages and commands use; each must
     work, and agree with the files."""
     from heliocal.pipeline.artifacts.store import check_fresh, read_artifact
-    from heliocal.pipeline.models.coarse import (COARSE_PARAMS, COARSE_PREDICTIONS,
-                                                 load_selected_parameters)
-    from heliocal.pipeline.models.hybrid import HYBRID_PREDICTIONS, aim_steps, load_model
+    from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
+    from heliocal.pipeline.models.coarse import load_selected_parameters
+    from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
+    from heliocal.pipeline.models.hybrid import aim_steps, load_model
     from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
-    from heliocal.pipeline.stages.split import SPLIT
-    from heliocal.pipeline.stages.sweep import SELECTED_PREDICTIONS, SELECTION, SWEEP
+    from heliocal.pipeline.artifacts.schemas import SPLIT
+    from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 
     if stage == "ingest":
         for s in (MEASUREMENTS, HELIOSTATS, REJECTED):

@@ -31,10 +31,10 @@ from heliocal.pipeline.artifacts.store import read_artifact, write_artifact
 from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat, normal_errors_mrad,
                                              run_fit_coarse)
 from heliocal.pipeline.errors import StageInputError
-from heliocal.pipeline.models.hybrid import (HYBRID_PREDICTIONS, FineConfig, FineProblem,
-                                             FeatureEncoder, build_problem, ensemble_errors_mrad,
-                                             ensemble_seeds, init_mlp, load_model,
-                                             member_errors_mrad, predict_ensembles,
+from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
+from heliocal.pipeline.models.hybrid import (FineConfig, FineProblem, FeatureEncoder, build_problem,
+                                             ensemble_errors_mrad, ensemble_seeds, init_mlp,
+                                             load_model, member_errors_mrad, predict_ensembles,
                                              member_parameters, output_scales, predict_members,
                                              run_fit_hybrid, train_members)
 from heliocal.pipeline.physics.kinematics import (PARAMETER_INDEX, HeliostatSpec,
@@ -42,7 +42,7 @@ from heliocal.pipeline.physics.kinematics import (PARAMETER_INDEX, HeliostatSpec
                                                   nominal_parameters, preset_mask)
 from heliocal.pipeline.physics.metrics import error_mrad, reflect
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
-from heliocal.pipeline.models.coarse import COARSE_PREDICTIONS
+from heliocal.pipeline.artifacts.schemas import COARSE_PREDICTIONS
 from heliocal.pipeline.stages.split import run_split
 
 # --------------------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ import heliocal.cli.info  # noqa: F401 - registers `info` on the app
 from heliocal.cli.main import app
 from heliocal.pipeline import __version__
 from heliocal.pipeline.artifacts.store import SCHEMA_VERSION, git_revision
-from heliocal.pipeline.stages.split import SPLIT
+from heliocal.pipeline.artifacts.schemas import SPLIT
 from workdir_tools import fingerprint, recommit
 
 PAINT_SMALL = Path(__file__).resolve().parent / "data" / "good" / "paint_small"

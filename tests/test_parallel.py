@@ -11,8 +11,10 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from heliocal.pipeline.models.coarse import COARSE_PARAMS, COARSE_PREDICTIONS, run_fit_coarse
-from heliocal.pipeline.models.hybrid import HYBRID_PREDICTIONS, FineConfig, run_fit_hybrid
+from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
+from heliocal.pipeline.models.coarse import run_fit_coarse
+from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
+from heliocal.pipeline.models.hybrid import FineConfig, run_fit_hybrid
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.runtime.parallel import map_tasks
 from heliocal.pipeline.stages.split import run_split

@@ -38,7 +38,7 @@ from heliocal.pipeline import __version__
 from heliocal.pipeline.artifacts.store import (SCHEMA_VERSION, check_fresh, read_artifact,
                                                read_provenance)
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
-from heliocal.pipeline.stages.split import SPLIT
+from heliocal.pipeline.artifacts.schemas import SPLIT
 from heliocal.pipeline.artifacts.workdir_lock import LOCK_FILENAME, lock_holder
 from workdir_tools import recommit
 
@@ -437,7 +437,7 @@ def test_unreadable_input_artifact_names_the_stage(runner, workdir):
 
 
 def test_coarse_fit_made_without_split_is_not_fresh_once_split_exists(runner, tmp_path):
-    from heliocal.pipeline.models.coarse import COARSE_PARAMS
+    from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS
     from heliocal.pipeline.errors import StageInputError
 
     workdir = tmp_path / "run"

@@ -19,12 +19,12 @@ import pytest
 import heliocal.cli.report  # noqa: F401 - registers `heliocal report` on the app
 from heliocal.cli.app import app
 from heliocal.pipeline.artifacts.store import write_artifact
-from heliocal.pipeline.models.coarse import COARSE_PARAMS, COARSE_PREDICTIONS
+from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from heliocal.pipeline.errors import StageInputError
 from heliocal.pipeline.stages.report import (_col, compute_metrics, load_inputs, metrics_json,
                                              run_report)
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, all_schemas
-from heliocal.pipeline.stages.split import SPLIT
+from heliocal.pipeline.artifacts.schemas import SPLIT
 
 ROOT = Path(__file__).resolve().parents[1]
 SCHEMA = json.loads((ROOT / "docs" / "metrics_schema.json").read_text())

@@ -21,8 +21,9 @@ from heliocal.cli.app import app
 from heliocal.pipeline.artifacts.store import read_artifact, read_provenance, write_artifact
 from heliocal.pipeline.errors import FitError, InputError, ParameterError
 from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
-from heliocal.pipeline.stages.split import (METHODS, SPLIT, knn_distance_deg, required_measurements,
+from heliocal.pipeline.stages.split import (METHODS, knn_distance_deg, required_measurements,
                                             restrict_training, split_measurements)
+from heliocal.pipeline.artifacts.schemas import SPLIT
 
 # --------------------------------------------------------------------------------------------
 # fixtures

@@ -40,13 +40,14 @@ import torch
 from heliocal.cli.main import app
 from heliocal.pipeline.artifacts.store import (check_fresh, read_artifact, read_provenance,
                                                recorded_inputs, table_fingerprint, write_artifact)
-from heliocal.pipeline.models.coarse import COARSE_PARAMS, COARSE_PREDICTIONS, run_fit_coarse
+from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
+from heliocal.pipeline.models.coarse import run_fit_coarse
 from heliocal.pipeline.errors import SchemaError, StageInputError
-from heliocal.pipeline.models.hybrid import (HYBRID_PREDICTIONS, aim_steps, load_model,
-                                             run_fit_hybrid)
+from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
+from heliocal.pipeline.models.hybrid import aim_steps, load_model, run_fit_hybrid
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
-from heliocal.pipeline.stages.split import SPLIT
+from heliocal.pipeline.artifacts.schemas import SPLIT
 from heliocal.pipeline.artifacts.transaction import load_manifest, transaction
 from workdir_tools import fingerprint, recommit, sha256
 
@@ -189,7 +190,7 @@ def test_listed_file_deleted_is_refused_and_unlisted_file_is_not_read(wd):
                                           "last `heliocal fit-coarse` run"):
         read_artifact(wd, COARSE_PREDICTIONS)
     shutil.copy(wd / "coarse_params.parquet", wd / "sweep.parquet")  # no sweep ever ran
-    from heliocal.pipeline.stages.sweep import SWEEP as SWEEP_SCHEMA
+    from heliocal.pipeline.artifacts.schemas import SWEEP as SWEEP_SCHEMA
 
     with pytest.raises(StageInputError, match="sweep.parquet was not written by a complete "
                                               "`heliocal sweep` run"):
@@ -348,8 +349,8 @@ def test_case_6_fit_hybrid_and_sweep_for_one_heliostat_keep_the_others(wd, runne
     pred = read_artifact(wd, HYBRID_PREDICTIONS)
     assert sorted(pred["heliostat_id"].unique()) == ["BE36", "BF41"]
     assert load_model(wd, "hybrid", "BE36") is not None and load_model(wd, "hybrid", "BF41")
-    from heliocal.pipeline.stages.sweep import (SELECTED_PREDICTIONS, SELECTION,
-                                                SWEEP as SWEEP_SCHEMA)
+    from heliocal.pipeline.artifacts.schemas import (SELECTED_PREDICTIONS, SELECTION,
+                                                     SWEEP as SWEEP_SCHEMA)
 
     _ok(runner, "sweep", "--workdir", wd, "--heliostat", "BE36", *SWEEP)
     first = {s.name: read_artifact(wd, s) for s in (SWEEP_SCHEMA, SELECTION, SELECTED_PREDICTIONS)}

@@ -17,16 +17,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from heliocal.pipeline.artifacts.store import read_provenance
-from heliocal.pipeline.models.coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, coarse_fit_options,
-                                             run_fit_coarse)
+from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
+from heliocal.pipeline.models.coarse import coarse_fit_options, run_fit_coarse
 from heliocal.pipeline.models.hybrid import FineConfig, aim_models, aim_steps, run_fit_hybrid
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.stages.simulate import simulate_field, write_field
 from heliocal.pipeline.stages.split import run_split
-from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, SELECTED_PREDICTIONS, SELECTION, SWEEP,
-                                            PathConfig, default_ladder, run_sweep, study_heliostats,
-                                            weight_decay_grid)
+from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, PathConfig, default_ladder, run_sweep,
+                                            study_heliostats, weight_decay_grid)
+from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 
 SYNTHETIC = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic" / "paint"
 
@@ -96,7 +96,7 @@ def test_selected_predictions_match_the_selection(static_workdir, monkeypatch):
     # (same model, same rows): a check that the right member, ensemble and base were used. A
     # negative margin forces a hybrid choice on this static heliostat.
     from heliocal.pipeline.stages import sweep as sweep_module
-    from heliocal.pipeline.stages.sweep import SELECTED_PREDICTIONS
+    from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS
 
     monkeypatch.setattr(sweep_module, "MIN_IMPROVEMENT", -1.0)
     run_sweep(static_workdir, n_train=[10, 10_000], weight_decays=[1e-3, 0.0], presets=("static-20",),

@@ -1,17 +1,21 @@
-"""The canonical tables written by ``ingest``: measurements, heliostats and rejected rows.
+"""The schema registry: every artifact heliocal writes, declared once, in stage order.
 
-These schemas are the contract every later stage reads. Other stages declare their own
-artifacts' schemas in their modules; :func:`nomenclature_markdown` renders all of them into
+``ingest`` writes measurements, heliostats and rejected rows; ``split-knn`` the split;
+``fit-coarse`` the coarse parameters and predictions; ``fit-hybrid`` its predictions; ``sweep``
+the sweep, the selection and the selected model's predictions. These schemas are the contract
+every stage reads and writes through; :func:`nomenclature_markdown` renders all of them into
 ``docs/nomenclature.md`` (a test keeps that file in sync).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 from .store import ArtifactSchema, Column
 
-__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
+__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS",
+           "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
            "nomenclature_markdown"]
 
@@ -191,18 +195,180 @@ REJECTED = ArtifactSchema(
 )
 
 
-def all_schemas() -> list[ArtifactSchema]:
-    """Every artifact schema of heliocal (imports the stage modules that declare theirs)."""
-    import importlib
+SPLIT = ArtifactSchema(
+    name="split",
+    filename="split.parquet",
+    producer="split-knn",
+    sort_by=("heliostat_id", "measurement_id"),
+    description="One row per measurement of every heliostat that was split: its set (train, "
+                "validation, test or unused) and the distances in sun position the split was "
+                "judged by. Heliostats with too few measurements are absent (the stage warns).",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat name."),
+        C("measurement_id", "string", "", "Measurement id (as in measurements.parquet)."),
+        C("split", "string", "", "`train`, `validation`, `test`, or `unused` (a training "
+          "candidate dropped by the training-size limit)."),
+        C("knn_distance_deg", "float64", "deg", "Mean distance in sun position to the k nearest "
+          "other measurements of the same heliostat (k and metric as recorded in the "
+          "provenance; computed for every method)."),
+        C("knn_rank", "int64", "", "Rank by knn_distance_deg within the heliostat, 0 = largest "
+          "distance; ties broken by measurement_id."),
+        C("nearest_train_distance_deg", "float64", "deg", "Distance in sun position to the "
+          "nearest training measurement of the same heliostat (for a training row: to the "
+          "nearest other training row)."),
+        C("method", "string", "", "Split method: `knn`, `random`, `time`, `azimuth`, "
+          "`solstice`, `balanced` or `high-variance`."),
+        C("metric", "string", "", "Distance metric of the distance columns: `euclidean` "
+          "(degrees in the azimuth-elevation plane) or `great-circle` (angle between sun "
+          "vectors)."),
+        C("sun_azimuth_deg", "float64", "deg", "Sun azimuth (copied from measurements.parquet, "
+          "so the split can be re-restricted and plotted on its own)."),
+        C("sun_elevation_deg", "float64", "deg", "Sun elevation (copied from "
+          "measurements.parquet)."),
+    ),
+)
 
-    schemas = [MEASUREMENTS, HELIOSTATS, REJECTED]
-    for module in ("stages.split", "models.coarse", "models.hybrid", "stages.sweep"):
-        try:
-            mod = importlib.import_module(f"heliocal.pipeline.{module}")
-        except ImportError:
-            continue
-        schemas.extend(getattr(mod, "SCHEMAS", ()))
-    return schemas
+COARSE_PARAMS = ArtifactSchema(
+    name="coarse_params",
+    filename="coarse_params.parquet",
+    producer="fit-coarse",
+    sort_by=("heliostat_id", "preset", "parameter_index"),
+    description="Per heliostat, preset and kinematic parameter: nominal and fitted value, standard "
+                "error, free or fixed, plus the fit's diagnostics (repeated on each row of a fit).",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("preset", "string", "", "Parameter preset of the fit (static-6 ... static-28, stone-8)."),
+        C("selected", "bool", "", "True for the preset used downstream (chosen by validation error "
+          "with --preset auto)."),
+        C("parameter_index", "int64", "", "Position in the 28-parameter vector."),
+        C("parameter", "string", "", "Parameter name (unit in the name; see docs/kinematics.md)."),
+        C("unit", "string", "", "Unit of the parameter."),
+        C("nominal", "float64", "", "Nominal value from heliostats.parquet."),
+        C("fitted", "float64", "", "Fitted value (nominal where fixed)."),
+        C("std_error", "float64", "", "Standard error from the Jacobian (NaN where fixed).",
+          nullable=True),
+        C("free", "bool", "", "Freed by the preset."),
+        C("determined", "bool", "", "False where the data cannot determine it (std error > half "
+          "the prior sigma)."),
+        C("fit_iterations", "int64", "", "Jacobian evaluations of the LM solve (robust start excluded)."),
+        C("fit_cost", "float64", "mrad^2", "Final cost: half the sum of squared residuals."),
+        C("fit_condition_number", "float64", "", "Condition number of the scaled Jacobian."),
+        C("fit_status", "string", "", "Solver message."),
+        C("fit_implausible", "string", "", "Parameters corrected by more than a plausible amount "
+          "(empty if none)."),
+        C("fit_degenerate", "string", "", "Why the heliostat's training rows cannot determine "
+          "the parameters of the simplest preset (static-6): all rows identical, or too little "
+          "spread in sun position; its errors then say nothing about accuracy (empty if the "
+          "data are fine)."),
+        C("n_train", "int64", "", "Training measurements."),
+        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows."),
+        C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows (NaN if none).",
+          nullable=True),
+        C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
+          nullable=True),
+    ),
+)
+
+COARSE_PREDICTIONS = ArtifactSchema(
+    name="coarse_predictions",
+    filename="coarse_predictions.parquet",
+    producer="fit-coarse",
+    sort_by=("heliostat_id", "model", "measurement_id"),
+    description="Per measurement and model (nominal geometry and each fitted preset): the errors "
+                "defined once in heliocal.pipeline.physics.metrics.",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("measurement_id", "string", "", "Measurement."),
+        C("split", "string", "", "train, validation, test or unused (all train without split.parquet)."),
+        C("model", "string", "", "`nominal` or the preset name (hybrid stages add theirs)."),
+        C("selected", "bool", "", "True for the model used downstream."),
+        C("error_mrad", "float64", "mrad", "Angle between predicted and measured mirror normal."),
+        C("beam_error_mrad", "float64", "mrad", "Angle between the predicted reflected beam and the "
+          "direction to the measured spot."),
+        C("spot_offset_horizontal_m", "float64", "m", "Predicted minus measured spot on the target "
+          "plane, horizontal axis (east for a north-facing target)."),
+        C("spot_offset_vertical_m", "float64", "m", "Same, vertical axis (up)."),
+        C("spot_offset_m", "float64", "m", "Distance between predicted and measured spot on the "
+          "target plane."),
+    ),
+)
+
+HYBRID_PREDICTIONS = dataclasses.replace(
+    COARSE_PREDICTIONS,
+    name="hybrid_predictions",
+    filename="hybrid_predictions.parquet",
+    producer="fit-hybrid",
+    description="Per measurement and fitted mode (hybrid, nn-only, pretrained-nn): the errors "
+                "defined once in heliocal.pipeline.physics.metrics, same columns as "
+                "coarse_predictions.parquet; `model` is the mode, `selected` is True for the "
+                "hybrid mode (the one `aim` uses).",
+)
+
+SWEEP = ArtifactSchema(
+    name="sweep", filename="sweep.parquet", producer="sweep",
+    sort_by=("heliostat_id", "model", "n_train", "weight_decay", "seed"),
+    volatile=("wall_time_s",),
+    description="One row per heliostat, model, training size, weight decay and seed: mean and "
+                "median error_mrad per split (means over the split's rows). Every heliostat has "
+                "its full-size rows (fit-coarse's presets and the hybrid candidates of the "
+                "selection); the heliostats of the training-size study also smaller sizes and "
+                "the baselines.",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("model", "string", "", "Coarse preset name (at the full size: fit-coarse's fit of "
+          "it), `hybrid` (the config's Fourier bands), `hybrid-octaves` (octave bands), "
+          "`nn-only` or `pretrained-nn`."),
+        C("n_train", "int64", "", "Training rows (largest kNN distance first)."),
+        C("weight_decay", "float64", "", "Weight decay of the hybrid (NaN for other models).",
+          nullable=True),
+        C("seed", "int64", "", "Seed of the network's initial weights (0 for coarse presets)."),
+        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows (of this "
+          "training size)."),
+        C("train_median_error_mrad", "float64", "mrad", "Median error on the training rows."),
+        C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows.", nullable=True),
+        C("val_median_error_mrad", "float64", "mrad", "Median on validation.", nullable=True),
+        C("test_error_mrad", "float64", "mrad", "Mean error on the test rows.", nullable=True),
+        C("test_median_error_mrad", "float64", "mrad", "Median on test.", nullable=True),
+        C("test_train_distance_deg", "float64", "deg", "Mean distance of the test rows to their "
+          "nearest training row (sun angles).", nullable=True),
+        C("base_preset", "string", "", "Coarse preset under the hybrid / the preset itself."),
+        C("wall_time_s", "float64", "s", "Wall time of this member's share of the training (0 "
+          "for fit-coarse's fits, which the sweep reads)."),
+    ),
+)
+
+SELECTION = ArtifactSchema(
+    name="selection", filename="selection.parquet", producer="sweep", sort_by=("heliostat_id",),
+    description="Per heliostat the model used by aim and report: the hybrid ensemble with the "
+                "best validation error at the full training size if it beats fit-coarse's "
+                "selected preset by 20 % on validation, else that coarse model.",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("model", "string", "", "`hybrid`, `hybrid-octaves` or `coarse`."),
+        C("preset", "string", "", "Coarse preset (of the coarse model under the hybrid)."),
+        C("weight_decay", "float64", "", "Selected weight decay (NaN for coarse).", nullable=True),
+        C("seed", "int64", "", "Seed of the selected member (0 for coarse)."),
+        C("n_train", "int64", "", "Training rows."),
+        C("val_error_mrad", "float64", "mrad", "Mean validation error of the selected model."),
+        C("test_error_mrad", "float64", "mrad", "Mean test error of the selected model.", nullable=True),
+        C("coarse_val_error_mrad", "float64", "mrad", "Mean validation error of the coarse "
+          "model: fit-coarse's selected preset (the value of coarse_params.parquet)."),
+        C("coarse_test_error_mrad", "float64", "mrad", "Mean test error of the coarse model "
+          "(fit-coarse's, as coarse_params.parquet).", nullable=True),
+    ),
+)
+
+SELECTED_PREDICTIONS = ArtifactSchema(
+    name="selected_predictions", filename="selected_predictions.parquet", producer="sweep",
+    sort_by=COARSE_PREDICTIONS.sort_by, columns=COARSE_PREDICTIONS.columns,
+    description="Per measurement the errors of the model selection.parquet chose (model = "
+                "`selected`): the selected hybrid member, or the coarse model.")
+
+
+def all_schemas() -> list[ArtifactSchema]:
+    """Every artifact schema of heliocal, in the order of the stages that write them."""
+    return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
+            HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
 
 
 def nomenclature_markdown() -> str:

@@ -40,7 +40,7 @@ import pandas as pd
 import torch
 from scipy.optimize import least_squares
 
-from ..artifacts.store import (ArtifactSchema, Column as C, artifact_path, artifact_present,
+from ..artifacts.store import (artifact_path, artifact_present,
                                check_fresh, merge_with_previous, read_artifact, write_artifact)
 from ..errors import FitError, check_choice, check_float, check_int
 from ..physics.jacobian import forward_state, residual_and_jacobian
@@ -52,11 +52,9 @@ from ..physics.metrics import beam_error_mrad, error_mrad, measured_normal, spot
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
+from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 
 __all__ = [
-    "COARSE_PARAMS",
-    "COARSE_PREDICTIONS",
-    "SCHEMAS",
     "AUTO_PRESETS",
     "PRIOR_SIGMA",
     "PLAUSIBLE_CORRECTION",
@@ -104,73 +102,6 @@ ROBUST_START_THRESHOLD_MRAD = 50.0
 
 #: Corrections of the nominal geometry beyond which a fit is reported as implausible.
 PLAUSIBLE_CORRECTION = {"angle": 0.05, "translation": 0.05, "length": 0.05, "increment": 0.02}
-
-COARSE_PARAMS = ArtifactSchema(
-    name="coarse_params",
-    filename="coarse_params.parquet",
-    producer="fit-coarse",
-    sort_by=("heliostat_id", "preset", "parameter_index"),
-    description="Per heliostat, preset and kinematic parameter: nominal and fitted value, standard "
-                "error, free or fixed, plus the fit's diagnostics (repeated on each row of a fit).",
-    columns=(
-        C("heliostat_id", "string", "", "Heliostat."),
-        C("preset", "string", "", "Parameter preset of the fit (static-6 ... static-28, stone-8)."),
-        C("selected", "bool", "", "True for the preset used downstream (chosen by validation error "
-          "with --preset auto)."),
-        C("parameter_index", "int64", "", "Position in the 28-parameter vector."),
-        C("parameter", "string", "", "Parameter name (unit in the name; see docs/kinematics.md)."),
-        C("unit", "string", "", "Unit of the parameter."),
-        C("nominal", "float64", "", "Nominal value from heliostats.parquet."),
-        C("fitted", "float64", "", "Fitted value (nominal where fixed)."),
-        C("std_error", "float64", "", "Standard error from the Jacobian (NaN where fixed).",
-          nullable=True),
-        C("free", "bool", "", "Freed by the preset."),
-        C("determined", "bool", "", "False where the data cannot determine it (std error > half "
-          "the prior sigma)."),
-        C("fit_iterations", "int64", "", "Jacobian evaluations of the LM solve (robust start excluded)."),
-        C("fit_cost", "float64", "mrad^2", "Final cost: half the sum of squared residuals."),
-        C("fit_condition_number", "float64", "", "Condition number of the scaled Jacobian."),
-        C("fit_status", "string", "", "Solver message."),
-        C("fit_implausible", "string", "", "Parameters corrected by more than a plausible amount "
-          "(empty if none)."),
-        C("fit_degenerate", "string", "", "Why the heliostat's training rows cannot determine "
-          "the parameters of the simplest preset (static-6): all rows identical, or too little "
-          "spread in sun position; its errors then say nothing about accuracy (empty if the "
-          "data are fine)."),
-        C("n_train", "int64", "", "Training measurements."),
-        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows."),
-        C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows (NaN if none).",
-          nullable=True),
-        C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
-          nullable=True),
-    ),
-)
-
-COARSE_PREDICTIONS = ArtifactSchema(
-    name="coarse_predictions",
-    filename="coarse_predictions.parquet",
-    producer="fit-coarse",
-    sort_by=("heliostat_id", "model", "measurement_id"),
-    description="Per measurement and model (nominal geometry and each fitted preset): the errors "
-                "defined once in heliocal.pipeline.physics.metrics.",
-    columns=(
-        C("heliostat_id", "string", "", "Heliostat."),
-        C("measurement_id", "string", "", "Measurement."),
-        C("split", "string", "", "train, validation, test or unused (all train without split.parquet)."),
-        C("model", "string", "", "`nominal` or the preset name (hybrid stages add theirs)."),
-        C("selected", "bool", "", "True for the model used downstream."),
-        C("error_mrad", "float64", "mrad", "Angle between predicted and measured mirror normal."),
-        C("beam_error_mrad", "float64", "mrad", "Angle between the predicted reflected beam and the "
-          "direction to the measured spot."),
-        C("spot_offset_horizontal_m", "float64", "m", "Predicted minus measured spot on the target "
-          "plane, horizontal axis (east for a north-facing target)."),
-        C("spot_offset_vertical_m", "float64", "m", "Same, vertical axis (up)."),
-        C("spot_offset_m", "float64", "m", "Distance between predicted and measured spot on the "
-          "target plane."),
-    ),
-)
-
-SCHEMAS = (COARSE_PARAMS, COARSE_PREDICTIONS)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -650,7 +581,7 @@ def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarr
 # ------------------------------------------------------------------------------------------------
 def _load_split(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
     """Split label per measurement row: split.parquet's if present, else all ``train``."""
-    from ..stages.split import SPLIT  # local: split.py is optional at import time
+    from ..artifacts.schemas import SPLIT  # local: split.py is optional at import time
 
     path = artifact_path(workdir, SPLIT)
     if not artifact_present(workdir, SPLIT):

@@ -91,8 +91,9 @@ import torch
 from ..artifacts.store import (artifact_path, artifact_present, check_fresh, committed_fingerprint,
                                merge_with_previous, previous_run_matches, read_artifact,
                                write_artifact)
-from .coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch, _kind, _load_split,
-                     load_selected_parameters, metrics_frame, predict)
+from ..artifacts.schemas import COARSE_PARAMS
+from .coarse import (MeasurementBatch, _kind, _load_split, load_selected_parameters, metrics_frame,
+                     predict)
 from ..errors import (FitError, InputError, ParameterError, StageInputError, check_choice,
                       check_float, check_int)
 from ..physics.kinematics import (PARAMETER_NAMES, HeliostatSpec, ParameterComponents,
@@ -105,12 +106,11 @@ from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from ..artifacts.transaction import (current_transaction, load_manifest, read_committed,
                                      stage_transaction)
 from ..artifacts.workdir_lock import locks_workdir
+from ..artifacts.schemas import HYBRID_PREDICTIONS
 
 __all__ = [
     "MODES",
     "OUTPUT_SCALE",
-    "HYBRID_PREDICTIONS",
-    "SCHEMAS",
     "FineConfig",
     "PretrainConfig",
     "FeatureEncoder",
@@ -143,17 +143,6 @@ MODES = ("hybrid", "nn-only", "pretrained-nn")
 #: translations [m], actuator lengths [m]; increments relative to the nominal increment.
 OUTPUT_SCALE = {"angle": 1e-3, "translation": 1e-2, "length": 3e-4, "increment": 1e-3}
 
-HYBRID_PREDICTIONS = dataclasses.replace(
-    COARSE_PREDICTIONS,
-    name="hybrid_predictions",
-    filename="hybrid_predictions.parquet",
-    producer="fit-hybrid",
-    description="Per measurement and fitted mode (hybrid, nn-only, pretrained-nn): the errors "
-                "defined once in heliocal.pipeline.physics.metrics, same columns as "
-                "coarse_predictions.parquet; `model` is the mode, `selected` is True for the "
-                "hybrid mode (the one `aim` uses).",
-)
-SCHEMAS = (HYBRID_PREDICTIONS,)
 
 _FUNC = "fit_hybrid"
 
@@ -1123,7 +1112,7 @@ def _split_means(err: np.ndarray, labels: np.ndarray) -> dict:
 def _current_inputs(workdir: Path) -> dict:
     """label -> committed content fingerprint of every input a fine model is made from (the labels
     its run recorded: the artifacts it read)."""
-    from ..stages.split import SPLIT
+    from ..artifacts.schemas import SPLIT
 
     out = {}
     for label, schema in (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS),
@@ -1135,7 +1124,7 @@ def _current_inputs(workdir: Path) -> dict:
 
 
 def _check_inputs(workdir: Path) -> None:
-    from ..stages.split import SPLIT
+    from ..artifacts.schemas import SPLIT
 
     if not artifact_present(workdir, COARSE_PARAMS):
         raise StageInputError(f"{artifact_path(workdir, COARSE_PARAMS)} is missing: run "
@@ -1379,8 +1368,8 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
     such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
     empty without coarse_params.parquet.
     """
-    from ..stages.split import SPLIT
-    from ..stages.sweep import SELECTION
+    from ..artifacts.schemas import SPLIT
+    from ..artifacts.schemas import SELECTION
 
     workdir = Path(workdir)
     if not artifact_present(workdir, COARSE_PARAMS):

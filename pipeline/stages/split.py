@@ -35,15 +35,14 @@ import numpy as np
 import pandas as pd
 from sklearn.neighbors import NearestNeighbors
 
-from ..artifacts.store import ArtifactSchema, Column, read_artifact, write_artifact
+from ..artifacts.store import read_artifact, write_artifact
 from ..errors import FitError, InputError, ParameterError, check_choice, check_int
 from ..artifacts.schemas import MEASUREMENTS
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
+from ..artifacts.schemas import SPLIT
 
 __all__ = [
-    "SPLIT",
-    "SCHEMAS",
     "METHODS",
     "METRICS",
     "SPLIT_LABELS",
@@ -70,42 +69,7 @@ _FUNC = "split_knn"
 
 log = logging.getLogger("heliocal.split")
 
-C = Column
 
-SPLIT = ArtifactSchema(
-    name="split",
-    filename="split.parquet",
-    producer="split-knn",
-    sort_by=("heliostat_id", "measurement_id"),
-    description="One row per measurement of every heliostat that was split: its set (train, "
-                "validation, test or unused) and the distances in sun position the split was "
-                "judged by. Heliostats with too few measurements are absent (the stage warns).",
-    columns=(
-        C("heliostat_id", "string", "", "Heliostat name."),
-        C("measurement_id", "string", "", "Measurement id (as in measurements.parquet)."),
-        C("split", "string", "", "`train`, `validation`, `test`, or `unused` (a training "
-          "candidate dropped by the training-size limit)."),
-        C("knn_distance_deg", "float64", "deg", "Mean distance in sun position to the k nearest "
-          "other measurements of the same heliostat (k and metric as recorded in the "
-          "provenance; computed for every method)."),
-        C("knn_rank", "int64", "", "Rank by knn_distance_deg within the heliostat, 0 = largest "
-          "distance; ties broken by measurement_id."),
-        C("nearest_train_distance_deg", "float64", "deg", "Distance in sun position to the "
-          "nearest training measurement of the same heliostat (for a training row: to the "
-          "nearest other training row)."),
-        C("method", "string", "", "Split method: `knn`, `random`, `time`, `azimuth`, "
-          "`solstice`, `balanced` or `high-variance`."),
-        C("metric", "string", "", "Distance metric of the distance columns: `euclidean` "
-          "(degrees in the azimuth-elevation plane) or `great-circle` (angle between sun "
-          "vectors)."),
-        C("sun_azimuth_deg", "float64", "deg", "Sun azimuth (copied from measurements.parquet, "
-          "so the split can be re-restricted and plotted on its own)."),
-        C("sun_elevation_deg", "float64", "deg", "Sun elevation (copied from "
-          "measurements.parquet)."),
-    ),
-)
-
-SCHEMAS = (SPLIT,)
 
 _INPUT_COLUMNS = ["heliostat_id", "measurement_id", "timestamp", "sun_azimuth_deg",
                   "sun_elevation_deg"]

@@ -46,11 +46,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..artifacts.store import (ArtifactSchema, Column as C, check_fresh, merge_with_previous,
+from ..artifacts.store import (check_fresh, merge_with_previous,
                                previous_run_matches, read_artifact, write_artifact)
-from ..models.coarse import (COARSE_PARAMS, COARSE_PREDICTIONS, MeasurementBatch,
-                             coarse_fit_options, fit_presets, load_selected_parameters,
-                             normal_errors_mrad)
+from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
+from ..models.coarse import (MeasurementBatch, coarse_fit_options, fit_presets,
+                             load_selected_parameters, normal_errors_mrad)
 from ..errors import FitError, ParameterError, check_float, check_int
 from ..models.hybrid import (HYBRID_BATCH_SIZE, FineConfig, FineProblem, MemberResult,
                              PretrainConfig, _hybrid_chunks, _layers_to_state, _take_rows,
@@ -61,77 +61,18 @@ from ..physics.metrics import error_mrad, measured_normal
 from ..runtime.parallel import map_tasks
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from ..artifacts.modelfiles import write_model
-from .split import SPLIT, restrict_training
+from ..artifacts.schemas import SPLIT
+from .split import restrict_training
 from ..artifacts.transaction import current_transaction, stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
+from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 
-__all__ = ["SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "SCHEMAS", "default_ladder",
+__all__ = ["default_ladder",
            "weight_decay_grid", "run_sweep", "hybrid_variants", "OCTAVE_BANDS", "MIN_IMPROVEMENT",
            "PathConfig", "train_path", "study_heliostats", "DEFAULT_STUDY"]
 
 log = logging.getLogger("heliocal.sweep")
 
-SWEEP = ArtifactSchema(
-    name="sweep", filename="sweep.parquet", producer="sweep",
-    sort_by=("heliostat_id", "model", "n_train", "weight_decay", "seed"),
-    volatile=("wall_time_s",),
-    description="One row per heliostat, model, training size, weight decay and seed: mean and "
-                "median error_mrad per split (means over the split's rows). Every heliostat has "
-                "its full-size rows (fit-coarse's presets and the hybrid candidates of the "
-                "selection); the heliostats of the training-size study also smaller sizes and "
-                "the baselines.",
-    columns=(
-        C("heliostat_id", "string", "", "Heliostat."),
-        C("model", "string", "", "Coarse preset name (at the full size: fit-coarse's fit of "
-          "it), `hybrid` (the config's Fourier bands), `hybrid-octaves` (octave bands), "
-          "`nn-only` or `pretrained-nn`."),
-        C("n_train", "int64", "", "Training rows (largest kNN distance first)."),
-        C("weight_decay", "float64", "", "Weight decay of the hybrid (NaN for other models).",
-          nullable=True),
-        C("seed", "int64", "", "Seed of the network's initial weights (0 for coarse presets)."),
-        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows (of this "
-          "training size)."),
-        C("train_median_error_mrad", "float64", "mrad", "Median error on the training rows."),
-        C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows.", nullable=True),
-        C("val_median_error_mrad", "float64", "mrad", "Median on validation.", nullable=True),
-        C("test_error_mrad", "float64", "mrad", "Mean error on the test rows.", nullable=True),
-        C("test_median_error_mrad", "float64", "mrad", "Median on test.", nullable=True),
-        C("test_train_distance_deg", "float64", "deg", "Mean distance of the test rows to their "
-          "nearest training row (sun angles).", nullable=True),
-        C("base_preset", "string", "", "Coarse preset under the hybrid / the preset itself."),
-        C("wall_time_s", "float64", "s", "Wall time of this member's share of the training (0 "
-          "for fit-coarse's fits, which the sweep reads)."),
-    ),
-)
-
-SELECTION = ArtifactSchema(
-    name="selection", filename="selection.parquet", producer="sweep", sort_by=("heliostat_id",),
-    description="Per heliostat the model used by aim and report: the hybrid ensemble with the "
-                "best validation error at the full training size if it beats fit-coarse's "
-                "selected preset by 20 % on validation, else that coarse model.",
-    columns=(
-        C("heliostat_id", "string", "", "Heliostat."),
-        C("model", "string", "", "`hybrid`, `hybrid-octaves` or `coarse`."),
-        C("preset", "string", "", "Coarse preset (of the coarse model under the hybrid)."),
-        C("weight_decay", "float64", "", "Selected weight decay (NaN for coarse).", nullable=True),
-        C("seed", "int64", "", "Seed of the selected member (0 for coarse)."),
-        C("n_train", "int64", "", "Training rows."),
-        C("val_error_mrad", "float64", "mrad", "Mean validation error of the selected model."),
-        C("test_error_mrad", "float64", "mrad", "Mean test error of the selected model.", nullable=True),
-        C("coarse_val_error_mrad", "float64", "mrad", "Mean validation error of the coarse "
-          "model: fit-coarse's selected preset (the value of coarse_params.parquet)."),
-        C("coarse_test_error_mrad", "float64", "mrad", "Mean test error of the coarse model "
-          "(fit-coarse's, as coarse_params.parquet).", nullable=True),
-    ),
-)
-
-SELECTED_PREDICTIONS = ArtifactSchema(
-    name="selected_predictions", filename="selected_predictions.parquet", producer="sweep",
-    sort_by=COARSE_PREDICTIONS.sort_by, columns=COARSE_PREDICTIONS.columns,
-    description="Per measurement the errors of the model selection.parquet chose (model = "
-                "`selected`): the selected hybrid member, or the coarse model.")
-
-SCHEMAS = (SWEEP, SELECTION, SELECTED_PREDICTIONS)
 
 #: Relative validation improvement a hybrid needs to be selected over the coarse model. The
 #: validation rows lie between the training rows in sun position while the kNN test rows lie at
