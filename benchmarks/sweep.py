@@ -1,7 +1,7 @@
 """Benchmark: a 16-member sweep of one heliostat, batched vs a sequential loop, in one run.
 
 The 16 members (8 weight decays x 2 seeds, or as given) train as ONE batched torch program
-(:func:`heliocal.pipeline.models.hybrid.train_members` with M = 16) and, for comparison, one by one
+(:func:`heliocal.pipeline.models.training.train_members` with M = 16) and, for comparison, one by one
 (16 calls with M = 1, the same seeds). Both paths are first warmed up once (a process's first
 training pays a one-time start-up cost of about a second: torch's lazy initialisation and the
 allocator growing), then timed ``--repeats`` times, alternating. Prints the median wall times,
@@ -25,8 +25,8 @@ import numpy as np
 import torch
 
 from heliocal.pipeline.models.coarse import load_selected_parameters, run_fit_coarse
-from heliocal.pipeline.models.hybrid import (FineConfig, build_problem, member_errors_mrad,
-                                             train_members)
+from heliocal.pipeline.models.network import FineConfig
+from heliocal.pipeline.models.training import build_problem, member_errors_mrad, train_members
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from heliocal.pipeline.artifacts.store import read_artifact

@@ -71,7 +71,8 @@ def _instrument() -> None:
 
 def _stages(workdir: Path):
     from heliocal.pipeline.models.coarse import run_fit_coarse
-    from heliocal.pipeline.models.hybrid import FineConfig, run_fit_hybrid
+    from heliocal.pipeline.models.network import FineConfig
+    from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
     from heliocal.pipeline.stages.ingest import run_ingest
     from heliocal.pipeline.stages.report import run_report
     from heliocal.pipeline.stages.split import run_split

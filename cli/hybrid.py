@@ -1,6 +1,6 @@
 """``heliocal fit-hybrid`` (fine model / baselines) and ``heliocal aim`` (steps for an aim point).
 
-See docs/hybrid.md. Library: :mod:`heliocal.pipeline.models.hybrid`.
+See docs/hybrid.md. Library: :mod:`heliocal.pipeline.stages.fit_hybrid`, :mod:`heliocal.pipeline.stages.aim`.
 """
 
 from __future__ import annotations
@@ -18,8 +18,9 @@ from rich.table import Table
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler, Seed,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import InputError, ParameterError
-from heliocal.pipeline.models.hybrid import (HYBRID_BATCH_SIZE, MODES, FineConfig, aim_steps,
-                                             run_fit_hybrid)
+from heliocal.pipeline.stages.fit_hybrid import HYBRID_BATCH_SIZE, run_fit_hybrid
+from heliocal.pipeline.models.network import MODES, FineConfig
+from heliocal.pipeline.stages.aim import aim_steps
 
 __all__ = ["fit_hybrid_cmd", "aim_cmd"]
 

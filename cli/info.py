@@ -252,7 +252,7 @@ def describe_workdir(workdir: str | Path) -> dict:
                 "staged_files": sum(1 for r in m.files if (m.staging / r).is_file())}
                for m in pending_commits(workdir)]
     leftovers = sorted(str(p) for p in workdir.glob(".*.tmp-*"))
-    from heliocal.pipeline.models.hybrid import aim_models
+    from heliocal.pipeline.stages.aim import aim_models
 
     stopped = [{"path": str(p), "in_progress": staging_in_use(p)}
                for p in stale_staging_folders(workdir)]

@@ -11,8 +11,8 @@ from rich.table import Table
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.models.hybrid import FineConfig
-from heliocal.pipeline.models.hybrid import HYBRID_BATCH_SIZE
+from heliocal.pipeline.models.network import FineConfig
+from heliocal.pipeline.stages.fit_hybrid import HYBRID_BATCH_SIZE
 from heliocal.pipeline.stages.sweep import (DEFAULT_STUDY, OCTAVE_BANDS, PathConfig, run_sweep,
                                             weight_decay_grid)
 

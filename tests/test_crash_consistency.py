@@ -205,7 +205,7 @@ def _high_level_readers(workdir: Path, stage: str, view: dict, fresh: bool) -> N
     from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
     from heliocal.pipeline.models.coarse import load_selected_parameters
     from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
-    from heliocal.pipeline.models.hybrid import aim_steps, load_model
+    from heliocal.pipeline.stages.aim import aim_steps, load_model
     from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
     from heliocal.pipeline.artifacts.schemas import SPLIT
     from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
@@ -413,7 +413,7 @@ def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygote, ba
     """Issue case 2: new weights with the old config (aim: 'mat1 and mat2 shapes cannot be
     multiplied'), and models of one run beside predictions of another. Now one run or the other,
     and aim works at every moment."""
-    from heliocal.pipeline.models.hybrid import aim_steps, load_model
+    from heliocal.pipeline.stages.aim import aim_steps, load_model
 
     argv = ["fit-hybrid", "--max-epochs", "20", "--seed", "1", "--workers", "1",
             "--depth", "3", "--width", "4"]  # other layer sizes than the previous run's 14 x 2

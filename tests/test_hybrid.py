@@ -32,11 +32,13 @@ from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat, no
                                              run_fit_coarse)
 from heliocal.pipeline.errors import StageInputError
 from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
-from heliocal.pipeline.models.hybrid import (FineConfig, FineProblem, FeatureEncoder, build_problem,
-                                             ensemble_errors_mrad, ensemble_seeds, init_mlp,
-                                             load_model, member_errors_mrad, predict_ensembles,
-                                             member_parameters, output_scales, predict_members,
-                                             run_fit_hybrid, train_members)
+from heliocal.pipeline.models.network import (FineConfig, FeatureEncoder, ensemble_seeds, init_mlp,
+                                              output_scales)
+from heliocal.pipeline.models.training import (FineProblem, build_problem, ensemble_errors_mrad,
+                                               member_errors_mrad, predict_ensembles,
+                                               member_parameters, predict_members, train_members)
+from heliocal.pipeline.stages.aim import load_model
+from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.physics.kinematics import (PARAMETER_INDEX, HeliostatSpec,
                                                   forward_kinematics, inverse_kinematics,
                                                   nominal_parameters, preset_mask)

@@ -44,7 +44,8 @@ from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTION
 from heliocal.pipeline.models.coarse import run_fit_coarse
 from heliocal.pipeline.errors import SchemaError, StageInputError
 from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
-from heliocal.pipeline.models.hybrid import aim_steps, load_model, run_fit_hybrid
+from heliocal.pipeline.stages.aim import aim_steps, load_model
+from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
 from heliocal.pipeline.artifacts.schemas import SPLIT
@@ -250,7 +251,7 @@ def test_case_5_second_of_two_concurrent_fit_hybrid_runs_is_refused_by_the_lock(
     """Issue 22's case 5 (an nn-only run and a hybrid run at once on one workdir): the workdir lock
     of issue 21 refuses the second writer at its start with a one-line error naming the running
     one, and the first run commits; nothing of either is lost."""
-    import heliocal.pipeline.models.hybrid as hybrid
+    import heliocal.pipeline.stages.fit_hybrid as hybrid
 
     real = hybrid.map_tasks
     seen = {}
@@ -279,11 +280,11 @@ def test_case_5_without_a_working_lock_the_second_run_does_not_commit(wd, monkey
     transaction's own check remains: the hybrid run (another process, run past the lock as such
     a machine would) commits while the nn-only run trains; the nn-only run then refuses to commit
     instead of dropping the hybrid run's rows."""
-    import heliocal.pipeline.models.hybrid as hybrid
+    import heliocal.pipeline.stages.fit_hybrid as hybrid
 
     before = load_manifest(wd, "fit-hybrid").run_id
     real = hybrid.map_tasks
-    unlocked = ("import sys; from heliocal.pipeline.models.hybrid import FineConfig, run_fit_hybrid; "
+    unlocked = ("import sys; from heliocal.pipeline.models.network import FineConfig; from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid; "
                 "run_fit_hybrid.__wrapped__(sys.argv[1], mode='hybrid', heliostats=['BF41'], "
                 "config=FineConfig(max_epochs=20), workers=1)")
 

@@ -19,7 +19,9 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from heliocal.pipeline.artifacts.store import read_provenance
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from heliocal.pipeline.models.coarse import coarse_fit_options, run_fit_coarse
-from heliocal.pipeline.models.hybrid import FineConfig, aim_models, aim_steps, run_fit_hybrid
+from heliocal.pipeline.models.network import FineConfig
+from heliocal.pipeline.stages.aim import aim_models, aim_steps
+from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.stages.simulate import simulate_field, write_field

@@ -20,10 +20,13 @@ import zipfile
 from pathlib import Path
 from typing import Mapping
 
-from ..errors import SchemaError
+from ..errors import SchemaError, StageInputError
+from .schemas import COARSE_PARAMS, HELIOSTATS, MEASUREMENTS, SPLIT
+from .store import artifact_path, artifact_present, check_fresh, committed_fingerprint
 from .transaction import load_manifest, read_committed
 
-__all__ = ["model_files", "write_model", "read_model"]
+__all__ = ["model_files", "write_model", "read_model", "fine_model_inputs",
+           "check_fine_model_inputs"]
 
 
 def model_files(mode: str, heliostat_id: str) -> tuple[str, str]:
@@ -125,3 +128,27 @@ def read_model(workdir: str | os.PathLike, stage: str, mode: str, heliostat_id: 
         raise SchemaError(f"{pt_file.path} does not hold a state dict of tensors; rerun {hint}")
     _check_shapes(state, cfg, pt_file.path, hint)
     return cfg, state
+
+
+def fine_model_inputs(workdir: Path) -> dict:
+    """label -> committed content fingerprint of every input a fine model is made from (the labels
+    its run recorded: the artifacts it read)."""
+    out = {}
+    for label, schema in (("measurements", MEASUREMENTS), ("heliostats", HELIOSTATS),
+                          ("coarse_params", COARSE_PARAMS), ("split", SPLIT)):
+        fp = committed_fingerprint(workdir, schema)
+        if fp is not None:
+            out[label] = fp
+    return out
+
+
+def check_fine_model_inputs(workdir: Path) -> None:
+    """Raise :class:`StageInputError` unless fit-coarse's parameters exist and are fresh with
+    respect to the measurements, heliostats and (if present) the split."""
+    if not artifact_present(workdir, COARSE_PARAMS):
+        raise StageInputError(f"{artifact_path(workdir, COARSE_PARAMS)} is missing: run "
+                              f"`heliocal fit-coarse --workdir {workdir}` first")
+    upstream = {"measurements": MEASUREMENTS, "heliostats": HELIOSTATS}
+    if artifact_present(workdir, SPLIT):
+        upstream["split"] = SPLIT
+    check_fresh(workdir, COARSE_PARAMS, upstream)

@@ -40,8 +40,8 @@ import pandas as pd
 import torch
 from scipy.optimize import least_squares
 
-from ..artifacts.store import (artifact_path, artifact_present,
-                               check_fresh, merge_with_previous, read_artifact, write_artifact)
+from ..artifacts.store import (artifact_path, artifact_present, check_fresh, merge_with_previous,
+                               read_artifact, write_artifact)
 from ..errors import FitError, check_choice, check_float, check_int
 from ..physics.jacobian import forward_state, residual_and_jacobian
 from ..runtime.parallel import map_tasks
@@ -85,7 +85,7 @@ LOSSES = ("linear", "soft_l1", "huber")
 SOLVERS = ("batched", "scipy")
 
 
-def _kind(name: str) -> str:
+def parameter_kind(name: str) -> str:
     if name.endswith("_increment"):
         return "increment"
     if "_tilt_" in name or name.endswith("_initial_angle_rad"):
@@ -194,7 +194,7 @@ class CoarseFit:
 def _prior_sigma(nominal: torch.Tensor) -> np.ndarray:
     sig = np.empty(len(PARAMETER_NAMES))
     for i, name in enumerate(PARAMETER_NAMES):
-        kind = _kind(name)
+        kind = parameter_kind(name)
         relative = (abs(float(nominal[i])) or 1.0) if kind == "increment" else 1.0
         sig[i] = PRIOR_SIGMA[kind] * relative
     return sig
@@ -567,7 +567,7 @@ def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarr
     implausible = []
     for i in free_idx:
         name = PARAMETER_NAMES[i]
-        kind = _kind(name)
+        kind = parameter_kind(name)
         delta = float(fitted[i] - nominal[i])
         bound = PLAUSIBLE_CORRECTION[kind] * (abs(float(nominal[i])) if kind == "increment" else 1.0)
         if abs(delta) > bound:
@@ -579,7 +579,7 @@ def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarr
 # ------------------------------------------------------------------------------------------------
 # the stage
 # ------------------------------------------------------------------------------------------------
-def _load_split(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
+def load_split_labels(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
     """Split label per measurement row: split.parquet's if present, else all ``train``."""
     from ..artifacts.schemas import SPLIT  # local: split.py is optional at import time
 
@@ -809,7 +809,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     workdir = Path(workdir)
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
     helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
-    measurements["split"] = _load_split(workdir, measurements).to_numpy()
+    measurements["split"] = load_split_labels(workdir, measurements).to_numpy()
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     helio = helio.set_index("heliostat_id", drop=False)
     with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])

@@ -54,7 +54,7 @@ LOSSES = ("linear", "soft_l1", "huber")
 #: residual that replaces NaN (an actuator outside its range), as in the scipy path [mrad]
 NAN_RESIDUAL_MRAD = 1e4
 
-_SPEC_TENSORS = ("clockwise", "min_steps", "max_steps", "position_enu", "initial_orientation",
+SPEC_TENSORS = ("clockwise", "min_steps", "max_steps", "position_enu", "initial_orientation",
                  "primary_axis")
 
 
@@ -71,7 +71,7 @@ def stack_specs(specs: list[HeliostatSpec]) -> HeliostatSpec:
         raise ParameterError("The 'specs' parameter of stack_specs must share one kinematic_type "
                              f"and actuator_type. Got {sorted(types)!r} instead.")
     out = copy.copy(specs[0])
-    for name in _SPEC_TENSORS:
+    for name in SPEC_TENSORS:
         object.__setattr__(out, name, torch.stack([getattr(s, name) for s in specs]))
     object.__setattr__(out, "heliostat_id", tuple(s.heliostat_id for s in specs))
     return out
@@ -79,7 +79,7 @@ def stack_specs(specs: list[HeliostatSpec]) -> HeliostatSpec:
 
 def _take_spec(spec: HeliostatSpec, idx: torch.Tensor) -> HeliostatSpec:
     out = copy.copy(spec)
-    for name in _SPEC_TENSORS:
+    for name in SPEC_TENSORS:
         object.__setattr__(out, name, getattr(spec, name)[idx])
     object.__setattr__(out, "heliostat_id", None)
     return out

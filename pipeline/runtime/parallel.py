@@ -37,6 +37,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Sequence
 
 from ..errors import ParameterError, check_choice, check_int
+from .process_state import one_thread
 
 __all__ = ["default_workers", "map_tasks", "SCHEDULERS"]
 
@@ -125,28 +126,6 @@ def _init_worker() -> None:
         pass
 
 
-@contextlib.contextmanager
-def _one_thread():
-    """Limit torch and BLAS to one thread in this process for the duration (small problems:
-    more threads only add synchronisation)."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        from threadpoolctl import threadpool_limits
-
-        limits = threadpool_limits(1)
-    except ImportError:  # pragma: no cover
-        limits = None
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-        if limits is not None:
-            limits.restore_original_limits()
-
-
 def _run_chunk(func: Callable, chunk: Sequence[Any]) -> list:
     _init_worker()
     return [func(task) for task in chunk]
@@ -199,7 +178,7 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
         return _map_dask(func, tasks, workers, dask_address, progress, chunks_per_worker)
     if workers == 1 or total == 1:
         out = []
-        with _one_thread():
+        with one_thread(blas=True):
             for k, t in enumerate(tasks):
                 out.append(func(t))
                 if progress:

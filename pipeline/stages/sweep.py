@@ -8,10 +8,10 @@ selected fit, read from coarse_params.parquet and not refitted: its errors in sw
 selection.parquet are ``fit-coarse``'s, computed from the same predictions
 (coarse_predictions.parquet). The hybrid is trained on top of it, for every Fourier band set
 (:func:`hybrid_variants`), weight decay and seed, each an ensemble of ``FineConfig.ensemble``
-networks whose deviations are averaged (:func:`heliocal.pipeline.models.hybrid.ensemble_seeds`).
+networks whose deviations are averaged (:func:`heliocal.pipeline.models.network.ensemble_seeds`).
 Heliostats of one kinematic type, actuator type and coarse preset train together, ``batch_size``
 at a time, as one batched torch program per weight decay (as ``fit-hybrid`` does, with
-:func:`heliocal.pipeline.models.hybrid.stack_problems`); the weight decays are trained along a path
+:func:`heliocal.pipeline.models.training.stack_problems`); the weight decays are trained along a path
 from strong to weak (:func:`train_path`, :class:`PathConfig`). The selection
 (``selection.parquet``) is the candidate ensemble with the lowest mean validation error, where
 the coarse model is always a candidate, so the selected model is never worse than
@@ -46,16 +46,18 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..artifacts.store import (check_fresh, merge_with_previous,
-                               previous_run_matches, read_artifact, write_artifact)
+from ..artifacts.store import (check_fresh, merge_with_previous, previous_run_matches,
+                               read_artifact, write_artifact)
 from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from ..models.coarse import (MeasurementBatch, coarse_fit_options, fit_presets,
                              load_selected_parameters, normal_errors_mrad)
 from ..errors import FitError, ParameterError, check_float, check_int
-from ..models.hybrid import (HYBRID_BATCH_SIZE, FineConfig, FineProblem, MemberResult,
-                             PretrainConfig, _hybrid_chunks, _layers_to_state, _take_rows,
-                             build_problem, ensemble_errors_mrad, ensemble_seeds, fit_pretrained,
-                             predict_ensembles, predictions_frame, stack_problems, train_members)
+from .fit_hybrid import HYBRID_BATCH_SIZE, hybrid_chunks
+from ..models.network import FineConfig, layers_to_state, ensemble_seeds
+from ..models.training import (FineProblem, MemberResult, take_rows, build_problem,
+                               ensemble_errors_mrad, predict_ensembles, predictions_frame,
+                               stack_problems, train_members)
+from ..models.pretrained import PretrainConfig, fit_pretrained
 from ..physics.kinematics import HeliostatSpec, nominal_parameters
 from ..physics.metrics import error_mrad, measured_normal
 from ..runtime.parallel import map_tasks
@@ -180,7 +182,7 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
                path: PathConfig = PathConfig()) -> Iterator[tuple[float, MemberResult]]:
     """Train M networks at every weight decay, strong to weak; yield ``(weight_decay, result)``.
 
-    Each weight decay is one :func:`heliocal.pipeline.models.hybrid.train_members` program of the M
+    Each weight decay is one :func:`heliocal.pipeline.models.training.train_members` program of the M
     networks (``seeds`` (M,), masks as there). With ``path.warm_start`` the first weight decay
     starts from the seeded weights and every later one from the previous weight decay's
     best-validation weights, each with the budget of ``path``; since the start is the epoch-0
@@ -278,7 +280,7 @@ def _select_chunk(items, variants, weight_decays, seeds, path) -> list[dict]:
         problems = [build_problem(h.rows, h.hrow, h.selected["params"], h.selected["free"], cfg)
                     for h in helios]
         fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
-        taken = [_take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
+        taken = [take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
         per_h = n_seeds * k_ens           # networks per heliostat: seeds x ensemble
         stacked, valid = stack_problems([t for t in taken for _ in range(per_h)])
         n = stacked.data.steps.shape[1]
@@ -320,7 +322,7 @@ def _select_chunk(items, variants, weight_decays, seeds, path) -> list[dict]:
                 normal, position = predict_ensembles(problem, layers)
             pred = _sel_frame(h, predictions_frame(problem, normal[0], position[0]))
             state = {
-                "state": _layers_to_state(layers),
+                "state": layers_to_state(layers),
                 "config": {"mode": "hybrid", "heliostat_id": h.hid, "seed": b["seed"],
                            "weight_decay": float(b["weight_decay"]),
                            "fine_config": cfg.to_dict(), "encoder": problem.encoder.to_dict(),
@@ -545,7 +547,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         raise FitError(f"no heliostat in {workdir} has a coarse fit and training rows; run "
                        f"`heliocal fit-coarse --workdir {workdir}` first")
     ids = sorted(items, key=lambda h: (len(items[h][1]), h))
-    chunks = _hybrid_chunks(ids, selected, helio, batch_size)
+    chunks = hybrid_chunks(ids, selected, helio, batch_size)
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path))
              for chunk in chunks]
     studied = study_heliostats(list(items), study, study_seed)

@@ -1,0 +1,299 @@
+"""``aim``: the motor steps that reflect the sun onto an aim point, through each heliostat's
+selected model (the hybrid where the sweep chose it, else the coarse model).
+"""
+
+from __future__ import annotations
+import json
+from pathlib import Path
+from typing import Mapping, Sequence
+import numpy as np
+import pandas as pd
+import torch
+from ..artifacts.store import artifact_present, check_fresh, read_artifact
+from ..artifacts.schemas import COARSE_PARAMS
+from ..models.coarse import load_selected_parameters
+from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
+from ..physics.kinematics import (HeliostatSpec, forward_kinematics, inverse_kinematics,
+                                  nominal_parameters)
+from ..physics.metrics import error_mrad, reflect
+from ..artifacts.modelfiles import model_files, read_model
+from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
+from ..artifacts.transaction import load_manifest, read_committed
+from ..artifacts.schemas import HYBRID_PREDICTIONS
+from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs
+from ..models.network import FeatureEncoder, Layers, MODES, state_to_layers
+from ..models.pretrained import PretrainedModel
+from ..models.training import FineProblem, grouped_components
+from ..runtime.process_state import single_threaded
+
+__all__ = [
+    "load_model",
+    "aim_models",
+    "aim_steps",
+]
+
+# ------------------------------------------------------------------------------------------------
+# pretrained-nn (paper 002)
+# ------------------------------------------------------------------------------------------------
+def _unit(v: torch.Tensor) -> torch.Tensor:
+    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+
+
+# ------------------------------------------------------------------------------------------------
+# loading a fitted model and aiming
+# ------------------------------------------------------------------------------------------------
+def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict, Layers] | None:
+    """Config dict and weights of a fitted mode for one heliostat (``None`` if not fitted).
+
+    ``mode`` ``selected`` is the sweep's selected model (``DIR/hybrid/selected/``). The files are
+    read through their stage's manifest and checked (:func:`heliocal.pipeline.artifacts.modelfiles.read_model`):
+    a changed, corrupt or foreign file gives a one-line error naming it and the command to rerun.
+    """
+    workdir = Path(workdir)
+    if mode == "selected":
+        stage, hint = "sweep", f"`heliocal sweep --workdir {workdir}`"
+    else:
+        stage, hint = "fit-hybrid", f"`heliocal fit-hybrid --workdir {workdir} --mode {mode}`"
+    found = read_model(workdir, stage, mode, heliostat_id, hint=hint)
+    if found is None:
+        return None
+    cfg, state = found
+    return cfg, state_to_layers(state)
+
+
+def _model_committed(workdir: Path, mode: str, heliostat_id: str) -> bool:
+    """Whether the stage that writes ``mode``'s models committed one for the heliostat (both its
+    files listed in the stage's manifest; :func:`load_model` checks their content)."""
+    cfg_rel, pt_rel = model_files(mode, heliostat_id)
+    m = load_manifest(workdir, "sweep" if mode == "selected" else "fit-hybrid")
+    return m is not None and cfg_rel in m.files and pt_rel in m.files
+
+
+def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
+               strict: bool = False) -> dict:
+    """Per heliostat the model ``aim --model auto`` uses, and its mean validation and test error.
+
+    The one decision both :func:`aim_steps` and ``heliocal info WORKDIR`` use: the sweep's
+    selection (selection.parquet) where the sweep ran: its coarse model, or its selected hybrid
+    ensemble (``hybrid/selected/``) if that was written; without a selection row for the
+    heliostat, the ``fit-hybrid`` hybrid (``hybrid/hybrid/``) where fitted; otherwise (and when a
+    selected hybrid's files are missing) the coarse model, ``fit-coarse``'s selected preset.
+    Every artifact and model is read through its stage's manifest. With ``strict`` (``aim``),
+    selection.parquet must also be fresh and a selected hybrid's model committed, else a
+    one-line :class:`StageInputError` says what to rerun (``info`` shows what is there).
+
+    Returns
+    -------
+    dict heliostat_id -> {``model`` (``coarse`` or ``hybrid``), ``variant`` (``hybrid`` or
+    ``hybrid-octaves`` ...; None for coarse), ``source`` (the stage that chose it: ``sweep``,
+    ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
+    ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
+    such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
+    empty without coarse_params.parquet.
+    """
+    from ..artifacts.schemas import SPLIT
+    from ..artifacts.schemas import SELECTION
+
+    workdir = Path(workdir)
+    if not artifact_present(workdir, COARSE_PARAMS):
+        return {}
+    params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
+                           columns=["heliostat_id", "preset", "selected", "val_error_mrad",
+                                    "test_error_mrad"])
+    coarse = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
+    selection = None
+    if artifact_present(workdir, SELECTION):
+        selection = read_artifact(workdir, SELECTION, heliostats=heliostats)  # a committed sweep's
+        if strict:
+            check_fresh(workdir, SELECTION, {"measurements": MEASUREMENTS, "heliostats": HELIOSTATS,
+                                             "split": SPLIT, "coarse_params": COARSE_PARAMS})
+        selection = selection.drop_duplicates("heliostat_id").set_index("heliostat_id")
+    fit_hybrid_errors = None
+    out = {}
+    for hid in sorted(coarse.index):
+        c = coarse.loc[hid]
+        entry = {"heliostat_id": hid, "model": "coarse", "variant": None, "source": "fit-coarse",
+                 "preset": str(c["preset"]), "weight_decay": None,
+                 "val_error_mrad": float(c["val_error_mrad"]),
+                 "test_error_mrad": float(c["test_error_mrad"]), "model_dir": None}
+        choice = (str(selection.loc[hid, "model"])
+                  if selection is not None and hid in selection.index else None)
+        if choice == "coarse":
+            row = selection.loc[hid]
+            entry.update(source="sweep", val_error_mrad=float(row["coarse_val_error_mrad"]),
+                         test_error_mrad=float(row["coarse_test_error_mrad"]))
+        elif choice is not None and choice.startswith("hybrid"):
+            if _model_committed(workdir, "selected", hid):
+                row = selection.loc[hid]
+                entry.update(model="hybrid", variant=choice, source="sweep",
+                             weight_decay=float(row["weight_decay"]),
+                             val_error_mrad=float(row["val_error_mrad"]),
+                             test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
+            elif strict:
+                raise StageInputError(f"{workdir}/selection.parquet selects {choice} for {hid}, "
+                                      f"but the sweep committed no model for it; rerun `heliocal "
+                                      f"sweep --workdir {workdir}`")
+        elif _model_committed(workdir, "hybrid", hid):
+            cfg_rel = model_files("hybrid", hid)[0]
+            cfg = json.loads(read_committed(
+                workdir, "fit-hybrid", cfg_rel,
+                hint=f"`heliocal fit-hybrid --workdir {workdir} --mode hybrid`").data)
+            if fit_hybrid_errors is None:
+                fit_hybrid_errors = _fit_hybrid_errors(workdir)
+            val, test = fit_hybrid_errors.get(hid, (float("nan"), float("nan")))
+            entry.update(model="hybrid", variant="hybrid", source="fit-hybrid",
+                         weight_decay=float(cfg.get("weight_decay", float("nan"))),
+                         val_error_mrad=val, test_error_mrad=test, model_dir="hybrid")
+        out[hid] = entry
+    return out
+
+
+def _fit_hybrid_errors(workdir: Path) -> dict:
+    """Mean validation and test error_mrad of fit-hybrid's ``hybrid`` mode per heliostat."""
+    if not artifact_present(workdir, HYBRID_PREDICTIONS):
+        return {}
+    p = read_artifact(workdir, HYBRID_PREDICTIONS,
+                      columns=["heliostat_id", "split", "model", "error_mrad"])
+    p = p[p["model"] == "hybrid"]
+    means = p.groupby(["heliostat_id", "split"])["error_mrad"].mean()
+    return {str(h): (float(means.get((h, "validation"), float("nan"))),
+                     float(means.get((h, "test"), float("nan"))))
+            for h in p["heliostat_id"].unique()}
+
+
+def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Tensor) -> FineProblem:
+    base = torch.tensor(cfg["base_params"], dtype=torch.float64)
+    free = torch.tensor(cfg["free"], dtype=torch.bool)
+    return FineProblem(spec, base, free, torch.tensor(cfg["scales"], dtype=torch.float64),
+                       FeatureEncoder.from_dict(cfg["encoder"]), None, None)
+
+
+@single_threaded
+def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vector_enu=None,
+              time_utc=None, env: Mapping[str, float] | None = None, model: str = "auto",
+              max_iterations: int = 50, tolerance_steps: float = 1e-6) -> dict:
+    """Motor steps that reflect the sun onto ``aim_point_enu`` with the best fitted model.
+
+    Parameters
+    ----------
+    aim_point_enu : (3,) aim point [m] ENU.
+    sun_vector_enu : (3,) direction toward the sun; default from NREL SPA at ``time_utc``.
+    time_utc : time of the aim (needed by models with time inputs, and for the sun by default).
+    env : values of the model's env inputs (name without ``env_`` -> value).
+    model : ``auto`` (the sweep's selection where ``sweep`` ran, else the fit-hybrid hybrid where
+        fitted, else coarse), ``coarse``, ``hybrid``, ``nn-only`` or
+        ``pretrained-nn``.
+
+    Returns
+    -------
+    dict with ``axis_1_steps``, ``axis_2_steps``, ``model``, ``iterations``, ``aim_error_mrad``
+    (angle between the forward model's reflected beam at those steps and the direction to the aim
+    point), ``sun_azimuth_deg``, ``sun_elevation_deg``.
+    """
+    from ..physics.sun import spa_sun_position, sun_angles_from_vector, sun_vector_enu as _sunvec
+
+    check_choice(model, "model", "aim", ("auto", "coarse") + MODES)
+    workdir = Path(workdir)
+    check_fine_model_inputs(workdir)
+    helio = read_artifact(workdir, HELIOSTATS, heliostats=[heliostat_id])
+    if helio.empty:
+        raise InputError(f"heliostat {heliostat_id!r} is not in {workdir}/heliostats.parquet")
+    hrow = helio.iloc[0]
+    selected = load_selected_parameters(workdir, [heliostat_id])
+    if heliostat_id not in selected:
+        raise StageInputError(f"heliostat {heliostat_id!r} has no coarse fit: run `heliocal "
+                              f"fit-coarse --workdir {workdir}` first")
+    spec = HeliostatSpec.from_row(hrow)
+    if sun_vector_enu is None:
+        if time_utc is None:
+            raise ParameterError("aim needs the sun: give a time or a sun azimuth and elevation")
+        lat, lon = hrow["latitude_deg"], hrow["longitude_deg"]
+        if lat is None or not np.isfinite(lat):
+            raise InputError(f"heliostat {heliostat_id!r} has no WGS84 location, so the sun cannot "
+                             "be computed from the time: give --sun-azimuth and --sun-elevation")
+        alt = hrow["altitude_m"] if hrow["altitude_m"] is not None and np.isfinite(hrow["altitude_m"]) else 0.0
+        az, el = spa_sun_position([time_utc], float(lat), float(lon), float(alt))
+        sun_vector_enu = _sunvec(az[0], el[0])
+    sun = _unit(torch.as_tensor(np.asarray(sun_vector_enu, np.float64)).reshape(1, 3))
+    if float(sun[0, 2]) <= 0:
+        raise InputError("the sun is below the horizon at that time")
+    aim = torch.as_tensor(np.asarray(aim_point_enu, np.float64)).reshape(1, 3)
+    coarse = selected[heliostat_id]["params"]
+    chosen = model
+    fitted = None
+    rerun = None
+    if model == "auto":
+        choice = aim_models(workdir, [heliostat_id], strict=True).get(heliostat_id, {})
+        if choice.get("model") == "hybrid":
+            fitted = load_model(workdir, choice["model_dir"], heliostat_id)
+            if choice["source"] == "sweep":
+                rerun = f"`heliocal sweep --workdir {workdir}`"
+        chosen = "hybrid" if fitted is not None else "coarse"
+    elif model != "coarse":
+        fitted = load_model(workdir, model, heliostat_id)
+        if fitted is None:
+            raise StageInputError(f"no {model} model for {heliostat_id}: run `heliocal fit-hybrid "
+                                  f"--workdir {workdir} --mode {model}` first")
+    if fitted is not None:
+        cfg = fitted[0]
+        current = fine_model_inputs(workdir)
+        if any(cfg.get("inputs", {}).get(k) != v for k, v in current.items()):
+            rerun = rerun or f"`heliocal fit-hybrid --workdir {workdir} --mode {chosen}`"
+            raise StageInputError(f"the {chosen} model of {heliostat_id} is stale (its inputs "
+                                  f"changed): rerun {rerun} first")
+    steps = inverse_kinematics(coarse, spec, sun, aim)
+    iterations = 0
+    if not bool(torch.isfinite(steps).all()):
+        raise FitError(f"the aim point is not reachable by {heliostat_id} within its actuator "
+                       "limits for this sun position")
+    if chosen == "coarse":
+        params = coarse
+    elif chosen == "pretrained-nn":
+        cfg, layers = fitted
+        pm = PretrainedModel(layers, cfg["reference_m"], cfg["in_mean"], cfg["in_std"],
+                             cfg["out_mean"], cfg["out_std"])
+        with torch.no_grad():
+            steps = pm.steps(sun, aim)
+        params = coarse
+    else:
+        cfg, layers = fitted
+        problem = _fine_problem_from_config(cfg, spec, nominal_parameters(hrow))
+        enc = problem.encoder
+        if enc.env:
+            env = env or {}
+            missing = [e for e in enc.env if e not in env]
+            if missing:
+                raise ParameterError(f"the {chosen} model of {heliostat_id} uses env inputs "
+                                     f"{missing}: give them with --env NAME=VALUE")
+        if time_utc is None:
+            raise ParameterError(f"the {chosen} model of {heliostat_id} uses the date as input: "
+                                 "give --time")
+        context = enc.context([time_utc], np.array([[float((env or {})[e]) for e in enc.env]])
+                              if enc.env else None)
+
+        def params_at(s):
+            with torch.no_grad():
+                return grouped_components(problem, layers, enc.encode(s, context), None).stacked()[0, 0]
+
+        for iterations in range(1, max_iterations + 1):
+            params = params_at(steps)
+            new = inverse_kinematics(params, spec, sun, aim)
+            if not bool(torch.isfinite(new).all()):
+                raise FitError(f"the aim point is not reachable by {heliostat_id} within its "
+                               "actuator limits for this sun position")
+            delta = float((new - steps).abs().max())
+            steps = new
+            if delta < tolerance_steps:
+                break
+        params = params_at(steps)
+    with torch.no_grad():
+        normal, position = forward_kinematics(params, spec, steps)
+        beam = reflect(-sun, normal)
+        aim_err = float(error_mrad(beam, aim - position)[0])
+    az, el = sun_angles_from_vector(sun.numpy())
+    return {"heliostat_id": heliostat_id, "model": chosen,
+            "time_utc": None if time_utc is None else str(pd.Timestamp(time_utc)),
+            "sun_azimuth_deg": float(az[0]), "sun_elevation_deg": float(el[0]),
+            "aim_point_enu_m": aim[0].tolist(), "axis_1_steps": float(steps[0, 0]),
+            "axis_2_steps": float(steps[0, 1]), "iterations": iterations,
+            "aim_error_mrad": aim_err}
