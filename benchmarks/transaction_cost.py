@@ -115,7 +115,7 @@ def part2(rows: int) -> None:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from heliocal.pipeline.artifacts.store import table_fingerprint
+    from heliocal.pipeline.artifacts.provenance import table_fingerprint
     from heliocal.pipeline.stages.ingest import run_ingest
     from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
 

@@ -30,12 +30,13 @@ from rich.table import Table
 from rich.text import Text
 
 from heliocal.cli.app import JsonFlag, command, emit, stdout
-from heliocal.pipeline.artifacts.store import SCHEMA_VERSION, file_sha256
+from heliocal.pipeline.artifacts.store import SCHEMA_VERSION
+from heliocal.pipeline.artifacts.paths import file_sha256
 from heliocal.pipeline.errors import InputError, SchemaError
 from heliocal.pipeline.artifacts.workdir_lock import lock_holder
-from heliocal.pipeline.artifacts.transaction import (all_manifests, pending_commits,
-                                                     stale_staging_folders, staging_in_use,
-                                                     verify_files)
+from heliocal.pipeline.artifacts.manifests import all_manifests, verify_files
+from heliocal.pipeline.artifacts.transaction import (pending_commits, stale_staging_folders,
+                                                     staging_in_use)
 
 __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 

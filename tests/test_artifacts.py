@@ -9,8 +9,9 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from heliocal.pipeline.artifacts.store import (SCHEMA_VERSION, atomic_path, check_fresh,
-                                               read_artifact, read_provenance, write_artifact)
+from heliocal.pipeline.artifacts.store import (SCHEMA_VERSION, check_fresh, read_artifact,
+                                               read_provenance, write_artifact)
+from heliocal.pipeline.artifacts.paths import atomic_path
 from heliocal.pipeline.errors import SchemaError, StageInputError
 from heliocal.pipeline.artifacts.schemas import MEASUREMENTS, REJECTED
 

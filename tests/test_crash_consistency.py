@@ -159,7 +159,7 @@ def _content(rel: str, data: bytes, workdir: Path) -> str:
     """A digest of what a reader gets from a file: a table's content fingerprint (timing columns
     left out), a model's tensors, a JSON document's parsed value, other files' bytes (the text
     files of the report with the work directory's path, which they name, replaced)."""
-    from heliocal.pipeline.artifacts.store import table_fingerprint
+    from heliocal.pipeline.artifacts.provenance import table_fingerprint
     from heliocal.pipeline.artifacts.schemas import all_schemas
 
     name = rel.rsplit("/", 1)[-1]
@@ -187,7 +187,7 @@ def reader_view(workdir: Path, stage: str, fresh: bool = True) -> dict:
     """Everything the readers get from ``stage``'s outputs: ``files``: {file: content digest}
     read through the manifest (the committed run); ``readers``: what the stage's high-level
     readers return (those that check freshness only when the inputs are ``fresh``)."""
-    from heliocal.pipeline.artifacts.transaction import load_manifest, read_committed
+    from heliocal.pipeline.artifacts.manifests import load_manifest, read_committed
 
     root = _root(workdir, stage)
     m = load_manifest(root, stage)
@@ -248,7 +248,7 @@ def _high_level_readers(workdir: Path, stage: str, view: dict, fresh: bool) -> N
 
 
 def read_committed_bytes(root: Path, rel: str) -> bytes:
-    from heliocal.pipeline.artifacts.transaction import read_committed
+    from heliocal.pipeline.artifacts.manifests import read_committed
 
     return read_committed(root, "report", rel).data
 
@@ -294,8 +294,8 @@ def _differences(a: dict, b: dict) -> list[str]:
 @pytest.mark.parametrize("name, stage, prepare, argv", CASES, ids=[c[0] for c in CASES])
 def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, argv, zygote, base,
                                                          tmp_path):
-    from heliocal.pipeline.artifacts.transaction import (all_manifests, load_manifest, recover,
-                                                         stale_staging_folders)
+    from heliocal.pipeline.artifacts.manifests import all_manifests, load_manifest
+    from heliocal.pipeline.artifacts.transaction import recover, stale_staging_folders
 
     template = tmp_path / "template"
     shutil.copytree(base, template)
@@ -374,7 +374,7 @@ def _killed_copies(zygote, base: Path, tmp_path: Path, argv: list[str], moments)
 
 
 def _committed_provenance(workdir: Path, stage: str, rel: str) -> dict:
-    from heliocal.pipeline.artifacts.transaction import read_committed
+    from heliocal.pipeline.artifacts.manifests import read_committed
 
     data = read_committed(workdir, stage, rel).data
     return json.loads(pq.read_schema(pa.BufferReader(data)).metadata[b"heliocal"])
@@ -387,7 +387,7 @@ def test_case_1_fit_coarse_killed_between_its_writes(zygote, base, tmp_path):
     from heliocal.cli.info import describe_workdir
     from heliocal.pipeline.models.coarse import load_selected_parameters
     from heliocal.pipeline.stages.report import compute_metrics, load_inputs
-    from heliocal.pipeline.artifacts.transaction import load_manifest
+    from heliocal.pipeline.artifacts.manifests import load_manifest
 
     argv = ["fit-coarse", "--preset", "stone-8", "--workers", "1"]
     moments = [("staged", ".txn-fit-coarse-<run>/coarse_params.parquet"),  # between the writes

@@ -19,7 +19,8 @@ import pytest
 import heliocal.cli.info  # noqa: F401 - registers `info` on the app
 from heliocal.cli.main import app
 from heliocal.pipeline import __version__
-from heliocal.pipeline.artifacts.store import SCHEMA_VERSION, git_revision
+from heliocal.pipeline.artifacts.store import SCHEMA_VERSION
+from heliocal.pipeline.artifacts.provenance import git_revision
 from heliocal.pipeline.artifacts.schemas import SPLIT
 from workdir_tools import fingerprint, recommit
 

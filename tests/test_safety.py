@@ -25,7 +25,8 @@ from hypothesis import strategies as st
 from markdown_it import MarkdownIt
 
 from heliocal.cli.main import app
-from heliocal.pipeline.artifacts.store import MAX_NAME_BYTES, safe_child, write_artifact
+from heliocal.pipeline.artifacts.paths import MAX_NAME_BYTES, safe_child
+from heliocal.pipeline.artifacts.store import write_artifact
 from heliocal.pipeline.errors import UnsafePathError
 from heliocal.pipeline.stages.report import (md_inline, md_text, render_html, render_markdown,
                                              run_report)
@@ -414,10 +415,10 @@ NOT_DATA = {
         "hdir comes from listing the output folder (removing a previous simulation)",
     ("io/spill.py", "Path(self.folder) / f'{self.name}-{len(self.runs):06d}.parquet'"):
         "a fixed prefix and a counter",
-    ("artifacts/transaction.py", "Path(root) / f'{stage}.manifest.json'"):
+    ("artifacts/manifests.py", "Path(root) / f'{stage}.manifest.json'"):
         "stage is one of heliocal's stage names (ingest ... report), never data",
     ("artifacts/transaction.py", "self.staging / f'.{target.name}.tmp'"):
-        "target is a staged output whose relative path transaction._rel already checked",
+        "target is a staged output whose relative path manifests.checked_relative_path already checked",
 }
 
 

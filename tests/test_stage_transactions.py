@@ -39,7 +39,8 @@ import torch
 
 from heliocal.cli.main import app
 from heliocal.pipeline.artifacts.store import (check_fresh, read_artifact, read_provenance,
-                                               recorded_inputs, table_fingerprint, write_artifact)
+                                               recorded_inputs, write_artifact)
+from heliocal.pipeline.artifacts.provenance import table_fingerprint
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from heliocal.pipeline.models.coarse import run_fit_coarse
 from heliocal.pipeline.errors import SchemaError, StageInputError
@@ -49,7 +50,8 @@ from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
 from heliocal.pipeline.artifacts.schemas import SPLIT
-from heliocal.pipeline.artifacts.transaction import load_manifest, transaction
+from heliocal.pipeline.artifacts.manifests import load_manifest
+from heliocal.pipeline.artifacts.transaction import transaction
 from workdir_tools import fingerprint, recommit, sha256
 
 REPO = Path(__file__).resolve().parents[1]

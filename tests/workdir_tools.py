@@ -42,7 +42,7 @@ def fingerprint(path: Path) -> str:
     from heliocal.pipeline.artifacts.schemas import all_schemas
 
     table = pq.read_table(path)
-    from heliocal.pipeline.artifacts.store import table_fingerprint
+    from heliocal.pipeline.artifacts.provenance import table_fingerprint
 
     schema = next(s for s in all_schemas() if s.filename == Path(path).name)
     return table_fingerprint(table, schema)

@@ -22,8 +22,9 @@ from typing import Mapping
 
 from ..errors import SchemaError, StageInputError
 from .schemas import COARSE_PARAMS, HELIOSTATS, MEASUREMENTS, SPLIT
-from .store import artifact_path, artifact_present, check_fresh, committed_fingerprint
-from .transaction import load_manifest, read_committed
+from .paths import artifact_path
+from .store import artifact_present, check_fresh, committed_fingerprint
+from .manifests import load_manifest, read_committed
 
 __all__ = ["model_files", "write_model", "read_model", "fine_model_inputs",
            "check_fine_model_inputs"]
@@ -32,7 +33,7 @@ __all__ = ["model_files", "write_model", "read_model", "fine_model_inputs",
 def model_files(mode: str, heliostat_id: str) -> tuple[str, str]:
     """(config, weights) paths of a model relative to the work directory; an id that is not a plain
     file name is refused (:func:`heliocal.pipeline.artifacts.store.safe_name`)."""
-    from .store import safe_name
+    from .paths import safe_name
 
     hid = safe_name(heliostat_id, f"hybrid/{mode}")
     return f"hybrid/{mode}/{hid}.json", f"hybrid/{mode}/{hid}.pt"

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import re
 
-from .store import ArtifactSchema, Column
+from .table import ArtifactSchema, Column
 
 __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS",
            "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",

@@ -19,277 +19,48 @@ so a stale artifact is refused with the stage to rerun.
 """
 
 from __future__ import annotations
-
 import contextlib
-import hashlib
 import json
 import logging
 import os
-import subprocess
-import sys
-import tempfile
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping, Sequence
-
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
-
 from .. import __version__
-from ..errors import SchemaError, StageInputError, UnsafePathError
-from .transaction import (committed_entry, current_transaction, load_manifest, read_committed,
-                          transaction)
+from ..errors import SchemaError, StageInputError
+from .manifests import committed_entry, current_transaction, load_manifest, read_committed
+from .transaction import transaction
+from .paths import artifact_path, file_sha256
+from .provenance import Fingerprint, command_line, git_revision, jsonable, table_fingerprint
+from .table import ArtifactSchema, to_table
 
 __all__ = [
-    "to_table",
     "SCHEMA_VERSION",
     "committed_fingerprint",
     "recorded_inputs",
-    "Column",
-    "ArtifactSchema",
-    "atomic_path",
-    "atomic_write_bytes",
-    "atomic_write_text",
     "write_artifact",
     "artifact_writer",
     "ArtifactWriter",
     "read_artifact",
     "read_provenance",
-    "file_sha256",
-    "table_fingerprint",
     "check_fresh",
     "artifact_present",
     "previous_run_matches",
     "merge_with_previous",
-    "artifact_path",
-    "git_revision",
-    "safe_child",
-    "safe_name",
-    "MAX_NAME_BYTES",
 ]
 
 log = logging.getLogger("heliocal.artifacts")
 
+
 #: Version of the artifact layout. Bump when a column changes meaning or a required one is added.
 SCHEMA_VERSION = 2
+
+
 _META_KEY = b"heliocal"
 
-_ARROW_TYPES = {
-    "string": pa.string(),
-    "float64": pa.float64(),
-    "int64": pa.int64(),
-    "bool": pa.bool_(),
-    "timestamp": pa.timestamp("us", tz="UTC"),
-}
 
-
-@dataclass(frozen=True)
-class Column:
-    """One column of an artifact.
-
-    Parameters
-    ----------
-    name : column name, with its unit as suffix where it has one (``_deg``, ``_m``, ``_mrad``).
-    dtype : one of ``string``, ``float64``, ``int64``, ``bool``, ``timestamp`` (UTC).
-    unit : unit in plain text (``deg``, ``m``, ``mrad``, ``1``, ``steps``) or ``""``.
-    description : meaning, one sentence.
-    nullable : whether missing values are allowed.
-    """
-
-    name: str
-    dtype: str
-    unit: str
-    description: str
-    nullable: bool = False
-
-
-@dataclass(frozen=True)
-class ArtifactSchema:
-    """Declared layout of one Parquet artifact of the workdir contract.
-
-    ``producer`` is the subcommand that writes it; it is named in "run ... first" messages.
-    Columns whose names start with one of ``extra_prefixes`` may be added freely (for example
-    ``env_*`` inputs of the fine model and ``qa_*`` flags). ``volatile`` columns measure the run,
-    not its result (wall-clock seconds): they are left out of the content fingerprint, so a rerun
-    that computes the same result does not make downstream artifacts stale.
-    """
-
-    name: str
-    filename: str
-    producer: str
-    columns: tuple[Column, ...]
-    extra_prefixes: tuple[str, ...] = ()
-    sort_by: tuple[str, ...] = ()
-    description: str = ""
-    volatile: tuple[str, ...] = ()
-    _by_name: dict = field(default_factory=dict, compare=False, repr=False)
-
-    def column_names(self) -> list[str]:
-        return [c.name for c in self.columns]
-
-    def arrow_schema(self, extra: Mapping[str, pa.DataType] | None = None) -> pa.Schema:
-        fields = [pa.field(c.name, _ARROW_TYPES[c.dtype], nullable=c.nullable) for c in self.columns]
-        for name, typ in (extra or {}).items():
-            fields.append(pa.field(name, typ, nullable=True))
-        return pa.schema(fields)
-
-
-def artifact_path(workdir: str | os.PathLike, schema: ArtifactSchema) -> Path:
-    """Path of ``schema``'s artifact inside ``workdir``."""
-    return Path(workdir) / schema.filename
-
-
-#: Longest file name (bytes of its UTF-8 encoding) that common file systems accept (NAME_MAX).
-MAX_NAME_BYTES = 255
-
-
-def safe_name(name: str, where: str = "the work directory") -> str:
-    """``name`` itself if it can be used as a plain file name (the rules of :func:`safe_child`,
-    without a folder to resolve against: for names staged in a stage transaction), else
-    :class:`~heliocal.pipeline.errors.UnsafePathError`."""
-    why = _unsafe_name_reason(name)
-    if why is not None:
-        raise UnsafePathError(_unsafe_message(name, where, why))
-    return name
-
-
-def _unsafe_message(name, where, why: str) -> str:
-    return (f"{name!r} cannot be used as a file name in {where}: {why}; names taken from the "
-            "data must be plain file names (heliostat ids: letters, digits, '_', '-', '.', see "
-            "docs/input_formats.md; rerun `heliocal ingest`, which rejects other ids)")
-
-
-def safe_child(directory: str | os.PathLike, name: str) -> Path:
-    """``directory / name`` for a file name that comes from the data (a heliostat id, say).
-
-    Every writer and reader that puts a data value into a path goes through here, so that no
-    value can reach a file outside its folder, whatever ingest let through. Refused, with
-    :class:`~heliocal.pipeline.errors.UnsafePathError`: a non-string or empty name; ``.``, ``..``
-    and any name starting with ``.`` (hidden: the prefix of heliocal's temporary files); ``/`` or
-    ``\\`` anywhere (so no absolute path and no sub-folder); NUL and other control characters;
-    names longer than :data:`MAX_NAME_BYTES` bytes in UTF-8; and a name whose resolved path
-    (symbolic links followed) is not directly inside ``directory``.
-
-    Returns the path unresolved (``Path(directory) / name``).
-    """
-    why = _unsafe_name_reason(name)
-    if why is None:
-        folder = Path(directory)
-        path = folder / name
-        if path.resolve().parent != folder.resolve():
-            why = "it resolves outside the folder (a symbolic link?)"
-    if why is not None:
-        raise UnsafePathError(_unsafe_message(name, directory, why))
-    return path
-
-
-def _unsafe_name_reason(name) -> str | None:
-    if not isinstance(name, str):
-        return f"it is a {type(name).__name__}, not text"
-    if not name:
-        return "it is empty"
-    if name in (".", ".."):
-        return "it names the folder itself or its parent"
-    if name.startswith("."):
-        return "it starts with '.' (hidden)"
-    if "/" in name or "\\" in name:
-        return "it contains a path separator"
-    if any(ord(c) < 32 or ord(c) == 127 for c in name):
-        return "it contains a control character"
-    if len(name.encode("utf-8", "surrogatepass")) > MAX_NAME_BYTES:
-        return f"it is longer than {MAX_NAME_BYTES} bytes"
-    return None
-
-
-# --------------------------------------------------------------------------------------------
-# atomic writes
-# --------------------------------------------------------------------------------------------
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success rename it into place atomically.
-
-    On any exception (or a kill) the temporary file is removed or left under a hidden
-    ``.<name>.tmp-*`` name that no stage reads, and ``path`` keeps its previous content.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; artifacts are ordinary files
-    tmp_path = Path(tmp)
-    try:
-        yield tmp_path
-        with open(tmp_path, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp_path, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            tmp_path.unlink()
-        raise
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return Path(path)
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write UTF-8 ``text`` to ``path`` atomically."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
-
-
-# --------------------------------------------------------------------------------------------
-# provenance
-# --------------------------------------------------------------------------------------------
-def file_sha256(path: str | os.PathLike) -> str:
-    """SHA-256 of a file's bytes, or of a folder's files (relative names and bytes, sorted)."""
-    path = Path(path)
-    h = hashlib.sha256()
-    if path.is_dir():
-        for p in sorted(q for q in path.rglob("*") if q.is_file()):
-            h.update(str(p.relative_to(path)).encode())
-            h.update(b"\0")
-            h.update(_sha_bytes(p).encode())
-    else:
-        return _sha_bytes(path)
-    return h.hexdigest()
-
-
-def _sha_bytes(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-_GIT_REV: str | None = None
-
-
-def git_revision() -> str:
-    """Git revision of the heliocal source tree (``unknown`` outside a checkout)."""
-    global _GIT_REV
-    if _GIT_REV is None:
-        try:
-            out = subprocess.run(
-                ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
-                capture_output=True, text=True, timeout=5, check=False)
-            _GIT_REV = out.stdout.strip() or "unknown"
-            if _GIT_REV != "unknown":
-                dirty = subprocess.run(
-                    ["git", "status", "--porcelain", "--untracked-files=no"],
-                    cwd=Path(__file__).resolve().parent, capture_output=True, text=True,
-                    timeout=5, check=False).stdout.strip()
-                if dirty:
-                    _GIT_REV += "-dirty"
-        except (OSError, subprocess.SubprocessError):
-            _GIT_REV = "unknown"
-    return _GIT_REV
 
 
 def _provenance(schema: ArtifactSchema, stage: str, options: Mapping | None, seed: int | None,
@@ -301,8 +72,8 @@ def _provenance(schema: ArtifactSchema, stage: str, options: Mapping | None, see
         "stage": stage,
         "heliocal_version": __version__,
         "git_revision": git_revision(),
-        "command": _command_line(stage),
-        "options": _jsonable(dict(options or {})),
+        "command": command_line(stage),
+        "options": jsonable(dict(options or {})),
         "seed": seed,
         "inputs": dict(sorted(inputs.items())),
     }
@@ -325,172 +96,6 @@ def _record_inputs(txn, workdir: Path, inputs: Mapping[str, str | os.PathLike] |
             read_committed(workdir, found[0].stage, rel, label=label)
         else:
             txn.add_source(label, p, file_sha256(p) if p.exists() else None)
-
-
-def _command_line(stage: str) -> str:
-    """The heliocal command line of this run (``heliocal <stage>`` for in-process library calls)."""
-    try:
-        import click
-
-        ctx = click.get_current_context(silent=True)
-    except ImportError:  # pragma: no cover
-        ctx = None
-    if ctx is not None or Path(sys.argv[0]).name == "heliocal":
-        return "heliocal " + " ".join(sys.argv[1:])
-    return f"heliocal {stage} (library call)"
-
-
-def _jsonable(obj):
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, (str, int, float, bool)) or obj is None:
-        return obj
-    return str(obj)
-
-
-# --------------------------------------------------------------------------------------------
-# write / read
-# --------------------------------------------------------------------------------------------
-def to_table(df: pd.DataFrame, schema: ArtifactSchema) -> pa.Table:
-    missing = [c for c in schema.column_names() if c not in df.columns]
-    if missing:
-        raise SchemaError(
-            f"cannot write {schema.filename}: required columns {missing} are missing "
-            "(this is a bug in heliocal; please report it)")
-    extras = [c for c in df.columns if c not in schema.column_names()]
-    bad = [c for c in extras if not c.startswith(schema.extra_prefixes or ("\0",))]
-    if bad:
-        raise SchemaError(
-            f"cannot write {schema.filename}: undeclared columns {bad} "
-            "(this is a bug in heliocal; please report it)")
-    df = df.reset_index(drop=True)
-    if schema.sort_by:
-        df = df.sort_values(list(schema.sort_by), kind="mergesort").reset_index(drop=True)
-    arrays, fields = [], []
-    for c in schema.columns:
-        typ = _ARROW_TYPES[c.dtype]
-        values = df[c.name]
-        if c.dtype == "timestamp":
-            values = pd.to_datetime(values, utc=True)
-        elif c.dtype == "string":
-            values = values.astype(object).where(values.notna(), None)
-            values = values.map(lambda v: v if v is None else str(v))
-        try:
-            arr = pa.array(values, type=typ, from_pandas=True)
-        except (pa.ArrowInvalid, pa.ArrowTypeError, TypeError, ValueError) as exc:
-            raise SchemaError(
-                f"cannot write {schema.filename}: column {c.name!r} is not {c.dtype} ({exc}); "
-                "this is a bug in heliocal, please report it") from exc
-        if not c.nullable and arr.null_count:
-            raise SchemaError(
-                f"cannot write {schema.filename}: column {c.name!r} has {arr.null_count} missing "
-                "values but is declared non-nullable (this is a bug in heliocal; please report it)")
-        arrays.append(arr)
-        fields.append(pa.field(c.name, typ, nullable=c.nullable))
-    for name in extras:
-        arr = pa.array(df[name], from_pandas=True)
-        arrays.append(arr)
-        fields.append(pa.field(name, arr.type, nullable=True))
-    return pa.Table.from_arrays(arrays, schema=pa.schema(fields))
-
-
-class _Fingerprint:
-    """SHA-256 of a table's data, fed chunk by chunk; see :func:`table_fingerprint`.
-
-    The data are put in a canonical form before hashing, so equal data give equal fingerprints
-    however they were chunked or stored: every column becomes its values with nulls filled by the
-    type's zero plus a non-null validity column, the rows are cut into record batches of
-    :attr:`BATCH_ROWS`, and the batches are hashed as an Arrow IPC stream (without the schema's
-    metadata and without the schema's volatile columns).
-    """
-
-    BATCH_ROWS = 65536
-
-    def __init__(self, arrow_schema: pa.Schema, schema: ArtifactSchema):
-        self._names = [f.name for f in arrow_schema if f.name not in schema.volatile]
-        fields = []
-        for f in arrow_schema:
-            if f.name in schema.volatile:
-                continue
-            if not pa.types.is_null(f.type):
-                fields.append(pa.field(f.name, f.type, nullable=False))
-            fields.append(pa.field(f.name + "\0valid", pa.bool_(), nullable=False))
-        self._schema = pa.schema(fields)
-        self._hash = hashlib.sha256()
-        self._writer = pa.ipc.new_stream(self, self._schema)
-        self._pending: list[pa.Table] = []
-        self._rows = 0
-
-    # the file-like interface pyarrow writes the stream to
-    closed = False
-
-    def write(self, data) -> int:
-        self._hash.update(data)
-        return len(data)
-
-    def flush(self) -> None:
-        pass
-
-    def _canonical(self, table: pa.Table) -> pa.Table:
-        import pyarrow.compute as pc
-
-        arrays = []
-        for name in self._names:
-            col = table.column(name)
-            if not pa.types.is_null(col.type):
-                arrays.append(pc.fill_null(col, pa.scalar(_zero(col.type), type=col.type))
-                              if col.null_count else col)
-            arrays.append(pc.is_valid(col))
-        return pa.Table.from_arrays(arrays, schema=self._schema)
-
-    def _emit(self, n: int) -> None:
-        table = pa.concat_tables(self._pending)
-        self._writer.write_table(table.slice(0, n).combine_chunks())
-        rest = table.slice(n)
-        self._pending, self._rows = ([rest] if rest.num_rows else []), rest.num_rows
-
-    def add(self, table: pa.Table) -> None:
-        if not table.num_rows:
-            return
-        self._pending.append(self._canonical(table))
-        self._rows += table.num_rows
-        while self._rows >= self.BATCH_ROWS:
-            self._emit(self.BATCH_ROWS)
-
-    def hexdigest(self) -> str:
-        if self._rows:
-            self._emit(self._rows)
-        self._writer.close()
-        return self._hash.hexdigest()
-
-
-def _zero(typ: pa.DataType):
-    if pa.types.is_string(typ) or pa.types.is_large_string(typ):
-        return ""
-    if pa.types.is_binary(typ) or pa.types.is_large_binary(typ):
-        return b""
-    if pa.types.is_boolean(typ):
-        return False
-    if pa.types.is_floating(typ):
-        return 0.0
-    return 0  # integers, timestamps, dates, durations
-
-
-def table_fingerprint(table: pa.Table, schema: ArtifactSchema) -> str:
-    """Content fingerprint of an artifact's table: what freshness compares.
-
-    The SHA-256 of the table's data in a canonical form (:class:`_Fingerprint`), without the
-    provenance metadata and without ``schema.volatile`` columns, so the command line, the git
-    revision and wall-clock times do not make downstream artifacts stale; the data do. Equal data
-    give equal fingerprints however they were chunked, written or read back.
-    """
-    fp = _Fingerprint(table.schema, schema)
-    fp.add(table)
-    return fp.hexdigest()
 
 
 @contextlib.contextmanager
@@ -560,7 +165,7 @@ class ArtifactWriter:
         self.arrow_schema = arrow_schema
         self.row_group_size = row_group_size
         self.rows = 0
-        self.fingerprint = _Fingerprint(arrow_schema, schema)
+        self.fingerprint = Fingerprint(arrow_schema, schema)
 
     def write(self, df: pd.DataFrame) -> None:
         """Check ``df`` against the schema, sort it by ``schema.sort_by`` and append it.

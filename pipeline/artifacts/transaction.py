@@ -41,9 +41,7 @@ and recovery leaves alone the staging folder of a run that is still alive.
 """
 
 from __future__ import annotations
-
 import contextlib
-import contextvars
 import datetime as _dt
 import errno
 import fcntl
@@ -54,35 +52,24 @@ import json
 import os
 import secrets
 import shutil
-from dataclasses import dataclass, field
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Callable, Iterator, Mapping
-
-from ..errors import InputError, SchemaError, StageInputError, UnsafePathError
+from ..errors import InputError, SchemaError, StageInputError
+from .manifests import (ACTIVE_TRANSACTION, MANIFEST_VERSION, Manifest, STAGING_PREFIX,
+                        all_manifests, checked_relative_path, current_transaction, load_manifest,
+                        manifest_path, sha256_of_file, staging_name)
 
 __all__ = [
-    "MANIFEST_VERSION",
-    "Manifest",
     "StageTransaction",
-    "Committed",
-    "manifest_path",
-    "load_manifest",
-    "read_committed",
-    "committed_entry",
-    "current_transaction",
     "transaction",
     "stage_transaction",
     "recover",
     "stale_staging_folders",
     "pending_commits",
     "staging_in_use",
-    "verify_files",
-    "all_manifests",
 ]
 
-#: Layout version of ``<stage>.manifest.json``.
-MANIFEST_VERSION = 1
-_STAGING_PREFIX = ".txn-"
+
 _OWNER = ".owner"
 
 
@@ -90,224 +77,6 @@ def _write_point(event: str, path: Path) -> None:
     """Called right after every write, rename or removal of a transaction (``event``: ``staged``,
     ``manifest-temp``, ``commit``, ``apply``, ``remove``, ``cleanup``). A no-op; the
     crash-consistency test replaces it to kill the process at each point in turn."""
-
-
-# ------------------------------------------------------------------------------------------------
-# manifests
-# ------------------------------------------------------------------------------------------------
-def manifest_path(root: str | os.PathLike, stage: str) -> Path:
-    """``ROOT/<stage>.manifest.json``."""
-    return Path(root) / f"{stage}.manifest.json"
-
-
-def _staging_name(stage: str, run_id: str) -> str:
-    return f"{_STAGING_PREFIX}{stage}-{run_id}"
-
-
-@dataclass(frozen=True)
-class Manifest:
-    """A committed run of one stage (the parsed ``<stage>.manifest.json``)."""
-
-    root: Path
-    stage: str
-    run_id: str
-    files: dict  # relative path (POSIX) -> {"sha256", "size", "fingerprint", "artifact", "run_id"}
-    inputs: dict  # label -> {"fingerprint", "sha256", "run_id", "stage", "path"}
-    data: dict = field(repr=False)
-
-    @property
-    def path(self) -> Path:
-        return manifest_path(self.root, self.stage)
-
-    @property
-    def staging(self) -> Path:
-        return self.root / _staging_name(self.stage, self.run_id)
-
-    def pending(self) -> bool:
-        """True while the run is committed but its staged files are not all in place yet."""
-        return self.staging.is_dir()
-
-    def input_fingerprints(self) -> dict:
-        """label -> recorded fingerprint of every input (what freshness compares)."""
-        return {k: v.get("fingerprint") for k, v in self.inputs.items()}
-
-    def removes(self, rel: str) -> bool:
-        """Whether this run dropped ``rel`` of the run before it (the file may still be on disk
-        until the commit is applied; it counts as absent)."""
-        return rel in self.data.get("removed", ())
-
-
-def load_manifest(root: str | os.PathLike, stage: str) -> Manifest | None:
-    """The committed run of ``stage`` in ``root`` (``None`` if the stage never committed there).
-
-    Raises
-    ------
-    SchemaError : the manifest exists but cannot be read.
-    """
-    root = Path(root)
-    path = manifest_path(root, stage)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        return None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SchemaError(f"{path} cannot be read ({exc}); rerun `heliocal {stage} --workdir "
-                          f"{root}`") from exc
-    try:
-        data = json.loads(text)
-        if not isinstance(data, dict) or not isinstance(data.get("files"), dict):
-            raise ValueError("not a heliocal manifest")
-    except ValueError as exc:
-        raise SchemaError(f"{path} is not a valid manifest ({exc}); rerun `heliocal {stage} "
-                          f"--workdir {root}`") from exc
-    if data.get("manifest_version") != MANIFEST_VERSION:
-        raise SchemaError(f"{path} has manifest version {data.get('manifest_version')}, but this "
-                          f"heliocal reads version {MANIFEST_VERSION}: rerun `heliocal {stage} "
-                          f"--workdir {root}`")
-    return Manifest(root, stage, str(data.get("run_id")), data["files"], data.get("inputs") or {},
-                    data)
-
-
-def all_manifests(root: str | os.PathLike) -> list[Manifest]:
-    """Every readable manifest in ``root``, sorted by stage (unreadable ones are skipped)."""
-    out = []
-    for path in sorted(Path(root).glob("*.manifest.json")):
-        try:
-            m = load_manifest(root, path.name.removesuffix(".manifest.json"))
-        except SchemaError:
-            continue
-        if m is not None:
-            out.append(m)
-    return out
-
-
-def committed_entry(root: str | os.PathLike, rel: str) -> tuple[Manifest, dict] | None:
-    """The manifest that lists ``rel`` (a path relative to ``root``) and its entry, if any."""
-    rel = _rel(rel)
-    for m in all_manifests(root):
-        if rel in m.files:
-            return m, m.files[rel]
-    return None
-
-
-def _rel(rel: str | os.PathLike) -> str:
-    """A path relative to the transaction root, in POSIX form; refuses one that leaves the root."""
-    text = str(rel)
-    p = PurePosixPath(text.replace(os.sep, "/"))
-    if "\0" in text or p.is_absolute() or not p.parts or any(part in ("", ".", "..")
-                                                              for part in p.parts):
-        raise UnsafePathError(f"{text!r} cannot name a file inside the work directory (a heliostat id "
-                         "or name with '/', '..' or NUL?); rename it in the source and ingest "
-                         "again")
-    return p.as_posix()
-
-
-# ------------------------------------------------------------------------------------------------
-# reading committed files
-# ------------------------------------------------------------------------------------------------
-#: SHA-256 of files already hashed in this process, by (device, inode, size, mtime, ctime): a stage
-#: that reads one input several times hashes it once. Committed files are never changed in place
-#: (they are replaced by a rename, which gives a new inode), so the key identifies the bytes.
-_SHA_CACHE: dict[tuple, str] = {}
-
-
-def _stat_key(st: os.stat_result) -> tuple:
-    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
-
-
-def _read_and_hash(fh) -> tuple[bytes, str]:
-    key = _stat_key(os.fstat(fh.fileno()))
-    data = fh.read()
-    sha = _SHA_CACHE.get(key)
-    if sha is None:
-        sha = hashlib.sha256(data).hexdigest()
-        if _stat_key(os.fstat(fh.fileno())) == key:
-            _SHA_CACHE[key] = sha
-    return data, sha
-
-
-@dataclass(frozen=True)
-class Committed:
-    """The verified bytes of one committed file and where they came from."""
-
-    path: Path  # the fixed name (ROOT/<rel>), as messages show it
-    read_from: Path  # where the bytes were read (the fixed name or the staging folder)
-    data: bytes
-    entry: dict
-    manifest: Manifest
-
-
-def _not_committed_message(path: Path, stage: str, root: Path, hint: str) -> str:
-    return (f"{path} was not written by a complete `heliocal {stage}` run (no "
-            f"{manifest_path(root, stage).name} lists it: made by hand, by an older heliocal or by "
-            f"an interrupted run); rerun {hint}")
-
-
-def read_committed(root: str | os.PathLike, stage: str, rel: str, *, hint: str | None = None,
-                   missing: str | None = None, label: str | None = None) -> Committed:
-    """Bytes of ``ROOT/<rel>`` as committed by the last run of ``stage``, verified by SHA-256.
-
-    Parameters
-    ----------
-    hint : the command that rewrites the file, in backticks (default ``heliocal <stage>``).
-    missing : message when the stage has not committed the file (default: "... is missing: run
-        HINT first").
-    label : the input label to record in the active transaction (default: no record).
-
-    Raises
-    ------
-    StageInputError : the stage never committed this file (the message names the command).
-    SchemaError : the file on disk is not the one the manifest lists (changed or removed after
-        the run), or the manifest is unreadable.
-    """
-    root = Path(root)
-    rel = _rel(rel)
-    path = root / rel
-    hint = hint or f"`heliocal {stage} --workdir {root}`"
-    for _attempt in range(5):
-        m = load_manifest(root, stage)
-        if m is None or rel not in m.files:
-            if path.exists() and m is None:
-                raise StageInputError(_not_committed_message(path, stage, root, hint))
-            if path.exists() and not m.removes(rel):
-                raise StageInputError(
-                    f"{path} is not part of the last `heliocal {stage}` run ({m.run_id}, see "
-                    f"{m.path.name}): it is left over or made by hand; rerun {hint}")
-            raise StageInputError(missing or f"{path} is missing: run {hint} first")
-        entry = m.files[rel]
-        fh = None
-        read_from = path
-        if m.pending():
-            with contextlib.suppress(FileNotFoundError, NotADirectoryError):
-                fh = open(m.staging / rel, "rb")
-                read_from = m.staging / rel
-        if fh is None:
-            try:
-                fh = open(path, "rb")
-                read_from = path
-            except FileNotFoundError:
-                again = load_manifest(root, stage)
-                if again is not None and again.run_id != m.run_id:
-                    continue  # another run committed meanwhile: resolve again
-                raise SchemaError(f"{path} is missing although the last `heliocal {stage}` run "
-                                  f"({m.run_id}) wrote it (deleted by hand?); rerun {hint}") from None
-            except IsADirectoryError:
-                raise SchemaError(f"{path} is a folder, not the file the last `heliocal {stage}` "
-                                  f"run wrote; remove it and rerun {hint}") from None
-        with fh:
-            data, sha = _read_and_hash(fh)
-        if sha != entry.get("sha256"):
-            again = load_manifest(root, stage)
-            if again is not None and again.run_id != m.run_id:
-                continue
-            raise SchemaError(f"{path} was changed after `heliocal {stage}` wrote it (its SHA-256 "
-                              f"differs from {m.path.name}, run {m.run_id}); rerun {hint}")
-        txn = current_transaction()
-        if txn is not None and label is not None:
-            txn.record_read(label, m, rel)
-        return Committed(path, read_from, data, entry, m)
-    raise SchemaError(f"{path} kept changing while it was read (another heliocal run is writing "
-                      f"{root}); wait for it to finish and retry")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -325,14 +94,6 @@ def _fsync_dir(path: Path) -> None:
 def _fsync_file(path: Path) -> None:
     with open(path, "rb") as fh:
         os.fsync(fh.fileno())
-
-
-def _sha_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _try_lock(path: Path):
@@ -392,7 +153,7 @@ def stale_staging_folders(root: str | os.PathLike) -> list[Path]:
     """Staging folders of runs that were never committed (live or dead)."""
     root = Path(root)
     committed = {m.staging.name for m in all_manifests(root)}
-    return sorted(p for p in root.glob(_STAGING_PREFIX + "*")
+    return sorted(p for p in root.glob(STAGING_PREFIX + "*")
                   if p.is_dir() and p.name not in committed)
 
 
@@ -408,23 +169,6 @@ def staging_in_use(folder: str | os.PathLike) -> bool:
         except OSError:
             return True
     return False
-
-
-def verify_files(m: Manifest) -> dict[str, str]:
-    """Files of committed run ``m`` that are not as it wrote them: relative path -> ``missing`` or
-    ``modified`` (every file is read and hashed once)."""
-    problems = {}
-    for rel, entry in sorted(m.files.items()):
-        where = m.staging / rel if m.pending() and (m.staging / rel).is_file() else m.root / rel
-        try:
-            with open(where, "rb") as fh:
-                _, sha = _read_and_hash(fh)
-        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
-            problems[rel] = "missing"
-            continue
-        if sha != entry.get("sha256"):
-            problems[rel] = "modified"
-    return problems
 
 
 def recover(root: str | os.PathLike) -> list[str]:
@@ -456,26 +200,6 @@ def recover(root: str | os.PathLike) -> list[str]:
             if lock is not None:
                 lock.close()
     return done
-
-
-# ------------------------------------------------------------------------------------------------
-# the transaction
-# ------------------------------------------------------------------------------------------------
-_CURRENT: contextvars.ContextVar["StageTransaction | None"] = contextvars.ContextVar(
-    "heliocal_transaction", default=None)
-
-
-def current_transaction(root: str | os.PathLike | None = None,
-                        stage: str | None = None) -> "StageTransaction | None":
-    """The transaction active in this context (optionally: only if it is of ``root``/``stage``)."""
-    txn = _CURRENT.get()
-    if txn is None:
-        return None
-    if root is not None and Path(root).absolute() != txn.root.absolute():
-        return None
-    if stage is not None and stage != txn.stage:
-        return None
-    return txn
 
 
 def new_run_id() -> str:
@@ -521,7 +245,7 @@ class StageTransaction:
         self.stage = stage
         self.consistent_inputs = consistent_inputs
         self.run_id = new_run_id()
-        self.staging = self.root / _staging_name(stage, self.run_id)
+        self.staging = self.root / staging_name(stage, self.run_id)
         self.files: dict[str, dict] = {}
         self.inputs: dict[str, dict] = {}
         self._read_inputs: dict[str, dict] = {}  # label -> the recorded inputs of what was read
@@ -543,12 +267,12 @@ class StageTransaction:
         self.staging.mkdir()
         self._owner = open(self.staging / _OWNER, "a+b")
         fcntl.flock(self._owner.fileno(), fcntl.LOCK_EX)
-        self._token = _CURRENT.set(self)
+        self._token = ACTIVE_TRANSACTION.set(self)
         return self
 
     def _release(self) -> None:
         if self._token is not None:
-            _CURRENT.reset(self._token)
+            ACTIVE_TRANSACTION.reset(self._token)
             self._token = None
         if self._owner is not None:
             self._owner.close()
@@ -593,7 +317,7 @@ class StageTransaction:
     # -- outputs --------------------------------------------------------------------------------
     def staging_path(self, rel: str | os.PathLike) -> Path:
         """Where to write output ``rel`` (its parent folders are made)."""
-        rel = _rel(rel)
+        rel = checked_relative_path(rel)
         path = self.staging / rel
         path.parent.mkdir(parents=True, exist_ok=True)
         return path
@@ -601,10 +325,10 @@ class StageTransaction:
     def add_file(self, rel: str | os.PathLike, *, fingerprint: str | None = None,
                  artifact: str | None = None, sha256: str | None = None) -> Path:
         """Register output ``rel``, already written to :meth:`staging_path`; returns its final path."""
-        rel = _rel(rel)
+        rel = checked_relative_path(rel)
         path = self.staging / rel
         _fsync_file(path)
-        sha = sha256 or _sha_file(path)
+        sha = sha256 or sha256_of_file(path)
         self.files[rel] = {"sha256": sha, "size": path.stat().st_size,
                            "fingerprint": fingerprint or sha, "artifact": artifact,
                            "run_id": self.run_id}
@@ -625,7 +349,7 @@ class StageTransaction:
         if self.previous is None:
             return
         for rel in rels:
-            rel = _rel(rel)
+            rel = checked_relative_path(rel)
             if rel in self.previous.files and rel not in self.files:
                 self.files[rel] = dict(self.previous.files[rel])
 
@@ -633,7 +357,7 @@ class StageTransaction:
         """Files of the previous committed run (optionally only those under folder ``under``)."""
         if self.previous is None:
             return []
-        prefix = _rel(under) + "/" if under else ""
+        prefix = checked_relative_path(under) + "/" if under else ""
         return sorted(r for r in self.previous.files if r.startswith(prefix))
 
     # -- commit ---------------------------------------------------------------------------------
@@ -656,7 +380,7 @@ class StageTransaction:
     def commit(self) -> Manifest:
         """Check the inputs, write the manifest (the commit point), move the files into place."""
         from .. import __version__
-        from .store import _command_line, _jsonable, git_revision
+        from .provenance import command_line, jsonable, git_revision
 
         self._check_inputs()
         current = load_manifest(self.root, self.stage)
@@ -678,8 +402,8 @@ class StageTransaction:
             "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "heliocal_version": __version__,
             "git_revision": git_revision(),
-            "command": self.command or _command_line(self.stage),
-            "options": _jsonable(dict(self.options or {})),
+            "command": self.command or command_line(self.stage),
+            "options": jsonable(dict(self.options or {})),
             "seed": self.seed,
             "inputs": {k: v for k, v in sorted(self.inputs.items())},
             "files": {k: self.files[k] for k in sorted(self.files)},

@@ -40,8 +40,9 @@ import pandas as pd
 import torch
 from scipy.optimize import least_squares
 
-from ..artifacts.store import (artifact_path, artifact_present, check_fresh, merge_with_previous,
-                               read_artifact, write_artifact)
+from ..artifacts.paths import artifact_path
+from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
+                               write_artifact)
 from ..errors import FitError, check_choice, check_float, check_int
 from ..physics.jacobian import forward_state, residual_and_jacobian
 from ..runtime.parallel import map_tasks
@@ -211,7 +212,7 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
     a finer grid around the best. Axes decouple, so each search is 2-D and cheap. The result is
     kept only if it lowers the median normal error of the start.
     """
-    from ..physics.kinematics import _solve_angles  # the closed-form inverse of the chain
+    from ..physics.kinematics import solve_angles  # the closed-form inverse of the chain
 
     with torch.no_grad():
         _, position = forward_kinematics(p0, spec, data.steps)
@@ -219,7 +220,7 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
         linear = spec.actuator_type == "linear"
         candidates = []
         for branch in (0, 1):  # both axes must come from the same branch of the inverse
-            target_both = _solve_angles(p0, spec, meas, branch)  # (N, 2)
+            target_both = solve_angles(p0, spec, meas, branch)  # (N, 2)
             cand_p, total = p0.clone(), 0.0
             for axis in (1, 2):
                 i_ang = PARAMETER_INDEX[f"axis_{axis}_initial_angle_rad"]

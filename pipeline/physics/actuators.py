@@ -51,7 +51,7 @@ def _t(x) -> torch.Tensor:
     return torch.as_tensor(x, dtype=torch.float64)
 
 
-def _sign(clockwise) -> torch.Tensor:
+def actuator_sign(clockwise) -> torch.Tensor:
     """+1 for clockwise, -1 otherwise (float64, broadcastable)."""
     cw = clockwise if isinstance(clockwise, torch.Tensor) else torch.as_tensor(clockwise)
     return torch.where(cw.to(torch.bool), 1.0, -1.0).to(torch.float64)
@@ -149,7 +149,7 @@ def linear_steps_to_angle(steps, increment_steps_per_m, initial_stroke_length_m,
                                offset_m, pivot_radius_m)
     absolute_initial = _absolute_angle(initial_stroke, offset_m, pivot_radius_m)
     delta = absolute_initial - absolute
-    return _t(initial_angle_rad) + _sign(clockwise) * delta
+    return _t(initial_angle_rad) + actuator_sign(clockwise) * delta
 
 
 def linear_angle_to_steps(angle_rad, increment_steps_per_m, initial_stroke_length_m, offset_m,
@@ -176,7 +176,7 @@ def linear_angle_to_steps(angle_rad, increment_steps_per_m, initial_stroke_lengt
     pivot_radius_m = _t(pivot_radius_m)
     increment = _t(increment_steps_per_m)
     initial_stroke = _t(initial_stroke_length_m)
-    delta = _sign(clockwise) * (_t(angle_rad) - _t(initial_angle_rad))
+    delta = actuator_sign(clockwise) * (_t(angle_rad) - _t(initial_angle_rad))
     absolute = _absolute_angle(initial_stroke, offset_m, pivot_radius_m) - delta
     stroke_sq = offset_m**2 + pivot_radius_m**2 - 2.0 * offset_m * pivot_radius_m * torch.cos(absolute)
     stroke = torch.sqrt(torch.clamp(stroke_sq, min=0.0))

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import torch
 
-from .kinematics import (PARAMETER_INDEX, HeliostatSpec, _JOINT_AXES, _SENSES, _base_frame, _chain,
-                         _tilt_matrices, joint_angles)
+from .kinematics import (PARAMETER_INDEX, HeliostatSpec, JOINT_AXES, JOINT_SENSES, base_frame,
+                         rotation_chain, _tilt_matrices, joint_angles)
 from .metrics import measured_normal
 
 __all__ = ["residual_and_jacobian", "forward_state"]
@@ -45,7 +45,7 @@ def forward_state(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor
     """Joint angles (N, 2), mirror normals (N, 3) and centres (N, 3): the forward pass that
     :func:`residual_and_jacobian` builds on (pass it back as ``state`` to avoid recomputing)."""
     angles = joint_angles(params, spec, steps)
-    normal, position = _chain(params, spec, angles)
+    normal, position = rotation_chain(params, spec, angles)
     return angles, normal.squeeze(-1), position
 
 
@@ -74,8 +74,8 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     batch = params.shape[:-1]
     n_meas = steps.shape[-2]
     kt = spec.kinematic_type
-    (ax1, _), (ax2, _) = _JOINT_AXES[kt]
-    senses = _SENSES[kt]
+    (ax1, _), (ax2, _) = JOINT_AXES[kt]
+    senses = JOINT_SENSES[kt]
 
     # joint angles and their derivatives w.r.t. the actuator parameters (closed form)
     angles, normal, position = state if state is not None else forward_state(params, spec, steps)
@@ -92,7 +92,7 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
              for b in ("joint_1", "joint_2", "concentrator")]
     t1, t2 = params[..., t_idx[0]], params[..., t_idx[1]]  # (*S, 3)
 
-    frame = _base_frame(spec)
+    frame = base_frame(spec)
     a0 = torch.eye(3, dtype=torch.float64) if frame is None else frame
     a1 = a0 @ tilt_1  # (*S, 3, 3), same for all measurements
     phi = angles * senses  # (*S, N, 2)
@@ -191,7 +191,7 @@ def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     ``A(x) = arccos(c(x))``, ``c(x) = (o^2 + r^2 - x^2) / (2 o r)``; where the cosine is clamped
     (a stroke that cannot close the triangle) the derivative is 0, as in the forward model.
     """
-    from .actuators import _sign
+    from .actuators import actuator_sign
 
     shape = steps.shape[:-1]  # (*S, N)
     out = []
@@ -211,7 +211,7 @@ def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torc
         s0 = value(f"axis_{i}_initial_stroke_length_m")
         o = value(f"axis_{i}_offset_m")
         r = value(f"axis_{i}_pivot_radius_m")
-        sigma = _sign(spec.clockwise[..., i - 1]).unsqueeze(-1)
+        sigma = actuator_sign(spec.clockwise[..., i - 1]).unsqueeze(-1)
 
         def parts(x):
             c = (o**2 + r**2 - x**2) / (2.0 * o * r)
@@ -235,6 +235,6 @@ def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torc
 
 
 def _axis_rotation(axis: int, angle: torch.Tensor) -> torch.Tensor:
-    from .kinematics import _rotation_matrix
+    from .kinematics import rotation_matrix
 
-    return _rotation_matrix(axis, angle)
+    return rotation_matrix(axis, angle)

@@ -120,7 +120,7 @@ KINEMATIC_TYPES = ("juelich", "az-el", "target-aligned")
 """Kinematic types understood by :func:`forward_kinematics`."""
 
 # Joint axes per type: (axis index in the parent frame 0=e 1=n 2=u, sense +1/-1).
-_JOINT_AXES = {
+JOINT_AXES = {
     "juelich": ((0, 1.0), (2, 1.0)),
     "az-el": ((2, 1.0), (0, -1.0)),
     "target-aligned": ((2, 1.0), (0, 1.0)),
@@ -424,7 +424,7 @@ def nominal_parameters(row) -> torch.Tensor:
 # Rotations (right-handed about e, n, u)
 # ---------------------------------------------------------------------------------------------
 
-def _rotation_matrix(axis: int, angle) -> torch.Tensor:
+def rotation_matrix(axis: int, angle) -> torch.Tensor:
     angle = torch.as_tensor(angle, dtype=torch.float64)
     c, s = torch.cos(angle), torch.sin(angle)
     one, zero = torch.ones_like(c), torch.zeros_like(c)
@@ -439,7 +439,7 @@ def _rotation_matrix(axis: int, angle) -> torch.Tensor:
 
 def rotation_e(angle_rad) -> torch.Tensor:
     """Right-handed rotation about east, shape (..., 3, 3): ``[[1,0,0],[0,c,-s],[0,s,c]]``."""
-    return _rotation_matrix(0, angle_rad)
+    return rotation_matrix(0, angle_rad)
 
 
 def rotation_n(angle_rad) -> torch.Tensor:
@@ -447,12 +447,12 @@ def rotation_n(angle_rad) -> torch.Tensor:
 
     ARTIST's ``rotate_n(x)`` equals ``rotation_n(-x)``.
     """
-    return _rotation_matrix(1, angle_rad)
+    return rotation_matrix(1, angle_rad)
 
 
 def rotation_u(angle_rad) -> torch.Tensor:
     """Right-handed rotation about up, shape (..., 3, 3): ``[[c,-s,0],[s,c,0],[0,0,1]]``."""
-    return _rotation_matrix(2, angle_rad)
+    return rotation_matrix(2, angle_rad)
 
 
 def _rotate_columns(m: torch.Tensor, axis: int, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
@@ -492,8 +492,8 @@ def _tilt_angles(params: torch.Tensor) -> torch.Tensor:
     return params[..., :18].unflatten(-1, (3, 6))[..., 3:]
 
 
-_SENSES = {kt: torch.tensor([axes[0][1], axes[1][1]], dtype=torch.float64)
-           for kt, axes in _JOINT_AXES.items()}
+JOINT_SENSES = {kt: torch.tensor([axes[0][1], axes[1][1]], dtype=torch.float64)
+           for kt, axes in JOINT_AXES.items()}
 _N0 = {kt: torch.tensor(v, dtype=torch.float64) for kt, v in REFERENCE_NORMALS.items()}
 
 
@@ -624,7 +624,7 @@ def _angles_to_steps(params, spec: HeliostatSpec, angles) -> torch.Tensor:
     return linear_angle_to_steps(angles, increment, stroke0, offset, radius, angle0, _clockwise(spec))
 
 
-def _base_frame(spec: HeliostatSpec):
+def base_frame(spec: HeliostatSpec):
     """Matrix (S, 3, 3) with columns (e', n', u') of the local frame in ENU; None = identity."""
     if spec.kinematic_type != "target-aligned":
         return None
@@ -638,7 +638,7 @@ def _base_frame(spec: HeliostatSpec):
     return torch.stack([e, n, p], dim=-1)
 
 
-def _chain(params, spec: HeliostatSpec, angles, directions=None):
+def rotation_chain(params, spec: HeliostatSpec, angles, directions=None):
     """Directions and mirror-centre positions (ENU) for joint ``angles`` (..., N, 2).
 
     ``directions``: local direction vectors as columns (3, K), default the reference normal.
@@ -647,8 +647,8 @@ def _chain(params, spec: HeliostatSpec, angles, directions=None):
     Evaluated on components (see :func:`_tilt_entries`): every parameter is a (..., 1) tensor
     that broadcasts over the N joint-angle pairs.
     """
-    (ax1, _), (ax2, _) = _JOINT_AXES[spec.kinematic_type]
-    phi = angles * _SENSES[spec.kinematic_type]
+    (ax1, _), (ax2, _) = JOINT_AXES[spec.kinematic_type]
+    phi = angles * JOINT_SENSES[spec.kinematic_type]
     c1, c2 = torch.cos(phi).unbind(-1)
     s1, s2 = torch.sin(phi).unbind(-1)
     comps = _components(params)                                         # 28 x (..., 1)
@@ -664,7 +664,7 @@ def _chain(params, spec: HeliostatSpec, angles, directions=None):
     vectors = [_rotate_vec(v, ax1, c1, s1) for v in vectors]
     vectors[-1] = tuple(x + t for x, t in zip(vectors[-1], t_1))
     vectors = [_matvec(tilt_1, v) for v in vectors]
-    frame = _base_frame(spec)
+    frame = base_frame(spec)
     if frame is not None:
         f = [[frame[..., i, j].unsqueeze(-1) for j in range(3)] for i in range(3)]
         vectors = [_matvec(f, v) for v in vectors]
@@ -703,7 +703,7 @@ def forward_kinematics(params, spec: HeliostatSpec, steps) -> tuple[torch.Tensor
     """
     params = _check_params(params)
     angles = joint_angles(params, spec, steps)
-    normals, positions = _chain(params, spec, angles)
+    normals, positions = rotation_chain(params, spec, angles)
     return normals.squeeze(-1), positions
 
 
@@ -719,7 +719,7 @@ def orientation_matrices(params, spec: HeliostatSpec, steps) -> tuple[torch.Tens
     """
     params = _check_params(params)
     angles = joint_angles(params, spec, steps)
-    return _chain(params, spec, angles, directions=torch.eye(3, dtype=torch.float64))
+    return rotation_chain(params, spec, angles, directions=torch.eye(3, dtype=torch.float64))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -730,7 +730,7 @@ def _unit(v):
     return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
 
 
-def _solve_angles(params, spec: HeliostatSpec, normal_enu, branch: int) -> torch.Tensor:
+def solve_angles(params, spec: HeliostatSpec, normal_enu, branch: int) -> torch.Tensor:
     """Closed-form joint angles (..., N, 2) that turn the reference normal onto ``normal_enu``.
 
     Two-axis (Paden-Kahan) sub-problem: a rotation about axis 1 keeps the component along
@@ -738,9 +738,9 @@ def _solve_angles(params, spec: HeliostatSpec, normal_enu, branch: int) -> torch
     from the remaining rotation about axis 1. Exact for any tilts (translations do not turn
     normals). Rows without a solution are NaN.
     """
-    (ax1, sense1), (ax2, sense2) = _JOINT_AXES[spec.kinematic_type]
+    (ax1, sense1), (ax2, sense2) = JOINT_AXES[spec.kinematic_type]
     tilt_1, tilt_2, tilt_c = _tilt_matrices(params).unbind(-3)
-    frame = _base_frame(spec)
+    frame = base_frame(spec)
     outer = tilt_1 if frame is None else frame @ tilt_1
     v = (outer.unsqueeze(-3).transpose(-1, -2) @ normal_enu.unsqueeze(-1)).squeeze(-1)
     c = (tilt_c @ _N0[spec.kinematic_type]).unsqueeze(-2)              # (..., 1, 3)
@@ -814,7 +814,7 @@ def inverse_kinematics(params, spec: HeliostatSpec, sun_vector_enu, aim_point_en
         centre = torch.where(bounded, 0.5 * (low + high), torch.zeros_like(low))
         half = torch.where(bounded, (0.5 * (high - low)).clamp_min(1.0), torch.full_like(low, 1e12))
         centre_angles = joint_angles(params, spec, centre.unsqueeze(-2))     # (..., 1, 2)
-        _, start = _chain(params, spec, centre_angles)
+        _, start = rotation_chain(params, spec, centre_angles)
         start = start.expand_as(sun)
 
         results, valid = [], []
@@ -823,8 +823,8 @@ def inverse_kinematics(params, spec: HeliostatSpec, sun_vector_enu, aim_point_en
             angles = None
             for _ in range(max_iterations):
                 wanted = _unit(sun + _unit(aim - position))
-                angles = _solve_angles(params, spec, wanted, branch)
-                _, new_position = _chain(params, spec, angles)
+                angles = solve_angles(params, spec, wanted, branch)
+                _, new_position = rotation_chain(params, spec, angles)
                 step = torch.linalg.vector_norm(new_position - position, dim=-1)
                 position = new_position
                 if not bool(torch.any(step > tolerance_m)):

@@ -18,7 +18,7 @@ from ..physics.kinematics import (HeliostatSpec, forward_kinematics, inverse_kin
 from ..physics.metrics import error_mrad, reflect
 from ..artifacts.modelfiles import model_files, read_model
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
-from ..artifacts.transaction import load_manifest, read_committed
+from ..artifacts.manifests import load_manifest, read_committed
 from ..artifacts.schemas import HYBRID_PREDICTIONS
 from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs
 from ..models.network import FeatureEncoder, Layers, MODES, state_to_layers

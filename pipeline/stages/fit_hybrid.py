@@ -85,7 +85,8 @@ from ..physics.kinematics import HeliostatSpec
 from ..artifacts.modelfiles import write_model
 from ..runtime.parallel import map_tasks
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
-from ..artifacts.transaction import current_transaction, stage_transaction
+from ..artifacts.manifests import current_transaction
+from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..artifacts.schemas import HYBRID_PREDICTIONS
 from ..artifacts.modelfiles import check_fine_model_inputs

@@ -39,7 +39,9 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-from ..artifacts.store import to_table, artifact_path, artifact_writer, write_artifact
+from ..artifacts.table import to_table
+from ..artifacts.paths import artifact_path
+from ..artifacts.store import artifact_writer, write_artifact
 from ..errors import InputError, check_int
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
 from ..io.spill import SortedSpill

@@ -45,11 +45,14 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from ..artifacts.store import (artifact_present, committed_fingerprint, git_revision, read_artifact,
-                               recorded_inputs, safe_name)
+from ..artifacts.store import (artifact_present, committed_fingerprint, read_artifact,
+                               recorded_inputs)
+from ..artifacts.provenance import git_revision
+from ..artifacts.paths import safe_name
 from ..errors import SchemaError, StageInputError
 from ..artifacts.schemas import MEASUREMENTS, REJECTION_REASONS, all_schemas
-from ..artifacts.transaction import committed_entry, current_transaction, stage_transaction
+from ..artifacts.manifests import committed_entry, current_transaction
+from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 
 __all__ = [

@@ -52,7 +52,7 @@ import pandas as pd
 import torch
 
 from .. import __version__
-from ..artifacts.store import atomic_write_text, safe_child
+from ..artifacts.paths import atomic_write_text, safe_child
 from ..errors import InputError, ParameterError, check_choice, check_float, check_int
 from ..physics.geodesy import enu_to_wgs84, wgs84_to_enu
 from ..io.paint import paint_kinematics_columns

@@ -65,7 +65,8 @@ from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from ..artifacts.modelfiles import write_model
 from ..artifacts.schemas import SPLIT
 from .split import restrict_training
-from ..artifacts.transaction import current_transaction, stage_transaction
+from ..artifacts.manifests import current_transaction
+from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 

@@ -1,0 +1,162 @@
+"""Provenance of an artifact: the code revision, command line and parameters of the run that
+wrote it, and content fingerprints of tables (the basis of every freshness check).
+"""
+
+from __future__ import annotations
+import hashlib
+import subprocess
+import sys
+from pathlib import Path
+from typing import Mapping
+import pyarrow as pa
+from .table import ArtifactSchema
+
+__all__ = [
+    "Fingerprint",
+    "table_fingerprint",
+    "git_revision",
+]
+
+
+_GIT_REV: str | None = None
+
+
+def git_revision() -> str:
+    """Git revision of the heliocal source tree (``unknown`` outside a checkout)."""
+    global _GIT_REV
+    if _GIT_REV is None:
+        try:
+            out = subprocess.run(
+                ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
+                capture_output=True, text=True, timeout=5, check=False)
+            _GIT_REV = out.stdout.strip() or "unknown"
+            if _GIT_REV != "unknown":
+                dirty = subprocess.run(
+                    ["git", "status", "--porcelain", "--untracked-files=no"],
+                    cwd=Path(__file__).resolve().parent, capture_output=True, text=True,
+                    timeout=5, check=False).stdout.strip()
+                if dirty:
+                    _GIT_REV += "-dirty"
+        except (OSError, subprocess.SubprocessError):
+            _GIT_REV = "unknown"
+    return _GIT_REV
+
+
+def command_line(stage: str) -> str:
+    """The heliocal command line of this run (``heliocal <stage>`` for in-process library calls)."""
+    try:
+        import click
+
+        ctx = click.get_current_context(silent=True)
+    except ImportError:  # pragma: no cover
+        ctx = None
+    if ctx is not None or Path(sys.argv[0]).name == "heliocal":
+        return "heliocal " + " ".join(sys.argv[1:])
+    return f"heliocal {stage} (library call)"
+
+
+def jsonable(obj):
+    if isinstance(obj, Mapping):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, (str, int, float, bool)) or obj is None:
+        return obj
+    return str(obj)
+
+
+class Fingerprint:
+    """SHA-256 of a table's data, fed chunk by chunk; see :func:`table_fingerprint`.
+
+    The data are put in a canonical form before hashing, so equal data give equal fingerprints
+    however they were chunked or stored: every column becomes its values with nulls filled by the
+    type's zero plus a non-null validity column, the rows are cut into record batches of
+    :attr:`BATCH_ROWS`, and the batches are hashed as an Arrow IPC stream (without the schema's
+    metadata and without the schema's volatile columns).
+    """
+
+    BATCH_ROWS = 65536
+
+    def __init__(self, arrow_schema: pa.Schema, schema: ArtifactSchema):
+        self._names = [f.name for f in arrow_schema if f.name not in schema.volatile]
+        fields = []
+        for f in arrow_schema:
+            if f.name in schema.volatile:
+                continue
+            if not pa.types.is_null(f.type):
+                fields.append(pa.field(f.name, f.type, nullable=False))
+            fields.append(pa.field(f.name + "\0valid", pa.bool_(), nullable=False))
+        self._schema = pa.schema(fields)
+        self._hash = hashlib.sha256()
+        self._writer = pa.ipc.new_stream(self, self._schema)
+        self._pending: list[pa.Table] = []
+        self._rows = 0
+
+    # the file-like interface pyarrow writes the stream to
+    closed = False
+
+    def write(self, data) -> int:
+        self._hash.update(data)
+        return len(data)
+
+    def flush(self) -> None:
+        pass
+
+    def _canonical(self, table: pa.Table) -> pa.Table:
+        import pyarrow.compute as pc
+
+        arrays = []
+        for name in self._names:
+            col = table.column(name)
+            if not pa.types.is_null(col.type):
+                arrays.append(pc.fill_null(col, pa.scalar(_zero(col.type), type=col.type))
+                              if col.null_count else col)
+            arrays.append(pc.is_valid(col))
+        return pa.Table.from_arrays(arrays, schema=self._schema)
+
+    def _emit(self, n: int) -> None:
+        table = pa.concat_tables(self._pending)
+        self._writer.write_table(table.slice(0, n).combine_chunks())
+        rest = table.slice(n)
+        self._pending, self._rows = ([rest] if rest.num_rows else []), rest.num_rows
+
+    def add(self, table: pa.Table) -> None:
+        if not table.num_rows:
+            return
+        self._pending.append(self._canonical(table))
+        self._rows += table.num_rows
+        while self._rows >= self.BATCH_ROWS:
+            self._emit(self.BATCH_ROWS)
+
+    def hexdigest(self) -> str:
+        if self._rows:
+            self._emit(self._rows)
+        self._writer.close()
+        return self._hash.hexdigest()
+
+
+def _zero(typ: pa.DataType):
+    if pa.types.is_string(typ) or pa.types.is_large_string(typ):
+        return ""
+    if pa.types.is_binary(typ) or pa.types.is_large_binary(typ):
+        return b""
+    if pa.types.is_boolean(typ):
+        return False
+    if pa.types.is_floating(typ):
+        return 0.0
+    return 0  # integers, timestamps, dates, durations
+
+
+def table_fingerprint(table: pa.Table, schema: ArtifactSchema) -> str:
+    """Content fingerprint of an artifact's table: what freshness compares.
+
+    The SHA-256 of the table's data in a canonical form (:class:`Fingerprint`), without the
+    provenance metadata and without ``schema.volatile`` columns, so the command line, the git
+    revision and wall-clock times do not make downstream artifacts stale; the data do. Equal data
+    give equal fingerprints however they were chunked, written or read back.
+    """
+    fp = Fingerprint(table.schema, schema)
+    fp.add(table)
+    return fp.hexdigest()
