@@ -386,7 +386,8 @@ def test_case_1_fit_coarse_killed_between_its_writes(zygote, base, tmp_path):
     'fresh', the report selecting another preset than aim. Now one run or the other."""
     from heliocal.cli.info import describe_workdir
     from heliocal.pipeline.models.coarse import load_selected_parameters
-    from heliocal.pipeline.stages.report import compute_metrics, load_inputs
+    from heliocal.pipeline.report.metrics import compute_metrics
+    from heliocal.pipeline.report.inputs import load_inputs
     from heliocal.pipeline.artifacts.manifests import load_manifest
 
     argv = ["fit-coarse", "--preset", "stone-8", "--workers", "1"]

@@ -21,8 +21,10 @@ from heliocal.cli.app import app
 from heliocal.pipeline.artifacts.store import write_artifact
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from heliocal.pipeline.errors import StageInputError
-from heliocal.pipeline.stages.report import (_col, compute_metrics, load_inputs, metrics_json,
-                                             run_report)
+from heliocal.pipeline.report.metrics import column_of as _col
+from heliocal.pipeline.stages.report import run_report
+from heliocal.pipeline.report.metrics import compute_metrics, metrics_json
+from heliocal.pipeline.report.inputs import load_inputs
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, all_schemas
 from heliocal.pipeline.artifacts.schemas import SPLIT
 

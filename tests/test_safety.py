@@ -28,8 +28,8 @@ from heliocal.cli.main import app
 from heliocal.pipeline.artifacts.paths import MAX_NAME_BYTES, safe_child
 from heliocal.pipeline.artifacts.store import write_artifact
 from heliocal.pipeline.errors import UnsafePathError
-from heliocal.pipeline.stages.report import (md_inline, md_text, render_html, render_markdown,
-                                             run_report)
+from heliocal.pipeline.report.pages import md_inline, md_text, render_html, render_markdown
+from heliocal.pipeline.stages.report import run_report
 from heliocal.pipeline.artifacts.schemas import (HELIOSTAT_ID_RE, HELIOSTATS, MEASUREMENTS,
                                                  REJECTED, heliostat_id_problem,
                                                  suggest_heliostat_id)

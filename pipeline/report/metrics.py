@@ -1,0 +1,245 @@
+"""``metrics.json``: the accuracy numbers of a run (per split and model: mean, median, percentiles of
+error_mrad), rounded to fixed decimals so that two runs of the same pipeline give the same text.
+"""
+
+from __future__ import annotations
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any
+import numpy as np
+import pandas as pd
+from .. import __version__
+from ..artifacts.provenance import git_revision
+from ..artifacts.manifests import committed_entry
+from .inputs import ReportInputs
+
+__all__ = [
+    "column_of",
+    "final_models",
+    "first_column",
+    "model_sort_key",
+    "split_sort_key",
+    "METRICS_SCHEMA_VERSION",
+    "SPLIT_ORDER",
+    "error_statistics",
+    "compute_metrics",
+    "metrics_json",
+]
+
+
+#: Version of metrics.json's layout (``docs/metrics_schema.json``); bump when a key changes meaning.
+METRICS_SCHEMA_VERSION = 1
+
+
+#: Order of the splits in tables and metrics.json.
+SPLIT_ORDER = ("train", "validation", "test", "unused")
+
+
+#: Decimals of every float in metrics.json (1e-4 mrad = 0.1 microradian).
+DECIMALS = 4
+
+
+_HYBRID_ORDER = ("hybrid", "nn-only", "pretrained-nn")
+
+
+_COARSE_ORDER = ("nominal", "static-6", "stone-8", "static-14", "static-20", "static-28")
+
+
+# ------------------------------------------------------------------------------------------------
+# numbers
+# ------------------------------------------------------------------------------------------------
+def _r(x) -> float | None:
+    """Round for metrics.json; NaN and infinities become null."""
+    if x is None:
+        return None
+    x = float(x)
+    if not math.isfinite(x):
+        return None
+    v = round(x, DECIMALS)
+    return 0.0 if v == 0 else v
+
+
+def _iso(ts) -> str | None:
+    if ts is None or pd.isna(ts):
+        return None
+    return pd.Timestamp(ts).tz_convert("UTC").strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def error_statistics(rows: pd.DataFrame) -> dict:
+    """n, mean, median and 95th percentile of ``error_mrad``, mean beam error and spot offset.
+
+    NaN errors count in ``n`` but not in the statistics (``n_finite`` says how many did); the
+    percentile is numpy's default (linear interpolation).
+    """
+    err = rows["error_mrad"].to_numpy(float)
+    ok = np.isfinite(err)
+    out = {"n": int(len(rows)), "n_finite": int(ok.sum()),
+           "mean_error_mrad": None, "median_error_mrad": None, "p95_error_mrad": None,
+           "mean_beam_error_mrad": None, "mean_spot_offset_m": None}
+    if ok.any():
+        e = err[ok]
+        out.update(mean_error_mrad=_r(e.mean()), median_error_mrad=_r(np.median(e)),
+                   p95_error_mrad=_r(np.percentile(e, 95)))
+    for col, key in (("beam_error_mrad", "mean_beam_error_mrad"),
+                     ("spot_offset_m", "mean_spot_offset_m")):
+        if col in rows.columns:
+            v = rows[col].to_numpy(float)
+            v = v[np.isfinite(v)]
+            if len(v):
+                out[key] = _r(v.mean())
+    return out
+
+
+def split_sort_key(s: str) -> tuple:
+    return (SPLIT_ORDER.index(s) if s in SPLIT_ORDER else len(SPLIT_ORDER), s)
+
+
+def model_sort_key(m: str) -> tuple:
+    if m in _COARSE_ORDER:
+        return (0, _COARSE_ORDER.index(m), m)
+    if m in _HYBRID_ORDER:
+        return (2, _HYBRID_ORDER.index(m), m)
+    return (1, 0, m)
+
+
+def column_of(df: pd.DataFrame | None, split: str, stat: str = "mean") -> str | None:
+    """Find a sweep/selection column of ``split``'s error by name, whatever its exact spelling.
+
+    ``split`` is train, validation (also matches ``val``) or test; ``stat`` mean or median. For
+    example ``test_error_mrad``, ``test_error_mrad_mean``, ``mean_test_error_mrad`` and
+    ``val_error_median_mrad`` are all found.
+    """
+    if df is None:
+        return None
+    token = r"(val|validation)" if split == "validation" else split
+    pattern = re.compile(rf"(^|_)({token})(_|$)")
+    found = []
+    for c in df.columns:
+        name = str(c).lower()
+        if "coarse" in name or "error" not in name or not pattern.search(name):
+            continue
+        is_median = "median" in name
+        if (stat == "median") == is_median:
+            found.append(str(c))
+    return min(found, key=len) if found else None
+
+
+def first_column(df: pd.DataFrame | None, *names: str) -> str | None:
+    if df is None:
+        return None
+    for n in names:
+        if n in df.columns:
+            return n
+    return None
+
+
+def final_models(inp: ReportInputs) -> dict[str, dict]:
+    """Per heliostat: the selected coarse preset and the final model (hybrid where selected)."""
+    out: dict[str, dict] = {}
+    p = inp.predictions
+    if p is not None:
+        for hid, g in p[p["selected"]].groupby("heliostat_id", sort=True):
+            coarse = g[g["source"] == "coarse_predictions"]["model"].unique()
+            hybrid = g[g["source"] == "hybrid_predictions"]["model"].unique()
+            chosen = g[g["source"] == "selected_predictions"]["model"].unique()
+            out[hid] = {"coarse_preset": str(coarse[0]) if len(coarse) else None,
+                        "model": str(chosen[0]) if len(chosen) else
+                        str(hybrid[0]) if len(hybrid) else
+                        (str(coarse[0]) if len(coarse) else None)}
+    sel = inp.selection
+    if sel is not None and "heliostat_id" in sel.columns:
+        for _, row in sel.iterrows():
+            hid = str(row["heliostat_id"])
+            entry = out.setdefault(hid, {"coarse_preset": None, "model": None})
+            if "model" in sel.columns and pd.notna(row["model"]) and entry["model"] != "selected":
+                # without the sweep's per-measurement predictions: the coarse choice is the
+                # selected preset's rows
+                entry["model"] = (entry["coarse_preset"] or "coarse") if row["model"] == "coarse" \
+                    else str(row["model"])
+            for key in ("weight_decay", "val_error_mrad", "test_error_mrad",
+                        "coarse_val_error_mrad", "coarse_test_error_mrad"):
+                if key in sel.columns:
+                    entry[key] = row[key]
+    return out
+
+
+def compute_metrics(inp: ReportInputs) -> dict:
+    """The content of metrics.json (see ``docs/metrics_schema.json``)."""
+    m = inp.measurements
+    ts = pd.to_datetime(m["timestamp"], utc=True) if "timestamp" in m.columns else pd.Series(
+        pd.NaT, index=m.index, dtype="datetime64[ns, UTC]")
+    rej = inp.rejected if inp.rejected is not None else pd.DataFrame(columns=["reason"])
+    hids = sorted(set(m["heliostat_id"]))
+    finals = final_models(inp)
+    data = {
+        "n_heliostats": len(hids),
+        "n_measurements": int(len(m)),
+        "n_rejected": int(len(rej)),
+        "rejected_by_reason": {str(k): int(v) for k, v in
+                               rej["reason"].value_counts().sort_index().items()},
+        "first_timestamp": _iso(ts.min()) if ts.notna().any() else None,
+        "last_timestamp": _iso(ts.max()) if ts.notna().any() else None,
+        "n_missing_timestamp": int(ts.isna().sum()),
+        "artifacts": sorted(inp.paths),
+    }
+    helios = {}
+    for hid in hids:
+        rows = m["heliostat_id"] == hid
+        t = ts[rows]
+        h: dict[str, Any] = {
+            "n_measurements": int(rows.sum()),
+            "first_timestamp": _iso(t.min()) if t.notna().any() else None,
+            "last_timestamp": _iso(t.max()) if t.notna().any() else None,
+            "split_counts": {},
+            "test_train_distance_deg": None,
+            "selection": {"coarse_preset": None, "model": None, "weight_decay": None,
+                          "val_error_mrad": None, "test_error_mrad": None,
+                          "coarse_val_error_mrad": None, "coarse_test_error_mrad": None},
+            "models": {},
+        }
+        if inp.split is not None:
+            s = inp.split[inp.split["heliostat_id"] == hid]
+            counts = s["split"].value_counts()
+            h["split_counts"] = {k: int(counts[k]) for k in sorted(counts.index, key=split_sort_key)}
+            test = s[s["split"] == "test"]
+            if len(test) and "nearest_train_distance_deg" in s.columns:
+                h["test_train_distance_deg"] = _r(test["nearest_train_distance_deg"].mean())
+        f = finals.get(hid, {})
+        for key in h["selection"]:
+            v = f.get(key)
+            if key in ("coarse_preset", "model"):
+                h["selection"][key] = v
+            elif v is not None:
+                h["selection"][key] = _r(v)
+        if inp.predictions is not None:
+            p = inp.predictions[inp.predictions["heliostat_id"] == hid]
+            for model in sorted(p["model"].unique(), key=model_sort_key):
+                g = p[p["model"] == model]
+                h["models"][model] = {
+                    "source": str(g["source"].iloc[0]),
+                    "selected": bool(g["selected"].any()),
+                    "splits": {sp: error_statistics(g[g["split"] == sp])
+                               for sp in sorted(g["split"].unique(), key=split_sort_key)},
+                }
+        helios[hid] = h
+    return {
+        "metrics_schema_version": METRICS_SCHEMA_VERSION,
+        "heliocal_version": __version__,
+        "git_revision": git_revision(),
+        "inputs": {name: _committed_sha256(inp.workdir, name) for name in sorted(inp.paths)},
+        "data": data,
+        "heliostats": helios,
+    }
+
+
+def _committed_sha256(workdir: Path, filename: str) -> str | None:
+    """SHA-256 of an input artifact as its run committed it (verified when it was read)."""
+    found = committed_entry(workdir, filename)
+    return None if found is None else found[1]["sha256"]
+
+
+def metrics_json(metrics: dict) -> str:
+    """metrics.json text: sorted keys, two-space indent, trailing newline (stable diffs)."""
+    return json.dumps(metrics, sort_keys=True, indent=2, allow_nan=False) + "\n"
