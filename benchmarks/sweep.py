@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from heliocal.pipeline.models.coarse import load_selected_parameters, run_fit_coarse
+from heliocal.pipeline.stages.fit_coarse import load_selected_parameters, run_fit_coarse
 from heliocal.pipeline.models.network import FineConfig
 from heliocal.pipeline.models.training import build_problem, member_errors_mrad, train_members
 from heliocal.pipeline.stages.ingest import run_ingest

@@ -9,7 +9,7 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               Workdir, Workers, command, emit, progress_bar, stdout)
-from heliocal.pipeline.models.coarse import run_fit_coarse
+from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 
 
 def _fmt(x) -> str:

@@ -25,8 +25,8 @@ import torch
 
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS
 from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat,
-                                             fit_heliostats_batched, normal_errors_mrad,
-                                             run_fit_coarse)
+                                             fit_heliostats_batched, normal_errors_mrad)
+from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.physics.kinematics import HeliostatSpec, PARAMETER_NAMES, nominal_parameters

@@ -23,8 +23,8 @@ import torch
 
 from heliocal.pipeline.artifacts.store import read_artifact
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS
-from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat, normal_errors_mrad,
-                                             run_fit_coarse)
+from heliocal.pipeline.models.coarse import MeasurementBatch, fit_heliostat, normal_errors_mrad
+from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import ingest, run_ingest
 from heliocal.pipeline.physics.kinematics import (PARAMETER_NAMES, HeliostatSpec, joint_angles,

@@ -203,7 +203,7 @@ def _high_level_readers(workdir: Path, stage: str, view: dict, fresh: bool) -> N
     work, and agree with the files."""
     from heliocal.pipeline.artifacts.store import check_fresh, read_artifact
     from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
-    from heliocal.pipeline.models.coarse import load_selected_parameters
+    from heliocal.pipeline.stages.fit_coarse import load_selected_parameters
     from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
     from heliocal.pipeline.stages.aim import aim_steps, load_model
     from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
@@ -385,7 +385,7 @@ def test_case_1_fit_coarse_killed_between_its_writes(zygote, base, tmp_path):
     """Issue case 1: coarse_params of the new run beside coarse_predictions of the old, both
     'fresh', the report selecting another preset than aim. Now one run or the other."""
     from heliocal.cli.info import describe_workdir
-    from heliocal.pipeline.models.coarse import load_selected_parameters
+    from heliocal.pipeline.stages.fit_coarse import load_selected_parameters
     from heliocal.pipeline.report.metrics import compute_metrics
     from heliocal.pipeline.report.inputs import load_inputs
     from heliocal.pipeline.artifacts.manifests import load_manifest

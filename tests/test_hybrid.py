@@ -28,8 +28,8 @@ import torch
 import heliocal.cli.hybrid  # noqa: F401  (registers fit-hybrid and aim on the app)
 from heliocal.cli.app import app
 from heliocal.pipeline.artifacts.store import read_artifact, write_artifact
-from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat, normal_errors_mrad,
-                                             run_fit_coarse)
+from heliocal.pipeline.models.coarse import MeasurementBatch, fit_heliostat, normal_errors_mrad
+from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.errors import StageInputError
 from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
 from heliocal.pipeline.models.network import (FineConfig, FeatureEncoder, ensemble_seeds, init_mlp,

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
-from heliocal.pipeline.models.coarse import run_fit_coarse
+from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
 from heliocal.pipeline.models.network import FineConfig
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid

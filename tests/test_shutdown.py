@@ -32,7 +32,7 @@ from pathlib import Path
 
 import pytest
 
-from heliocal.pipeline.models.coarse import run_fit_coarse
+from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.stages.simulate import simulate_field, write_field
 from heliocal.pipeline.stages.split import run_split

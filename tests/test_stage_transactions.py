@@ -42,7 +42,7 @@ from heliocal.pipeline.artifacts.store import (check_fresh, read_artifact, read_
                                                recorded_inputs, write_artifact)
 from heliocal.pipeline.artifacts.provenance import table_fingerprint
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
-from heliocal.pipeline.models.coarse import run_fit_coarse
+from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.errors import SchemaError, StageInputError
 from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
 from heliocal.pipeline.stages.aim import aim_steps, load_model
@@ -157,7 +157,7 @@ def test_fingerprint_is_the_data_not_the_bytes_or_chunks(wd, tmp_path):
 def test_exception_inside_a_stage_commits_nothing(wd, monkeypatch):
     before = {p: sha256(wd / p) for p in ("coarse_params.parquet", "coarse_predictions.parquet",
                                           "fit-coarse.manifest.json")}
-    import heliocal.pipeline.models.coarse as coarse
+    import heliocal.pipeline.stages.fit_coarse as coarse
 
     real = coarse.write_artifact
     calls = []
@@ -219,7 +219,7 @@ def test_inputs_that_disagree_are_refused_at_commit(wd):
 # case 4: measurements re-ingested while fit-coarse runs
 # ------------------------------------------------------------------------------------------------
 def test_case_4_reingest_during_fit_coarse_leaves_a_stale_fit(wd, monkeypatch):
-    import heliocal.pipeline.models.coarse as coarse
+    import heliocal.pipeline.stages.fit_coarse as coarse
 
     old_fp = fingerprint(wd / "measurements.parquet")
     old_ids = set(read_artifact(wd, MEASUREMENTS)["measurement_id"])

@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from heliocal.pipeline.artifacts.store import read_provenance
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
-from heliocal.pipeline.models.coarse import coarse_fit_options, run_fit_coarse
+from heliocal.pipeline.stages.fit_coarse import coarse_fit_options, run_fit_coarse
 from heliocal.pipeline.models.network import FineConfig
 from heliocal.pipeline.stages.aim import aim_models, aim_steps
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid

@@ -27,33 +27,19 @@ as *not determined by the data* (the prior, not the data, fixes it).
 """
 
 from __future__ import annotations
-
-import logging
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Sequence
-
 import numpy as np
 import pandas as pd
 import torch
 from scipy.optimize import least_squares
-
-from ..artifacts.paths import artifact_path
-from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
-                               write_artifact)
-from ..errors import FitError, check_choice, check_float, check_int
+from ..errors import check_choice
 from ..physics.jacobian import forward_state, residual_and_jacobian
-from ..runtime.parallel import map_tasks
 from ..physics.kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
-                                  HeliostatSpec, forward_kinematics, joint_angles,
-                                  nominal_parameters, preset_mask)
+                                  HeliostatSpec, forward_kinematics, joint_angles, preset_mask)
 from ..physics.metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
-from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
-from ..artifacts.transaction import stage_transaction
-from ..artifacts.workdir_lock import locks_workdir
-from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 
 __all__ = [
     "AUTO_PRESETS",
@@ -63,25 +49,21 @@ __all__ = [
     "CoarseFit",
     "fit_heliostat",
     "fit_heliostats_batched",
-    "fit_heliostat_chunk",
     "SOLVERS",
     "predict",
     "metrics_frame",
-    "run_fit_coarse",
-    "load_selected_parameters",
     "normal_errors_mrad",
-    "fit_one_heliostat",
     "fit_presets",
-    "coarse_fit_options",
-    "FIT_OPTIONS",
 ]
 
-log = logging.getLogger("heliocal.coarse")
 
 #: Presets tried by ``--preset auto``; the one with the lowest validation error is selected.
 AUTO_PRESETS = ("static-6", "stone-8", "static-14", "static-20", "static-28")
 
+
 LOSSES = ("linear", "soft_l1", "huber")
+
+
 #: Solvers of ``fit-coarse``: the batched LM (:mod:`heliocal.pipeline.physics.lm`) or scipy per heliostat.
 SOLVERS = ("batched", "scipy")
 
@@ -98,8 +80,11 @@ def parameter_kind(name: str) -> str:
 
 #: Prior sigma per parameter kind (angles [rad], lengths [m], increments relative to nominal).
 PRIOR_SIGMA = {"angle": 0.1, "translation": 0.05, "length": 0.01, "increment": 0.01}
+
+
 #: Median nominal error above which ``robust_start="auto"`` searches the zero points [mrad].
 ROBUST_START_THRESHOLD_MRAD = 50.0
+
 
 #: Corrections of the nominal geometry beyond which a fit is reported as implausible.
 PLAUSIBLE_CORRECTION = {"angle": 0.05, "translation": 0.05, "length": 0.05, "increment": 0.02}
@@ -577,39 +562,6 @@ def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarr
     return implausible
 
 
-# ------------------------------------------------------------------------------------------------
-# the stage
-# ------------------------------------------------------------------------------------------------
-def load_split_labels(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
-    """Split label per measurement row: split.parquet's if present, else all ``train``."""
-    from ..artifacts.schemas import SPLIT  # local: split.py is optional at import time
-
-    path = artifact_path(workdir, SPLIT)
-    if not artifact_present(workdir, SPLIT):
-        log.warning("no %s: fitting on all measurements (run `heliocal split-knn` for honest "
-                    "validation and test errors)", path)
-        return pd.Series("train", index=measurements.index)
-    check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})
-    split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", "split"])
-    key = measurements["heliostat_id"] + "\0" + measurements["measurement_id"]
-    lookup = dict(zip(split["heliostat_id"] + "\0" + split["measurement_id"], split["split"]))
-    labels = key.map(lookup)
-    # heliostats the split left out (too few rows) are not fitted: mark them
-    return labels.fillna("excluded")
-
-
-def _mean(values: np.ndarray) -> float:
-    return float(np.mean(values)) if len(values) else float("nan")
-
-
-def _heliostat_inputs(hrow, rows: pd.DataFrame):
-    """(spec, nominal, all rows, split labels, training rows) of one heliostat."""
-    spec = HeliostatSpec.from_row(hrow)
-    data = MeasurementBatch.from_frame(rows)
-    labels = rows["split"].to_numpy()
-    return spec, nominal_parameters(hrow), data, labels, data.subset(labels == "train")
-
-
 def fit_presets(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
                 trains: Sequence[MeasurementBatch], presets: Sequence[str], *,
                 solver: str = "batched", loss: str = "soft_l1", f_scale_mrad: float = 1.0,
@@ -645,217 +597,3 @@ def fit_presets(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor]
     per_preset = [fit_heliostats_batched(specs, nominals, trains, preset, start_caches=caches,
                                          **kwargs) for preset in presets]
     return [[fits[k] for fits in per_preset] for k in range(len(specs))]
-
-
-def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
-                      loss: str, f_scale_mrad: float, robust_start: bool):
-    """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary)."""
-    spec, nominal, data, labels, train = _heliostat_inputs(hrow, rows)
-    fits = fit_presets([spec], [nominal], [train], presets, solver="scipy", loss=loss,
-                       f_scale_mrad=f_scale_mrad, robust_start=robust_start)[0]
-    return _heliostat_outputs(str(hrow["heliostat_id"]), spec, nominal, data, labels, train, fits)
-
-
-def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: Sequence[str], *,
-                        loss: str, f_scale_mrad: float, robust_start: bool | str) -> list[tuple]:
-    """Every preset for several heliostats of one kinematic and actuator type, each preset one
-    batched LM solve (:func:`fit_heliostats_batched`); per heliostat the same (param rows,
-    prediction rows, summary) as :func:`fit_one_heliostat`."""
-    inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
-    fits = fit_presets([i[0] for i in inputs], [i[1] for i in inputs], [i[4] for i in inputs],
-                       presets, solver="batched", loss=loss, f_scale_mrad=f_scale_mrad,
-                       robust_start=robust_start)
-    return [_heliostat_outputs(str(h["heliostat_id"]), *inp, fits[k])
-            for k, (h, inp) in enumerate(zip(hrows, inputs))]
-
-
-def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
-                       data: MeasurementBatch, labels: np.ndarray, train: MeasurementBatch,
-                       fits: Sequence[CoarseFit]):
-    """Predictions, the validation selection, param rows and summary of one heliostat's fits."""
-    preds, summaries = [], []
-    nominal_pred = predict(nominal, spec, data).assign(model="nominal")
-    preds.append(nominal_pred)
-    for fit in fits:
-        p = predict(fit.params, spec, data).assign(model=fit.preset)
-        preds.append(p)
-        err = p["error_mrad"].to_numpy()
-        summaries.append({"preset": fit.preset, "train": _mean(err[labels == "train"]),
-                          "validation": _mean(err[labels == "validation"]),
-                          "test": _mean(err[labels == "test"])})
-    # selection: lowest validation error; without validation rows the largest preset asked
-    vals = [s["validation"] for s in summaries]
-    if all(math.isnan(v) for v in vals):
-        chosen = len(fits) - 1
-    else:
-        chosen = int(np.nanargmin(vals))
-    degenerate = data_degeneracy(spec, fits[chosen].params, nominal, train)
-    param_rows = []
-    for k, (fit, s) in enumerate(zip(fits, summaries)):
-        for i, name in enumerate(PARAMETER_NAMES):
-            param_rows.append({
-                "heliostat_id": hid, "preset": fit.preset, "selected": k == chosen,
-                "parameter_index": i, "parameter": name, "unit": PARAMETER_UNITS[name],
-                "nominal": float(fit.nominal[i]), "fitted": float(fit.params[i]),
-                "std_error": float(fit.std_error[i]), "free": bool(fit.free[i]),
-                "determined": bool(fit.determined[i]), "fit_iterations": fit.iterations,
-                "fit_cost": fit.cost, "fit_condition_number": fit.condition_number,
-                "fit_status": fit.status, "fit_implausible": "; ".join(fit.implausible),
-                "fit_degenerate": degenerate,
-                "n_train": len(train), "train_error_mrad": s["train"],
-                "val_error_mrad": s["validation"], "test_error_mrad": s["test"]})
-    pred = pd.concat(preds, ignore_index=True)
-    pred["heliostat_id"] = hid
-    pred["split"] = np.tile(labels, len(preds))
-    pred["selected"] = pred["model"] == fits[chosen].preset
-    summary = {
-        "heliostat_id": hid, "n_train": len(train), "selected": fits[chosen].preset,
-        "nominal": {sp: _mean(nominal_pred["error_mrad"].to_numpy()[labels == sp])
-                    for sp in ("train", "validation", "test")},
-        "presets": {s["preset"]: {k: s[k] for k in ("train", "validation", "test")} for s in summaries},
-        "implausible": {f.preset: f.implausible for f in fits if f.implausible},
-        "degenerate": degenerate,
-        "wall_time_s": float(sum(f.wall_time_s for f in fits)),
-    }
-    return param_rows, pred, summary
-
-
-def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | None = None) -> dict:
-    """The selected coarse fit per heliostat from ``coarse_params.parquet``.
-
-    Returns
-    -------
-    dict heliostat_id -> {"preset": str, "params": torch.Tensor (28,), "free": torch.BoolTensor
-    (28,), "nominal": torch.Tensor (28,), "std_error": torch.Tensor (28,)}
-    """
-    df = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats)
-    df = df[df["selected"]].sort_values(["heliostat_id", "parameter_index"])
-    out = {}
-    for hid, g in df.groupby("heliostat_id", sort=True):
-        out[str(hid)] = {
-            "preset": str(g["preset"].iloc[0]),
-            "params": torch.tensor(g["fitted"].to_numpy(np.float64)),
-            "free": torch.tensor(g["free"].to_numpy(bool)),
-            "nominal": torch.tensor(g["nominal"].to_numpy(np.float64)),
-            "std_error": torch.tensor(g["std_error"].to_numpy(np.float64)),
-        }
-    return out
-
-
-#: Options of ``fit-coarse`` that decide a fit (its provenance records them; the defaults of
-#: :func:`run_fit_coarse` stand in for a file written before an option existed).
-FIT_OPTIONS = {"solver": "batched", "loss": "soft_l1", "f_scale_mrad": 1.0, "robust_start": "auto"}
-
-
-def coarse_fit_options(workdir: str | Path) -> dict:
-    """The solver, loss, ``f_scale_mrad`` and robust start ``fit-coarse`` used in ``workdir``
-    (from coarse_params.parquet's provenance), as keyword arguments of :func:`fit_presets`."""
-    from ..artifacts.store import read_provenance
-
-    recorded = read_provenance(artifact_path(workdir, COARSE_PARAMS)).get("options") or {}
-    return {k: recorded.get(k, default) for k, default in FIT_OPTIONS.items()}
-
-
-def _fit_task(task) -> list[tuple]:
-    """Fits of one heliostat (scipy) or of one chunk of heliostats (batched): a picklable task
-    for :func:`~heliocal.pipeline.runtime.parallel.map_tasks`; a list of per-heliostat results."""
-    solver, hrows, rows, presets, kwargs = task
-    if solver == "scipy":
-        return [fit_one_heliostat(pd.Series(hrows[0]), rows[0], presets, **kwargs)]
-    return fit_heliostat_chunk([pd.Series(h) for h in hrows], rows, presets, **kwargs)
-
-
-def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
-                    batch_size: int) -> list[list[str]]:
-    """Heliostat ids in chunks for the batched solver: one kinematic and actuator type per chunk,
-    similar training-row counts together (little padding). Depends only on the data, so every
-    scheduler and worker count sees the same chunks (and the same numbers)."""
-    chunks = []
-    keys = helio.loc[list(ids), ["kinematic_type", "actuator_type"]].astype(str)
-    for _, group in keys.groupby(["kinematic_type", "actuator_type"], sort=True):
-        members = sorted(group.index, key=lambda h: (n_train[h], h))
-        chunks += [members[i:i + batch_size] for i in range(0, len(members), batch_size)]
-    return chunks
-
-
-@locks_workdir("fit-coarse")
-@stage_transaction("fit-coarse")
-def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
-                   f_scale_mrad: float = 1.0, robust_start: str = "auto",
-                   heliostats: Sequence[str] | None = None, progress=None,
-                   workers: int | None = 1, scheduler: str = "local",
-                   dask_address: str | None = None, solver: str = "batched",
-                   batch_size: int = 64) -> dict:
-    """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
-
-    Parameters
-    ----------
-    preset : a preset name, or ``auto`` (all of :data:`AUTO_PRESETS`, the best on validation is
-        selected per heliostat).
-    loss, f_scale_mrad, robust_start : see :func:`fit_heliostat`.
-    heliostats : restrict to these ids.
-    progress : optional callable ``progress(done, total, heliostat_id)``.
-    workers, scheduler, dask_address : where the per-heliostat fits run
-        (:func:`heliocal.pipeline.runtime.parallel.map_tasks`); results do not depend on it.
-    solver : ``batched`` (heliostats of one type in chunks of ``batch_size``, one vectorized
-        Levenberg-Marquardt program per chunk and preset, :mod:`heliocal.pipeline.physics.lm`) or
-        ``scipy`` (one :func:`scipy.optimize.least_squares` per heliostat, the reference).
-    batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
-    """
-    check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
-    check_choice(loss, "loss", "fit_coarse", LOSSES)
-    check_float(f_scale_mrad, "f_scale_mrad", "fit_coarse", 0.0, None, low_inclusive=False)
-    check_choice(solver, "solver", "fit_coarse", SOLVERS)
-    batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
-    workdir = Path(workdir)
-    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
-    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
-    measurements["split"] = load_split_labels(workdir, measurements).to_numpy()
-    presets = AUTO_PRESETS if preset == "auto" else (preset,)
-    helio = helio.set_index("heliostat_id", drop=False)
-    with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])
-    ids = [h for h in helio.index if h in with_train]   # (a scan per heliostat is O(H N))
-    if not ids:
-        raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
-                       "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")
-    groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
-    rows_of = {hid: groups[hid][groups[hid]["split"] != "excluded"] for hid in ids}
-    kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
-    if solver == "scipy":
-        chunks = [[hid] for hid in ids]
-    else:
-        n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in ids}
-        chunks = _chunks_by_type(helio, ids, n_train, batch_size)
-    tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
-              presets, kwargs) for chunk in chunks]
-    chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
-                              dask_address=dask_address,
-                              progress=(lambda done, total: progress(done, total, None))
-                              if progress else None)
-    by_id = {h: res for chunk, results in zip(chunks, chunk_results)
-             for h, res in zip(chunk, results)}
-    all_params, all_preds, summaries = [], [], []
-    for params, preds, summary in (by_id[h] for h in ids):
-        if summary["degenerate"]:
-            log.warning("%s: degenerate training data: %s; its errors say nothing about accuracy "
-                        "(calibrate it at more sun positions)", summary["heliostat_id"],
-                        summary["degenerate"])
-        for name, items in summary["implausible"].items():
-            if name == summary["selected"]:
-                log.warning("%s: the nominal geometry needed a large correction (%s)",
-                            summary["heliostat_id"], "; ".join(items))
-        all_params += params
-        all_preds.append(preds)
-        summaries.append(summary)
-    opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
-            "robust_start": robust_start, "solver": solver, "heliostats": list(heliostats) if heliostats else None}
-    params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
-    if heliostats:
-        # a partial run keeps the other heliostats' fits when the previous run read the same
-        # inputs (artifacts.merge_with_previous); the inputs are recorded as they were read
-        replaced = lambda old: old["heliostat_id"].isin(set(heliostats))  # noqa: E731
-        params = merge_with_previous(workdir, COARSE_PARAMS, params, replaced)
-        preds = merge_with_previous(workdir, COARSE_PREDICTIONS, preds, replaced)
-    write_artifact(params, workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
-    write_artifact(preds, workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
-    return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries}

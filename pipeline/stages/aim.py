@@ -11,7 +11,7 @@ import pandas as pd
 import torch
 from ..artifacts.store import artifact_present, check_fresh, read_artifact
 from ..artifacts.schemas import COARSE_PARAMS
-from ..models.coarse import load_selected_parameters
+from .fit_coarse import load_selected_parameters
 from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
 from ..physics.kinematics import (HeliostatSpec, forward_kinematics, inverse_kinematics,
                                   nominal_parameters)

@@ -79,7 +79,8 @@ import pandas as pd
 import torch
 from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
                                write_artifact)
-from ..models.coarse import MeasurementBatch, load_split_labels, load_selected_parameters, predict
+from ..models.coarse import MeasurementBatch, predict
+from .fit_coarse import load_split_labels, load_selected_parameters
 from ..errors import FitError, check_choice, check_float, check_int
 from ..physics.kinematics import HeliostatSpec
 from ..artifacts.modelfiles import write_model

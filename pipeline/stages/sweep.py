@@ -49,8 +49,8 @@ import torch
 from ..artifacts.store import (check_fresh, merge_with_previous, previous_run_matches,
                                read_artifact, write_artifact)
 from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
-from ..models.coarse import (MeasurementBatch, coarse_fit_options, fit_presets,
-                             load_selected_parameters, normal_errors_mrad)
+from ..models.coarse import MeasurementBatch, fit_presets, normal_errors_mrad
+from .fit_coarse import coarse_fit_options, load_selected_parameters
 from ..errors import FitError, ParameterError, check_float, check_int
 from .fit_hybrid import HYBRID_BATCH_SIZE, hybrid_chunks
 from ..models.network import FineConfig, layers_to_state, ensemble_seeds
