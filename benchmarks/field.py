@@ -36,7 +36,7 @@ HELIOCAL = str(Path(sys.executable).parent / "heliocal")
 
 
 def _simulate_chunk(args):
-    from heliocal.pipeline.stages.simulate import simulate_field
+    from heliocal.pipeline.models.simulator import simulate_field
 
     n, seed = args
     return simulate_field(n, seed=seed, measurements=(100, 400), dynamic_fraction=0.5)
@@ -46,7 +46,7 @@ def write_field(out: Path, n: int, seed: int = 0) -> dict:
     """Simulate ``n`` heliostats (in chunks over 2 processes) and write the log and properties."""
     from heliocal.pipeline.physics.geodesy import enu_to_wgs84
     from heliocal.pipeline.runtime.parallel import map_tasks
-    from heliocal.pipeline.stages.simulate import _json, _tower_json
+    from heliocal.pipeline.stages.simulate import json_text, tower_json
 
     if (out / "done.json").exists():
         return json.loads((out / "done.json").read_text())
@@ -84,10 +84,10 @@ def write_field(out: Path, n: int, seed: int = 0) -> dict:
         for hid, v in h.items():
             d = out / "paint" / hid
             d.mkdir(parents=True, exist_ok=True)
-            (d / f"{hid}-heliostat-properties.json").write_text(_json(v.paint_properties))
+            (d / f"{hid}-heliostat-properties.json").write_text(json_text(v.paint_properties))
             n_written += 1
         if k == 0:
-            (out / "tower-measurements.json").write_text(_json(_tower_json(f)))
+            (out / "tower-measurements.json").write_text(json_text(tower_json(f)))
     log = pd.concat(frames, ignore_index=True)
     log.to_csv(out / "calibration_log.csv", index=False)
     info = {"heliostats": n_written, "measurements": int(len(log)),

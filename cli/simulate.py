@@ -10,7 +10,9 @@ from rich.table import Table
 
 from heliocal.cli.app import JsonFlag, QuietFlag, Seed, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.stages.simulate import DISTURBANCE_KINDS, simulate_field, write_field
+from heliocal.pipeline.models.disturbances import DISTURBANCE_KINDS
+from heliocal.pipeline.models.simulator import simulate_field
+from heliocal.pipeline.stages.simulate import write_field
 
 __all__ = ["simulate_cmd"]
 

@@ -29,7 +29,8 @@ from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import ingest, run_ingest
 from heliocal.pipeline.physics.kinematics import (PARAMETER_NAMES, HeliostatSpec, joint_angles,
                                                   nominal_parameters)
-from heliocal.pipeline.stages.simulate import simulate_field, write_field
+from heliocal.pipeline.models.simulator import simulate_field
+from heliocal.pipeline.stages.simulate import write_field
 from heliocal.pipeline.stages.split import run_split
 
 _ACTUATOR_FIELDS = ("increment", "initial_stroke_length_m", "offset_m", "pivot_radius_m",

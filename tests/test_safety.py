@@ -33,7 +33,8 @@ from heliocal.pipeline.stages.report import run_report
 from heliocal.pipeline.artifacts.schemas import (HELIOSTAT_ID_RE, HELIOSTATS, MEASUREMENTS,
                                                  REJECTED, heliostat_id_problem,
                                                  suggest_heliostat_id)
-from heliocal.pipeline.stages.simulate import simulate_field, write_field
+from heliocal.pipeline.models.simulator import simulate_field
+from heliocal.pipeline.stages.simulate import write_field
 
 HOSTILE_HTML = "<img src=x onerror=alert(1)>"
 TRAVERSAL = "../../../tmp/x/pwned"

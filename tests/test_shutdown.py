@@ -34,7 +34,8 @@ import pytest
 
 from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.stages.ingest import run_ingest
-from heliocal.pipeline.stages.simulate import simulate_field, write_field
+from heliocal.pipeline.models.simulator import simulate_field
+from heliocal.pipeline.stages.simulate import write_field
 from heliocal.pipeline.stages.split import run_split
 from heliocal.pipeline.stages.sweep import run_sweep
 from heliocal.pipeline.artifacts.transaction import staging_in_use

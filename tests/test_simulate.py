@@ -24,8 +24,9 @@ from heliocal.pipeline.report.golden import compare_trees
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import ingest
 from heliocal.pipeline.physics.kinematics import PARAMETER_INDEX, preset_parameters
-from heliocal.pipeline.stages.simulate import (DEVIATION_SIZES, SimulatedField, simulate_field,
-                                               write_field)
+from heliocal.pipeline.models.disturbances import DEVIATION_SIZES
+from heliocal.pipeline.models.simulator import SimulatedField, simulate_field
+from heliocal.pipeline.stages.simulate import write_field
 from heliocal.pipeline.physics.sun import spa_sun_position
 
 REPO = Path(__file__).resolve().parents[1]

@@ -24,7 +24,8 @@ from heliocal.pipeline.stages.aim import aim_models, aim_steps
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import run_ingest
-from heliocal.pipeline.stages.simulate import simulate_field, write_field
+from heliocal.pipeline.models.simulator import simulate_field
+from heliocal.pipeline.stages.simulate import write_field
 from heliocal.pipeline.stages.split import run_split
 from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, PathConfig, default_ladder, run_sweep,
                                             study_heliostats, weight_decay_grid)
