@@ -19,8 +19,8 @@ import time
 import torch
 
 from heliocal.pipeline.models.coarse import MeasurementBatch, fit_heliostat, normal_errors_mrad
-from heliocal.pipeline.physics.kinematics import (HeliostatSpec, forward_kinematics,
-                                                  inverse_kinematics, nominal_parameters)
+from heliocal.pipeline.physics.parameters import HeliostatSpec, nominal_parameters
+from heliocal.pipeline.physics.kinematics import forward_kinematics, inverse_kinematics
 from heliocal.pipeline.physics.metrics import reflect
 
 ROW = {

@@ -29,7 +29,7 @@ from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat,
 from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import run_ingest
-from heliocal.pipeline.physics.kinematics import HeliostatSpec, PARAMETER_NAMES, nominal_parameters
+from heliocal.pipeline.physics.parameters import HeliostatSpec, PARAMETER_NAMES, nominal_parameters
 from heliocal.pipeline.artifacts.store import read_artifact
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from heliocal.pipeline.stages.split import run_split

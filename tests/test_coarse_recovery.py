@@ -27,8 +27,8 @@ from heliocal.pipeline.models.coarse import MeasurementBatch, fit_heliostat, nor
 from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import ingest, run_ingest
-from heliocal.pipeline.physics.kinematics import (PARAMETER_NAMES, HeliostatSpec, joint_angles,
-                                                  nominal_parameters)
+from heliocal.pipeline.physics.parameters import PARAMETER_NAMES, HeliostatSpec, nominal_parameters
+from heliocal.pipeline.physics.kinematics import joint_angles
 from heliocal.pipeline.models.simulator import simulate_field
 from heliocal.pipeline.stages.simulate import write_field
 from heliocal.pipeline.stages.split import run_split

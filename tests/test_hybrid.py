@@ -39,9 +39,9 @@ from heliocal.pipeline.models.training import (FineProblem, build_problem, ensem
                                                member_parameters, predict_members, train_members)
 from heliocal.pipeline.stages.aim import load_model
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
-from heliocal.pipeline.physics.kinematics import (PARAMETER_INDEX, HeliostatSpec,
-                                                  forward_kinematics, inverse_kinematics,
+from heliocal.pipeline.physics.parameters import (PARAMETER_INDEX, HeliostatSpec,
                                                   nominal_parameters, preset_mask)
+from heliocal.pipeline.physics.kinematics import forward_kinematics, inverse_kinematics
 from heliocal.pipeline.physics.metrics import error_mrad, reflect
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from heliocal.pipeline.artifacts.schemas import COARSE_PREDICTIONS

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from heliocal.pipeline.physics.jacobian import residual_and_jacobian
-from heliocal.pipeline.physics.kinematics import (PARAMETER_NAMES, HeliostatSpec,
-                                                  forward_kinematics, nominal_parameters)
+from heliocal.pipeline.physics.parameters import PARAMETER_NAMES, HeliostatSpec, nominal_parameters
+from heliocal.pipeline.physics.kinematics import forward_kinematics
 from heliocal.pipeline.physics.metrics import measured_normal
 
 JUELICH = {

@@ -13,13 +13,13 @@ import torch
 from torch.func import jacfwd, vmap
 
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.physics.kinematics import (IDEAL_UNUSED_PARAMETERS, KINEMATIC_PRESETS,
+from heliocal.pipeline.physics.parameters import (IDEAL_UNUSED_PARAMETERS, KINEMATIC_PRESETS,
                                                   KINEMATIC_TYPES, PARAMETER_INDEX, PARAMETER_NAMES,
                                                   PRESET_NAMES, PRESETS, REFERENCE_NORMALS,
-                                                  STONE_MAPPING, HeliostatSpec, forward_kinematics,
-                                                  inverse_kinematics, joint_angles,
-                                                  nominal_parameters, orientation_matrices,
-                                                  preset_mask, preset_parameters, rotation_e,
+                                                  STONE_MAPPING, HeliostatSpec, nominal_parameters,
+                                                  preset_mask, preset_parameters)
+from heliocal.pipeline.physics.kinematics import (forward_kinematics, inverse_kinematics,
+                                                  joint_angles, orientation_matrices, rotation_e,
                                                   rotation_n, rotation_u)
 from heliocal.pipeline.physics.metrics import angle_between_mrad, reflect
 

@@ -23,7 +23,7 @@ from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.report.golden import compare_trees
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.stages.ingest import ingest
-from heliocal.pipeline.physics.kinematics import PARAMETER_INDEX, preset_parameters
+from heliocal.pipeline.physics.parameters import PARAMETER_INDEX, preset_parameters
 from heliocal.pipeline.models.disturbances import DEVIATION_SIZES
 from heliocal.pipeline.models.simulator import SimulatedField, simulate_field
 from heliocal.pipeline.stages.simulate import write_field

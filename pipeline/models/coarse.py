@@ -1,6 +1,6 @@
 """``fit-coarse``: the rigid-body coarse model fitted by Levenberg-Marquardt.
 
-For every heliostat the free parameters of a preset (:data:`~heliocal.pipeline.physics.kinematics.PRESETS`)
+For every heliostat the free parameters of a preset (:data:`~heliocal.pipeline.physics.parameters.PRESETS`)
 are fitted on its training rows with :func:`scipy.optimize.least_squares`:
 
 * residuals: per measurement the three components of ``1000 * (n_pred - n_meas)`` [mrad], where
@@ -37,8 +37,9 @@ import torch
 from scipy.optimize import least_squares
 from ..errors import check_choice
 from ..physics.jacobian import forward_state, residual_and_jacobian
-from ..physics.kinematics import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
-                                  HeliostatSpec, forward_kinematics, joint_angles, preset_mask)
+from ..physics.parameters import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
+                                  HeliostatSpec, preset_mask)
+from ..physics.kinematics import forward_kinematics, joint_angles
 from ..physics.metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
 
 __all__ = [
@@ -290,7 +291,7 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     spec : the heliostat's fixed description.
     nominal : (28,) nominal parameters (prior mean and default start).
     train : training measurements.
-    preset : one of :data:`~heliocal.pipeline.physics.kinematics.PRESET_NAMES`.
+    preset : one of :data:`~heliocal.pipeline.physics.parameters.PRESET_NAMES`.
     loss : ``linear`` (MINPACK LM), ``soft_l1`` or ``huber`` (trust-region reflective).
     f_scale_mrad : residual scale of the robust loss [mrad].
     robust_start : ``True``/``"always"`` grid-searches the actuator zero points first (see

@@ -9,7 +9,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 import torch
-from ..physics.kinematics import PARAMETER_INDEX, STONE_MAPPING
+from ..physics.parameters import PARAMETER_INDEX, STONE_MAPPING
 
 __all__ = [
     "DISTURBANCE_COLUMNS",

@@ -12,7 +12,7 @@ import pandas as pd
 import torch
 from .coarse import parameter_kind
 from ..errors import InputError, check_float, check_int
-from ..physics.kinematics import PARAMETER_NAMES, HeliostatSpec
+from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec
 
 __all__ = [
     "MODES",

@@ -12,7 +12,8 @@ import pandas as pd
 import torch
 from .coarse import MeasurementBatch
 from ..errors import FitError
-from ..physics.kinematics import HeliostatSpec, forward_kinematics, inverse_kinematics
+from ..physics.parameters import HeliostatSpec
+from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, measured_normal
 from .network import Layers, init_mlp, layers_to_state, mlp_forward
 from ..runtime.process_state import single_threaded

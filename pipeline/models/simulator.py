@@ -46,8 +46,9 @@ import torch
 from ..errors import InputError, ParameterError, check_choice, check_float, check_int
 from ..physics.geodesy import enu_to_wgs84, wgs84_to_enu
 from ..io.paint import paint_kinematics_columns
-from ..physics.kinematics import (PARAMETER_NAMES, PRESET_NAMES, HeliostatSpec, forward_kinematics,
-                                  inverse_kinematics, nominal_parameters, preset_parameters)
+from ..physics.parameters import (PARAMETER_NAMES, PRESET_NAMES, HeliostatSpec, nominal_parameters,
+                                  preset_parameters)
+from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, measured_normal, reflect
 from ..physics.sun import spa_sun_position, sun_vector_enu
 from .disturbances import (DISTURBANCE_COLUMNS, DISTURBANCE_KINDS, Disturbances, deviate_parameters,
@@ -125,7 +126,7 @@ class SimulatedHeliostat:
 
     ``row`` is its ``heliostats.parquet`` row as ingest will read it (positions after the WGS84
     round trip, axis-1 initial angle in ARTIST's convention); ``nominal`` and ``true`` are
-    28-parameter vectors in :data:`~heliocal.pipeline.physics.kinematics.PARAMETER_NAMES` order;
+    28-parameter vectors in :data:`~heliocal.pipeline.physics.parameters.PARAMETER_NAMES` order;
     ``params`` (N, 28) is the true geometry of each of its measurements (``true`` plus the
     disturbances; equal to ``true`` for a static heliostat), in the order of its rows of
     :attr:`SimulatedField.measurements`.

@@ -14,8 +14,8 @@ import pandas as pd
 import torch
 from .coarse import MeasurementBatch, metrics_frame
 from ..errors import ParameterError
-from ..physics.kinematics import (HeliostatSpec, ParameterComponents, forward_kinematics,
-                                  nominal_parameters)
+from ..physics.parameters import HeliostatSpec, nominal_parameters
+from ..physics.kinematics import ParameterComponents, forward_kinematics
 from ..physics.metrics import error_mrad, measured_normal
 from ..physics.lm import SPEC_TENSORS, stack_specs
 from .network import (FeatureEncoder, FineConfig, Layers, flatten_layers, init_mlp, layer_views,

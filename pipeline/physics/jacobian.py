@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import torch
 
-from .kinematics import (PARAMETER_INDEX, HeliostatSpec, JOINT_AXES, JOINT_SENSES, base_frame,
-                         rotation_chain, _tilt_matrices, joint_angles)
+from .parameters import PARAMETER_INDEX, HeliostatSpec, JOINT_AXES
+from .kinematics import JOINT_SENSES, base_frame, rotation_chain, _tilt_matrices, joint_angles
 from .metrics import measured_normal
 
 __all__ = ["residual_and_jacobian", "forward_state"]

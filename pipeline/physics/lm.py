@@ -44,7 +44,7 @@ import torch
 
 from ..errors import check_choice
 from .jacobian import forward_state, residual_and_jacobian
-from .kinematics import HeliostatSpec
+from .parameters import HeliostatSpec
 from .metrics import measured_normal
 
 __all__ = ["BatchedProblem", "BatchedSolution", "stack_specs", "solve_batched", "robust_loss",

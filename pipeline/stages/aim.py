@@ -13,8 +13,8 @@ from ..artifacts.store import artifact_present, check_fresh, read_artifact
 from ..artifacts.schemas import COARSE_PARAMS
 from .fit_coarse import load_selected_parameters
 from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
-from ..physics.kinematics import (HeliostatSpec, forward_kinematics, inverse_kinematics,
-                                  nominal_parameters)
+from ..physics.parameters import HeliostatSpec, nominal_parameters
+from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, reflect
 from ..artifacts.modelfiles import model_files, read_model
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS

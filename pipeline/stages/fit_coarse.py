@@ -17,7 +17,7 @@ from ..artifacts.store import (artifact_present, check_fresh, merge_with_previou
                                write_artifact)
 from ..errors import FitError, check_choice, check_float, check_int
 from ..runtime.parallel import map_tasks
-from ..physics.kinematics import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
+from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
                                   nominal_parameters)
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from ..artifacts.transaction import stage_transaction

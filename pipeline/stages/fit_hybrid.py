@@ -82,7 +82,7 @@ from ..artifacts.store import (merge_with_previous, previous_run_matches, read_a
 from ..models.coarse import MeasurementBatch, predict
 from .fit_coarse import load_split_labels, load_selected_parameters
 from ..errors import FitError, check_choice, check_float, check_int
-from ..physics.kinematics import HeliostatSpec
+from ..physics.parameters import HeliostatSpec
 from ..artifacts.modelfiles import write_model
 from ..runtime.parallel import map_tasks
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS

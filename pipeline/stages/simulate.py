@@ -17,7 +17,7 @@ from .. import __version__
 from ..artifacts.paths import atomic_write_text, safe_child
 from ..errors import InputError
 from ..physics.geodesy import enu_to_wgs84
-from ..physics.kinematics import PARAMETER_INDEX, PARAMETER_NAMES
+from ..physics.parameters import PARAMETER_INDEX, PARAMETER_NAMES
 from ..artifacts.workdir_lock import LOCK_FILENAME, locks_workdir
 from ..models.disturbances import DISTURBANCE_COLUMNS
 from ..models.simulator import SimulatedField
@@ -102,7 +102,7 @@ def _ground_truth(field_: SimulatedField, files: dict) -> dict:
         "generator": f"heliocal {__version__} simulate",
         "settings": field_.settings,
         "conventions": {
-            "parameters": "heliocal's 28 kinematic parameters (heliocal.pipeline.physics.kinematics."
+            "parameters": "heliocal's 28 kinematic parameters (heliocal.pipeline.physics.parameters."
                           "PARAMETER_NAMES, units in the names; increments in steps/m for linear "
                           "and steps/rad for ideal actuators); axis_1_initial_angle_rad in ARTIST's "
                           "convention, i.e. the PAINT file's initial_angle minus pi/2, as ingest "

@@ -58,7 +58,7 @@ from ..models.training import (FineProblem, MemberResult, take_rows, build_probl
                                ensemble_errors_mrad, predict_ensembles, predictions_frame,
                                stack_problems, train_members)
 from ..models.pretrained import PretrainConfig, fit_pretrained
-from ..physics.kinematics import HeliostatSpec, nominal_parameters
+from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.metrics import error_mrad, measured_normal
 from ..runtime.parallel import map_tasks
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
