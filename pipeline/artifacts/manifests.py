@@ -11,14 +11,12 @@ import hashlib
 import json
 import os
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import Protocol
 from pathlib import Path, PurePosixPath
 from ..errors import SchemaError, StageInputError, UnsafePathError
 
-if TYPE_CHECKING:  # only for annotations: transaction.py imports this module
-    from .transaction import StageTransaction
-
 __all__ = [
+    "ActiveTransaction",
     "MANIFEST_VERSION",
     "Manifest",
     "Committed",
@@ -290,12 +288,24 @@ def verify_files(m: Manifest) -> dict[str, str]:
 # ------------------------------------------------------------------------------------------------
 # the transaction
 # ------------------------------------------------------------------------------------------------
-ACTIVE_TRANSACTION: contextvars.ContextVar["StageTransaction | None"] = contextvars.ContextVar(
+class ActiveTransaction(Protocol):
+    """What readers need of the running stage transaction
+    (:class:`heliocal.pipeline.artifacts.transaction.StageTransaction` is one)."""
+
+    root: Path
+    stage: str
+
+    def record_read(self, label: str, manifest: Manifest, rel: str) -> None:
+        """Record that this run read ``rel`` of ``manifest``'s run as its input ``label``."""
+
+
+#: The stage transaction running in this context (set by StageTransaction while it is open).
+ACTIVE_TRANSACTION: contextvars.ContextVar[ActiveTransaction | None] = contextvars.ContextVar(
     "heliocal_transaction", default=None)
 
 
 def current_transaction(root: str | os.PathLike | None = None,
-                        stage: str | None = None) -> "StageTransaction | None":
+                        stage: str | None = None) -> ActiveTransaction | None:
     """The transaction active in this context (optionally: only if it is of ``root``/``stage``)."""
     txn = ACTIVE_TRANSACTION.get()
     if txn is None:
