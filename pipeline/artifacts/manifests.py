@@ -5,14 +5,16 @@ against the recorded SHA-256). The protocol that writes them is in
 """
 
 from __future__ import annotations
+
 import contextlib
 import contextvars
 import hashlib
 import json
 import os
 from dataclasses import dataclass, field
-from typing import Protocol
 from pathlib import Path, PurePosixPath
+from typing import Protocol
+
 from ..errors import SchemaError, StageInputError, UnsafePathError
 
 __all__ = [

@@ -4,12 +4,14 @@ hashes.
 """
 
 from __future__ import annotations
+
 import contextlib
 import hashlib
 import os
 import tempfile
 from pathlib import Path
 from typing import Iterator
+
 from ..errors import UnsafePathError
 from .table import ArtifactSchema
 

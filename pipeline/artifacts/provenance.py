@@ -3,18 +3,23 @@ wrote it, and content fingerprints of tables (the basis of every freshness check
 """
 
 from __future__ import annotations
+
 import hashlib
 import subprocess
 import sys
 from pathlib import Path
 from typing import Mapping
+
 import pyarrow as pa
+
 from .table import ArtifactSchema
 
 __all__ = [
     "Fingerprint",
     "table_fingerprint",
     "git_revision",
+    "command_line",
+    "jsonable",
 ]
 
 

@@ -19,22 +19,25 @@ so a stale artifact is refused with the stage to rerun.
 """
 
 from __future__ import annotations
+
 import contextlib
 import json
 import logging
 import os
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping, Sequence
+
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
+
 from .. import __version__
 from ..errors import SchemaError, StageInputError
 from .manifests import committed_entry, current_transaction, load_manifest, read_committed
-from .transaction import transaction
 from .paths import artifact_path, file_sha256
 from .provenance import Fingerprint, command_line, git_revision, jsonable, table_fingerprint
 from .table import ArtifactSchema, to_table
+from .transaction import transaction
 
 __all__ = [
     "SCHEMA_VERSION",

@@ -4,10 +4,13 @@ of a DataFrame to an Arrow table of that schema (types checked, rows sorted).
 """
 
 from __future__ import annotations
+
 from dataclasses import dataclass, field
 from typing import Mapping
+
 import pandas as pd
 import pyarrow as pa
+
 from ..errors import SchemaError
 
 __all__ = [

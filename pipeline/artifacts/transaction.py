@@ -41,6 +41,7 @@ and recovery leaves alone the staging folder of a run that is still alive.
 """
 
 from __future__ import annotations
+
 import contextlib
 import datetime as _dt
 import errno
@@ -54,8 +55,9 @@ import secrets
 import shutil
 from pathlib import Path
 from typing import Callable, Iterator, Mapping
+
 from ..errors import InputError, SchemaError, StageInputError
-from .manifests import (ACTIVE_TRANSACTION, MANIFEST_VERSION, Manifest, STAGING_PREFIX,
+from .manifests import (ACTIVE_TRANSACTION, MANIFEST_VERSION, STAGING_PREFIX, Manifest,
                         all_manifests, checked_relative_path, current_transaction, load_manifest,
                         manifest_path, sha256_of_file, staging_name)
 
@@ -380,7 +382,7 @@ class StageTransaction:
     def commit(self) -> Manifest:
         """Check the inputs, write the manifest (the commit point), move the files into place."""
         from .. import __version__
-        from .provenance import command_line, jsonable, git_revision
+        from .provenance import command_line, git_revision, jsonable
 
         self._check_inputs()
         current = load_manifest(self.root, self.stage)

@@ -3,6 +3,7 @@ blocks, the per-source context (properties, targets) and the staging of log rows
 """
 
 from __future__ import annotations
+
 import csv
 import json
 import logging
@@ -11,14 +12,16 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
+
 import numpy as np
 import pandas as pd
 import pyarrow as pa
+
 from ..errors import InputError
 from ..physics.geodesy import wgs84_to_enu
-from .spill import SortedSpill
 from .paint import read_paint_properties, read_properties_table
 from .sources import TOWER_FILENAME, find_tower_file, read_tower
+from .spill import SortedSpill
 from .staged import IngestOptions, Staged, Target
 from .text import open_csv_text, shorten
 from .validation import to_float_frame

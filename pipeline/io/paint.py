@@ -3,17 +3,20 @@ calibration JSON files staged into rows, one file one row.
 """
 
 from __future__ import annotations
+
 import json
 import logging
 import math
 import re
-import tomllib
 from pathlib import Path
+
 import numpy as np
 import pandas as pd
+import tomllib
+
+from ..artifacts.schemas import HELIOSTATS
 from ..errors import InputError
 from ..physics.geodesy import wgs84_to_enu
-from ..artifacts.schemas import HELIOSTATS
 from .sources import TIMESTAMPS_FILENAME, TOWER_FILENAME, find_tower_file, read_tower
 from .staged import IngestOptions, Staged, Target
 from .text import load_json, shorten
@@ -23,6 +26,8 @@ __all__ = [
     "DEFAULT_JUELICH_PROPERTIES",
     "default_properties_row",
     "stage_paint",
+    "paint_kinematics_columns",
+    "read_properties_table",
 ]
 
 log = logging.getLogger("heliocal.ingest")

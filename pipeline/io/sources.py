@@ -5,6 +5,7 @@ The kinds are described in :mod:`heliocal.pipeline.stages.ingest` and docs/input
 """
 
 from __future__ import annotations
+
 import csv
 import json
 import logging
@@ -12,7 +13,9 @@ import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
+
 import numpy as np
+
 from ..errors import InputError
 from ..physics.geodesy import wgs84_to_enu
 from .staged import IngestOptions, Target
@@ -26,6 +29,8 @@ __all__ = [
     "find_tower_file",
     "read_tower",
     "expand_sources",
+    "TIMESTAMPS_FILENAME",
+    "TOWER_FILENAME",
 ]
 
 log = logging.getLogger("heliocal.ingest")

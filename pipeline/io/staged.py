@@ -3,10 +3,13 @@ staged rows (:class:`Staged`), raw values in canonical column names before valid
 """
 
 from __future__ import annotations
+
 from dataclasses import dataclass, field
 from pathlib import Path
+
 import numpy as np
 import pandas as pd
+
 from ..errors import ParameterError, check_choice, check_float
 
 __all__ = [
@@ -17,6 +20,8 @@ __all__ = [
     "Staged",
     "TIME_MAX_MARGIN",
     "ENV_ABS_MAX",
+    "DEFAULT_TIME_MIN",
+    "Target",
 ]
 
 

@@ -3,10 +3,12 @@ delimiters, JSON objects, and short quotes of bad values for error messages.
 """
 
 from __future__ import annotations
+
 import contextlib
 import json
 import logging
 from pathlib import Path
+
 from ..errors import InputError
 
 __all__ = [

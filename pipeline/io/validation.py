@@ -3,16 +3,19 @@ rejected row with a reason (REJECTION_REASONS); plausibility checks per source.
 """
 
 from __future__ import annotations
+
 import datetime
 import logging
 import math
 import re
 from typing import Sequence
+
 import numpy as np
 import pandas as pd
-from ..errors import InputError
+
 from ..artifacts.schemas import (HELIOSTAT_ID_RULE, MEASUREMENTS, heliostat_id_problem,
                                  suggest_heliostat_id)
+from ..errors import InputError
 from ..physics.sun import spa_sun_position, sun_vector_enu, wrap_deg
 from .paint import default_properties_row
 from .staged import ENV_ABS_MAX, IngestOptions, Staged, Target, time_bounds
@@ -22,6 +25,7 @@ __all__ = [
     "validate_rows",
     "MedianVsThreshold",
     "SourceChecks",
+    "invalid_id_message",
 ]
 
 log = logging.getLogger("heliocal.ingest")

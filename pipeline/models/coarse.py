@@ -27,20 +27,23 @@ as *not determined by the data* (the prior, not the data, fixes it).
 """
 
 from __future__ import annotations
+
 import math
 import time
 from dataclasses import dataclass
 from typing import Sequence
+
 import numpy as np
 import pandas as pd
 import torch
 from scipy.optimize import least_squares
+
 from ..errors import check_choice
 from ..physics.jacobian import forward_state, residual_and_jacobian
-from ..physics.parameters import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
-                                  HeliostatSpec, preset_mask)
 from ..physics.kinematics import forward_kinematics, joint_angles
 from ..physics.metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
+from ..physics.parameters import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
+                                  HeliostatSpec, preset_mask)
 
 __all__ = [
     "AUTO_PRESETS",
@@ -55,6 +58,9 @@ __all__ = [
     "metrics_frame",
     "normal_errors_mrad",
     "fit_presets",
+    "LOSSES",
+    "data_degeneracy",
+    "parameter_kind",
 ]
 
 

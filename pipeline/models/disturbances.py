@@ -4,11 +4,14 @@ thermal, re-mounting, re-homing ...) the fine model is for; the ground truth of 
 """
 
 from __future__ import annotations
+
 from dataclasses import dataclass
 from typing import Sequence
+
 import numpy as np
 import pandas as pd
 import torch
+
 from ..physics.parameters import PARAMETER_INDEX, STONE_MAPPING
 
 __all__ = [

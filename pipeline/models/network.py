@@ -3,16 +3,19 @@ features) and the small MLP (initialisation, forward pass, flat <-> per-layer st
 """
 
 from __future__ import annotations
+
 import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
+
 import numpy as np
 import pandas as pd
 import torch
-from .coarse import parameter_kind
+
 from ..errors import InputError, check_float, check_int
 from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec
+from .coarse import parameter_kind
 
 __all__ = [
     "MODES",

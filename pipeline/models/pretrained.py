@@ -3,23 +3,28 @@ heliostats of the same type, then fine-tuned per heliostat.
 """
 
 from __future__ import annotations
+
 import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Mapping
+
 import numpy as np
 import pandas as pd
 import torch
-from .coarse import MeasurementBatch
+
 from ..errors import FitError
-from ..physics.parameters import HeliostatSpec
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, measured_normal
-from .network import Layers, init_mlp, layers_to_state, mlp_forward
+from ..physics.parameters import HeliostatSpec
 from ..runtime.process_state import single_threaded
+from .coarse import MeasurementBatch
+from .network import Layers, init_mlp, layers_to_state, mlp_forward
 
 __all__ = [
     "PretrainConfig",
+    "PretrainedModel",
+    "fit_pretrained",
 ]
 
 # ------------------------------------------------------------------------------------------------

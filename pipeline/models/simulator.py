@@ -37,19 +37,22 @@ field and byte-identical files.
 """
 
 from __future__ import annotations
+
 import math
 from dataclasses import asdict, dataclass, field
 from typing import Sequence
+
 import numpy as np
 import pandas as pd
 import torch
+
 from ..errors import InputError, ParameterError, check_choice, check_float, check_int
-from ..physics.geodesy import enu_to_wgs84, wgs84_to_enu
 from ..io.paint import paint_kinematics_columns
-from ..physics.parameters import (PARAMETER_NAMES, PRESET_NAMES, HeliostatSpec, nominal_parameters,
-                                  preset_parameters)
+from ..physics.geodesy import enu_to_wgs84, wgs84_to_enu
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, measured_normal, reflect
+from ..physics.parameters import (PARAMETER_NAMES, PRESET_NAMES, HeliostatSpec, nominal_parameters,
+                                  preset_parameters)
 from ..physics.sun import spa_sun_position, sun_vector_enu
 from .disturbances import (DISTURBANCE_COLUMNS, DISTURBANCE_KINDS, Disturbances, deviate_parameters,
                            disturbance_column, disturbance_setup, disturbance_values,

@@ -3,24 +3,27 @@ Adam training with early stopping on validation, and the predictions of the trai
 """
 
 from __future__ import annotations
+
 import copy
 import dataclasses
 import math
 import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
+
 import numpy as np
 import pandas as pd
 import torch
-from .coarse import MeasurementBatch, metrics_frame
+
 from ..errors import ParameterError
-from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.kinematics import ParameterComponents, forward_kinematics
-from ..physics.metrics import error_mrad, measured_normal
 from ..physics.lm import SPEC_TENSORS, stack_specs
+from ..physics.metrics import error_mrad, measured_normal
+from ..physics.parameters import HeliostatSpec, nominal_parameters
+from ..runtime.process_state import single_threaded
+from .coarse import MeasurementBatch, metrics_frame
 from .network import (FeatureEncoder, FineConfig, Layers, flatten_layers, init_mlp, layer_views,
                       mlp_columns, output_scales)
-from ..runtime.process_state import single_threaded
 
 __all__ = [
     "FineProblem",
@@ -34,6 +37,7 @@ __all__ = [
     "predictions_frame",
     "take_rows",
     "grouped_components",
+    "stack_problems",
 ]
 
 

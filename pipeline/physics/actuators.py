@@ -38,6 +38,7 @@ __all__ = [
     "linear_steps_to_angle",
     "linear_angle_to_steps",
     "linear_stroke_length",
+    "actuator_sign",
 ]
 
 ACTUATOR_TYPES = ("linear", "ideal")

@@ -29,7 +29,7 @@ from __future__ import annotations
 import torch
 
 from .parameters import PARAMETER_INDEX, HeliostatSpec, JOINT_AXES
-from .kinematics import JOINT_SENSES, base_frame, rotation_chain, _tilt_matrices, joint_angles
+from .kinematics import JOINT_SENSES, base_frame, rotation_chain, tilt_matrices, joint_angles
 from .metrics import measured_normal
 
 __all__ = ["residual_and_jacobian", "forward_state"]
@@ -84,7 +84,7 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     meas = measured_normal(sun, position, focal_spot)
     residual = 1000.0 * (normal - meas)
 
-    tilts = _tilt_matrices(params)  # (*S, 3 bodies, 3, 3)
+    tilts = tilt_matrices(params)  # (*S, 3 bodies, 3, 3)
     tilt_1, tilt_2, _ = tilts.unbind(-3)
     t_idx = [[PARAMETER_INDEX[f"{b}_translation_{d}_m"] for d in "enu"]
              for b in ("joint_1", "joint_2", "concentrator")]

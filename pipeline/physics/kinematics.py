@@ -47,13 +47,16 @@ it).
 """
 
 from __future__ import annotations
+
 import math
+
 import numpy as np
 import torch
+
+from ..errors import ParameterError
 from .actuators import (ideal_angle_to_steps, ideal_steps_to_angle, linear_angle_to_steps,
                         linear_steps_to_angle)
-from ..errors import ParameterError
-from .parameters import HeliostatSpec, JOINT_AXES, PARAMETER_NAMES, REFERENCE_NORMALS
+from .parameters import JOINT_AXES, PARAMETER_NAMES, REFERENCE_NORMALS, HeliostatSpec
 
 __all__ = [
     "ParameterComponents",
@@ -64,6 +67,12 @@ __all__ = [
     "forward_kinematics",
     "orientation_matrices",
     "inverse_kinematics",
+    "JOINT_SENSES",
+    "base_frame",
+    "rotation_chain",
+    "rotation_matrix",
+    "solve_angles",
+    "tilt_matrices",
 ]
 
 
@@ -193,7 +202,7 @@ def _tilt_entries(angle_e, angle_n, angle_u):
             (sa * sg - casb * cg, sa * cg + casb * sg, ca * cb))
 
 
-def _tilt_matrices(params: torch.Tensor) -> torch.Tensor:
+def tilt_matrices(params: torch.Tensor) -> torch.Tensor:
     """``R_e(te) R_n(tn) R_u(tu)`` for joint_1, joint_2, concentrator: (..., 3, 3, 3)."""
     entries = _tilt_entries(*_tilt_angles(params).unbind(-1))
     return torch.stack([e for row in entries for e in row], dim=-1).unflatten(-1, (3, 3))
@@ -376,7 +385,7 @@ def solve_angles(params, spec: HeliostatSpec, normal_enu, branch: int) -> torch.
     normals). Rows without a solution are NaN.
     """
     (ax1, sense1), (ax2, sense2) = JOINT_AXES[spec.kinematic_type]
-    tilt_1, tilt_2, tilt_c = _tilt_matrices(params).unbind(-3)
+    tilt_1, tilt_2, tilt_c = tilt_matrices(params).unbind(-3)
     frame = base_frame(spec)
     outer = tilt_1 if frame is None else frame @ tilt_1
     v = (outer.unsqueeze(-3).transpose(-1, -2) @ normal_enu.unsqueeze(-1)).squeeze(-1)

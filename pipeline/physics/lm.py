@@ -48,7 +48,7 @@ from .parameters import HeliostatSpec
 from .metrics import measured_normal
 
 __all__ = ["BatchedProblem", "BatchedSolution", "stack_specs", "solve_batched", "robust_loss",
-           "LOSSES"]
+           "LOSSES", "SPEC_TENSORS"]
 
 LOSSES = ("linear", "soft_l1", "huber")
 #: residual that replaces NaN (an actuator outside its range), as in the scipy path [mrad]

@@ -7,12 +7,15 @@ parameter vector read from heliostats.parquet. The chain that uses them is
 """
 
 from __future__ import annotations
+
 import math
 from dataclasses import dataclass, field
+
 import numpy as np
 import torch
-from .actuators import ACTUATOR_TYPES
+
 from ..errors import ParameterError, check_choice
+from .actuators import ACTUATOR_TYPES
 
 __all__ = [
     "PARAMETER_NAMES",
@@ -29,6 +32,7 @@ __all__ = [
     "nominal_parameters",
     "preset_mask",
     "preset_parameters",
+    "JOINT_AXES",
 ]
 
 

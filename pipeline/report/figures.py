@@ -3,11 +3,14 @@ hybrid versus coarse, error over time. Each function returns a figure; nothing i
 """
 
 from __future__ import annotations
+
 import io
 import logging
 import math
+
 import numpy as np
 import pandas as pd
+
 from .inputs import ReportInputs
 from .metrics import column_of, final_models, first_column, model_sort_key, split_sort_key
 
@@ -19,6 +22,7 @@ __all__ = [
     "plot_weight_decay",
     "plot_hybrid_vs_coarse",
     "plot_error_over_time",
+    "SKY_POINTS_PER_MRAD",
 ]
 
 log = logging.getLogger("heliocal.report")

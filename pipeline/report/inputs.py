@@ -3,14 +3,17 @@ missing), through the manifests, with a note for each one that is stale.
 """
 
 from __future__ import annotations
+
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
+
 import pandas as pd
+
+from ..artifacts.schemas import MEASUREMENTS, all_schemas
 from ..artifacts.store import (artifact_present, committed_fingerprint, read_artifact,
                                recorded_inputs)
 from ..errors import SchemaError, StageInputError
-from ..artifacts.schemas import MEASUREMENTS, all_schemas
 
 __all__ = [
     "ReportInputs",

@@ -3,16 +3,19 @@ error_mrad), rounded to fixed decimals so that two runs of the same pipeline giv
 """
 
 from __future__ import annotations
+
 import json
 import math
 import re
 from pathlib import Path
 from typing import Any
+
 import numpy as np
 import pandas as pd
+
 from .. import __version__
-from ..artifacts.provenance import git_revision
 from ..artifacts.manifests import committed_entry
+from ..artifacts.provenance import git_revision
 from .inputs import ReportInputs
 
 __all__ = [

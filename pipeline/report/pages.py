@@ -3,6 +3,7 @@ the self-contained HTML rendering of it.
 """
 
 from __future__ import annotations
+
 import base64
 import html
 import math
@@ -10,7 +11,9 @@ import re
 import urllib.parse
 from dataclasses import dataclass
 from typing import Sequence
+
 import numpy as np
+
 from ..artifacts.schemas import REJECTION_REASONS
 from .figures import (SKY_POINTS_PER_MRAD, hybrid_vs_coarse_table, plot_error_over_time,
                       plot_hybrid_vs_coarse, plot_sky_map, plot_training_size, plot_weight_decay,
@@ -20,6 +23,8 @@ from .metrics import final_models, split_sort_key
 
 __all__ = [
     "build_report",
+    "render_html",
+    "render_markdown",
 ]
 
 

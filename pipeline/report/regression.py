@@ -32,7 +32,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Mapping
 
-__all__ = ["Tolerances", "DEFAULT_TOLERANCES", "compare_metrics", "load_metrics", "main"]
+__all__ = ["Tolerances", "DEFAULT_TOLERANCES", "compare_metrics", "load_metrics", "main", "format_report"]
 
 
 @dataclass(frozen=True)

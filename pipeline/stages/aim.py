@@ -3,28 +3,29 @@ selected model (the hybrid where the sweep chose it, else the coarse model).
 """
 
 from __future__ import annotations
+
 import json
 from pathlib import Path
 from typing import Mapping, Sequence
+
 import numpy as np
 import pandas as pd
 import torch
-from ..artifacts.store import artifact_present, check_fresh, read_artifact
-from ..artifacts.schemas import COARSE_PARAMS
-from .fit_coarse import load_selected_parameters
-from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
-from ..physics.parameters import HeliostatSpec, nominal_parameters
-from ..physics.kinematics import forward_kinematics, inverse_kinematics
-from ..physics.metrics import error_mrad, reflect
-from ..artifacts.modelfiles import model_files, read_model
-from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
+
 from ..artifacts.manifests import load_manifest, read_committed
-from ..artifacts.schemas import HYBRID_PREDICTIONS
-from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs
-from ..models.network import FeatureEncoder, Layers, MODES, state_to_layers
+from ..artifacts.modelfiles import (check_fine_model_inputs, fine_model_inputs, model_files,
+                                    read_model)
+from ..artifacts.schemas import COARSE_PARAMS, HELIOSTATS, HYBRID_PREDICTIONS, MEASUREMENTS
+from ..artifacts.store import artifact_present, check_fresh, read_artifact
+from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
+from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
 from ..models.pretrained import PretrainedModel
 from ..models.training import FineProblem, grouped_components
+from ..physics.kinematics import forward_kinematics, inverse_kinematics
+from ..physics.metrics import error_mrad, reflect
+from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..runtime.process_state import single_threaded
+from .fit_coarse import load_selected_parameters
 
 __all__ = [
     "load_model",
@@ -91,8 +92,7 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
     such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
     empty without coarse_params.parquet.
     """
-    from ..artifacts.schemas import SPLIT
-    from ..artifacts.schemas import SELECTION
+    from ..artifacts.schemas import SELECTION, SPLIT
 
     workdir = Path(workdir)
     if not artifact_present(workdir, COARSE_PARAMS):
@@ -190,7 +190,8 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     (angle between the forward model's reflected beam at those steps and the direction to the aim
     point), ``sun_azimuth_deg``, ``sun_elevation_deg``.
     """
-    from ..physics.sun import spa_sun_position, sun_angles_from_vector, sun_vector_enu as _sunvec
+    from ..physics.sun import spa_sun_position, sun_angles_from_vector
+    from ..physics.sun import sun_vector_enu as _sunvec
 
     check_choice(model, "model", "aim", ("auto", "coarse") + MODES)
     workdir = Path(workdir)

@@ -5,26 +5,28 @@ coarse_params.parquet and coarse_predictions.parquet in one transaction. The fit
 """
 
 from __future__ import annotations
+
 import logging
 import math
 from pathlib import Path
 from typing import Sequence
+
 import numpy as np
 import pandas as pd
 import torch
+
 from ..artifacts.paths import artifact_path
+from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
-from ..errors import FitError, check_choice, check_float, check_int
-from ..runtime.parallel import map_tasks
-from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
-                                  nominal_parameters)
-from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
-from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
-from ..models.coarse import (AUTO_PRESETS, CoarseFit, LOSSES, MeasurementBatch, SOLVERS,
+from ..errors import FitError, check_choice, check_float, check_int
+from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
+from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
+                                  nominal_parameters)
+from ..runtime.parallel import map_tasks
 
 __all__ = [
     "fit_heliostat_chunk",
@@ -33,6 +35,7 @@ __all__ = [
     "fit_one_heliostat",
     "coarse_fit_options",
     "FIT_OPTIONS",
+    "load_split_labels",
 ]
 
 log = logging.getLogger("heliocal.coarse")

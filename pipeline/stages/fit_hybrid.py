@@ -71,31 +71,32 @@ model at the returned steps and the direction to the aim point.
 """
 
 from __future__ import annotations
+
 import time
 from pathlib import Path
 from typing import Sequence
+
 import numpy as np
 import pandas as pd
 import torch
+
+from ..artifacts.manifests import current_transaction
+from ..artifacts.modelfiles import check_fine_model_inputs, write_model
+from ..artifacts.schemas import HELIOSTATS, HYBRID_PREDICTIONS, MEASUREMENTS
 from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
                                write_artifact)
-from ..models.coarse import MeasurementBatch, predict
-from .fit_coarse import load_split_labels, load_selected_parameters
-from ..errors import FitError, check_choice, check_float, check_int
-from ..physics.parameters import HeliostatSpec
-from ..artifacts.modelfiles import write_model
-from ..runtime.parallel import map_tasks
-from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
-from ..artifacts.manifests import current_transaction
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
-from ..artifacts.schemas import HYBRID_PREDICTIONS
-from ..artifacts.modelfiles import check_fine_model_inputs
-from ..models.network import FineConfig, MODES, ensemble_seeds, layers_to_state
+from ..errors import FitError, check_choice, check_float, check_int
+from ..models.coarse import MeasurementBatch, predict
+from ..models.network import MODES, FineConfig, ensemble_seeds, layers_to_state
 from ..models.pretrained import PretrainConfig, fit_pretrained
 from ..models.training import (FineProblem, build_problem, predict_ensembles, predictions_frame,
                                stack_problems, take_rows, train_members)
+from ..physics.parameters import HeliostatSpec
+from ..runtime.parallel import map_tasks
 from ..runtime.process_state import single_threaded
+from .fit_coarse import load_selected_parameters, load_split_labels
 
 __all__ = [
     "run_fit_hybrid",

@@ -28,6 +28,7 @@ naming the file, the problem and the fix) before any artifact is written.
 """
 
 from __future__ import annotations
+
 import contextlib
 import logging
 import os
@@ -36,20 +37,22 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator, Sequence
+
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-from ..artifacts.table import to_table
+
 from ..artifacts.paths import artifact_path
-from ..artifacts.store import artifact_writer, write_artifact
-from ..errors import InputError, check_int
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
-from ..io.spill import SortedSpill
+from ..artifacts.store import artifact_writer, write_artifact
+from ..artifacts.table import to_table
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
+from ..errors import InputError, check_int
 from ..io.csv_log import log_context, read_log_rows, stage_log_rows
 from ..io.paint import stage_paint
 from ..io.sources import detect_source, expand_sources
+from ..io.spill import SortedSpill
 from ..io.staged import IngestOptions, Staged
 from ..io.validation import SourceChecks, invalid_id_message, validate_rows
 

@@ -28,9 +28,11 @@ renderer, no pyplot state), so the report runs headless and in threads.
 """
 
 from __future__ import annotations
+
 from pathlib import Path
-from ..artifacts.paths import safe_name
+
 from ..artifacts.manifests import current_transaction
+from ..artifacts.paths import safe_name
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..report.inputs import load_inputs

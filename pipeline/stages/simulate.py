@@ -4,23 +4,26 @@ file, and ``ground_truth.json`` with the true parameters and disturbances.
 """
 
 from __future__ import annotations
+
 import csv
 import io
 import json
 import os
 from pathlib import Path
 from typing import Sequence
+
 import numpy as np
 import pandas as pd
 import torch
+
 from .. import __version__
 from ..artifacts.paths import atomic_write_text, safe_child
-from ..errors import InputError
-from ..physics.geodesy import enu_to_wgs84
-from ..physics.parameters import PARAMETER_INDEX, PARAMETER_NAMES
 from ..artifacts.workdir_lock import LOCK_FILENAME, locks_workdir
+from ..errors import InputError
 from ..models.disturbances import DISTURBANCE_COLUMNS
 from ..models.simulator import SimulatedField
+from ..physics.geodesy import enu_to_wgs84
+from ..physics.parameters import PARAMETER_INDEX, PARAMETER_NAMES
 
 __all__ = [
     "json_text",
