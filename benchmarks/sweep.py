@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from heliocal.pipeline.stages.fit_coarse import load_selected_parameters, run_fit_coarse
-from heliocal.pipeline.models.network import FineConfig
+from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.models.training import build_problem, member_errors_mrad, train_members
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS

@@ -71,7 +71,7 @@ def _instrument() -> None:
 
 def _stages(workdir: Path):
     from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
-    from heliocal.pipeline.models.network import FineConfig
+    from heliocal.pipeline.models.config import FineConfig
     from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
     from heliocal.pipeline.stages.ingest import run_ingest
     from heliocal.pipeline.stages.report import run_report

@@ -42,6 +42,10 @@ __all__ = [
     "emit",
     "progress_enabled",
     "progress_bar",
+    "DEFAULT_WORKDIR",
+    "INTERRUPTED",
+    "debug_enabled",
+    "fail",
 ]
 
 app = typer.Typer(

@@ -9,7 +9,6 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               Workdir, Workers, command, emit, progress_bar, stdout)
-from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 
 
 def _fmt(x) -> str:
@@ -53,6 +52,8 @@ def fit_coarse_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Fit the coarse (rigid-body) model on each heliostat's training rows."""
+    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
+
     with progress_bar("fit-coarse", quiet) as advance:
         summary = run_fit_coarse(workdir, preset=preset, loss=loss, f_scale_mrad=f_scale,
                                  robust_start=robust_start, heliostats=heliostat, progress=advance,

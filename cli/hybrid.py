@@ -7,10 +7,8 @@ from __future__ import annotations
 
 import json
 import sys
-from enum import Enum
 from typing import Annotated, Optional
 
-import numpy as np
 import typer
 from rich import box
 from rich.table import Table
@@ -18,14 +16,14 @@ from rich.table import Table
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler, Seed,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import InputError, ParameterError
-from heliocal.pipeline.stages.fit_hybrid import HYBRID_BATCH_SIZE, run_fit_hybrid
-from heliocal.pipeline.models.network import MODES, FineConfig
-from heliocal.pipeline.stages.aim import aim_steps
+from heliocal.pipeline.models.config import FineConfig
+from heliocal.pipeline.vocabulary import HYBRID_BATCH_SIZE, AimModel, FineMode
 
 __all__ = ["fit_hybrid_cmd", "aim_cmd"]
 
-Mode = Enum("Mode", {m.replace("-", "_"): m for m in MODES}, type=str)
-AimModel = Enum("AimModel", {m.replace("-", "_"): m for m in ("auto", "coarse") + MODES}, type=str)
+# str Enums (heliocal.pipeline.vocabulary): typer lists the choices in --help and rejects others
+# as a usage error (exit 2). The library (torch) is imported when a command runs.
+Mode = FineMode
 
 
 def _fmt(x) -> str:
@@ -101,6 +99,8 @@ def fit_hybrid_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Train the fine model (or a baseline) on each heliostat's training rows."""
+    from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
+
     config = FineConfig(depth=depth, width=width, fourier_bands=_floats(fourier_bands, "--fourier-bands"),
                         env=tuple(e.strip() for e in env.split(",") if e.strip()),
                         learning_rate=learning_rate, max_epochs=max_epochs, patience=patience,
@@ -152,7 +152,10 @@ def aim_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Motor steps that put the reflected beam on an aim point (printed as JSON)."""
+    import numpy as np
+
     from heliocal.pipeline.physics.sun import sun_vector_enu
+    from heliocal.pipeline.stages.aim import aim_steps
 
     if (sun_azimuth is None) != (sun_elevation is None):
         raise ParameterError("give both --sun-azimuth and --sun-elevation, or neither")

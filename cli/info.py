@@ -20,23 +20,23 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import pyarrow as pa
-import pyarrow.parquet as pq
 import typer
 from rich import box
 from rich.table import Table
 from rich.text import Text
 
 from heliocal.cli.app import JsonFlag, command, emit, stdout
-from heliocal.pipeline.artifacts.store import SCHEMA_VERSION
 from heliocal.pipeline.artifacts.paths import file_sha256
 from heliocal.pipeline.errors import InputError, SchemaError
 from heliocal.pipeline.artifacts.workdir_lock import lock_holder
 from heliocal.pipeline.artifacts.manifests import all_manifests, verify_files
 from heliocal.pipeline.artifacts.transaction import (pending_commits, stale_staging_folders,
                                                      staging_in_use)
+
+if TYPE_CHECKING:
+    import pyarrow.parquet as pq
 
 __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 
@@ -104,8 +104,18 @@ class _Manifests:
         return None
 
 
+def _schema_version() -> int:
+    """The artifact schema version this heliocal reads (imported here: it needs pyarrow)."""
+    from heliocal.pipeline.artifacts.store import SCHEMA_VERSION
+
+    return SCHEMA_VERSION
+
+
 def _read_metadata(path: Path) -> tuple[pq.FileMetaData, dict]:
     """The Parquet footer and the heliocal provenance of ``path`` (one-line errors otherwise)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
     if not path.exists():
         raise InputError(f"{path}: no such file or folder; check the path")
     try:
@@ -171,7 +181,7 @@ def _commit(path: Path, manifests: _Manifests) -> dict:
 
 
 def _status(prov: dict, inputs: dict, commit: dict) -> str:
-    if prov.get("schema_version") != SCHEMA_VERSION:
+    if prov.get("schema_version") != _schema_version():
         return "incompatible"
     if commit["status"] != "committed":
         return commit["status"]
@@ -215,7 +225,7 @@ def describe_artifact(path: str | Path, *, _sha: _HashCache | None = None,
         "columns": [{"name": f.name, "type": str(f.type)} for f in arrow],
         "status": status,
         "hint": _hint(status, prov, path.parent),
-        "reads_schema_version": SCHEMA_VERSION,
+        "reads_schema_version": _schema_version(),
         "commit": commit,
         "inputs": inputs,
         "provenance": prov,
@@ -310,8 +320,8 @@ def _print_artifact(d: dict) -> None:
     head.add_column(style="bold", no_wrap=True)
     head.add_column(overflow="fold")
     version = str(prov.get("schema_version"))
-    if prov.get("schema_version") != SCHEMA_VERSION:
-        version += f" (this heliocal reads {SCHEMA_VERSION})"
+    if prov.get("schema_version") != _schema_version():
+        version += f" (this heliocal reads {_schema_version()})"
     rows = [
         ("file", d["path"]),
         ("artifact", str(prov.get("artifact"))),
@@ -368,7 +378,7 @@ def _print_workdir(d: dict) -> None:
                 why = a["status"]
                 if why == "incompatible":
                     why += (f" (schema version {a['schema_version']}, this heliocal reads "
-                            f"{SCHEMA_VERSION})")
+                            f"{_schema_version()})")
                 stdout.print(Text(f"{Path(a['path']).name}: {why}; {a['hint']}"))
     if d["runs"]:
         runs = Table(title=Text("committed runs"), box=box.SIMPLE_HEAD, pad_edge=False)

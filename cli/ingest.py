@@ -10,9 +10,7 @@ from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.stages.ingest import DEFAULT_BATCH_ROWS, run_ingest
-from heliocal.pipeline.io.staged import DEFAULT_TIME_MIN, IngestOptions
-from heliocal.pipeline.io.validation import invalid_id_message
+from heliocal.pipeline.vocabulary import DEFAULT_BATCH_ROWS, DEFAULT_TIME_MIN
 
 
 def _parse_location(text: Optional[str]):
@@ -38,6 +36,8 @@ def _human(summary: dict) -> None:
     for reason, n in summary["rejected_by_reason"].items():
         stdout.print(f"  rejected {reason}: {n}")
     if summary["rejected_by_reason"].get("invalid_heliostat_id"):
+        from heliocal.pipeline.io.validation import invalid_id_message
+
         stdout.print(invalid_id_message(summary["rejected_by_reason"]["invalid_heliostat_id"]))
 
 
@@ -76,6 +76,9 @@ def ingest_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Read calibration logs into the canonical measurement table (nothing is dropped silently)."""
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.stages.ingest import run_ingest
+
     opts = IngestOptions(tower=tower, properties=properties, focal_spot=focal_spot,
                          max_spot_distance_m=max_spot_distance, sun_tolerance_deg=sun_tolerance,
                          azimuth_convention=azimuth_convention, timezone=timezone,

@@ -9,8 +9,6 @@ from typing import Annotated, Optional
 import typer
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, fail, stdout
-from heliocal.pipeline.report.regression import compare_metrics, format_report, load_metrics
-from heliocal.pipeline.stages.report import run_report
 
 __all__ = ["report_cmd"]
 
@@ -41,6 +39,9 @@ def report_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Write DIR/report/ (index.html, report.md, figures/*.png, metrics.json) from the artifacts."""
+    from heliocal.pipeline.report.regression import compare_metrics, format_report, load_metrics
+    from heliocal.pipeline.stages.report import run_report
+
     summary = run_report(workdir)
     if compare is not None:
         try:

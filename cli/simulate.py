@@ -10,9 +10,9 @@ from rich.table import Table
 
 from heliocal.cli.app import JsonFlag, QuietFlag, Seed, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.models.disturbances import DISTURBANCE_KINDS
-from heliocal.pipeline.models.simulator import simulate_field
-from heliocal.pipeline.stages.simulate import write_field
+from heliocal.pipeline.vocabulary import DisturbanceKind
+
+DISTURBANCE_KINDS = DisturbanceKind.values()
 
 __all__ = ["simulate_cmd"]
 
@@ -85,6 +85,9 @@ def simulate_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Simulate a synthetic field with known ground truth, in the formats ingest reads."""
+    from heliocal.pipeline.models.simulator import simulate_field
+    from heliocal.pipeline.stages.simulate import write_field
+
     field = simulate_field(heliostats, seed=seed, measurements=_parse_range(measurements),
                            kinematic_types=_parse_list(types), dynamic_fraction=dynamic_fraction,
                            disturbances=_parse_list(disturbances), noise_mrad=noise_mrad,

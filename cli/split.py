@@ -5,22 +5,21 @@ from __future__ import annotations
 import logging
 from typing import Annotated, Optional
 
-from enum import Enum
-
 import typer
 from rich import box
 from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Seed, Workdir, command, emit, stdout
-from heliocal.pipeline.stages.split import METHODS, METRICS, run_split
+from heliocal.pipeline.vocabulary import SplitMethod, SplitMetric
 
 __all__ = ["split_knn"]
 
 log = logging.getLogger("heliocal.split")
 
-# Enums so that typer lists the choices in --help and rejects others as a usage error (exit 2).
-Method = Enum("Method", {m.replace("-", "_"): m for m in METHODS}, type=str)
-Metric = Enum("Metric", {m.replace("-", "_"): m for m in METRICS}, type=str)
+# str Enums (heliocal.pipeline.vocabulary): typer lists the choices in --help and rejects others
+# as a usage error (exit 2).
+Method = SplitMethod
+Metric = SplitMetric
 
 
 def _fmt(value: float | None) -> str:
@@ -71,6 +70,8 @@ def split_knn(
     quiet: QuietFlag = False,
 ) -> None:
     """Split each heliostat's measurements into train/validation/test sets (writes split.parquet)."""
+    from heliocal.pipeline.stages.split import run_split
+
     summary = run_split(workdir, method=method.value, k=k, n_test=n_test, n_val=n_val,
                         n_train=n_train, metric=metric.value, seed=seed)
     for s in summary["skipped"]:

@@ -11,10 +11,8 @@ from rich.table import Table
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               Workdir, Workers, command, emit, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.models.network import FineConfig
-from heliocal.pipeline.stages.fit_hybrid import HYBRID_BATCH_SIZE
-from heliocal.pipeline.stages.sweep import (DEFAULT_STUDY, OCTAVE_BANDS, PathConfig, run_sweep,
-                                            weight_decay_grid)
+from heliocal.pipeline.models.config import FineConfig, PathConfig
+from heliocal.pipeline.vocabulary import DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS
 
 
 def _ints(text: Optional[str], name: str):
@@ -100,6 +98,8 @@ def sweep_cmd(
 ) -> None:
     """Select every heliostat's model (coarse or hybrid) at its full training size; study the
     training size on a sample of heliostats."""
+    from heliocal.pipeline.stages.sweep import run_sweep, weight_decay_grid
+
     config = FineConfig(max_epochs=max_epochs, patience=patience, ensemble=ensemble,
                         env=tuple(e.strip() for e in env.split(",") if e.strip()) if env else ())
     base = [] if baselines.strip() in ("", "none") else [b.strip() for b in baselines.split(",")]

@@ -32,8 +32,8 @@ from heliocal.pipeline.models.coarse import MeasurementBatch, fit_heliostat, nor
 from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.errors import StageInputError
 from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
-from heliocal.pipeline.models.network import (FineConfig, FeatureEncoder, ensemble_seeds, init_mlp,
-                                              output_scales)
+from heliocal.pipeline.models.config import FineConfig, ensemble_seeds
+from heliocal.pipeline.models.network import FeatureEncoder, init_mlp, output_scales
 from heliocal.pipeline.models.training import (FineProblem, build_problem, ensemble_errors_mrad,
                                                member_errors_mrad, predict_ensembles,
                                                member_parameters, predict_members, train_members)

@@ -14,7 +14,7 @@ import pytest
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
-from heliocal.pipeline.models.network import FineConfig
+from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.runtime.parallel import map_tasks

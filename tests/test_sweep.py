@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from heliocal.pipeline.artifacts.store import read_provenance
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from heliocal.pipeline.stages.fit_coarse import coarse_fit_options, run_fit_coarse
-from heliocal.pipeline.models.network import FineConfig
+from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.stages.aim import aim_models, aim_steps
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.io.staged import IngestOptions
@@ -27,8 +27,9 @@ from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.models.simulator import simulate_field
 from heliocal.pipeline.stages.simulate import write_field
 from heliocal.pipeline.stages.split import run_split
-from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, PathConfig, default_ladder, run_sweep,
+from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, default_ladder, run_sweep,
                                             study_heliostats, weight_decay_grid)
+from heliocal.pipeline.models.config import PathConfig
 from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 
 SYNTHETIC = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic" / "paint"

@@ -10,10 +10,12 @@ import hashlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 from ..errors import UnsafePathError
-from .table import ArtifactSchema
+
+if TYPE_CHECKING:  # annotations only: table.py needs pyarrow, this module stays light
+    from .table import ArtifactSchema
 
 __all__ = [
     "atomic_path",

@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ParameterError, check_choice, check_float
+from ..vocabulary import DEFAULT_TIME_MIN
 
 __all__ = [
     "IngestOptions",
@@ -20,7 +21,6 @@ __all__ = [
     "Staged",
     "TIME_MAX_MARGIN",
     "ENV_ABS_MAX",
-    "DEFAULT_TIME_MIN",
     "Target",
 ]
 
@@ -28,9 +28,6 @@ __all__ = [
 # ------------------------------------------------------------------------------------------------
 # options and small types
 # ------------------------------------------------------------------------------------------------
-#: Earliest plausible measurement time (``--time-min``): camera-target calibration logs of today's
-#: heliostat fields start decades later; a year like 1700 or 1970 is a logger or export fault.
-DEFAULT_TIME_MIN = "1990-01-01T00:00:00Z"
 
 
 #: The latest plausible time is now plus this margin (``--time-max`` overrides it): a calibration

@@ -44,6 +44,7 @@ from ..physics.kinematics import forward_kinematics, joint_angles
 from ..physics.metrics import beam_error_mrad, error_mrad, measured_normal, spot_offset_m
 from ..physics.parameters import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
                                   HeliostatSpec, preset_mask)
+from ..vocabulary import CoarseLoss, CoarseSolver
 
 __all__ = [
     "AUTO_PRESETS",
@@ -68,11 +69,11 @@ __all__ = [
 AUTO_PRESETS = ("static-6", "stone-8", "static-14", "static-20", "static-28")
 
 
-LOSSES = ("linear", "soft_l1", "huber")
+LOSSES = CoarseLoss.values()
 
 
 #: Solvers of ``fit-coarse``: the batched LM (:mod:`heliocal.pipeline.physics.lm`) or scipy per heliostat.
-SOLVERS = ("batched", "scipy")
+SOLVERS = CoarseSolver.values()
 
 
 def parameter_kind(name: str) -> str:

@@ -13,6 +13,7 @@ import pandas as pd
 import torch
 
 from ..physics.parameters import PARAMETER_INDEX, STONE_MAPPING
+from ..vocabulary import DisturbanceKind
 
 __all__ = [
     "DISTURBANCE_COLUMNS",
@@ -29,7 +30,7 @@ __all__ = [
 
 
 #: The disturbances a dynamic heliostat gets (all of them by default).
-DISTURBANCE_KINDS = ("seasonal_tilt", "actuator_drift", "gear_error", "temperature_tilt")
+DISTURBANCE_KINDS = DisturbanceKind.values()
 
 
 #: Size of a true-minus-nominal deviation per parameter kind: magnitude drawn uniformly from

@@ -3,30 +3,24 @@ features) and the small MLP (initialisation, forward pass, flat <-> per-layer st
 """
 
 from __future__ import annotations
-
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
-
 import numpy as np
 import pandas as pd
 import torch
-
-from ..errors import InputError, check_float, check_int
+from ..errors import InputError
 from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec
 from .coarse import parameter_kind
+from ..vocabulary import FineMode
 
 __all__ = [
     "MODES",
     "OUTPUT_SCALE",
-    "FineConfig",
     "FeatureEncoder",
     "init_mlp",
     "mlp_forward",
     "output_scales",
-    "ensemble_seeds",
-    "DEFAULT_FOURIER_BANDS",
     "mlp_columns",
     "flatten_layers",
     "layer_views",
@@ -35,95 +29,14 @@ __all__ = [
     "Layers",
 ]
 
-_FUNC = "fit_hybrid"
-
 
 #: Modes of ``fit-hybrid``.
-MODES = ("hybrid", "nn-only", "pretrained-nn")
+MODES = FineMode.values()
 
 
 #: Output scale per parameter kind: one unit of network output is this deviation. Angles [rad],
 #: translations [m], actuator lengths [m]; increments relative to the nominal increment.
 OUTPUT_SCALE = {"angle": 1e-3, "translation": 1e-2, "length": 3e-4, "increment": 1e-3}
-
-
-# ------------------------------------------------------------------------------------------------
-# configuration
-# ------------------------------------------------------------------------------------------------
-#: Default Fourier bands of the steps: every integer 1..32 [1 / max_steps].
-DEFAULT_FOURIER_BANDS = tuple(float(b) for b in range(1, 33))
-
-
-def ensemble_seeds(seed: int, ensemble: int) -> list[int]:
-    """Seeds of the ``ensemble`` networks of the model with seed ``seed``:
-    ``seed * ensemble + k`` for k = 0 .. ensemble - 1 (one network: the seed itself; different
-    seeds never share a network)."""
-    return [int(seed) * int(ensemble) + k for k in range(int(ensemble))]
-
-
-@dataclass(frozen=True)
-class FineConfig:
-    """Settings of the fine network and its training (``__init__`` only stores them).
-
-    Attributes
-    ----------
-    depth : hidden layers (paper 000: 14).
-    width : neurons per hidden layer (paper 000: 2).
-    fourier_bands : frequencies ``b`` of the Fourier features of the normalised steps [1/range].
-    env : names of ``env_*`` columns (without the prefix) used as extra inputs.
-    learning_rate : Adam step size.
-    max_epochs : epoch budget (full batch: one step per epoch).
-    patience : epochs without a validation improvement before a member stops.
-    output_scale_factor : multiplies :data:`OUTPUT_SCALE` (1 for ``hybrid``).
-    fourier_decay : the Fourier feature of band ``b`` has amplitude ``b ** -fourier_decay``
-        (0: all 1, Tancik et al.; > 0: a smoothness prior, see :class:`FeatureEncoder`).
-    ensemble : networks per model; the model's deviation is their mean (see
-        :func:`ensemble_seeds`). Averaging removes most of the dependence on the initial
-        weights, which for a 14 x 2 network is large (docs/hybrid.md, "Ensembles").
-
-    The default bands are every integer 1..32: a complete Fourier series of the normalised
-    steps, so a disturbance with any period of at least ``max_steps / 32`` steps (a gear or
-    worm period, say) is a linear function of the inputs. Octave bands (1, 2, 4, ..., 32) can
-    only express periods near ``max_steps / 2**k`` (docs/hybrid.md, "Why SS48 missed").
-    """
-
-    depth: int = 14
-    width: int = 2
-    fourier_bands: tuple[float, ...] = DEFAULT_FOURIER_BANDS
-    env: tuple[str, ...] = ()
-    learning_rate: float = 3e-3
-    max_epochs: int = 800
-    patience: int = 200
-    output_scale_factor: float = 1.0
-    fourier_decay: float = 0.0
-    ensemble: int = 4
-
-    def validated(self) -> "FineConfig":
-        check_int(self.depth, "depth", _FUNC, 0)
-        check_int(self.width, "width", _FUNC, 1)
-        check_float(self.learning_rate, "learning_rate", _FUNC, 0.0, None, low_inclusive=False)
-        check_int(self.max_epochs, "max_epochs", _FUNC, 0)
-        check_int(self.patience, "patience", _FUNC, 1)
-        check_float(self.output_scale_factor, "output_scale_factor", _FUNC, 0.0, None,
-                    low_inclusive=False)
-        for b in self.fourier_bands:
-            check_float(b, "fourier_bands", _FUNC, 0.0, None, low_inclusive=False)
-        check_float(self.fourier_decay, "fourier_decay", _FUNC, 0.0, None)
-        check_int(self.ensemble, "ensemble", _FUNC, 1)
-        return self
-
-    def to_dict(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["fourier_bands"] = list(self.fourier_bands)
-        d["env"] = list(self.env)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: Mapping) -> "FineConfig":
-        d = dict(d)
-        d["fourier_bands"] = tuple(float(b) for b in d.get("fourier_bands", ()))
-        d["env"] = tuple(d.get("env", ()))
-        return cls(**d)
 
 
 def output_scales(free: torch.Tensor, nominal: torch.Tensor, factor: float = 1.0) -> torch.Tensor:

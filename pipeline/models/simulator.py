@@ -57,6 +57,7 @@ from ..physics.sun import spa_sun_position, sun_vector_enu
 from .disturbances import (DISTURBANCE_COLUMNS, DISTURBANCE_KINDS, Disturbances, deviate_parameters,
                            disturbance_column, disturbance_setup, disturbance_values,
                            params_per_measurement, temperature_c)
+from ..vocabulary import SimulatedType
 
 __all__ = [
     "SIMULATED_TYPES",
@@ -71,7 +72,7 @@ _FUNC = "simulate_field"
 
 #: Kinematic types the simulator can generate: ``juelich`` (PAINT layout, linear actuators) and
 #: ``az-el`` (ideal drives, written as an ENU log with a TOML properties file: PAINT cannot hold it).
-SIMULATED_TYPES = ("juelich", "az-el")
+SIMULATED_TYPES = SimulatedType.values()
 
 
 #: The plant reference point of the solar tower Jülich (``sample_data/juelich/tower-measurements.json``,

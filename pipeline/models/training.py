@@ -22,8 +22,9 @@ from ..physics.metrics import error_mrad, measured_normal
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..runtime.process_state import single_threaded
 from .coarse import MeasurementBatch, metrics_frame
-from .network import (FeatureEncoder, FineConfig, Layers, flatten_layers, init_mlp, layer_views,
-                      mlp_columns, output_scales)
+from .network import (FeatureEncoder, Layers, flatten_layers, init_mlp, layer_views, mlp_columns,
+                      output_scales)
+from .config import FineConfig
 
 __all__ = [
     "FineProblem",

@@ -46,11 +46,12 @@ from ..errors import check_choice
 from .jacobian import forward_state, residual_and_jacobian
 from .parameters import HeliostatSpec
 from .metrics import measured_normal
+from ..vocabulary import CoarseLoss
 
 __all__ = ["BatchedProblem", "BatchedSolution", "stack_specs", "solve_batched", "robust_loss",
            "LOSSES", "SPEC_TENSORS"]
 
-LOSSES = ("linear", "soft_l1", "huber")
+LOSSES = CoarseLoss.values()
 #: residual that replaces NaN (an actuator outside its range), as in the scipy path [mrad]
 NAN_RESIDUAL_MRAD = 1e4
 

@@ -38,10 +38,11 @@ from typing import Any, Callable, Sequence
 
 from ..errors import ParameterError, check_choice, check_int
 from .process_state import one_thread
+from ..vocabulary import Scheduler
 
 __all__ = ["default_workers", "map_tasks", "SCHEDULERS"]
 
-SCHEDULERS = ("local", "dask")
+SCHEDULERS = Scheduler.values()
 
 
 def default_workers() -> int:

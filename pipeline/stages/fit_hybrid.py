@@ -89,7 +89,8 @@ from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import FitError, check_choice, check_float, check_int
 from ..models.coarse import MeasurementBatch, predict
-from ..models.network import MODES, FineConfig, ensemble_seeds, layers_to_state
+from ..models.network import MODES, layers_to_state
+from ..models.config import FineConfig, ensemble_seeds
 from ..models.pretrained import PretrainConfig, fit_pretrained
 from ..models.training import (FineProblem, build_problem, predict_ensembles, predictions_frame,
                                stack_problems, take_rows, train_members)
@@ -97,11 +98,11 @@ from ..physics.parameters import HeliostatSpec
 from ..runtime.parallel import map_tasks
 from ..runtime.process_state import single_threaded
 from .fit_coarse import load_selected_parameters, load_split_labels
+from ..vocabulary import HYBRID_BATCH_SIZE
 
 __all__ = [
     "run_fit_hybrid",
     "hybrid_chunks",
-    "HYBRID_BATCH_SIZE",
 ]
 
 _FUNC = "fit_hybrid"
@@ -119,8 +120,6 @@ def _split_means(err: np.ndarray, labels: np.ndarray) -> dict:
     return {sp: _mean(err[labels == sp]) for sp in ("train", "validation", "test")}
 
 
-#: Heliostats per batched training program of ``fit-hybrid`` (one task for the workers).
-HYBRID_BATCH_SIZE = 32
 
 
 @single_threaded

@@ -55,11 +55,11 @@ from ..io.sources import detect_source, expand_sources
 from ..io.spill import SortedSpill
 from ..io.staged import IngestOptions, Staged
 from ..io.validation import SourceChecks, invalid_id_message, validate_rows
+from ..vocabulary import DEFAULT_BATCH_ROWS
 
 __all__ = [
     "ingest",
     "run_ingest",
-    "DEFAULT_BATCH_ROWS",
 ]
 
 log = logging.getLogger("heliocal.ingest")
@@ -68,8 +68,6 @@ log = logging.getLogger("heliocal.ingest")
 # ------------------------------------------------------------------------------------------------
 # the stage: sources -> chunks of whole heliostats -> artifacts
 # ------------------------------------------------------------------------------------------------
-#: Rows per batch read from a log (``--batch-rows``): peak memory grows with it, not with the log.
-DEFAULT_BATCH_ROWS = 25_000
 
 
 #: Rows per row group of measurements.parquet (sorted by heliostat, so a heliostat's rows sit in

@@ -41,6 +41,7 @@ from ..artifacts.schemas import MEASUREMENTS
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..artifacts.schemas import SPLIT
+from ..vocabulary import SplitMethod, SplitMetric
 
 __all__ = [
     "METHODS",
@@ -55,9 +56,9 @@ __all__ = [
 ]
 
 #: Split methods; ``knn`` is the default (paper 000, section 3.2).
-METHODS = ("knn", "random", "time", "azimuth", "solstice", "balanced", "high-variance")
+METHODS = SplitMethod.values()
 #: Distance metrics in sun position.
-METRICS = ("euclidean", "great-circle")
+METRICS = SplitMetric.values()
 #: Values of the ``split`` column.
 SPLIT_LABELS = ("train", "validation", "test", "unused")
 

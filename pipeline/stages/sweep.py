@@ -52,8 +52,10 @@ from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from ..models.coarse import MeasurementBatch, fit_presets, normal_errors_mrad
 from .fit_coarse import coarse_fit_options, load_selected_parameters
 from ..errors import FitError, ParameterError, check_float, check_int
-from .fit_hybrid import HYBRID_BATCH_SIZE, hybrid_chunks
-from ..models.network import FineConfig, layers_to_state, ensemble_seeds
+from ..vocabulary import HYBRID_BATCH_SIZE
+from .fit_hybrid import hybrid_chunks
+from ..models.config import FineConfig, ensemble_seeds
+from ..models.network import layers_to_state
 from ..models.training import (FineProblem, MemberResult, take_rows, build_problem,
                                ensemble_errors_mrad, predict_ensembles, predictions_frame,
                                stack_problems, train_members)
@@ -69,10 +71,12 @@ from ..artifacts.manifests import current_transaction
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
+from ..vocabulary import DEFAULT_STUDY
+from ..vocabulary import OCTAVE_BANDS
+from ..models.config import PathConfig
 
-__all__ = ["default_ladder",
-           "weight_decay_grid", "run_sweep", "hybrid_variants", "OCTAVE_BANDS", "MIN_IMPROVEMENT",
-           "PathConfig", "train_path", "study_heliostats", "DEFAULT_STUDY"]
+__all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants", "MIN_IMPROVEMENT",
+           "train_path", "study_heliostats"]
 
 log = logging.getLogger("heliocal.sweep")
 
@@ -119,8 +123,6 @@ def _row(hid, model, n_train, wd, seed, err, labels, train_mask, dist, base_pres
             "test_train_distance_deg": dist, "base_preset": base_preset, "wall_time_s": wall}
 
 
-#: Fourier bands of the ``hybrid-octaves`` candidate: Tancik et al.'s octaves 1, 2, 4, ..., 32.
-OCTAVE_BANDS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 
 
 def hybrid_variants(config: FineConfig, extra_bands: Sequence[tuple] = (OCTAVE_BANDS,)):
@@ -141,36 +143,6 @@ def hybrid_variants(config: FineConfig, extra_bands: Sequence[tuple] = (OCTAVE_B
 # ------------------------------------------------------------------------------------------------
 # training along the weight-decay path
 # ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class PathConfig:
-    """How the hybrid's networks are trained along the weight-decay path (strong to weak).
-
-    Attributes
-    ----------
-    warm_start : continuation (default): the first weight decay trains from the seeded initial
-        weights, every later one from the previous weight decay's best-validation weights (its
-        Adam moments are not kept); each trains for at most ``stage_epochs`` epochs and stops
-        after ``stage_patience`` epochs without a validation improvement. ``False``: every
-        weight decay trains from the seeded initial weights with :class:`FineConfig`'s budget
-        (``max_epochs``, ``patience``), independently of the others.
-    stage_epochs, stage_patience : the budget of each weight decay with ``warm_start``.
-
-    Why these defaults: docs/hybrid.md ("Training the path"): on 46 simulated heliostats and
-    the Jülich sample the continuation selects as well as independent trainings (within their
-    seed-to-seed spread) for about a third of the compute.
-    """
-
-    warm_start: bool = True
-    stage_epochs: int = 200
-    stage_patience: int = 50
-
-    def validated(self) -> "PathConfig":
-        check_int(self.stage_epochs, "stage_epochs", "sweep", 0)
-        check_int(self.stage_patience, "stage_patience", "sweep", 1)
-        return self
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 def _path_order(weight_decays: Sequence[float]) -> list[float]:
@@ -437,9 +409,6 @@ def _sweep_task(task):
 # ------------------------------------------------------------------------------------------------
 # the stage
 # ------------------------------------------------------------------------------------------------
-#: Heliostats in the training-size study by default (``--study``): enough for the paper's
-#: figures; the production selection covers every heliostat.
-DEFAULT_STUDY = 10
 
 
 def study_heliostats(ids: Sequence[str], study: int | Sequence[str] | None,

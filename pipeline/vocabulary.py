@@ -1,0 +1,124 @@
+"""The choices and defaults of heliocal's stages, each named once.
+
+Light on purpose (the standard library only): the CLI builds its options from this module without
+loading numpy, pandas or torch, so ``heliocal --help`` and a mistyped option answer at once, and
+the library validates its keyword arguments against the same values. Each choice is a ``str``
+:class:`enum.Enum` whose values are the spellings used on the command line, in the library's
+keyword arguments and in the artifacts (``docs/nomenclature.md``); typer lists them in ``--help``.
+"""
+
+from __future__ import annotations
+
+import enum
+
+__all__ = ["Choice", "SplitMethod", "SplitMetric", "FineMode", "AimModel", "CoarseLoss",
+           "CoarseSolver", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
+           "DEFAULT_TIME_MIN", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
+           "OCTAVE_BANDS"]
+
+
+class Choice(str, enum.Enum):
+    """A choice of a stage: its value is the spelling everywhere."""
+
+    def __str__(self) -> str:
+        return self.value
+
+    @classmethod
+    def values(cls) -> tuple[str, ...]:
+        """The spellings, in declaration order."""
+        return tuple(m.value for m in cls)
+
+
+class SplitMethod(Choice):
+    """``split-knn --method``: the paper's kNN split, and others for comparison."""
+
+    knn = "knn"
+    random = "random"
+    time = "time"
+    azimuth = "azimuth"
+    solstice = "solstice"
+    balanced = "balanced"
+    high_variance = "high-variance"
+
+
+class SplitMetric(Choice):
+    """Distance in sun position of the split."""
+
+    euclidean = "euclidean"
+    great_circle = "great-circle"
+
+
+class FineMode(Choice):
+    """``fit-hybrid --mode``: the fine model on the coarse one, the network alone, paper 002's
+    pre-trained network."""
+
+    hybrid = "hybrid"
+    nn_only = "nn-only"
+    pretrained_nn = "pretrained-nn"
+
+
+class AimModel(Choice):
+    """``aim --model``: the model that aims (auto: the sweep's selection, else the best fitted)."""
+
+    auto = "auto"
+    coarse = "coarse"
+    hybrid = "hybrid"
+    nn_only = "nn-only"
+    pretrained_nn = "pretrained-nn"
+
+
+class CoarseLoss(Choice):
+    """Loss of the coarse fit: least squares (Levenberg-Marquardt) or a robust loss."""
+
+    linear = "linear"
+    soft_l1 = "soft_l1"
+    huber = "huber"
+
+
+class CoarseSolver(Choice):
+    """Solver of ``fit-coarse``: the batched LM, or scipy per heliostat (the reference)."""
+
+    batched = "batched"
+    scipy = "scipy"
+
+
+class Scheduler(Choice):
+    """Where per-heliostat work runs: processes on this machine or a Dask cluster."""
+
+    local = "local"
+    dask = "dask"
+
+
+class DisturbanceKind(Choice):
+    """Time-dependent disturbances of ``simulate``'s dynamic heliostats."""
+
+    seasonal_tilt = "seasonal_tilt"
+    actuator_drift = "actuator_drift"
+    gear_error = "gear_error"
+    temperature_tilt = "temperature_tilt"
+
+
+class SimulatedType(Choice):
+    """Kinematic types ``simulate`` can draw."""
+
+    juelich = "juelich"
+    az_el = "az-el"
+
+
+#: Rows per batch read from a log (``ingest --batch-rows``): peak memory grows with it, not with
+#: the log; the artifacts do not depend on it.
+DEFAULT_BATCH_ROWS = 25_000
+#: Earliest plausible measurement time (``ingest --time-min``): camera-target calibration logs of
+#: today's heliostat fields start decades later; a year like 1700 or 1970 is a logger or export
+#: fault.
+DEFAULT_TIME_MIN = "1990-01-01T00:00:00Z"
+#: Heliostats per batched training program of ``fit-hybrid`` and ``sweep`` (one task for the
+#: workers).
+HYBRID_BATCH_SIZE = 32
+#: Heliostats in the training-size study by default (``sweep --study``): enough for the paper's
+#: figures; the production selection covers every heliostat.
+DEFAULT_STUDY = 10
+#: Fourier bands of the fine network's inputs: every integer 1..32 (see ``FineConfig``).
+DEFAULT_FOURIER_BANDS = tuple(float(b) for b in range(1, 33))
+#: Fourier bands of the ``hybrid-octaves`` candidate: Tancik et al.'s octaves 1, 2, 4, ..., 32.
+OCTAVE_BANDS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
