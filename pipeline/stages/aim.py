@@ -24,8 +24,8 @@ from ..models.training import FineProblem, grouped_components
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
-from ..runtime.process_state import single_threaded
 from .fit_coarse import load_selected_parameters
+from ..runtime.process_state import restores_process_state, single_threaded
 
 __all__ = [
     "load_model",
@@ -70,6 +70,7 @@ def _model_committed(workdir: Path, mode: str, heliostat_id: str) -> bool:
     return m is not None and cfg_rel in m.files and pt_rel in m.files
 
 
+@restores_process_state
 def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
                strict: bool = False) -> dict:
     """Per heliostat the model ``aim --model auto`` uses, and its mean validation and test error.
@@ -168,6 +169,7 @@ def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Ten
                        FeatureEncoder.from_dict(cfg["encoder"]), None, None)
 
 
+@restores_process_state
 @single_threaded
 def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vector_enu=None,
               time_utc=None, env: Mapping[str, float] | None = None, model: str = "auto",

@@ -27,6 +27,7 @@ from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, Measureme
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks
+from ..runtime.process_state import restores_process_state
 
 __all__ = [
     "fit_heliostat_chunk",
@@ -206,6 +207,7 @@ def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
 
 @locks_workdir("fit-coarse")
 @stage_transaction("fit-coarse")
+@restores_process_state
 def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
                    f_scale_mrad: float = 1.0, robust_start: str = "auto",
                    heliostats: Sequence[str] | None = None, progress=None,

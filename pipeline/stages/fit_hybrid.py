@@ -96,9 +96,9 @@ from ..models.training import (FineProblem, build_problem, predict_ensembles, pr
                                stack_problems, take_rows, train_members)
 from ..physics.parameters import HeliostatSpec
 from ..runtime.parallel import map_tasks
-from ..runtime.process_state import single_threaded
 from .fit_coarse import load_selected_parameters, load_split_labels
 from ..vocabulary import HYBRID_BATCH_SIZE
+from ..runtime.process_state import restores_process_state, single_threaded
 
 __all__ = [
     "run_fit_hybrid",
@@ -227,6 +227,7 @@ def hybrid_chunks(ids, selected, helio, batch_size: int):
 
 @locks_workdir("fit-hybrid")
 @stage_transaction("fit-hybrid")
+@restores_process_state
 def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: float = 0.0,
                    seed: int = 0, config: FineConfig | None = None,
                    pretrain_config: PretrainConfig | None = None,

@@ -56,6 +56,7 @@ from ..io.spill import SortedSpill
 from ..io.staged import IngestOptions, Staged
 from ..io.validation import SourceChecks, invalid_id_message, validate_rows
 from ..vocabulary import DEFAULT_BATCH_ROWS
+from ..runtime.process_state import restores_process_state
 
 __all__ = [
     "ingest",
@@ -387,6 +388,7 @@ class _RejectedSink:
 
 @locks_workdir("ingest")
 @stage_transaction("ingest")
+@restores_process_state
 def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
                options: IngestOptions | None = None, batch_rows: int = DEFAULT_BATCH_ROWS) -> dict:
     """The ``ingest`` stage: read ``sources``, write the three artifacts into ``workdir``.

@@ -38,6 +38,7 @@ from ..artifacts.workdir_lock import locks_workdir
 from ..report.inputs import load_inputs
 from ..report.metrics import compute_metrics, metrics_json
 from ..report.pages import build_report, render_html, render_markdown
+from ..runtime.process_state import restores_process_state
 
 __all__ = [
     "run_report",
@@ -48,6 +49,7 @@ __all__ = [
 # the stage
 # ------------------------------------------------------------------------------------------------
 @locks_workdir("report")
+@restores_process_state
 def run_report(workdir: str | Path, out_dir: str | Path | None = None) -> dict:
     """The ``report`` stage: write index.html, report.md, figures/*.png and metrics.json.
 

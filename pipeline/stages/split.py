@@ -42,6 +42,7 @@ from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..artifacts.schemas import SPLIT
 from ..vocabulary import SplitMethod, SplitMetric
+from ..runtime.process_state import restores_process_state
 
 __all__ = [
     "METHODS",
@@ -465,6 +466,7 @@ def summarize_split(split_df: pd.DataFrame) -> list[dict[str, Any]]:
 
 @locks_workdir("split-knn")
 @stage_transaction("split-knn")
+@restores_process_state
 def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: int = 30,
               n_val: int = 20, n_train: int | None = None, metric: str = "euclidean",
               seed: int = 0) -> dict[str, Any]:

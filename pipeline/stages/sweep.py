@@ -74,6 +74,7 @@ from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 from ..vocabulary import DEFAULT_STUDY
 from ..vocabulary import OCTAVE_BANDS
 from ..models.config import PathConfig
+from ..runtime.process_state import restores_process_state
 
 __all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants", "MIN_IMPROVEMENT",
            "train_path", "study_heliostats"]
@@ -434,6 +435,7 @@ def study_heliostats(ids: Sequence[str], study: int | Sequence[str] | None,
 
 @locks_workdir("sweep")
 @stage_transaction("sweep")
+@restores_process_state
 def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               weight_decays: Sequence[float] | None = None, seeds: Sequence[int] = (0,),
               presets: Sequence[str] | None = None, baselines: Sequence[str] = ("nn-only",),
