@@ -20,7 +20,7 @@ SOURCE_FILES := $(shell find $(SOURCES) -type f 2>/dev/null)
 CODE := $(shell find pipeline cli -name '*.py' 2>/dev/null)
 
 .DEFAULT_GOAL := help
-.PHONY: help install check-lock lock lock-upgrade test-latest sample sweep report test regression clean
+.PHONY: help install check-lock lock lock-upgrade test-latest sample sweep report test test-fast regression clean
 
 ## help: list the targets
 help:
@@ -82,9 +82,13 @@ sample: $(WORKDIR)/report/index.html
 ## report: HTML report, figures and metrics.json of the run ($(WORKDIR)/report/)
 report: $(WORKDIR)/report/index.html
 
-## test: install and run the test suite
+## test: install and run the test suite (all tests, as CI does)
 test: $(VENV)/.installed
 	$(VENV)/bin/python -m pytest -q
+
+## test-fast: the developer's loop: every test not marked slow (unit tests; under a minute)
+test-fast: $(VENV)/.installed
+	$(VENV)/bin/python -m pytest -q -m "not slow"
 
 ## regression: run the sample pipeline and compare its metrics.json with the committed baseline
 regression: $(WORKDIR)/report/index.html

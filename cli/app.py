@@ -26,6 +26,7 @@ from rich.console import Console
 from rich.logging import RichHandler
 
 from heliocal.pipeline.errors import HeliocalError, resource_error_message
+from heliocal.pipeline.vocabulary import Scheduler as SchedulerChoice
 
 __all__ = [
     "app",
@@ -71,7 +72,7 @@ JsonFlag = Annotated[bool, typer.Option("--json", help="Print a machine-readable
 QuietFlag = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars or info logs.")]
 Workers = Annotated[Optional[int], typer.Option(
     "--workers", help="Local worker processes for per-heliostat work (default: the machine's cores).")]
-Scheduler = Annotated[str, typer.Option(
+Scheduler = Annotated[SchedulerChoice, typer.Option(
     "--scheduler", help="local (processes on this machine) or dask (a Dask cluster).")]
 DaskAddress = Annotated[Optional[str], typer.Option(
     "--dask-address", help="Run per-heliostat work on this Dask scheduler (tcp://HOST:PORT).")]

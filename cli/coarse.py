@@ -8,7 +8,9 @@ import typer
 from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
-                              Workdir, Workers, command, emit, progress_bar, stdout)
+                              SchedulerChoice, Workdir, Workers, command, emit, progress_bar,
+                              stdout)
+from heliocal.pipeline.vocabulary import CoarseLoss, CoarsePreset, CoarseSolver, RobustStart
 
 
 def _fmt(x) -> str:
@@ -31,22 +33,22 @@ def _human(summary: dict) -> None:
 @command("fit-coarse")
 def fit_coarse_cmd(
     workdir: Workdir = DEFAULT_WORKDIR,
-    preset: Annotated[str, typer.Option(
+    preset: Annotated[CoarsePreset, typer.Option(
         help="static-6, static-14, static-20, static-28, stone-8, or auto (all; the best on "
-             "validation is selected per heliostat).")] = "auto",
-    loss: Annotated[str, typer.Option(
-        help="linear (Levenberg-Marquardt), or a robust soft_l1 / huber (trust region).")] = "soft_l1",
+             "validation is selected per heliostat).")] = CoarsePreset.auto,
+    loss: Annotated[CoarseLoss, typer.Option(
+        help="linear (Levenberg-Marquardt), or a robust soft_l1 / huber (trust region).")] = CoarseLoss.soft_l1,
     f_scale: Annotated[float, typer.Option(help="Residual scale of a robust loss [mrad].")] = 1.0,
-    robust_start: Annotated[str, typer.Option(
+    robust_start: Annotated[RobustStart, typer.Option(
         help="Grid-search the actuator zero points before LM: auto (when the nominal geometry's "
-             "median error exceeds 50 mrad), always or never.")] = "auto",
+             "median error exceeds 50 mrad), always or never.")] = RobustStart.auto,
     heliostat: Annotated[Optional[list[str]], typer.Option(
         help="Fit only these heliostats (repeat the option).")] = None,
-    solver: Annotated[str, typer.Option(
+    solver: Annotated[CoarseSolver, typer.Option(
         help="batched (many heliostats per vectorized Levenberg-Marquardt program) or scipy "
-             "(one least_squares per heliostat, the reference).")] = "batched",
+             "(one least_squares per heliostat, the reference).")] = CoarseSolver.batched,
     workers: Workers = None,
-    scheduler: Scheduler = "local",
+    scheduler: Scheduler = SchedulerChoice.local,
     dask_address: DaskAddress = None,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
@@ -55,7 +57,7 @@ def fit_coarse_cmd(
     from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 
     with progress_bar("fit-coarse", quiet) as advance:
-        summary = run_fit_coarse(workdir, preset=preset, loss=loss, f_scale_mrad=f_scale,
-                                 robust_start=robust_start, heliostats=heliostat, progress=advance,
-                                 solver=solver, workers=workers, scheduler=scheduler, dask_address=dask_address)
+        summary = run_fit_coarse(workdir, preset=preset.value, loss=loss.value, f_scale_mrad=f_scale,
+                                 robust_start=robust_start.value, heliostats=heliostat, progress=advance,
+                                 solver=solver.value, workers=workers, scheduler=scheduler.value, dask_address=dask_address)
     emit(summary, json_, _human)

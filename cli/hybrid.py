@@ -13,8 +13,9 @@ import typer
 from rich import box
 from rich.table import Table
 
-from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler, Seed,
-                              Workdir, Workers, command, emit, progress_bar, stdout)
+from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
+                              SchedulerChoice, Seed, Workdir, Workers, command, emit, progress_bar,
+                              stdout)
 from heliocal.pipeline.errors import InputError, ParameterError
 from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.vocabulary import HYBRID_BATCH_SIZE, AimModel, FineMode
@@ -93,7 +94,7 @@ def fit_hybrid_cmd(
                                     "(same type and coarse preset); each batch is one task for "
                                     "the workers.")] = HYBRID_BATCH_SIZE,
     workers: Workers = None,
-    scheduler: Scheduler = "local",
+    scheduler: Scheduler = SchedulerChoice.local,
     dask_address: DaskAddress = None,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
@@ -108,7 +109,7 @@ def fit_hybrid_cmd(
     with progress_bar(f"fit-hybrid {mode.value}", quiet) as advance:
         summary = run_fit_hybrid(workdir, mode=mode.value, weight_decay=weight_decay, seed=seed,
                                  config=config, heliostats=heliostat, progress=advance,
-                                 workers=workers, scheduler=scheduler, dask_address=dask_address,
+                                 workers=workers, scheduler=scheduler.value, dask_address=dask_address,
                                  batch_size=batch_size)
     emit(summary, json_, _human)
 

@@ -9,7 +9,8 @@ import typer
 from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
-                              Workdir, Workers, command, emit, progress_bar, stdout)
+                              SchedulerChoice, Workdir, Workers, command, emit, progress_bar,
+                              stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig
 from heliocal.pipeline.vocabulary import DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS
@@ -91,7 +92,7 @@ def sweep_cmd(
     batch_size: Annotated[int, typer.Option(
         min=1, help="Heliostats per batched training program of the selection.")] = HYBRID_BATCH_SIZE,
     workers: Workers = None,
-    scheduler: Scheduler = "local",
+    scheduler: Scheduler = SchedulerChoice.local,
     dask_address: DaskAddress = None,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
@@ -113,7 +114,7 @@ def sweep_cmd(
         summary = run_sweep(workdir, n_train=_ints(n_train, "n_train"),
                             weight_decays=weight_decay_grid(wd_max, wd_min, wd_per_decade),
                             seeds=_ints(seeds, "seeds"), baselines=tuple(base), config=config,
-                            heliostats=heliostat, workers=workers, scheduler=scheduler,
+                            heliostats=heliostat, workers=workers, scheduler=scheduler.value,
                             dask_address=dask_address, progress=advance,
                             extra_bands=(OCTAVE_BANDS,) if octaves else (), study=study,
                             study_seed=study_seed, path=path, batch_size=batch_size)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Choice", "SplitMethod", "SplitMetric", "FineMode", "AimModel", "CoarseLoss",
+__all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode", "AimModel", "CoarseLoss",
            "CoarseSolver", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
            "DEFAULT_TIME_MIN", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
            "OCTAVE_BANDS"]
@@ -27,6 +27,27 @@ class Choice(str, enum.Enum):
     def values(cls) -> tuple[str, ...]:
         """The spellings, in declaration order."""
         return tuple(m.value for m in cls)
+
+
+class CoarsePreset(Choice):
+    """``fit-coarse --preset``: which kinematic parameters a fit frees (``docs/kinematics.md``);
+    auto fits several and selects by validation error."""
+
+    auto = "auto"
+    static_6 = "static-6"
+    static_14 = "static-14"
+    static_20 = "static-20"
+    static_28 = "static-28"
+    stone_8 = "stone-8"
+
+
+class RobustStart(Choice):
+    """``fit-coarse --robust-start``: grid-search the actuator zero points before LM (auto: when
+    the nominal geometry's median error is large)."""
+
+    auto = "auto"
+    always = "always"
+    never = "never"
 
 
 class SplitMethod(Choice):

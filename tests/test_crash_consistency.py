@@ -76,7 +76,11 @@ CASES = [
 
 ZYGOTE = textwrap.dedent("""
     import json, os, signal, sys
-    import heliocal.cli.main  # registers every command and imports torch; no torch op runs here
+    import heliocal.cli.main  # registers every command (the CLI imports the stages lazily)
+    # the stages and with them torch, once before forking; no torch op runs here
+    import heliocal.pipeline.stages.ingest, heliocal.pipeline.stages.split
+    import heliocal.pipeline.stages.fit_coarse, heliocal.pipeline.stages.fit_hybrid
+    import heliocal.pipeline.stages.sweep, heliocal.pipeline.stages.report
     from heliocal.cli.app import app
     import heliocal.pipeline.artifacts.transaction as transaction
 

@@ -16,6 +16,7 @@ import torch
 
 from ..errors import ParameterError, check_choice
 from .actuators import ACTUATOR_TYPES
+from ..vocabulary import CoarsePreset
 
 __all__ = [
     "PARAMETER_NAMES",
@@ -98,7 +99,7 @@ IDEAL_UNUSED_PARAMETERS: tuple[str, ...] = tuple(
 """Parameters without meaning for ideal actuators (always fixed, nominal value 0)."""
 
 
-PRESET_NAMES = ("static-6", "static-14", "static-20", "static-28", "stone-8")
+PRESET_NAMES = tuple(p.value for p in CoarsePreset if p is not CoarsePreset.auto)
 """Names of the parameter presets (see ``docs/kinematics.md``)."""
 
 
