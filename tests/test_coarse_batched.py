@@ -36,6 +36,9 @@ from heliocal.pipeline.stages.split import run_split
 
 from test_coarse_recovery import _ingested
 
+#: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
+pytestmark = pytest.mark.slow
+
 SAMPLES = Path(__file__).resolve().parents[1] / "sample_data"
 
 

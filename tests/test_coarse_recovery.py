@@ -33,6 +33,9 @@ from heliocal.pipeline.models.simulator import simulate_field
 from heliocal.pipeline.stages.simulate import write_field
 from heliocal.pipeline.stages.split import run_split
 
+#: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
+pytestmark = pytest.mark.slow
+
 _ACTUATOR_FIELDS = ("increment", "initial_stroke_length_m", "offset_m", "pivot_radius_m",
                     "initial_angle_rad")
 

@@ -29,6 +29,9 @@ from heliocal.pipeline.stages.ingest import ingest, run_ingest
 from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
 from heliocal.pipeline.io.spill import SortedSpill
 
+#: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 SYNTHETIC_LOG = ROOT / "sample_data" / "synthetic" / "calibration_log.csv"
 SYNTHETIC_PAINT = ROOT / "sample_data" / "synthetic" / "paint"

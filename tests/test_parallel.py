@@ -20,6 +20,9 @@ from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.runtime.parallel import map_tasks
 from heliocal.pipeline.stages.split import run_split
 
+#: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
+pytestmark = pytest.mark.slow
+
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "juelich" / "paint"
 
 

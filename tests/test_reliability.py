@@ -42,6 +42,9 @@ from heliocal.pipeline.artifacts.schemas import SPLIT
 from heliocal.pipeline.artifacts.workdir_lock import LOCK_FILENAME, lock_holder
 from workdir_tools import recommit
 
+#: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[1]
 PAINT = REPO / "sample_data" / "juelich" / "paint"
 PAINT_SMALL = REPO / "tests" / "data" / "good" / "paint_small"

@@ -54,6 +54,9 @@ from heliocal.pipeline.artifacts.manifests import load_manifest
 from heliocal.pipeline.artifacts.transaction import transaction
 from workdir_tools import fingerprint, recommit, sha256
 
+#: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
+pytestmark = pytest.mark.slow
+
 REPO = Path(__file__).resolve().parents[1]
 PAINT = REPO / "sample_data" / "juelich" / "paint"
 COARSE = ["--preset", "static-6", "--workers", "1"]
@@ -286,7 +289,7 @@ def test_case_5_without_a_working_lock_the_second_run_does_not_commit(wd, monkey
 
     before = load_manifest(wd, "fit-hybrid").run_id
     real = hybrid.map_tasks
-    unlocked = ("import sys; from heliocal.pipeline.models.network import FineConfig; from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid; "
+    unlocked = ("import sys; from heliocal.pipeline.models.config import FineConfig; from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid; "
                 "run_fit_hybrid.__wrapped__(sys.argv[1], mode='hybrid', heliostats=['BF41'], "
                 "config=FineConfig(max_epochs=20), workers=1)")
 

@@ -32,6 +32,9 @@ from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, default_ladder, run
 from heliocal.pipeline.models.config import PathConfig
 from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 
+#: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
+pytestmark = pytest.mark.slow
+
 SYNTHETIC = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic" / "paint"
 
 
