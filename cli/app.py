@@ -18,6 +18,8 @@ import logging
 import os
 import signal
 import sys
+import threading
+import traceback
 from pathlib import Path
 from typing import Annotated, Any, Callable, Optional
 
@@ -113,6 +115,7 @@ def _sigterm_raises():
 
     try:
         previous = signal.signal(signal.SIGTERM, handler)
+        _quiet_multiprocessing_threads()
     except ValueError:  # not the main thread: leave signals alone
         yield
         return
@@ -120,6 +123,29 @@ def _sigterm_raises():
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def _quiet_multiprocessing_threads() -> None:
+    """Keep stderr to one line when workers are stopped: multiprocessing's helper thread in this
+    process (the resource sharer, which hands file descriptors to workers) can fail with a
+    connection error when the worker it serves was just terminated. That error is expected there;
+    it is logged at debug level instead of printed as a traceback. Every other thread exception
+    goes to Python's default hook. (Installed by the CLI, which owns its process.)"""
+    if getattr(threading.excepthook, "_heliocal", False):
+        return
+    default = threading.excepthook
+
+    def hook(args):
+        frames = traceback.extract_tb(args.exc_traceback)
+        if (isinstance(args.exc_value, (ConnectionError, EOFError))
+                and any("multiprocessing" in Path(f.filename).parts for f in frames)):
+            logging.getLogger("heliocal").debug("a stopped worker's connection closed: %r",
+                                                args.exc_value)
+            return
+        default(args)
+
+    hook._heliocal = True
+    threading.excepthook = hook
 
 
 def command(name: str, **kwargs) -> Callable:

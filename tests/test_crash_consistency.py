@@ -45,7 +45,8 @@ OLD = {
     "fit-coarse": ["fit-coarse", "--preset", "static-6", "--workers", "1"],
     "fit-hybrid": ["fit-hybrid", "--max-epochs", "20", "--seed", "0", "--workers", "1"],
     "sweep": ["sweep", "--n-train", "60", "--wd-max", "1", "--wd-min", "0.1", "--ensemble", "1",
-              "--baselines", "none", "--no-octaves", "--max-epochs", "20", "--seeds", "0",
+              "--baselines", "none", "--no-octaves", "--max-epochs", "20", "--stage-epochs", "20",
+              "--seeds", "0",
               "--workers", "1"],
     "report": ["report"],
 }

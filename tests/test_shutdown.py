@@ -85,10 +85,11 @@ def field_workdir(tmp_path_factory) -> Path:
     run_ingest([root / "field"], wd)
     run_split(wd, n_test=15, n_val=10)
     run_fit_coarse(wd, preset="static-6", workers=1)
-    from heliocal.pipeline.models.config import FineConfig
+    from heliocal.pipeline.models.config import FineConfig, PathConfig
 
     run_sweep(wd, n_train=[20], weight_decays=[1.0, 0.0], seeds=[0], baselines=(),
-              config=FineConfig(max_epochs=20, ensemble=1), workers=1)
+              config=FineConfig(max_epochs=20, ensemble=1), workers=1,
+              path=PathConfig(stage_epochs=20))
     return wd
 
 

@@ -62,7 +62,7 @@ PAINT = REPO / "sample_data" / "juelich" / "paint"
 COARSE = ["--preset", "static-6", "--workers", "1"]
 HYBRID = ["--max-epochs", "20", "--workers", "1"]
 SWEEP = ["--n-train", "60", "--wd-max", "1", "--wd-min", "0.1", "--ensemble", "1", "--baselines",
-         "none", "--no-octaves", "--max-epochs", "20", "--workers", "1"]
+         "none", "--no-octaves", "--max-epochs", "20", "--stage-epochs", "20", "--workers", "1"]
 AIM = dict(aim_point_enu=[0.0, 0.0, 50.0], time_utc="2023-06-21T10:00:00Z")
 
 

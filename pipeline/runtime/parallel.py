@@ -247,9 +247,16 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
         raise ParameterError("The 'scheduler' parameter of map_tasks must be 'local' when Dask "
                              "distributed is not installed. Got 'dask' instead.") from exc
     cluster = None
+    interrupted = False
     if address is None:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, host="127.0.0.1")
+        try:
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, host="127.0.0.1")
+        except BaseException:
+            # interrupted (or failed) while the cluster starts: its worker processes exist, but
+            # there is no cluster object to close them; they must not outlive the call
+            _kill_child_processes()
+            raise
         address = cluster.scheduler_address
     try:
         with Client(address, timeout="30s") as client:
@@ -268,6 +275,7 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
                         progress(done, len(tasks))
             except BaseException:
                 # an interrupted or failed call leaves nothing queued or running on the cluster
+                interrupted = True
                 if cluster is not None:
                     _kill_local_workers(cluster)
                 else:
@@ -279,8 +287,21 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
                              f"scheduler. Got {address!r} instead ({exc}).") from exc
     finally:
         if cluster is not None:
-            cluster.close()
+            # interrupted: its workers are dead already, so closing only tidies up; bounded so
+            # that a stopped stage exits within seconds even on a busy machine
+            with contextlib.suppress(Exception) if interrupted else contextlib.nullcontext():
+                cluster.close(timeout=2 if interrupted else None)
     return [r for chunk in results for r in chunk]
+
+
+def _kill_child_processes() -> None:
+    """SIGKILL every process this process started with multiprocessing (not reaped here: their
+    owners, Dask's nannies, read their exit status as they close)."""
+    import multiprocessing as mp
+
+    for p in mp.active_children():
+        with contextlib.suppress(Exception):
+            p.kill()
 
 
 def _kill_local_workers(cluster) -> None:
