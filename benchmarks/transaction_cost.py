@@ -55,18 +55,28 @@ def _timed(func):
 
 
 def _instrument() -> None:
-    import heliocal.pipeline.artifacts.store as artifacts
+    """Wrap the transaction's own work with :func:`_timed`, in every heliocal module that
+    imported the name (a ``from .x import f`` binds its own reference)."""
+    import heliocal.pipeline.artifacts.manifests as manifests
+    import heliocal.pipeline.artifacts.paths as paths
+    import heliocal.pipeline.artifacts.provenance as provenance
     import heliocal.pipeline.artifacts.transaction as transaction
 
-    for name in ("_sha_file", "_fsync_file", "_fsync_dir", "_read_and_hash", "load_manifest",
-                 "recover", "_apply"):
-        setattr(transaction, name, _timed(getattr(transaction, name)))
+    functions = [(paths, "sha256_of_file")]
+    functions += [(transaction, n) for n in ("_fsync_file", "_fsync_dir", "recover", "_apply")]
+    functions += [(manifests, n) for n in ("_read_and_hash", "load_manifest")]
+    modules = [m for name, m in list(sys.modules.items())
+               if name.startswith("heliocal.") and m is not None]
+    for home, name in functions:
+        original = getattr(home, name)
+        wrapped = _timed(original)
+        for module in modules:
+            if getattr(module, name, None) is original:
+                setattr(module, name, wrapped)
     for cls, names in ((transaction.StageTransaction, ("commit", "begin", "abort")),
-                       (artifacts._Fingerprint, ("add", "hexdigest", "__init__"))):
+                       (provenance.Fingerprint, ("add", "hexdigest", "__init__"))):
         for name in names:
             setattr(cls, name, _timed(getattr(cls, name)))
-    artifacts.load_manifest = transaction.load_manifest  # the names artifacts imported
-    artifacts.read_committed.__globals__["_read_and_hash"] = transaction._read_and_hash
 
 
 def _stages(workdir: Path):

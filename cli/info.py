@@ -40,7 +40,6 @@ if TYPE_CHECKING:
 
 __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 
-_META_KEY = b"heliocal"  # the key pipeline/artifacts.py writes the provenance under
 _SOURCE_PREFIX = "source:"  # ingest records each source as "source:<path as given>"
 
 #: Status of one artifact, best first: fresh, then the reasons it may not be.
@@ -116,6 +115,8 @@ def _read_metadata(path: Path) -> tuple[pq.FileMetaData, dict]:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from heliocal.pipeline.artifacts.store import PROVENANCE_KEY, parse_provenance
+
     if not path.exists():
         raise InputError(f"{path}: no such file or folder; check the path")
     try:
@@ -124,17 +125,10 @@ def _read_metadata(path: Path) -> tuple[pq.FileMetaData, dict]:
         raise SchemaError(f"{path} is not a readable Parquet file ({' '.join(str(exc).split())}); "
                           "give a heliocal artifact or a work directory") from exc
     kv = meta.metadata or {}
-    if _META_KEY not in kv:
+    if PROVENANCE_KEY not in kv:
         raise SchemaError(f"{path} is a Parquet file but not a heliocal artifact (it has no "
                           "heliocal provenance metadata)")
-    try:
-        prov = json.loads(kv[_META_KEY])
-        if not isinstance(prov, dict):
-            raise ValueError("not a JSON object")
-    except ValueError as exc:
-        raise SchemaError(f"{path} has unreadable heliocal provenance metadata ({exc}); rerun the "
-                          "stage that writes it") from exc
-    return meta, prov
+    return meta, parse_provenance(kv[PROVENANCE_KEY], path)
 
 
 def _inputs_freshness(prov: dict, folder: Path, schemas: dict, sha: _HashCache,

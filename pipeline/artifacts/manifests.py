@@ -16,6 +16,7 @@ from pathlib import Path, PurePosixPath
 from typing import Protocol
 
 from ..errors import SchemaError, StageInputError, UnsafePathError
+from .paths import sha256_of_file
 
 __all__ = [
     "ActiveTransaction",
@@ -31,7 +32,6 @@ __all__ = [
     "all_manifests",
     "STAGING_PREFIX",
     "checked_relative_path",
-    "sha256_of_file",
     "staging_name",
     "ACTIVE_TRANSACTION",
 ]
@@ -260,14 +260,6 @@ def read_committed(root: str | os.PathLike, stage: str, rel: str, *, hint: str |
         return Committed(path, read_from, data, entry, m)
     raise SchemaError(f"{path} kept changing while it was read (another heliocal run is writing "
                       f"{root}); wait for it to finish and retry")
-
-
-def sha256_of_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def verify_files(m: Manifest) -> dict[str, str]:

@@ -22,6 +22,7 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_text",
     "file_sha256",
+    "sha256_of_file",
     "artifact_path",
     "safe_child",
     "safe_name",
@@ -148,13 +149,14 @@ def file_sha256(path: str | os.PathLike) -> str:
         for p in sorted(q for q in path.rglob("*") if q.is_file()):
             h.update(str(p.relative_to(path)).encode())
             h.update(b"\0")
-            h.update(_sha_bytes(p).encode())
+            h.update(sha256_of_file(p).encode())
     else:
-        return _sha_bytes(path)
+        return sha256_of_file(path)
     return h.hexdigest()
 
 
-def _sha_bytes(path: Path) -> str:
+def sha256_of_file(path: str | os.PathLike) -> str:
+    """SHA-256 (hex) of one file's bytes, read in 1 MiB chunks."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):

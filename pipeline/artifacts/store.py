@@ -42,6 +42,8 @@ from .transaction import transaction
 __all__ = [
     "SCHEMA_VERSION",
     "committed_fingerprint",
+    "parse_provenance",
+    "PROVENANCE_KEY",
     "recorded_inputs",
     "write_artifact",
     "artifact_writer",
@@ -61,7 +63,8 @@ log = logging.getLogger("heliocal.artifacts")
 SCHEMA_VERSION = 2
 
 
-_META_KEY = b"heliocal"
+#: Key of the Parquet footer metadata under which every artifact keeps its provenance JSON.
+PROVENANCE_KEY = _META_KEY = b"heliocal"
 
 
 
@@ -251,8 +254,14 @@ def _provenance_of(meta: Mapping, path: Path) -> dict:
     if _META_KEY not in meta:
         raise SchemaError(f"{path} was not written by heliocal (no provenance metadata); rerun "
                           "the stage that writes it")
+    return parse_provenance(meta[_META_KEY], path)
+
+
+def parse_provenance(text, path) -> dict:
+    """The provenance dict of an artifact from its metadata value ``text`` (a JSON object, stored
+    under :data:`PROVENANCE_KEY`), else a :class:`SchemaError` naming ``path``."""
     try:
-        prov = json.loads(meta[_META_KEY])
+        prov = json.loads(text)
         if not isinstance(prov, dict):
             raise ValueError("not a JSON object")
     except ValueError as exc:

@@ -59,7 +59,8 @@ from typing import Callable, Iterator, Mapping
 from ..errors import InputError, SchemaError, StageInputError
 from .manifests import (ACTIVE_TRANSACTION, MANIFEST_VERSION, STAGING_PREFIX, Manifest,
                         all_manifests, checked_relative_path, current_transaction, load_manifest,
-                        manifest_path, sha256_of_file, staging_name)
+                        manifest_path, staging_name)
+from .paths import sha256_of_file
 
 __all__ = [
     "StageTransaction",
