@@ -39,7 +39,7 @@ import pyarrow.parquet as pq
 from . import __version__
 from .errors import SchemaError, StageInputError, UnsafePathError
 from .transaction import (committed_entry, current_transaction, load_manifest, read_committed,
-                          transaction)
+                          sha256_of_file, transaction)
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -253,18 +253,12 @@ def file_sha256(path: str | os.PathLike) -> str:
         for p in sorted(q for q in path.rglob("*") if q.is_file()):
             h.update(str(p.relative_to(path)).encode())
             h.update(b"\0")
-            h.update(_sha_bytes(p).encode())
+            h.update(sha256_of_file(p).encode())
     else:
-        return _sha_bytes(path)
+        return sha256_of_file(path)
     return h.hexdigest()
 
 
-def _sha_bytes(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 _GIT_REV: str | None = None

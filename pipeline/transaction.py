@@ -64,6 +64,7 @@ __all__ = [
     "MANIFEST_VERSION",
     "Manifest",
     "StageTransaction",
+    "sha256_of_file",
     "Committed",
     "manifest_path",
     "load_manifest",
@@ -327,7 +328,8 @@ def _fsync_file(path: Path) -> None:
         os.fsync(fh.fileno())
 
 
-def _sha_file(path: Path) -> str:
+def sha256_of_file(path: Path) -> str:
+    """SHA-256 (hex) of one file's bytes, read in 1 MiB chunks."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
@@ -604,7 +606,7 @@ class StageTransaction:
         rel = _rel(rel)
         path = self.staging / rel
         _fsync_file(path)
-        sha = sha256 or _sha_file(path)
+        sha = sha256 or sha256_of_file(path)
         self.files[rel] = {"sha256": sha, "size": path.stat().st_size,
                            "fingerprint": fingerprint or sha, "artifact": artifact,
                            "run_id": self.run_id}
