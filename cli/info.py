@@ -30,7 +30,7 @@ from rich.table import Table
 from rich.text import Text
 
 from heliocal.cli.app import JsonFlag, command, emit, stdout
-from heliocal.pipeline.artifacts import SCHEMA_VERSION, file_sha256
+from heliocal.pipeline.artifacts import SCHEMA_VERSION, file_sha256, parse_provenance
 from heliocal.pipeline.errors import InputError, SchemaError
 from heliocal.pipeline.workdir_lock import lock_holder
 from heliocal.pipeline.transaction import (all_manifests, pending_commits, stale_staging_folders,
@@ -115,14 +115,7 @@ def _read_metadata(path: Path) -> tuple[pq.FileMetaData, dict]:
     if _META_KEY not in kv:
         raise SchemaError(f"{path} is a Parquet file but not a heliocal artifact (it has no "
                           "heliocal provenance metadata)")
-    try:
-        prov = json.loads(kv[_META_KEY])
-        if not isinstance(prov, dict):
-            raise ValueError("not a JSON object")
-    except ValueError as exc:
-        raise SchemaError(f"{path} has unreadable heliocal provenance metadata ({exc}); rerun the "
-                          "stage that writes it") from exc
-    return meta, prov
+    return meta, parse_provenance(kv[_META_KEY], path)
 
 
 def _inputs_freshness(prov: dict, folder: Path, schemas: dict, sha: _HashCache,

@@ -44,6 +44,7 @@ from .transaction import (committed_entry, current_transaction, load_manifest, r
 __all__ = [
     "SCHEMA_VERSION",
     "committed_fingerprint",
+    "parse_provenance",
     "recorded_inputs",
     "Column",
     "ArtifactSchema",
@@ -636,8 +637,14 @@ def _provenance_of(meta: Mapping, path: Path) -> dict:
     if _META_KEY not in meta:
         raise SchemaError(f"{path} was not written by heliocal (no provenance metadata); rerun "
                           "the stage that writes it")
+    return parse_provenance(meta[_META_KEY], path)
+
+
+def parse_provenance(text, path) -> dict:
+    """The provenance dict of an artifact from its metadata value ``text`` (JSON object), else a
+    :class:`SchemaError` naming ``path``."""
     try:
-        prov = json.loads(meta[_META_KEY])
+        prov = json.loads(text)
         if not isinstance(prov, dict):
             raise ValueError("not a JSON object")
     except ValueError as exc:
