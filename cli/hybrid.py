@@ -18,7 +18,7 @@ from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag,
                               stdout)
 from heliocal.pipeline.errors import InputError, ParameterError
 from heliocal.pipeline.models.config import FineConfig
-from heliocal.pipeline.vocabulary import HYBRID_BATCH_SIZE, AimModel, FineMode
+from heliocal.pipeline.vocabulary import HYBRID_BATCH_SIZE, AimModel, FineMode, PretrainVariant
 
 __all__ = ["fit_hybrid_cmd", "aim_cmd"]
 
@@ -65,7 +65,13 @@ def fit_hybrid_cmd(
     mode: Annotated[Mode, typer.Option(
         "--mode", help="hybrid: coarse fit + network deviations (paper 000); nn-only: the same "
                        "network from the nominal geometry; pretrained-nn: paper 002's network "
-                       "pre-trained on the coarse model.")] = Mode.hybrid,
+                       "on the coarse model (variant: --pretrain-variant).")] = Mode.hybrid,
+    pretrain_variant: Annotated[PretrainVariant, typer.Option(
+        "--pretrain-variant", help="pretrained-nn only. residual: the network learns the "
+                                   "correction to the coarse model's inverse kinematics in "
+                                   "motor steps (starts as the coarse model); paper: paper "
+                                   "002's network pre-trained on simulated calibrations, then "
+                                   "fine-tuned.")] = PretrainVariant.residual,
     weight_decay: Annotated[float, typer.Option(
         "--weight-decay", min=0.0, help="L2 penalty on the network's weights (pulls the hybrid "
                                         "toward the coarse model).")] = 0.0,
@@ -100,6 +106,7 @@ def fit_hybrid_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Train the fine model (or a baseline) on each heliostat's training rows."""
+    from heliocal.pipeline.models.pretrained import PretrainConfig
     from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 
     config = FineConfig(depth=depth, width=width, fourier_bands=_floats(fourier_bands, "--fourier-bands"),
@@ -108,7 +115,9 @@ def fit_hybrid_cmd(
                         ensemble=ensemble)
     with progress_bar(f"fit-hybrid {mode.value}", quiet) as advance:
         summary = run_fit_hybrid(workdir, mode=mode.value, weight_decay=weight_decay, seed=seed,
-                                 config=config, heliostats=heliostat, progress=advance,
+                                 config=config,
+                                 pretrain_config=PretrainConfig(variant=pretrain_variant.value),
+                                 heliostats=heliostat, progress=advance,
                                  workers=workers, scheduler=scheduler.value, dask_address=dask_address,
                                  batch_size=batch_size)
     emit(summary, json_, _human)

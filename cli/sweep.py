@@ -13,7 +13,8 @@ from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag,
                               stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig
-from heliocal.pipeline.vocabulary import DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS
+from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS,
+                                         PretrainVariant)
 
 
 def _ints(text: Optional[str], name: str):
@@ -78,6 +79,16 @@ def sweep_cmd(
     baselines: Annotated[str, typer.Option(
         help="Neural baselines of the study: nn-only, pretrained-nn (comma-separated, or "
              "none).")] = "nn-only",
+    select_pretrained: Annotated[bool, typer.Option(
+        "--select-pretrained/--no-select-pretrained",
+        help="Also fit the pre-trained network (pretrained-nn, --pretrain-variant) on every "
+             "heliostat as a candidate of the selection, under the hybrids' 20 % margin "
+             "rule.")] = False,
+    pretrain_variant: Annotated[PretrainVariant, typer.Option(
+        "--pretrain-variant", help="Variant of the pre-trained network (candidate and "
+                                   "baseline): residual (correction to the coarse inverse "
+                                   "kinematics in steps) or paper (paper 002's).")
+    ] = PretrainVariant.residual,
     octaves: Annotated[bool, typer.Option(
         "--octaves/--no-octaves", help="Also sweep the hybrid with octave Fourier bands "
                                        "1,2,4,...,32 (model hybrid-octaves) as a candidate.")] = True,
@@ -99,6 +110,7 @@ def sweep_cmd(
 ) -> None:
     """Select every heliostat's model (coarse or hybrid) at its full training size; study the
     training size on a sample of heliostats."""
+    from heliocal.pipeline.models.pretrained import PretrainConfig
     from heliocal.pipeline.stages.sweep import run_sweep, weight_decay_grid
 
     config = FineConfig(max_epochs=max_epochs, patience=patience, ensemble=ensemble,
@@ -117,5 +129,7 @@ def sweep_cmd(
                             heliostats=heliostat, workers=workers, scheduler=scheduler.value,
                             dask_address=dask_address, progress=advance,
                             extra_bands=(OCTAVE_BANDS,) if octaves else (), study=study,
-                            study_seed=study_seed, path=path, batch_size=batch_size)
+                            study_seed=study_seed, path=path, batch_size=batch_size,
+                            pretrain_config=PretrainConfig(variant=pretrain_variant.value),
+                            select_pretrained=select_pretrained)
     emit(summary, json_, _human)

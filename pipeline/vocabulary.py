@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode", "AimModel", "CoarseLoss",
-           "CoarseSolver", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
+__all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
+           "PretrainVariant", "AimModel", "CoarseLoss", "CoarseSolver", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
            "DEFAULT_TIME_MIN", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
            "OCTAVE_BANDS"]
 
@@ -76,6 +76,18 @@ class FineMode(Choice):
     hybrid = "hybrid"
     nn_only = "nn-only"
     pretrained_nn = "pretrained-nn"
+
+
+class PretrainVariant(Choice):
+    """Variant of the ``pretrained-nn`` network (docs/hybrid.md, "The pre-trained network").
+
+    ``residual`` (default): the network learns the correction to the coarse model's inverse
+    kinematics in motor steps and starts as the coarse model exactly; ``paper``: paper 002's
+    network, pre-trained to imitate the coarse model on simulated calibrations, then fine-tuned.
+    """
+
+    residual = "residual"
+    paper = "paper"
 
 
 class AimModel(Choice):

@@ -339,14 +339,16 @@ SWEEP = ArtifactSchema(
 
 SELECTION = ArtifactSchema(
     name="selection", filename="selection.parquet", producer="sweep", sort_by=("heliostat_id",),
-    description="Per heliostat the model used by aim and report: the hybrid ensemble with the "
-                "best validation error at the full training size if it beats fit-coarse's "
-                "selected preset by 20 % on validation, else that coarse model.",
+    description="Per heliostat the model used by aim and report: the hybrid ensemble (or, with "
+                "`sweep --select-pretrained`, the pre-trained network) with the best validation "
+                "error at the full training size if it beats fit-coarse's selected preset by "
+                "20 % on validation, else that coarse model.",
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
-        C("model", "string", "", "`hybrid`, `hybrid-octaves` or `coarse`."),
+        C("model", "string", "", "`hybrid`, `hybrid-octaves`, `pretrained-nn` or `coarse`."),
         C("preset", "string", "", "Coarse preset (of the coarse model under the hybrid)."),
-        C("weight_decay", "float64", "", "Selected weight decay (NaN for coarse).", nullable=True),
+        C("weight_decay", "float64", "", "Selected weight decay (NaN for coarse and "
+          "pretrained-nn).", nullable=True),
         C("seed", "int64", "", "Seed of the selected member (0 for coarse)."),
         C("n_train", "int64", "", "Training rows."),
         C("val_error_mrad", "float64", "mrad", "Mean validation error of the selected model."),

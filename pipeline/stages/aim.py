@@ -86,8 +86,8 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
 
     Returns
     -------
-    dict heliostat_id -> {``model`` (``coarse`` or ``hybrid``), ``variant`` (``hybrid`` or
-    ``hybrid-octaves`` ...; None for coarse), ``source`` (the stage that chose it: ``sweep``,
+    dict heliostat_id -> {``model`` (``coarse``, ``hybrid`` or ``pretrained-nn``), ``variant``
+    (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
     ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
     ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
     such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
@@ -123,11 +123,13 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
             row = selection.loc[hid]
             entry.update(source="sweep", val_error_mrad=float(row["coarse_val_error_mrad"]),
                          test_error_mrad=float(row["coarse_test_error_mrad"]))
-        elif choice is not None and choice.startswith("hybrid"):
+        elif choice is not None and (choice.startswith("hybrid") or choice == "pretrained-nn"):
             if _model_committed(workdir, "selected", hid):
                 row = selection.loc[hid]
-                entry.update(model="hybrid", variant=choice, source="sweep",
-                             weight_decay=float(row["weight_decay"]),
+                entry.update(model="pretrained-nn" if choice == "pretrained-nn" else "hybrid",
+                             variant=choice, source="sweep",
+                             weight_decay=(None if choice == "pretrained-nn"
+                                           else float(row["weight_decay"])),
                              val_error_mrad=float(row["val_error_mrad"]),
                              test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
             elif strict:
@@ -227,11 +229,11 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     rerun = None
     if model == "auto":
         choice = aim_models(workdir, [heliostat_id], strict=True).get(heliostat_id, {})
-        if choice.get("model") == "hybrid":
+        if choice.get("model") in ("hybrid", "pretrained-nn"):
             fitted = load_model(workdir, choice["model_dir"], heliostat_id)
             if choice["source"] == "sweep":
                 rerun = f"`heliocal sweep --workdir {workdir}`"
-        chosen = "hybrid" if fitted is not None else "coarse"
+        chosen = choice["model"] if fitted is not None else "coarse"
     elif model != "coarse":
         fitted = load_model(workdir, model, heliostat_id)
         if fitted is None:
@@ -253,10 +255,12 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
         params = coarse
     elif chosen == "pretrained-nn":
         cfg, layers = fitted
-        pm = PretrainedModel(layers, cfg["reference_m"], cfg["in_mean"], cfg["in_std"],
-                             cfg["out_mean"], cfg["out_std"])
+        pm = PretrainedModel.from_dict(cfg, layers)
         with torch.no_grad():
-            steps = pm.steps(sun, aim)
+            steps = pm.steps(sun, aim, spec=spec)
+        if not bool(torch.isfinite(steps).all()):
+            raise FitError(f"the aim point is not reachable by {heliostat_id} within its "
+                           "actuator limits for this sun position")
         params = coarse
     else:
         cfg, layers = fitted

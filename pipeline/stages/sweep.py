@@ -49,7 +49,7 @@ import torch
 from ..artifacts.store import (check_fresh, merge_with_previous, previous_run_matches,
                                read_artifact, write_artifact)
 from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
-from ..models.coarse import MeasurementBatch, fit_presets, normal_errors_mrad
+from ..models.coarse import MeasurementBatch, fit_presets, metrics_frame, normal_errors_mrad
 from .fit_coarse import coarse_fit_options, load_selected_parameters
 from ..errors import FitError, ParameterError, check_float, check_int
 from ..vocabulary import HYBRID_BATCH_SIZE
@@ -60,6 +60,7 @@ from ..models.training import (FineProblem, MemberResult, take_rows, build_probl
                                ensemble_errors_mrad, predict_ensembles, predictions_frame,
                                stack_problems, train_members)
 from ..models.pretrained import PretrainConfig, fit_pretrained
+
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.metrics import error_mrad, measured_normal
 from ..runtime.parallel import map_tasks
@@ -230,9 +231,11 @@ def _sel_frame(h: _Heliostat, metrics: pd.DataFrame) -> pd.DataFrame:
 # ------------------------------------------------------------------------------------------------
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
-def _select_chunk(items, variants, weight_decays, seeds, path) -> list[dict]:
+def _select_chunk(items, variants, weight_decays, seeds, path,
+                  pretrain_config: PretrainConfig | None = None) -> list[dict]:
     """The full-size candidates and the selection of a chunk of heliostats that share one
-    kinematic type, actuator type and coarse preset (one batched program per weight decay)."""
+    kinematic type, actuator type and coarse preset (one batched program per weight decay);
+    with ``pretrain_config`` the pre-trained network (first seed) is a candidate too."""
     helios = [_Heliostat(*item) for item in items]
     val_masks = [h.labels == "validation" for h in helios]
     test_masks = [h.labels == "test" for h in helios]
@@ -285,11 +288,41 @@ def _select_chunk(items, variants, weight_decays, seeds, path) -> list[dict]:
                                    "test": _stats(err[j], test_masks[i])[0], "cfg": cfg,
                                    "problem": problem,
                                    "layers": [(w[ens].clone(), b[ens].clone()) for w, b in layers]}
+    if pretrain_config is not None:
+        for i, h in enumerate(helios):
+            t0 = time.perf_counter()
+            model, info, normal, position = fit_pretrained(
+                h.selected["params"], h.spec, h.hrow, h.rows, h.data, h.labels, seeds[0],
+                pretrain_config)
+            with torch.no_grad():
+                err = error_mrad(normal, measured_normal(h.data.sun, position,
+                                                          h.data.focal_spot)).numpy()
+            out_rows[i].append(_row(h.hid, "pretrained-nn", h.n_full, float("nan"), seeds[0], err,
+                                    h.labels, h.train, h.test_distance, h.selected["preset"],
+                                    time.perf_counter() - t0))
+            v = _stats(err, val_masks[i])[0]
+            threshold = h.coarse_val * (1.0 - MIN_IMPROVEMENT)   # the hybrids' margin rule
+            if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
+                continue
+            if best[i]["model"] == "coarse" or v < best[i]["val"]:
+                best[i] = {"model": "pretrained-nn", "weight_decay": float("nan"),
+                           "seed": int(seeds[0]), "val": v,
+                           "test": _stats(err, test_masks[i])[0], "pretrained": model,
+                           "normal": normal, "position": position, "info": info}
     results = []
     for h, rows, b in zip(helios, out_rows, best):
         state = None
         if b["model"] == "coarse":
             pred = _sel_frame(h, h.coarse[h.selected["preset"]])
+        elif b["model"] == "pretrained-nn":
+            model = b["pretrained"]
+            pred = _sel_frame(h, metrics_frame(h.data, b["normal"], b["position"]))
+            state = {
+                "state": model.to_state(),
+                "config": {"mode": "pretrained-nn", "heliostat_id": h.hid, "seed": b["seed"],
+                           "pretrain_config": pretrain_config.to_dict(), **model.to_dict(),
+                           "coarse_preset": h.selected["preset"], **b["info"],
+                           "selected_by": "sweep"}}
         else:
             problem, layers, cfg = b["problem"], b["layers"], b["cfg"]
             with torch.no_grad():
@@ -444,7 +477,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               scheduler: str = "local", dask_address: str | None = None, progress=None,
               extra_bands: Sequence[Sequence[float]] = (OCTAVE_BANDS,),
               study: int | Sequence[str] | None = DEFAULT_STUDY, study_seed: int = 0,
-              path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE) -> dict:
+              path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE,
+              select_pretrained: bool = False) -> dict:
     """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
     (and ``hybrid/selected/``), return a summary.
 
@@ -462,6 +496,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     study, study_seed : the study's heliostats (:func:`study_heliostats`); 0 skips the study.
     path : how the weight-decay path is trained (:class:`PathConfig`).
     batch_size : heliostats per batched program of the production selection.
+    select_pretrained : the pre-trained network (``pretrain_config``, first seed) is a candidate
+        of the production selection too, for every heliostat, under the hybrids' margin rule.
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
     workdir = Path(workdir)
@@ -520,7 +556,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                        f"`heliocal fit-coarse --workdir {workdir}` first")
     ids = sorted(items, key=lambda h: (len(items[h][1]), h))
     chunks = hybrid_chunks(ids, selected, helio, batch_size)
-    tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path))
+    tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
+                         pretrain_config if select_pretrained else None))
              for chunk in chunks]
     studied = study_heliostats(list(items), study, study_seed)
     for hid in studied:
@@ -553,7 +590,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict(),
             "study": study if study is None or isinstance(study, (int, np.integer)) else list(study),
             "study_seed": study_seed, "study_heliostats": studied, "path": path.to_dict(),
-            "batch_size": batch_size, "coarse_options": coarse_options,
+            "batch_size": batch_size, "select_pretrained": bool(select_pretrained),
+            "coarse_options": coarse_options,
             "heliostats": list(heliostats) if heliostats else None}
     # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
     # previous sweep read the same inputs (artifacts.merge_with_previous)

@@ -1,0 +1,203 @@
+"""The pre-trained network (``pretrained-nn``, paper 002) and its ``residual`` variant (issue 20).
+
+Data: two heliostats of sample_data/synthetic's calibration log. SS48 as simulated (a rigid body
+plus noise: the coarse model is as good as it gets), SP13 with a known step error added to its
+recorded axis-1 steps, ``INJECT_STEPS * sin(2 pi elevation / INJECT_PERIOD_DEG)`` (about 0.9 mrad;
+periodic in the sun elevation, so no rigid-body parameter absorbs it, and a function of the
+network's inputs, so a network can). The expected figures come from that construction:
+- at epoch 0 the residual network's output layer is zero, so it *is* the coarse model: its
+  step-space error equals the coarse model's error row by row up to second-order terms (measured
+  differences below 0.13 %; asserted within 1 %);
+- on SP13 it must learn part of the injected error: better than the coarse model by the sweep's
+  20 % margin on validation (measured 0.399 vs 0.565 mrad) and not worse on test;
+- the sweep with ``--select-pretrained`` chooses it for SP13 and keeps the coarse model for SS48.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from heliocal.cli.main import app
+from heliocal.pipeline.artifacts.schemas import (COARSE_PREDICTIONS, HELIOSTATS,
+                                                 HYBRID_PREDICTIONS, MEASUREMENTS, SELECTION,
+                                                 SWEEP)
+from heliocal.pipeline.artifacts.store import read_artifact
+from heliocal.pipeline.errors import ParameterError
+from heliocal.pipeline.models.coarse import MeasurementBatch
+from heliocal.pipeline.models.pretrained import PretrainConfig, PretrainedModel, fit_pretrained
+from heliocal.pipeline.physics.metrics import error_mrad, measured_normal
+from heliocal.pipeline.physics.parameters import HeliostatSpec
+from heliocal.pipeline.stages.aim import load_model
+from heliocal.pipeline.stages.fit_coarse import load_selected_parameters, load_split_labels
+from heliocal.pipeline.stages.sweep import MIN_IMPROVEMENT
+
+ROOT = Path(__file__).resolve().parents[1]
+SYNTHETIC = ROOT / "sample_data" / "synthetic"
+INJECT_STEPS, INJECT_PERIOD_DEG = 40.0, 30.0
+
+
+def _ok(runner, args):
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output + str(result.exception)
+    return result
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    """Ingested, split and coarse-fitted workdir of SP13 (injected step error) and SS48."""
+    from typer.testing import CliRunner
+
+    tmp = tmp_path_factory.mktemp("pretrained")
+    log = pd.read_csv(SYNTHETIC / "calibration_log.csv")
+    log = log[log["heliostat_id"].isin(["SP13", "SS48"])].copy()
+    sp13 = log["heliostat_id"] == "SP13"
+    log.loc[sp13, "axis_1_motor_position"] = (
+        log.loc[sp13, "axis_1_motor_position"]
+        + INJECT_STEPS * np.sin(2 * np.pi * log.loc[sp13, "sun_elevation"] / INJECT_PERIOD_DEG)
+    ).round().astype(int)
+    src = tmp / "log"
+    src.mkdir()
+    log.to_csv(src / "calibration_log.csv", index=False)
+    (src / "tower-measurements.json").write_bytes((SYNTHETIC / "tower-measurements.json").read_bytes())
+    wd = tmp / "wd"
+    runner = CliRunner()
+    _ok(runner, ["ingest", str(src / "calibration_log.csv"), "--workdir", str(wd), "--quiet"])
+    _ok(runner, ["split-knn", "--workdir", str(wd), "--quiet"])
+    _ok(runner, ["fit-coarse", "--workdir", str(wd), "--quiet"])
+    return wd
+
+
+def _heliostat(wd: Path, hid: str):
+    m = read_artifact(wd, MEASUREMENTS, heliostats=[hid])
+    m["split"] = load_split_labels(wd, m).to_numpy()
+    rows = m.reset_index(drop=True)
+    hrow = read_artifact(wd, HELIOSTATS, heliostats=[hid]).iloc[0]
+    return (load_selected_parameters(wd, [hid])[hid], HeliostatSpec.from_row(hrow), hrow, rows,
+            MeasurementBatch.from_frame(rows))
+
+
+def _errors(normal, position, data) -> np.ndarray:
+    return error_mrad(normal, measured_normal(data.sun, position, data.focal_spot)).numpy()
+
+
+def _coarse_errors(wd: Path, hid: str, preset: str, rows: pd.DataFrame) -> np.ndarray:
+    p = read_artifact(wd, COARSE_PREDICTIONS, heliostats=[hid])
+    p = p[p["model"] == preset].set_index("measurement_id")
+    return p.reindex(rows["measurement_id"].astype(str))["error_mrad"].to_numpy()
+
+
+def _mean(e, labels, split):
+    return float(np.mean(e[labels == split]))
+
+
+@pytest.mark.parametrize("hid", ["SS48", "SP13"])
+def test_residual_at_epoch_zero_is_the_coarse_model(workdir, hid):
+    sel, spec, hrow, rows, data = _heliostat(workdir, hid)
+    model, info, normal, position = fit_pretrained(
+        sel["params"], spec, hrow, rows, data, rows["split"].to_numpy(), 0,
+        PretrainConfig(residual_epochs=0))
+    assert info["finetune_best_epoch"] == 0 and info["unreachable_rows"] == 0
+    ours = _errors(normal, position, data)
+    coarse = _coarse_errors(workdir, hid, sel["preset"], rows)
+    np.testing.assert_allclose(ours, coarse, rtol=0.01, atol=1e-4)
+    # and its steps are the coarse inverse kinematics: aiming at a row's spot reproduces it
+    steps = model.steps(data.sun, data.focal_spot, spec=spec)
+    from heliocal.pipeline.physics.kinematics import inverse_kinematics
+    np.testing.assert_allclose(steps.numpy(),
+                               inverse_kinematics(sel["params"], spec, data.sun,
+                                                  data.focal_spot).numpy(), rtol=0, atol=1e-9)
+
+
+def test_residual_learns_the_injected_step_error_and_leaves_a_rigid_body_alone(workdir):
+    out = {}
+    for hid in ("SP13", "SS48"):
+        sel, spec, hrow, rows, data = _heliostat(workdir, hid)
+        labels = rows["split"].to_numpy()
+        _, info, normal, position = fit_pretrained(sel["params"], spec, hrow, rows, data, labels,
+                                                   0, PretrainConfig())
+        ours = _errors(normal, position, data)
+        coarse = _coarse_errors(workdir, hid, sel["preset"], rows)
+        out[hid] = {s: (_mean(ours, labels, s), _mean(coarse, labels, s))
+                    for s in ("train", "validation", "test")}
+    r, c = zip(*out["SP13"].values())
+    assert r[1] < (1 - MIN_IMPROVEMENT) * c[1], out      # learned: wins the sweep's margin
+    assert r[0] < 0.7 * c[0], out                         # most of the injected error
+    assert r[2] <= 1.05 * c[2], out                       # not worse where it extrapolates
+    r, c = zip(*out["SS48"].values())
+    assert r[2] <= 1.05 * c[2], out                       # a rigid body: stays the coarse model
+
+
+def test_same_seed_same_model(workdir):
+    sel, spec, hrow, rows, data = _heliostat(workdir, "SP13")
+    labels = rows["split"].to_numpy()
+    cfg = PretrainConfig(residual_epochs=60)
+    a = fit_pretrained(sel["params"], spec, hrow, rows, data, labels, 3, cfg)
+    b = fit_pretrained(sel["params"], spec, hrow, rows, data, labels, 3, cfg)
+    for (wa, ba), (wb, bb) in zip(a[0].layers, b[0].layers):
+        assert torch.equal(wa, wb) and torch.equal(ba, bb)
+    assert torch.equal(a[2], b[2])
+
+
+def test_paper_variant_is_kept_by_name(workdir):
+    sel, spec, hrow, rows, data = _heliostat(workdir, "SS48")
+    cfg = PretrainConfig(variant="paper", n_samples=400, pretrain_epochs=3, finetune_epochs=3)
+    model, info, normal, position = fit_pretrained(sel["params"], spec, hrow, rows, data,
+                                                   rows["split"].to_numpy(), 0, cfg)
+    assert model.variant == "paper" and model.coarse_params is None
+    assert info["pretrain_samples"] == 400 and np.isfinite(_errors(normal, position, data)).all()
+    # a model file written before variants existed is the paper's
+    legacy = {k: v for k, v in model.to_dict().items() if k != "variant"}
+    assert PretrainedModel.from_dict(legacy, model.layers).variant == "paper"
+    assert PretrainConfig.from_dict({"hidden": [6, 5, 4, 3]}).variant == "paper"
+    with pytest.raises(ParameterError, match="variant must be one of residual, paper"):
+        PretrainConfig(variant="papr")
+
+
+def test_sweep_selects_pretrained_only_where_it_wins_and_aim_uses_it(workdir, runner, tmp_path):
+    # hybrids held at the coarse model (weight decay 1e3) so the choice is pretrained-nn vs coarse
+    _ok(runner, ["sweep", "--workdir", str(workdir), "--select-pretrained", "--study", "0",
+                 "--wd-max", "1000", "--wd-min", "1000", "--no-octaves", "--stage-epochs", "20",
+                 "--quiet"])
+    selection = read_artifact(workdir, SELECTION).set_index("heliostat_id")
+    assert selection.loc["SP13", "model"] == "pretrained-nn"
+    assert selection.loc["SS48", "model"] == "coarse"
+    rows = read_artifact(workdir, SWEEP)
+    for hid, sel in selection.iterrows():
+        r = rows[rows["heliostat_id"] == hid].set_index("model")
+        pre_val = float(r.loc["pretrained-nn", "val_error_mrad"])
+        wins = pre_val < (1 - MIN_IMPROVEMENT) * sel["coarse_val_error_mrad"]
+        hybrid_vals = r.loc[r.index.str.startswith("hybrid"), "val_error_mrad"]
+        best_hybrid = float(np.min(hybrid_vals)) if len(hybrid_vals) else math.inf
+        assert (sel["model"] == "pretrained-nn") == (wins and pre_val <= best_hybrid)
+        if sel["model"] == "pretrained-nn":
+            assert sel["val_error_mrad"] == pytest.approx(pre_val, rel=1e-12)
+            assert math.isnan(sel["weight_decay"])
+
+    # aim --model auto uses the selected network: its steps are the model's steps
+    out = _ok(runner, ["aim", "--workdir", str(workdir), "--heliostat", "SP13", "--target",
+                       "tower_target_upper", "--sun-azimuth", "10", "--sun-elevation", "40"])
+    aimed = json.loads(out.stdout)
+    assert aimed["model"] == "pretrained-nn"
+    cfg, layers = load_model(workdir, "selected", "SP13")
+    assert cfg["mode"] == "pretrained-nn" and cfg["variant"] == "residual"
+    model = PretrainedModel.from_dict(cfg, layers)
+    sel, spec, hrow, rows, data = _heliostat(workdir, "SP13")
+    target = rows.loc[rows["target_name"] == "tower_target_upper",
+                      ["target_e_m", "target_n_m", "target_u_m"]].median().to_numpy()
+    from heliocal.pipeline.physics.sun import sun_vector_enu
+    sun = torch.as_tensor(np.asarray(sun_vector_enu(10.0, 40.0), np.float64)).reshape(1, 3)
+    expected = model.steps(sun, torch.tensor(target).reshape(1, 3), spec=spec)[0]
+    assert aimed["axis_1_steps"] == pytest.approx(float(expected[0]), abs=1e-6)
+    assert aimed["axis_2_steps"] == pytest.approx(float(expected[1]), abs=1e-6)
+    coarse = json.loads(_ok(runner, ["aim", "--workdir", str(workdir), "--heliostat", "SP13",
+                                     "--target", "tower_target_upper", "--sun-azimuth", "10",
+                                     "--sun-elevation", "40", "--model", "coarse"]).stdout)
+    # the correction is of the injected size: tens of steps, not zero, not thousands
+    assert 1.0 < abs(aimed["axis_1_steps"] - coarse["axis_1_steps"]) < 3 * INJECT_STEPS
