@@ -201,3 +201,24 @@ def test_sweep_selects_pretrained_only_where_it_wins_and_aim_uses_it(workdir, ru
                                      "--sun-elevation", "40", "--model", "coarse"]).stdout)
     # the correction is of the injected size: tens of steps, not zero, not thousands
     assert 1.0 < abs(aimed["axis_1_steps"] - coarse["axis_1_steps"]) < 3 * INJECT_STEPS
+
+
+def test_the_margin_rule_holds_for_the_pretrained_candidate(workdir, tmp_path, monkeypatch):
+    """With a margin no candidate can meet (90 %), SP13's pre-trained network (about 30 % better
+    on validation) is not selected: the candidate goes through the same rule as the hybrids."""
+    import shutil
+
+    from heliocal.pipeline.models.config import PathConfig
+    from heliocal.pipeline.stages import sweep as sweep_stage
+
+    wd = tmp_path / "wd"
+    shutil.copytree(workdir, wd)
+    monkeypatch.setattr(sweep_stage, "MIN_IMPROVEMENT", 0.9)
+    sweep_stage.run_sweep(wd, select_pretrained=True, study=0, weight_decays=[1000.0],
+                          extra_bands=(), path=PathConfig(stage_epochs=20), workers=1)
+    selection = read_artifact(wd, SELECTION).set_index("heliostat_id")
+    assert set(selection["model"]) == {"coarse"}
+    rows = read_artifact(wd, SWEEP)
+    pre = rows[(rows["heliostat_id"] == "SP13") & (rows["model"] == "pretrained-nn")]
+    assert float(pre["val_error_mrad"].iloc[0]) < (1 - MIN_IMPROVEMENT) * float(
+        selection.loc["SP13", "coarse_val_error_mrad"])   # it would win under the real margin
