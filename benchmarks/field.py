@@ -3,14 +3,15 @@
 Simulates a field (default 2,000 heliostats with 100 to 400 measurements each; ``heliocal
 simulate``'s model, seed 0), writes it as a WGS84 calibration log plus PAINT heliostat-properties
 files, then runs ``ingest``, ``split-knn``, ``fit-coarse --preset static-20``, ``fit-hybrid``
-(one weight decay) and ``sweep --study 0`` (the production selection of every heliostat with the
+(one weight decay), ``pretrained-nn`` (``fit-hybrid --mode pretrained-nn``: the
+pre-trained network's cost per heliostat, default variant) and ``sweep --study 0`` (the production selection of every heliostat with the
 default weight decays, band sets and ensembles; no training-size study) as separate ``heliocal``
 processes, once with ``--workers 1`` and once with ``--workers 2``, and prints per stage the wall
 time, heliostats per second and the peak memory of the stage's whole process tree (summed RSS,
 sampled every 0.1 s), so the scaling ratio is measured in one run. Usage::
 
     .venv/bin/python benchmarks/field.py [--heliostats 2000] [--out runs/field-bench]
-        [--hybrid-epochs 800] [--stages ingest,split-knn,fit-coarse,fit-hybrid,sweep]
+        [--hybrid-epochs 800] [--stages ingest,split-knn,fit-coarse,fit-hybrid,pretrained-nn,sweep]
         [--solver batched|scipy] [--workers 1,2] [--sweep-args "--no-warm-start"]
 
 The simulated field is cached in OUT/field (delete it to simulate again).
@@ -171,6 +172,8 @@ def main() -> None:
                            "--workers", str(workers), "--solver", args.solver],
             "fit-hybrid": ["fit-hybrid", "--workdir", str(wd), "--weight-decay", "1e-3",
                            "--max-epochs", str(args.hybrid_epochs), "--workers", str(workers)],
+            "pretrained-nn": ["fit-hybrid", "--workdir", str(wd), "--mode", "pretrained-nn",
+                              "--workers", str(workers)],
             "sweep": ["sweep", "--workdir", str(wd), "--study", "0",
                       "--workers", str(workers), *args.sweep_args.split()],
         }

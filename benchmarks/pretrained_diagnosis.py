@@ -16,7 +16,7 @@ kinematics):
                refitted on the first n training rows (``fit_presets`` with fit-coarse's options,
                the rows ``restrict_training`` keeps, as ``sweep`` does), the library's
                pre-trained network before fine-tuning (``pretrain_only``), the library's
-               ``pretrained-nn`` (:func:`heliocal.pipeline.hybrid.fit_pretrained`) and the
+               ``pretrained-nn`` (:func:`heliocal.pipeline.models.pretrained.fit_pretrained`) and the
                prototype of the fix (``residual``, below).
 ``inject``     a learnable correction: on static heliostats, a known step error periodic in the
                sun elevation (:func:`inject`) is added to the recorded steps and the coarse
@@ -68,16 +68,19 @@ import numpy as np
 import pandas as pd
 import torch
 
-from heliocal.pipeline.artifacts import read_artifact
-from heliocal.pipeline.coarse import (MeasurementBatch, _load_split, coarse_fit_options, fit_presets,
-                                      load_selected_parameters, normal_errors_mrad)
-from heliocal.pipeline.hybrid import (PretrainConfig, _huber, _rotate_between, _simulate_pretraining,
-                                      _unit, fit_pretrained, init_mlp, mlp_forward)
-from heliocal.pipeline.kinematics import HeliostatSpec, forward_kinematics, inverse_kinematics, nominal_parameters
-from heliocal.pipeline.metrics import error_mrad, measured_normal
-from heliocal.pipeline.schemas import HELIOSTATS, MEASUREMENTS
-from heliocal.pipeline.split import SPLIT, restrict_training
-from heliocal.pipeline.sweep import MIN_IMPROVEMENT
+from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, SPLIT
+from heliocal.pipeline.artifacts.store import read_artifact
+from heliocal.pipeline.models.coarse import MeasurementBatch, fit_presets, normal_errors_mrad
+from heliocal.pipeline.models.network import init_mlp, mlp_forward
+from heliocal.pipeline.models.pretrained import (PretrainConfig, fit_pretrained, huber,
+                                                 rotate_between, simulate_pretraining)
+from heliocal.pipeline.physics.kinematics import forward_kinematics, inverse_kinematics
+from heliocal.pipeline.physics.metrics import error_mrad, measured_normal
+from heliocal.pipeline.physics.parameters import HeliostatSpec, nominal_parameters
+from heliocal.pipeline.stages.fit_coarse import (coarse_fit_options, load_selected_parameters,
+                                                 load_split_labels)
+from heliocal.pipeline.stages.split import restrict_training
+from heliocal.pipeline.stages.sweep import MIN_IMPROVEMENT
 
 ROOT = Path(__file__).resolve().parents[1]
 HELIOCAL = str(Path(sys.executable).parent / "heliocal")
@@ -142,7 +145,7 @@ class Helio:
 def load(work: Path, truth: Path | None = None) -> list[Helio]:
     meas = read_artifact(work, MEASUREMENTS)
     helio = read_artifact(work, HELIOSTATS).set_index("heliostat_id", drop=False)
-    meas["split"] = _load_split(work, meas).to_numpy()
+    meas["split"] = load_split_labels(work, meas).to_numpy()
     split = read_artifact(work, SPLIT)
     selected = load_selected_parameters(work)
     gt = json.loads(truth.read_text())["heliostats"] if truth and truth.exists() else {}
@@ -170,13 +173,13 @@ def model_step_error_mrad(params, spec, steps_pred, steps_ref) -> torch.Tensor:
 
 def step_error_mrad(params, spec, data: MeasurementBatch, steps_pred) -> torch.Tensor:
     """error_mrad of predicted steps on measured rows, as the library converts it
-    (:func:`heliocal.pipeline.hybrid.fit_pretrained`): the coarse model's rotation between its
+    (:func:`heliocal.pipeline.models.pretrained.fit_pretrained`): the coarse model's rotation between its
     normal at the measured and at the predicted steps, applied to the measured normal."""
     with torch.no_grad():
         n_c_meas, pos = forward_kinematics(params, spec, data.steps)
         n_meas = measured_normal(data.sun, pos, data.focal_spot)
         n_c_pred, _ = forward_kinematics(params, spec, steps_pred)
-        return error_mrad(_rotate_between(n_c_meas, n_c_pred, n_meas), n_meas)
+        return error_mrad(rotate_between(n_c_meas, n_c_pred, n_meas), n_meas)
 
 
 def coarse_ik_steps(params, spec, data: MeasurementBatch) -> torch.Tensor:
@@ -190,7 +193,8 @@ def coarse_ik_steps(params, spec, data: MeasurementBatch) -> torch.Tensor:
 # ------------------------------------------------------------------------------------------------
 def paper_inputs(sun, spot, reference) -> torch.Tensor:
     off = spot - reference
-    return torch.cat([_unit(sun), off[:, 0:1], off[:, 2:3]], -1)
+    unit = sun / torch.linalg.vector_norm(sun, dim=-1, keepdim=True)
+    return torch.cat([unit, off[:, 0:1], off[:, 2:3]], -1)
 
 
 @dataclass
@@ -232,12 +236,12 @@ def train_adamax(layers, x_tr, y_tr, x_ho, y_ho, *, lr=1e-2, epochs=150, batch=2
         perm = torch.randperm(x_tr.shape[0], generator=gen)
         for s in range(0, x_tr.shape[0], batch):
             idx = perm[s:s + batch]
-            loss = _huber(mlp_forward(cur, x_tr[idx]), y_tr[:, idx], delta).mean()
+            loss = huber(mlp_forward(cur, x_tr[idx]), y_tr[:, idx], delta).mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
         with torch.no_grad():
-            hold = float(_huber(mlp_forward(cur, x_ho), y_ho, delta).mean())
+            hold = float(huber(mlp_forward(cur, x_ho), y_ho, delta).mean())
         sched.step(hold)
         if hold < best_loss - 1e-15:
             best_loss, since, best = hold, 0, _detached(cur)
@@ -269,9 +273,9 @@ def train_lbfgs(layers, x_tr, y_tr, *, iterations=500, dtype=torch.float64):
 
 def pretraining_set(h: Helio, params, train_mask, n: int, seed: int):
     """(sun, spot, steps) of n simulated calibrations with the coarse model ``params`` (the
-    library's sampler :func:`heliocal.pipeline.hybrid._simulate_pretraining`)."""
+    library's sampler :func:`heliocal.pipeline.models.pretrained.simulate_pretraining`)."""
     rng = np.random.default_rng(seed)
-    return _simulate_pretraining(params, h.spec, h.hrow, h.rows, train_mask, n, rng)
+    return simulate_pretraining(params, h.spec, h.hrow, h.rows, train_mask, n, rng)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -426,7 +430,7 @@ def fit_residual(h: Helio, params, labels, seed: int, cfg: ResidualConfig = Resi
     fi = torch.nonzero(fit).flatten()
     ep = 0
     for ep in range(1, cfg.epochs + 1):
-        loss = _huber(mlp_forward(cur, x[fi]), y[:, fi], delta).mean()
+        loss = huber(mlp_forward(cur, x[fi]), y[:, fi], delta).mean()
         if cfg.weight_decay:
             loss = loss + cfg.weight_decay * sum((t ** 2).sum() for t in leaves)
         opt.zero_grad()
@@ -449,10 +453,14 @@ RESIDUAL_VARIANTS = {
     "residual-lr1e-3": ResidualConfig(lr=1e-3),
 }
 
-#: The library's pretrained-nn (paper 002 settings) and a wider network with more samples.
+#: The library's pretrained-nn: the paper's variant (``pretrained-nn``, paper 002 settings), a
+#: wider network with more samples, and the library's default ``residual`` variant
+#: (``pretrained-nn-residual``, the prototype above as it landed in
+#: :mod:`heliocal.pipeline.models.pretrained`).
 PRETRAINED_VARIANTS = {
-    "pretrained-nn": PretrainConfig(),
-    "pretrained-nn-wide": PretrainConfig(hidden=(32, 32, 32, 32), n_samples=16000),
+    "pretrained-nn": PretrainConfig(variant="paper"),
+    "pretrained-nn-wide": PretrainConfig(variant="paper", hidden=(32, 32, 32, 32), n_samples=16000),
+    "pretrained-nn-residual": PretrainConfig(),
 }
 
 
@@ -521,7 +529,7 @@ def size_rows(h: Helio, sizes, seed: int, coarse_options: dict, methods) -> list
                     row["coarse_ik"] = _mean(zero.numpy(), test)
             if m in row:
                 # the sweep's rule: a network is selected only if it beats the coarse model's
-                # validation error by 20 % (heliocal.pipeline.sweep.MIN_IMPROVEMENT)
+                # validation error by 20 % (heliocal.pipeline.stages.sweep.MIN_IMPROVEMENT)
                 wins = row[m + "_val"] < (1 - MIN_IMPROVEMENT) * row["coarse_val"]
                 row[m + "_selected"] = row[m] if wins else row["coarse"]
         log(f"size {row}")

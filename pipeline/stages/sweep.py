@@ -125,8 +125,6 @@ def _row(hid, model, n_train, wd, seed, err, labels, train_mask, dist, base_pres
             "test_train_distance_deg": dist, "base_preset": base_preset, "wall_time_s": wall}
 
 
-
-
 def hybrid_variants(config: FineConfig, extra_bands: Sequence[tuple] = (OCTAVE_BANDS,)):
     """The swept hybrids: ``("hybrid", config)`` and, per extra band set that differs from the
     config's, ``("hybrid-octaves", ...)`` for :data:`OCTAVE_BANDS`, else ``("hybrid-bands-<i>",
@@ -228,6 +226,16 @@ def _sel_frame(h: _Heliostat, metrics: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+def _fit_pretrained_errors(h: _Heliostat, coarse, labels, seed: int, config: PretrainConfig):
+    """:func:`fit_pretrained` on one heliostat, plus every row's error_mrad and the seconds."""
+    t0 = time.perf_counter()
+    model, info, normal, position = fit_pretrained(coarse, h.spec, h.hrow, h.rows, h.data, labels,
+                                                   seed, config)
+    with torch.no_grad():
+        err = error_mrad(normal, measured_normal(h.data.sun, position, h.data.focal_spot)).numpy()
+    return model, info, normal, position, err, time.perf_counter() - t0
+
+
 # ------------------------------------------------------------------------------------------------
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
@@ -290,16 +298,10 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
                                    "layers": [(w[ens].clone(), b[ens].clone()) for w, b in layers]}
     if pretrain_config is not None:
         for i, h in enumerate(helios):
-            t0 = time.perf_counter()
-            model, info, normal, position = fit_pretrained(
-                h.selected["params"], h.spec, h.hrow, h.rows, h.data, h.labels, seeds[0],
-                pretrain_config)
-            with torch.no_grad():
-                err = error_mrad(normal, measured_normal(h.data.sun, position,
-                                                          h.data.focal_spot)).numpy()
+            model, info, normal, position, err, wall = _fit_pretrained_errors(
+                h, h.selected["params"], h.labels, seeds[0], pretrain_config)
             out_rows[i].append(_row(h.hid, "pretrained-nn", h.n_full, float("nan"), seeds[0], err,
-                                    h.labels, h.train, h.test_distance, h.selected["preset"],
-                                    time.perf_counter() - t0))
+                                    h.labels, h.train, h.test_distance, h.selected["preset"], wall))
             v = _stats(err, val_masks[i])[0]
             threshold = h.coarse_val * (1.0 - MIN_IMPROVEMENT)   # the hybrids' margin rule
             if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
@@ -420,14 +422,9 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
         for n in sizes:
             lab = np.where(masks[n], "train", np.where(labels == "train", "unused", labels))
             for s in seeds:
-                t0 = time.perf_counter()
-                _, _, normal, position = fit_pretrained(bases[n], h.spec, h.hrow, h.rows, h.data,
-                                                        lab, int(s), pretrain_config)
-                with torch.no_grad():
-                    e = error_mrad(normal, measured_normal(h.data.sun, position,
-                                                          h.data.focal_spot)).numpy()
+                *_, e, wall = _fit_pretrained_errors(h, bases[n], lab, int(s), pretrain_config)
                 out_rows.append(_row(hid, "pretrained-nn", n, float("nan"), s, e, labels,
-                                     masks[n], dists[n], base_preset, time.perf_counter() - t0))
+                                     masks[n], dists[n], base_preset, wall))
     return {"rows": out_rows}
 
 
