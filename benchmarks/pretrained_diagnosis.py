@@ -623,7 +623,7 @@ def main(argv=None) -> int:
                                 "pretrain_only", *methods, "residual_best_epoch", "noise_floor"]))
         if "inject" in experiments:
             sel = helios[:1] if args.quick else [h for h in helios if not h.dynamic][:6]
-            methods = ("pretrained-nn", *RESIDUAL_VARIANTS)
+            methods = ("pretrained-nn", "pretrained-nn-residual", *RESIDUAL_VARIANTS)
             rows = []
             for h in sel:
                 h2 = inject(h, coarse_options)
