@@ -16,6 +16,7 @@ from .metrics import column_of, final_models, first_column, model_sort_key, spli
 
 __all__ = [
     "hybrid_vs_coarse_table",
+    "new_figure",
     "png_bytes",
     "plot_training_size",
     "plot_sky_map",
@@ -41,7 +42,8 @@ _SPLIT_COLORS = {"train": "0.55", "validation": "tab:blue", "test": "tab:orange"
 # ------------------------------------------------------------------------------------------------
 # figures (matplotlib Figure objects: Agg renderer, no pyplot)
 # ------------------------------------------------------------------------------------------------
-def _figure(width: float, height: float, nrows: int = 1, ncols: int = 1, **kw):
+def new_figure(width: float, height: float, nrows: int = 1, ncols: int = 1, **kw):
+    """A matplotlib Figure (Agg, constrained layout, no pyplot) and its axes (2-D array)."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(width, height), layout="constrained")
@@ -83,7 +85,7 @@ def plot_training_size(sweep: pd.DataFrame, heliostat: str,
     if g["n_train"].nunique() < 2:
         return None, (f"the sweep of {heliostat} has a single training size: it is not in the "
                       "training-size study (`heliocal sweep --study N` samples N heliostats)")
-    fig, axes = _figure(7.5, 6.0, 2, 1, sharex=True, height_ratios=(2.2, 1))
+    fig, axes = new_figure(7.5, 6.0, 2, 1, sharex=True, height_ratios=(2.2, 1))
     ax, ax2 = axes[0, 0], axes[1, 0]
     for model in sorted(g["model"].astype(str).unique(), key=model_sort_key):
         b = _best_weight_decay_rows(g[g["model"].astype(str) == model], val, test)
@@ -132,7 +134,7 @@ def plot_sky_map(measurements: pd.DataFrame, split: pd.DataFrame | None,
         m = m.merge(p[["measurement_id", "error_mrad"]], on="measurement_id", how="left")
     else:
         m["error_mrad"] = np.nan
-    fig, axes = _figure(8.0, 4.8)
+    fig, axes = new_figure(8.0, 4.8)
     ax = axes[0, 0]
     k = SKY_POINTS_PER_MRAD
     handles = []
@@ -216,7 +218,7 @@ def plot_weight_decay(sweep: pd.DataFrame, heliostat: str, model: str | None,
         g = g[g["n_train"] == g["n_train"].max()]
     if g[wd].nunique() < 2:
         return None, f"the sweep of {heliostat} ({model}) has a single weight decay"
-    fig, axes = _figure(7.5, 4.4)
+    fig, axes = new_figure(7.5, 4.4)
     ax = axes[0, 0]
     positive = g.loc[g[wd] > 0, wd]
     if (g[wd] <= 0).any():
@@ -284,7 +286,7 @@ def hybrid_vs_coarse_table(inp: ReportInputs) -> pd.DataFrame | None:
 def plot_hybrid_vs_coarse(table: pd.DataFrame):
     """Paper 000, fig. 8: mean validation and test error of hybrid and coarse per heliostat."""
     n = len(table)
-    fig, axes = _figure(max(6.0, 1.6 * n + 3.0), 4.2, 1, 2, sharey=True)
+    fig, axes = new_figure(max(6.0, 1.6 * n + 3.0), 4.2, 1, 2, sharey=True)
     x = np.arange(n)
     w = 0.38
     top = np.nanmax(table[["coarse_validation", "coarse_test", "hybrid_validation",
@@ -327,7 +329,7 @@ def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, 
     d = d.dropna(subset=["timestamp"]).sort_values("timestamp")
     if len(d) < 2:
         return None, f"{heliostat} has fewer than two timestamped predictions of {model}"
-    fig, axes = _figure(8.0, 3.8)
+    fig, axes = new_figure(8.0, 3.8)
     ax = axes[0, 0]
     for split in sorted(d["split"].unique(), key=split_sort_key):
         g = d[d["split"] == split]
