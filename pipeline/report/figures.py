@@ -114,12 +114,14 @@ def plot_training_size(sweep: pd.DataFrame, heliostat: str,
 
 
 def plot_sky_map(measurements: pd.DataFrame, split: pd.DataFrame | None,
-                 predictions: pd.DataFrame | None, heliostat: str, model: str | None):
+                 predictions: pd.DataFrame | None, heliostat: str, model: str | None,
+                 label: str | None = None):
     """Paper 000, fig. 7: measurements over sun azimuth and elevation.
 
     Training points are dots; each validation and test point is a filled circle whose radius grows
     linearly with its error (:data:`SKY_POINTS_PER_MRAD` pt per mrad, clipped at
-    :data:`SKY_CLIP_MRAD`), inside a grey ring of 1 mrad for reference.
+    :data:`SKY_CLIP_MRAD`), inside a grey ring of 1 mrad for reference. ``label``: the model's
+    name in the title (default ``model``).
     """
     m = measurements[measurements["heliostat_id"] == heliostat][
         ["measurement_id", "sun_azimuth_deg", "sun_elevation_deg"]]
@@ -187,7 +189,7 @@ def plot_sky_map(measurements: pd.DataFrame, split: pd.DataFrame | None,
     ax.margins(0.06)
     title = f"{heliostat}: measurements in sun position"
     if model is not None and ring_drawn:
-        title += f"; circle radius = error of {model}"
+        title += f"; circle radius = error of {label or model}"
     ax.set_title(title, fontsize="medium")
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small",
               borderaxespad=0, labelspacing=1.0)
@@ -311,11 +313,13 @@ def plot_hybrid_vs_coarse(table: pd.DataFrame):
 
 
 def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, heliostat: str,
-                         model: str, coarse_model: str | None = None, window_days: int = 30):
+                         model: str, coarse_model: str | None = None, window_days: int = 30,
+                         label: str | None = None):
     """Error of ``model`` over the measurement date, coloured by split, with a rolling median.
 
     The rolling median (``window_days``, centred) shows drift and seasonal patterns; with a
-    different ``coarse_model`` its rolling median is drawn dashed for comparison. Returns
+    different ``coarse_model`` its rolling median is drawn dashed for comparison; ``label``
+    names ``model`` in the title and legend (default ``model``). Returns
     ``(figure, None)`` or ``(None, reason)``.
     """
     import matplotlib.dates as mdates
@@ -348,7 +352,8 @@ def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, 
         return r
 
     r = rolling(d)
-    ax.plot(r.index, r.to_numpy(), color="k", lw=1.4, label=f"{model}: {window_days}-day median")
+    ax.plot(r.index, r.to_numpy(), color="k", lw=1.4,
+            label=f"{label or model}: {window_days}-day median")
     if coarse_model and coarse_model != model:
         c = p[p["model"] == coarse_model][["measurement_id", "error_mrad"]].merge(
             m, on="measurement_id")
@@ -371,7 +376,7 @@ def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, 
         ax.text(0.99, 0.97, f"{n_above} point{'s' if n_above != 1 else ''} above the axis",
                 transform=ax.transAxes, ha="right", va="top", fontsize="x-small")
     ax.grid(alpha=0.3)
-    title = f"{heliostat}: error of {model} over time"
+    title = f"{heliostat}: error of {label or model} over time"
     if n_missing:
         title += f" ({n_missing} without timestamp not shown)"
     ax.set_title(title, fontsize="medium")

@@ -58,13 +58,13 @@ def _draw(task: FigureTask):
         return plot_training_size(a["sweep"], task.heliostat, a["level"], a["label"])
     if task.kind == "sky_map":
         return plot_sky_map(a["measurements"], a["split"], a["predictions"], task.heliostat,
-                            a["model"]), None
+                            a["model"], a.get("label")), None
     if task.kind == "weight_decay":
         return plot_weight_decay(a["sweep"], task.heliostat, a["model"], a["cval"], a["ctest"],
                                  a["weight_decay"])
     if task.kind == "error_over_time":
         return plot_error_over_time(a["measurements"], a["predictions"], task.heliostat,
-                                    a["model"], a["coarse"])
+                                    a["model"], a["coarse"], label=a.get("label"))
     if task.kind == "hybrid_vs_coarse":
         return plot_hybrid_vs_coarse(a["table"]), None
     if task.kind.startswith("field_"):
@@ -109,6 +109,16 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
     sweep = by_heliostat(inp.sweep)
     empty_sweep = inp.sweep.iloc[:0] if inp.sweep is not None else None
     sweep_hint = inp.run_hint("sweep.parquet")
+    # the sweep's choice behind the predictions of model "selected" (hybrid, hybrid-octaves, coarse)
+    choice = {}
+    if inp.selection is not None and {"heliostat_id", "model"} <= set(inp.selection.columns):
+        choice = dict(zip(inp.selection["heliostat_id"].astype(str),
+                          inp.selection["model"].astype(str)))
+
+    def label(hid: str, model: str | None) -> str | None:
+        if model == "selected" and hid in choice:
+            return f"the selected model ({choice[hid]})"
+        return model
 
     out.append(("h3", "Error against training size (paper 000, fig. 6)"))
     if inp.sweep is None:
@@ -131,13 +141,14 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
         model = finals.get(hid, {}).get("model")
         cap = (f"{hid}: measurements over sun azimuth and elevation; dots are training points. "
                f"Validation and test points are circles whose radius grows linearly with the "
-               f"error of {model} ({SKY_POINTS_PER_MRAD:g} pt per mrad); the grey ring is 1 mrad.")
+               f"error of {label(hid, model)} ({SKY_POINTS_PER_MRAD:g} pt per mrad); the grey "
+               "ring is 1 mrad.")
         if model is None:
             cap = f"{hid}: measurements over sun azimuth and elevation (no predictions yet)."
         out.append(("task", FigureTask(
             "sky_map", f"sky_map_{hid}.png", cap, hid,
             {"measurements": meas[hid], "split": split.get(hid), "predictions": preds.get(hid),
-             "model": model})))
+             "model": model, "label": label(hid, model)})))
 
     out.append(("h3", "Error against weight decay (paper 000, fig. 9a)"))
     if inp.sweep is None:
@@ -155,7 +166,9 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
                 f"{hid}: mean validation and test error against weight decay at the largest "
                 "training size (band: spread over seeds); dashed lines: the selected coarse "
                 "model's validation and test error; dotted: the selected weight decay.", hid,
-                {"sweep": sweep.get(hid, empty_sweep), "model": sel["model"], "cval": cval,
+                {"sweep": sweep.get(hid, empty_sweep),
+                 "model": choice.get(hid, sel["model"]) if sel["model"] == "selected"
+                 else sel["model"], "cval": cval,
                  "ctest": ctest, "weight_decay": sel["weight_decay"]})))
 
     from .figures import hybrid_vs_coarse_table
@@ -186,8 +199,9 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
                 continue
             out.append(("task", FigureTask(
                 "error_over_time", f"error_over_time_{hid}.png",
-                f"{hid}: error of {f['model']} per measurement over the date, coloured by split, "
-                "with a centred 30-day rolling median (drift and seasonal patterns).", hid,
+                f"{hid}: error of {label(hid, f['model'])} per measurement over the date, "
+                "coloured by split, with a centred 30-day rolling median (drift and seasonal "
+                "patterns).", hid,
                 {"measurements": meas[hid], "predictions": preds[hid], "model": f["model"],
-                 "coarse": f.get("coarse_preset")})))
+                 "coarse": f.get("coarse_preset"), "label": label(hid, f["model"])})))
     return out

@@ -89,7 +89,10 @@ def _link(row, prefix: str = "heliostats/") -> str:
 
 
 def _alerts_cell(alerts: Sequence[str]) -> str:
-    return f'<span class="alert">{e("; ".join(alerts))}</span>' if alerts else ""
+    """Each alert's headline (the text before its details in parentheses); the whole text on
+    hover and on the heliostat's page."""
+    return "; ".join(f'<span class="alert" title="{e(a)}">{e(a.split(" (", 1)[0])}</span>'
+                     for a in alerts)
 
 
 def _heliostat_table(rows: pd.DataFrame, prefix: str, rank: bool = False) -> str:

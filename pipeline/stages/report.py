@@ -116,7 +116,7 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
 
 def measurement_floor(workdir: Path, floor_mrad: float | None) -> tuple[float | None, str]:
     """(floor [mrad] or None, where it comes from): ``floor_mrad`` when given, else the median
-    ``noise_floor_mrad`` of the work directory's heliostats in the ``ground_truth.json`` of a
+    ``noise_floor_mrad`` of the heliostats in the ``ground_truth.json`` of a
     simulated field the sources came from (``heliocal simulate`` writes it beside them)."""
     if floor_mrad is not None:
         return float(floor_mrad), "given with --floor-mrad"
