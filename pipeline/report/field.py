@@ -16,6 +16,7 @@ import urllib.parse
 import numpy as np
 import pandas as pd
 
+from ..vocabulary import DEFAULT_ALERT_MRAD
 from .inputs import ReportInputs
 
 __all__ = [
@@ -32,7 +33,7 @@ __all__ = [
 
 #: Default alert threshold: a heliostat whose model (the one aim uses) has a mean test error
 #: above it is on alert [mrad].
-ALERT_MRAD = 2.0
+ALERT_MRAD = DEFAULT_ALERT_MRAD
 
 
 #: Reference lines of the error distribution [mrad].

@@ -188,11 +188,16 @@ def compute_metrics(inp: ReportInputs) -> dict:
         "artifacts": sorted(inp.paths),
     }
     helios = {}
+    # each frame grouped by heliostat once (a mask per heliostat would cost rows x heliostats)
+    ts_by = {h: g for h, g in ts.groupby(m["heliostat_id"].to_numpy(), sort=False)}
+    split_by = ({h: g for h, g in inp.split.groupby("heliostat_id", sort=False)}
+                if inp.split is not None else {})
+    pred_by = ({h: g for h, g in inp.predictions.groupby("heliostat_id", sort=False)}
+               if inp.predictions is not None else {})
     for hid in hids:
-        rows = m["heliostat_id"] == hid
-        t = ts[rows]
+        t = ts_by[hid]
         h: dict[str, Any] = {
-            "n_measurements": int(rows.sum()),
+            "n_measurements": int(len(t)),
             "first_timestamp": _iso(t.min()) if t.notna().any() else None,
             "last_timestamp": _iso(t.max()) if t.notna().any() else None,
             "split_counts": {},
@@ -203,7 +208,7 @@ def compute_metrics(inp: ReportInputs) -> dict:
             "models": {},
         }
         if inp.split is not None:
-            s = inp.split[inp.split["heliostat_id"] == hid]
+            s = split_by.get(hid, inp.split.iloc[:0])
             counts = s["split"].value_counts()
             h["split_counts"] = {k: int(counts[k]) for k in sorted(counts.index, key=split_sort_key)}
             test = s[s["split"] == "test"]
@@ -217,14 +222,16 @@ def compute_metrics(inp: ReportInputs) -> dict:
             elif v is not None:
                 h["selection"][key] = _r(v)
         if inp.predictions is not None:
-            p = inp.predictions[inp.predictions["heliostat_id"] == hid]
-            for model in sorted(p["model"].unique(), key=model_sort_key):
-                g = p[p["model"] == model]
+            p = pred_by.get(hid, inp.predictions.iloc[:0])
+            by_model = dict(tuple(p.groupby("model", sort=False)))
+            for model in sorted(by_model, key=model_sort_key):
+                g = by_model[model]
+                by_split = dict(tuple(g.groupby("split", sort=False)))
                 h["models"][model] = {
                     "source": str(g["source"].iloc[0]),
                     "selected": bool(g["selected"].any()),
-                    "splits": {sp: error_statistics(g[g["split"] == sp])
-                               for sp in sorted(g["split"].unique(), key=split_sort_key)},
+                    "splits": {sp: error_statistics(by_split[sp])
+                               for sp in sorted(by_split, key=split_sort_key)},
                 }
         helios[hid] = h
     return {

@@ -31,7 +31,7 @@ Outputs in ``DIR/report/`` (one stage transaction, see
   same pipeline give the same numbers and :mod:`heliocal.pipeline.report.regression` can diff
   them).
 
-The error per heliostat on the overview is the one ``aim`` uses (:func:`.aim.aim_models`).
+The error per heliostat on the overview is the one ``aim`` uses (:func:`.aim_choice.aim_models`, which ``aim`` uses).
 Figures are drawn one per task (matplotlib's Agg renderer, no pyplot state) in ``workers``
 processes (``runtime.parallel.map_tasks``), in this process when there are few.
 """
@@ -142,7 +142,7 @@ def measurement_floor(workdir: Path, floor_mrad: float | None) -> tuple[float | 
 @stage_transaction("report", root=lambda a: a["out"], consistent_inputs=False)
 def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
                   floor_mrad: float | None) -> dict:
-    from .aim import aim_models  # the one answer to "which model does aim use"
+    from .aim_choice import aim_models  # the one answer to "which model does aim use"
 
     txn = current_transaction(out, "report")
     inp = load_inputs(workdir)
