@@ -123,6 +123,7 @@ def plot_sky_map(measurements: pd.DataFrame, split: pd.DataFrame | None,
     :data:`SKY_CLIP_MRAD`), inside a grey ring of 1 mrad for reference. ``label``: the model's
     name in the title (default ``model``).
     """
+    model_name = label or model  # (the loops below use `label` for the splits)
     m = measurements[measurements["heliostat_id"] == heliostat][
         ["measurement_id", "sun_azimuth_deg", "sun_elevation_deg"]]
     if split is not None:
@@ -189,7 +190,7 @@ def plot_sky_map(measurements: pd.DataFrame, split: pd.DataFrame | None,
     ax.margins(0.06)
     title = f"{heliostat}: measurements in sun position"
     if model is not None and ring_drawn:
-        title += f"; circle radius = error of {label or model}"
+        title += f"; circle radius = error of {model_name}"
     ax.set_title(title, fontsize="medium")
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small",
               borderaxespad=0, labelspacing=1.0)

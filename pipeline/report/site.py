@@ -258,6 +258,6 @@ def field_page_blocks(figures: Sequence[tuple]) -> list[tuple]:
     """Blocks of ``field.html`` (rendered by ``pages.render_html`` with linked figures)."""
     return [("h1", "Paper 000's figures across the field"),
             ("p", "Each figure aggregates every heliostat that has the data: the line is the "
-                  "median over heliostats, the bands the 25-75 % and 10-90 % ranges. Per "
+                  "median over heliostats, the band the 25-75 % range. Per "
                   "heliostat the same figures are on its page."), *figures]
 

@@ -178,8 +178,10 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
             "coarse_test": float(sel["coarse_test_error_mrad"].median())}
         field_plan.append(("task", FigureTask(
             "field_weight_decay", "field_weight_decay.png",
-            "Mean validation and test error against weight decay at each heliostat's full "
-            "training size, across the field; dashed: the field median of the coarse model.",
+            "Mean validation and test error (over seeds) against weight decay at each "
+            "heliostat's full training size, across the field: line the median over heliostats, "
+            "band the 25-75 % range; dashed: the field median of the coarse "
+            "model.",
             None, {"frame": wd_frame, **levels})))
     field_plan.append(("h2", "Error against training size (paper 000, fig. 6)"))
     if ts_frame is None:
@@ -189,7 +191,9 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
         field_plan.append(("task", FigureTask(
             "field_training_size", "field_training_size.png",
             "Mean test error against training size per model (weight decay chosen on validation "
-            "per heliostat and size), across the heliostats of the training-size study.", None,
+            "per heliostat and size), across the heliostats of the training-size study: line the "
+            "median, band the 25-75 % range, at the sizes at least two thirds of "
+            "them share (log scale).", None,
             {"frame": ts_frame})))
     field_plan.append(("h2", "Hybrid against coarse (paper 000, fig. 8)"))
     if comp is None:
