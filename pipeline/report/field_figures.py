@@ -146,7 +146,10 @@ def _training_size(args: dict):
             "test_error_mrad"], None, f"{model} ({n} heliostats)")
     ax.set_xlabel("training measurements")
     ax.set_ylabel("mean test error [mrad]")
-    ax.set_yscale("log")  # rigid-body presets fitted on a few rows miss by 100x
+    if (g["test_error_mrad"] > 0).all():
+        ax.set_yscale("log")  # rigid-body presets fitted on a few rows miss by 100x
+    else:
+        ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3, which="both")
     ax.set_title("Test error against training size across the study's heliostats",
                  fontsize="medium")

@@ -193,7 +193,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
             "Mean test error against training size per model (weight decay chosen on validation "
             "per heliostat and size), across the heliostats of the training-size study: line the "
             "median, band the 25-75 % range, at the sizes at least two thirds of "
-            "them share (log scale).", None,
+            "them share (log scale when every error is positive).", None,
             {"frame": ts_frame})))
     field_plan.append(("h2", "Hybrid against coarse (paper 000, fig. 8)"))
     if comp is None:
