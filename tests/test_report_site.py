@@ -165,3 +165,25 @@ def test_measurement_floor(tmp_path):
     manifest.write_text(json.dumps(m))
     floor, source = report_stage.measurement_floor(wd, None)
     assert floor == pytest.approx(0.2) and "noise floor" in source
+
+
+def test_index_of_2000_heliostats_stays_under_2_mb():
+    """The overview's size grows with the map (one SVG circle per heliostat), not with figures:
+    2,000 heliostats on alert with long alert texts (the worst case for the map's tooltips)."""
+    from heliocal.pipeline.report.field import field_summary
+    from heliocal.pipeline.report.site import index_html
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    ids = [f"C{k // 100:03d}SA{k % 100:02d}" for k in range(n)]
+    table = pd.DataFrame({
+        "heliostat_id": ids, "e_m": rng.uniform(-800, 800, n), "n_m": rng.uniform(50, 1200, n),
+        "model": "hybrid", "variant": "hybrid-octaves", "preset": "static-20", "source": "sweep",
+        "weight_decay": 1e-3, "val_error_mrad": rng.uniform(0.3, 3, n),
+        "test_error_mrad": rng.uniform(0.3, 3, n), "n_measurements": 400, "n_test": 40,
+        "alerts": [["test error 2.50 mrad above 2 mrad", "large corrections of the nominal "
+                    "geometry (axis_1_initial_angle_rad +0.2366 rad; axis_2_offset_m -0.1 m)"]] * n,
+        "page": [f"{h}.html" for h in ids]})
+    page = index_html("t", "s", field_summary(table), table, worst(table),
+                      svg_field_map(table, (0.0, 0.0)), None, "no figure", "floor", [])
+    assert page.count("<circle") >= n and len(page.encode()) < 2 * 2**20
