@@ -254,17 +254,20 @@ def svg_field_map(table: pd.DataFrame, tower: tuple[float, float] | None, *,
                    f'{tx + 7:.1f},{ty + 5:.1f}" fill="#000"><title>tower (mean of the target '
                    f'centres: E {tower[0]:.1f} m, N {tower[1]:.1f} m)</title></polygon>')
     # colour bar and legend
-    bx, by, bh = left + plot + 26, top + 10, plot * 0.55
+    bx, by, bh = left + plot + 26, top + 40, plot * 0.5
     out.append('<defs><linearGradient id="errscale" x1="0" y1="1" x2="0" y2="0">'
                + "".join(f'<stop offset="{k / 10:.1f}" stop-color="{_hex(cmap(k / 10))}"/>'
                          for k in range(11)) + "</linearGradient></defs>")
     out.append(f'<rect x="{bx}" y="{by}" width="14" height="{bh:.1f}" fill="url(#errscale)" '
                'stroke="#999"/>')
-    for frac in (0.0, 0.25, 0.5, 0.75, 1.0):
-        yy = by + bh * (1 - frac)
-        label = f"{vmax * frac:.2g}" + ("+" if frac == 1.0 else "")
-        out.append(f'<text x="{bx + 18}" y="{yy + 4:.1f}" font-size="11">{label}</text>')
-    out.append(f'<text x="{bx - 4}" y="{by - 4}" font-size="11">test error [mrad]</text>')
+    tick = _nice_step(vmax * 6 / 5)  # about five ticks
+    for k in range(int(vmax / tick + 1e-9) + 1):
+        yy = by + bh * (1 - k * tick / vmax)
+        out.append(f'<line x1="{bx + 14}" y1="{yy:.1f}" x2="{bx + 18}" y2="{yy:.1f}" '
+                   f'stroke="#333"/><text x="{bx + 21}" y="{yy + 4:.1f}" font-size="11">'
+                   f"{k * tick:g}</text>")
+    out.append(f'<text x="{bx + 21}" y="{by - 12}" font-size="11">≥ {vmax:.3g}</text>')
+    out.append(f'<text x="{bx - 4}" y="{by - 28}" font-size="11">test error [mrad]</text>')
     ly = by + bh + 26
     out.append(f'<circle cx="{bx + 6}" cy="{ly}" r="5" fill="#fff" stroke="#d00000" '
                f'stroke-width="2.2"/><text x="{bx + 16}" y="{ly + 4}" font-size="11">on alert'
