@@ -187,3 +187,19 @@ def test_index_of_2000_heliostats_stays_under_2_mb():
     page = index_html("t", "s", field_summary(table), table, worst(table),
                       svg_field_map(table, (0.0, 0.0)), None, "no figure", "floor", [])
     assert page.count("<circle") >= n and len(page.encode()) < 2 * 2**20
+
+
+def test_extra_alerts_join_the_field_table(coarse_report):
+    """Alerts of other detectors (regime changes, say) are marked like the report's own."""
+    from heliocal.pipeline.report.field import field_summary, field_table
+    from heliocal.pipeline.report.inputs import load_inputs
+    from heliocal.pipeline.report.metrics import compute_metrics
+
+    wd, _ = coarse_report
+    inp = load_inputs(wd)
+    table = field_table(inp, compute_metrics(inp), aim_models(wd), alert_mrad=0.97,
+                        extra_alerts={"AA01": ["regime change on 2023-06-01"]})
+    alerts = dict(zip(table["heliostat_id"], table["alerts"]))
+    assert alerts == {"AA01": ["regime change on 2023-06-01"],
+                      "AB02": ["test error 1.00 mrad above 0.97 mrad"]}
+    assert field_summary(table, alert_mrad=0.97)["n_on_alert"] == 2

@@ -55,7 +55,8 @@ def _first_per_heliostat(df: pd.DataFrame | None, column: str, selected: bool = 
 
 
 def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
-                alert_mrad: float = ALERT_MRAD) -> pd.DataFrame:
+                alert_mrad: float = ALERT_MRAD,
+                extra_alerts: dict[str, list[str]] | None = None) -> pd.DataFrame:
     """One row per heliostat of measurements.parquet.
 
     Columns: ``heliostat_id``, ``e_m``, ``n_m`` (position, ENU metres; heliostats.parquet, else
@@ -65,7 +66,8 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
     ``n_test``, ``alerts`` (list of texts, empty when none), ``page`` (file name of its page).
 
     Alerts: no model (fit-coarse has not run for it), no test rows, test error above
-    ``alert_mrad``, degenerate training data, implausible corrections of the geometry.
+    ``alert_mrad``, degenerate training data, implausible corrections of the geometry, and
+    ``extra_alerts`` (heliostat -> texts; e.g. a detector of regime changes).
     """
     helios = metrics["heliostats"]
     pos = pd.DataFrame(columns=["heliostat_e_m", "heliostat_n_m"], dtype=float)
@@ -97,6 +99,7 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
         big = implausible.get(hid)
         if isinstance(big, str) and big:
             alerts.append(f"large corrections of the nominal geometry ({big})")
+        alerts += list((extra_alerts or {}).get(hid, []))
         e, n = (float(pos.loc[hid, "heliostat_e_m"]), float(pos.loc[hid, "heliostat_n_m"])) \
             if hid in pos.index else (float("nan"), float("nan"))
         rows.append({"heliostat_id": hid, "e_m": e, "n_m": n,
