@@ -42,18 +42,31 @@ _SPLIT_COLORS = {"train": "0.55", "validation": "tab:blue", "test": "tab:orange"
 # ------------------------------------------------------------------------------------------------
 # figures (matplotlib Figure objects: Agg renderer, no pyplot)
 # ------------------------------------------------------------------------------------------------
-def new_figure(width: float, height: float, nrows: int = 1, ncols: int = 1, **kw):
-    """A matplotlib Figure (Agg, constrained layout, no pyplot) and its axes (2-D array)."""
+def new_figure(width: float, height: float, nrows: int = 1, ncols: int = 1,
+               margins_in: tuple[float, float, float, float] | None = None, **kw):
+    """A matplotlib Figure (Agg, no pyplot) and its axes (2-D array).
+
+    ``margins_in``: fixed (left, right, bottom, top) margins in inches around the axes (room for
+    labels and a legend outside the axes); without them matplotlib's constrained layout places
+    everything, which costs about as much again as drawing the figure: the figures drawn once
+    per heliostat use fixed margins, so that a field of thousands is drawn in minutes.
+    """
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(width, height), layout="constrained")
+    fig = Figure(figsize=(width, height), layout=None if margins_in else "constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False, **kw)
+    if margins_in:
+        left, right, bottom, top = margins_in
+        fig.subplots_adjust(left=left / width, right=1 - right / width, bottom=bottom / height,
+                            top=1 - top / height)
     return fig, axes
 
 
 def png_bytes(fig) -> bytes:
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
+    # zlib level 1: a third faster to encode than the default 6, files ~6 % larger
+    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None},
+                pil_kwargs={"compress_level": 1})
     return buf.getvalue()
 
 
@@ -85,7 +98,8 @@ def plot_training_size(sweep: pd.DataFrame, heliostat: str,
     if g["n_train"].nunique() < 2:
         return None, (f"the sweep of {heliostat} has a single training size: it is not in the "
                       "training-size study (`heliocal sweep --study N` samples N heliostats)")
-    fig, axes = new_figure(7.5, 6.0, 2, 1, sharex=True, height_ratios=(2.2, 1))
+    fig, axes = new_figure(7.5, 6.0, 2, 1, margins_in=(0.8, 0.2, 0.55, 0.35), sharex=True,
+                           height_ratios=(2.2, 1), gridspec_kw={"hspace": 0.08})
     ax, ax2 = axes[0, 0], axes[1, 0]
     for model in sorted(g["model"].astype(str).unique(), key=model_sort_key):
         b = _best_weight_decay_rows(g[g["model"].astype(str) == model], val, test)
@@ -137,7 +151,7 @@ def plot_sky_map(measurements: pd.DataFrame, split: pd.DataFrame | None,
         m = m.merge(p[["measurement_id", "error_mrad"]], on="measurement_id", how="left")
     else:
         m["error_mrad"] = np.nan
-    fig, axes = new_figure(8.0, 4.8)
+    fig, axes = new_figure(8.5, 4.8, margins_in=(0.65, 2.45, 0.55, 0.35))
     ax = axes[0, 0]
     k = SKY_POINTS_PER_MRAD
     handles = []
@@ -221,7 +235,7 @@ def plot_weight_decay(sweep: pd.DataFrame, heliostat: str, model: str | None,
         g = g[g["n_train"] == g["n_train"].max()]
     if g[wd].nunique() < 2:
         return None, f"the sweep of {heliostat} ({model}) has a single weight decay"
-    fig, axes = new_figure(7.5, 4.4)
+    fig, axes = new_figure(7.8, 4.4, margins_in=(0.65, 2.1, 0.55, 0.35))
     ax = axes[0, 0]
     positive = g.loc[g[wd] > 0, wd]
     if (g[wd] <= 0).any():
@@ -334,7 +348,7 @@ def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, 
     d = d.dropna(subset=["timestamp"]).sort_values("timestamp")
     if len(d) < 2:
         return None, f"{heliostat} has fewer than two timestamped predictions of {model}"
-    fig, axes = new_figure(8.0, 3.8)
+    fig, axes = new_figure(8.5, 3.8, margins_in=(0.65, 2.25, 0.55, 0.35))
     ax = axes[0, 0]
     for split in sorted(d["split"].unique(), key=split_sort_key):
         g = d[d["split"] == split]
@@ -353,8 +367,7 @@ def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, 
         return r
 
     r = rolling(d)
-    ax.plot(r.index, r.to_numpy(), color="k", lw=1.4,
-            label=f"{label or model}: {window_days}-day median")
+    ax.plot(r.index, r.to_numpy(), color="k", lw=1.4, label=f"{window_days}-day median")
     if coarse_model and coarse_model != model:
         c = p[p["model"] == coarse_model][["measurement_id", "error_mrad"]].merge(
             m, on="measurement_id")
