@@ -176,7 +176,7 @@ def svg_field_map(table: pd.DataFrame, tower: tuple[float, float] | None, *,
                   alert_mrad: float = ALERT_MRAD, link_prefix: str = "heliostats/",
                   width: int = 760, height: int = 600) -> str:
     """The field as an SVG: heliostats at their east/north position [m], coloured by the test
-    error of the model aim uses (colour scale 0 .. max(alert threshold, 95th percentile)),
+    error of the model aim uses (colour scale 0 .. the field's 95th percentile),
     heliostats on alert ringed in red, the tower a black triangle; each heliostat links to its
     page and shows its id, model and errors on hover (``<title>``). Every text is escaped."""
     import matplotlib
@@ -207,7 +207,9 @@ def svg_field_map(table: pd.DataFrame, tower: tuple[float, float] | None, *,
 
     err = t["test_error_mrad"].to_numpy(float)
     finite = err[np.isfinite(err)]
-    vmax = max(alert_mrad, float(np.percentile(finite, 95)) if len(finite) else alert_mrad)
+    # the colours spread over the field's own range (a well calibrated field is not one colour);
+    # the alert threshold, absolute, is the red ring
+    vmax = max(float(np.percentile(finite, 95)), 1e-3) if len(finite) else alert_mrad
     r = max(2.0, min(7.0, 0.45 * plot / math.sqrt(max(len(t), 1))))
     out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
            f'viewBox="0 0 {width} {height}" role="img" aria-label="field map">',
@@ -270,6 +272,11 @@ def svg_field_map(table: pd.DataFrame, tower: tuple[float, float] | None, *,
                    f'stroke="#333"/><text x="{bx + 21}" y="{yy + 4:.1f}" font-size="11">'
                    f"{k * tick:g}</text>")
     out.append(f'<text x="{bx + 21}" y="{by - 12}" font-size="11">≥ {vmax:.3g}</text>')
+    if alert_mrad < vmax:
+        ya = by + bh * (1 - alert_mrad / vmax)
+        out.append(f'<line x1="{bx - 4}" y1="{ya:.1f}" x2="{bx + 18}" y2="{ya:.1f}" '
+                   f'stroke="#d00000" stroke-width="2"><title>alert threshold {alert_mrad:g} '
+                   "mrad</title></line>")
     out.append(f'<text x="{bx - 4}" y="{by - 28}" font-size="11">test error [mrad]</text>')
     ly = by + bh + 26
     out.append(f'<circle cx="{bx + 6}" cy="{ly}" r="5" fill="#fff" stroke="#d00000" '
