@@ -203,3 +203,28 @@ def test_extra_alerts_join_the_field_table(coarse_report):
     assert alerts == {"AA01": ["regime change on 2023-06-01"],
                       "AB02": ["test error 1.00 mrad above 0.97 mrad"]}
     assert field_summary(table, alert_mrad=0.97)["n_on_alert"] == 2
+
+
+def test_selected_weight_decay_is_not_rounded_away(tmp_path):
+    """metrics.json keeps 4 decimals (1e-5 -> 0); the figure's 'selected' line and the selection
+    table take the sweep's own value."""
+    from heliocal.pipeline.report.inputs import load_inputs
+    from heliocal.pipeline.report.metrics import compute_metrics, final_models
+    from heliocal.pipeline.report.pages import build_report, figure_tasks
+    from heliocal.pipeline.report.render import heliostat_figure_plan
+
+    wd = make_workdir(tmp_path, "sweep")
+    schema = next(s for s in all_schemas() if s.name == "selection")
+    sel = pd.read_parquet(wd / schema.filename).assign(weight_decay=1e-5)
+    write_artifact(sel, wd, schema, stage=schema.producer, inputs={})
+    inp = load_inputs(wd)
+    metrics = compute_metrics(inp)
+    assert metrics["heliostats"]["AA01"]["selection"]["weight_decay"] == 0.0  # rounded
+    plan = heliostat_figure_plan(inp, metrics, final_models(inp))
+    wd_args = {b[1].heliostat: b[1].args["weight_decay"] for b in plan
+               if b[0] == "task" and b[1].kind == "weight_decay"}
+    assert wd_args == {"AA01": 1e-5, "AB02": 1e-5}
+    blocks = build_report(inp, metrics)
+    table = next(b for b in blocks if b[0] == "table" and "weight decay" in b[1])
+    assert [r[3] for r in table[2]] == ["1e-05", "1e-05"]
+    assert figure_tasks(blocks)

@@ -153,6 +153,11 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
         if inp.selection is not None and {"heliostat_id", "model"} <= set(inp.selection.columns):
             choice = dict(zip(inp.selection["heliostat_id"].astype(str),
                               inp.selection["model"].astype(str)))
+        # the selected weight decay unrounded (metrics.json keeps 4 decimals: 1e-5 would show 0)
+        wd_of = {}
+        if inp.selection is not None and "weight_decay" in inp.selection.columns:
+            wd_of = dict(zip(inp.selection["heliostat_id"].astype(str),
+                             inp.selection["weight_decay"].astype(float)))
         for hid, h in helios.items():
             s = dict(h["selection"])
             model = h["models"].get(s["model"] or "", {}).get("splits", {})
@@ -163,7 +168,7 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
             if shown == "selected" and hid in choice:
                 shown = f"selected ({choice[hid]})"
             rows.append([hid, s["coarse_preset"] or "–", shown,
-                         fmt_g(s["weight_decay"]),
+                         fmt_g(wd_of.get(hid, s["weight_decay"])),
                          fmt(pick("val_error_mrad", model, "validation")),
                          fmt(pick("test_error_mrad", model, "test")),
                          fmt(pick("coarse_val_error_mrad", coarse, "validation")),

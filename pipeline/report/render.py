@@ -98,8 +98,9 @@ def by_heliostat(df: pd.DataFrame | None) -> dict[str, pd.DataFrame]:
 
 def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> list[tuple]:
     """The per-heliostat figures (paper 000 figs. 6, 7, 9a, error over time) and fig. 8, in the
-    order of the report, as blocks: ``("h3", text)``, ``("note", text)`` and ``("task",
-    FigureTask)`` (a task whose figure cannot be drawn becomes a note naming why)."""
+    order of the report, as blocks: ``("h3", text)``, ``("note", text)``, ``("hnote", text,
+    heliostat)`` (a note for that heliostat's page only) and ``("task", FigureTask)`` (a task
+    whose figure cannot be drawn becomes a note naming why)."""
     out: list[tuple] = []
     helios = metrics["heliostats"]
     hids = list(helios)
@@ -115,6 +116,12 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
         choice = dict(zip(inp.selection["heliostat_id"].astype(str),
                           inp.selection["model"].astype(str)))
 
+    # the selected weight decay as the sweep wrote it (metrics.json rounds to 4 decimals: 1e-5 -> 0)
+    chosen_wd = {}
+    if inp.selection is not None and {"heliostat_id", "weight_decay"} <= set(inp.selection.columns):
+        chosen_wd = dict(zip(inp.selection["heliostat_id"].astype(str),
+                             inp.selection["weight_decay"].astype(float)))
+
     def label(hid: str, model: str | None) -> str | None:
         if model == "selected" and hid in choice:
             return f"the selected model ({choice[hid]})"
@@ -124,10 +131,19 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
     if inp.sweep is None:
         out.append(("note", f"Omitted: needs sweep.parquet; run {sweep_hint}."))
     else:
+        outside = []
         for hid in hids:
             sel = helios[hid]["selection"]
             coarse = helios[hid]["models"].get(sel["coarse_preset"] or "")
             level = coarse["splits"].get("test", {}).get("mean_error_mrad") if coarse else None
+            g = sweep.get(hid)
+            if g is not None and "n_train" in g.columns and g["n_train"].nunique() < 2:
+                # not in the training-size study: said once below, and on its own page
+                outside.append(hid)
+                out.append(("hnote", f"{hid} is not in the sweep's training-size study "
+                                     "(`heliocal sweep --study N` samples N heliostats): no "
+                                     "training-size figure.", hid))
+                continue
             out.append(("task", FigureTask(
                 "training_size", f"training_size_{hid}.png",
                 f"{hid}: mean test error against the number of training measurements per model "
@@ -135,6 +151,10 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
                 "distance in sun position from the test set to the training set.", hid,
                 {"sweep": sweep.get(hid, empty_sweep), "level": level,
                  "label": f"coarse {sel['coarse_preset']}"})))
+        if outside:
+            out.append(("note", f"{len(outside)} of {len(hids)} heliostats are not in the "
+                                "sweep's training-size study (`heliocal sweep --study N` samples "
+                                "N heliostats): no training-size figure for them."))
 
     out.append(("h3", "Sky map (paper 000, fig. 7)"))
     for hid in hids:
@@ -169,7 +189,7 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
                 {"sweep": sweep.get(hid, empty_sweep),
                  "model": choice.get(hid, sel["model"]) if sel["model"] == "selected"
                  else sel["model"], "cval": cval,
-                 "ctest": ctest, "weight_decay": sel["weight_decay"]})))
+                 "ctest": ctest, "weight_decay": chosen_wd.get(hid, sel["weight_decay"])})))
 
     from .figures import hybrid_vs_coarse_table
 

@@ -268,8 +268,8 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
     for b in blocks:
         if b[0] == "figure" and b[1].heliostat in per:
             per[b[1].heliostat].append(b)
-        elif b[0] == "note" and len(b) > 2 and b[2] in per:
-            per[b[2]].append(b)
+        elif b[0] in ("note", "hnote") and len(b) > 2 and b[2] in per:
+            per[b[2]].append(("note", b[1]))
     order = {"sky_map": 0, "error_over_time": 1, "weight_decay": 2, "training_size": 3}
     best_val = {}
     if wd_frame is not None:
