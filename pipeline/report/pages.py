@@ -24,6 +24,7 @@ __all__ = [
     "figure_tasks",
     "fmt",
     "fmt_g",
+    "inline_html",
     "md_inline",
     "md_text",
     "page_head",
@@ -348,6 +349,14 @@ def page_head(title: str, extra: str = "") -> list[str]:
             f"<title>{html.escape(title)}</title><style>{PAGE_CSS}</style>{extra}</head><body>"]
 
 
+def inline_html(text) -> str:
+    """``text`` HTML-escaped, with each `backtick span` (a command) shown as code."""
+    parts = html.escape(str(text)).split("`")
+    if len(parts) % 2 == 0:
+        return html.escape(str(text))
+    return "".join(f"<code>{p}</code>" if i % 2 else p for i, p in enumerate(parts))
+
+
 def render_html(blocks: Sequence[tuple], *, embed: bool = True, nav: str = "",
                 figure_prefix: str = "figures/") -> str:
     """The blocks as an HTML page. ``embed``: every figure a base64 PNG ``data:`` URI (a
@@ -363,9 +372,9 @@ def render_html(blocks: Sequence[tuple], *, embed: bool = True, nav: str = "",
         if kind in ("h1", "h2", "h3"):
             out.append(f"<{kind}>{e(b[1])}</{kind}>")
         elif kind == "p":
-            out.append(f"<p>{e(b[1])}</p>")
+            out.append(f"<p>{inline_html(b[1])}</p>")
         elif kind == "note":
-            out.append(f'<p class="note"><b>Note:</b> {e(b[1])}</p>')
+            out.append(f'<p class="note"><b>Note:</b> {inline_html(b[1])}</p>')
         elif kind == "table":
             headers, rows = b[1], b[2]
             out.append("<table><thead><tr>" + "".join(f"<th>{e(str(h))}</th>" for h in headers)

@@ -17,7 +17,7 @@ from typing import Sequence
 
 import pandas as pd
 
-from .pages import fmt, fmt_g, page_head
+from .pages import fmt, fmt_g, inline_html as inline, page_head
 from .render import ReportFigure
 
 __all__ = [
@@ -26,7 +26,6 @@ __all__ = [
     "heliostat_html",
     "heliostats_list_html",
     "index_html",
-    "inline",
     "model_label",
     "nav_html",
     "why_text",
@@ -52,14 +51,6 @@ document.querySelectorAll("table.sortable th").forEach(function (th, col) {
   });
 });
 </script>"""
-
-
-def inline(text) -> str:
-    """``text`` escaped, with each `backtick span` (a command) shown as code."""
-    parts = html.escape(str(text)).split("`")
-    if len(parts) % 2 == 0:
-        return html.escape(str(text))
-    return "".join(f"<code>{p}</code>" if i % 2 else p for i, p in enumerate(parts))
 
 
 def nav_html(prefix: str = "") -> str:
