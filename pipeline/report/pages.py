@@ -28,6 +28,7 @@ __all__ = [
     "md_inline",
     "md_text",
     "page_head",
+    "parameter_rows",
     "PAGE_CSS",
     "render_html",
     "render_markdown",
@@ -68,6 +69,16 @@ def _degenerate(inp: ReportInputs) -> dict:
         return {}
     first = cp.groupby("heliostat_id", sort=True)["fit_degenerate"].first()
     return {str(h): str(w) for h, w in first.items() if isinstance(w, str) and w}
+
+
+def parameter_rows(g) -> list[list]:
+    """Table rows (parameter, unit, nominal, fitted, std error, determined) of the free parameters
+    among one fit's coarse_params rows ``g``."""
+    free = g[g["free"].astype(bool)] if "free" in g.columns else g
+    has_det = "determined" in free.columns
+    return [[r["parameter"], r.get("unit", ""), fmt_g(r["nominal"]), fmt_g(r["fitted"]),
+             fmt_g(r["std_error"]), fmt(bool(r["determined"])) if has_det else "–"]
+            for r in free.to_dict("records")]
 
 
 def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
@@ -201,12 +212,8 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
             if "fit_implausible" in g.columns and str(first["fit_implausible"] or ""):
                 blocks.append(("note", f"Large corrections of the nominal geometry: "
                                        f"{first['fit_implausible']}."))
-            free = g[g["free"].astype(bool)] if "free" in g.columns else g
-            rows = [[r["parameter"], r.get("unit", ""), fmt_g(r["nominal"]), fmt_g(r["fitted"]),
-                     fmt_g(r["std_error"]), fmt(bool(r["determined"]))
-                     if "determined" in free.columns else "–"] for _, r in free.iterrows()]
             blocks.append(("table", ["parameter", "unit", "nominal", "fitted", "std error",
-                                     "determined"], rows))
+                                     "determined"], parameter_rows(g)))
 
     # --- figures
     blocks.append(("h2", "Figures"))

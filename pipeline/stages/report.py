@@ -52,7 +52,7 @@ from ..report.field import (ALERT_MRAD, ERROR_LINES_MRAD, field_summary, field_t
 from ..report.field_figures import comparison_table, training_size_frame, weight_decay_frame
 from ..report.inputs import load_inputs
 from ..report.metrics import compute_metrics, metrics_json
-from ..report.pages import (build_report, figure_tasks, fmt, fmt_g, render_html,
+from ..report.pages import (build_report, figure_tasks, parameter_rows, render_html,
                             render_markdown, resolve_figures)
 from ..report.render import FigureTask, ReportFigure, render_task
 from ..report.site import (field_page_blocks, heliostat_html, heliostats_list_html, index_html,
@@ -296,11 +296,7 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
                     "and fitted value with the standard error from the Jacobian at the solution "
                     "('determined: no': the data cannot pin it; the weak prior holds it near "
                     "nominal).")
-            free = g[g["free"].astype(bool)] if "free" in g.columns else g
-            prow = [[r["parameter"], r.get("unit", ""), fmt_g(r["nominal"]), fmt_g(r["fitted"]),
-                     fmt_g(r["std_error"]),
-                     fmt(bool(r["determined"])) if "determined" in free.columns else "–"]
-                    for _, r in free.iterrows()]
+            prow = parameter_rows(g)
         mrows = [[model + (" ★" if mm["selected"] else ""), sp, st["n"], st["mean_error_mrad"],
                   st["median_error_mrad"], st["p95_error_mrad"], st["mean_beam_error_mrad"],
                   st["mean_spot_offset_m"]]
