@@ -28,7 +28,7 @@ __all__ = [
     "md_inline",
     "md_text",
     "page_head",
-    "parameter_rows",
+    "parameter_tables",
     "PAGE_CSS",
     "render_html",
     "render_markdown",
@@ -71,14 +71,23 @@ def _degenerate(inp: ReportInputs) -> dict:
     return {str(h): str(w) for h, w in first.items() if isinstance(w, str) and w}
 
 
-def parameter_rows(g) -> list[list]:
-    """Table rows (parameter, unit, nominal, fitted, std error, determined) of the free parameters
-    among one fit's coarse_params rows ``g``."""
+def parameter_tables(coarse_params) -> dict[str, list[list]]:
+    """heliostat -> table rows (parameter, unit, nominal, fitted, std error, determined) of the
+    free parameters of its fit in ``coarse_params`` rows (pass the selected preset's rows), in
+    parameter order. Columns are read once for the whole field."""
+    g = coarse_params
+    if "parameter_index" in g.columns:
+        g = g.sort_values(["heliostat_id", "parameter_index"], kind="stable")
     free = g[g["free"].astype(bool)] if "free" in g.columns else g
-    has_det = "determined" in free.columns
-    return [[r["parameter"], r.get("unit", ""), fmt_g(r["nominal"]), fmt_g(r["fitted"]),
-             fmt_g(r["std_error"]), fmt(bool(r["determined"])) if has_det else "–"]
-            for r in free.to_dict("records")]
+    col = {c: free[c].tolist() if c in free.columns else None
+           for c in ("parameter", "unit", "nominal", "fitted", "std_error", "determined")}
+    out: dict[str, list[list]] = {}
+    for i, hid in enumerate(free["heliostat_id"].astype(str).tolist()):
+        out.setdefault(hid, []).append([
+            col["parameter"][i], col["unit"][i] if col["unit"] is not None else "",
+            fmt_g(col["nominal"][i]), fmt_g(col["fitted"][i]), fmt_g(col["std_error"][i]),
+            fmt(bool(col["determined"][i])) if col["determined"] is not None else "–"])
+    return out
 
 
 def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
@@ -199,21 +208,20 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                             "the standard error from the Jacobian at the solution. 'determined: "
                             "no' means the data cannot pin the parameter (the weak prior holds "
                             "it near nominal)."))
-        for hid, g in sel.groupby("heliostat_id", sort=True):
-            g = g.sort_values("parameter_index") if "parameter_index" in g.columns else g
-            first = g.iloc[0]
-            diag = []
-            for key, label in (("n_train", "training rows"), ("fit_iterations", "iterations"),
-                               ("fit_condition_number", "condition number")):
-                if key in g.columns:
-                    diag.append(f"{label} {fmt_g(first[key])}")
+        tables = parameter_tables(sel)
+        for first in sel.drop_duplicates("heliostat_id").sort_values("heliostat_id").to_dict(
+                "records"):  # the fit's diagnostics are repeated on each of its rows
+            hid = str(first["heliostat_id"])
+            diag = [f"{label} {fmt_g(first[key])}" for key, label in (
+                ("n_train", "training rows"), ("fit_iterations", "iterations"),
+                ("fit_condition_number", "condition number")) if key in first]
             blocks.append(("h3", f"{hid}: {first.get('preset', '?')}"
                                  + (f" ({', '.join(diag)})" if diag else "")))
-            if "fit_implausible" in g.columns and str(first["fit_implausible"] or ""):
+            if str(first.get("fit_implausible") or ""):
                 blocks.append(("note", f"Large corrections of the nominal geometry: "
                                        f"{first['fit_implausible']}."))
             blocks.append(("table", ["parameter", "unit", "nominal", "fitted", "std error",
-                                     "determined"], parameter_rows(g)))
+                                     "determined"], tables.get(hid, [])))
 
     # --- figures
     blocks.append(("h2", "Figures"))

@@ -52,7 +52,7 @@ from ..report.field import (ALERT_MRAD, ERROR_LINES_MRAD, field_summary, field_t
 from ..report.field_figures import comparison_table, training_size_frame, weight_decay_frame
 from ..report.inputs import load_inputs
 from ..report.metrics import compute_metrics, metrics_json
-from ..report.pages import (build_report, figure_tasks, parameter_rows, render_html,
+from ..report.pages import (build_report, figure_tasks, parameter_tables, render_html,
                             render_markdown, resolve_figures)
 from ..report.render import FigureTask, ReportFigure, render_task
 from ..report.site import (field_page_blocks, heliostat_html, heliostats_list_html, index_html,
@@ -274,11 +274,14 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
     best_val = {}
     if wd_frame is not None:
         best_val = wd_frame.groupby("heliostat_id")["val_error_mrad"].min().to_dict()
-    params = {}
+    params, presets = {}, {}
     cp = inp.coarse_params
     if cp is not None:
         sel = cp[cp["selected"].astype(bool)] if "selected" in cp.columns else cp
-        params = {str(h): g for h, g in sel.groupby("heliostat_id", sort=False)}
+        params = parameter_tables(sel)
+        if "preset" in sel.columns:
+            first = sel.drop_duplicates("heliostat_id")
+            presets = dict(zip(first["heliostat_id"].astype(str), first["preset"].astype(str)))
     rows = {r["heliostat_id"]: r for _, r in table.iterrows()}
     ids = list(helios)
     written = []
@@ -286,17 +289,14 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
     for k, hid in enumerate(ids):
         row = rows[hid]
         figs = sorted(per[hid], key=lambda b: order.get(b[2], 9) if b[0] == "figure" else 10)
-        g = params.get(hid)
-        if g is None:
-            head, prow = "No coarse fit yet (run `heliocal fit-coarse`).", None
+        prow = params.get(hid)
+        if prow is None:
+            head = "No coarse fit yet (run `heliocal fit-coarse`)."
         else:
-            g = g.sort_values("parameter_index") if "parameter_index" in g.columns else g
-            first = g.iloc[0]
-            head = (f"Free parameters of the selected preset {first.get('preset', '?')}: nominal "
+            head = (f"Free parameters of the selected preset {presets.get(hid, '?')}: nominal "
                     "and fitted value with the standard error from the Jacobian at the solution "
                     "('determined: no': the data cannot pin it; the weak prior holds it near "
                     "nominal).")
-            prow = parameter_rows(g)
         mrows = [[model + (" ★" if mm["selected"] else ""), sp, st["n"], st["mean_error_mrad"],
                   st["median_error_mrad"], st["p95_error_mrad"], st["mean_beam_error_mrad"],
                   st["mean_spot_offset_m"]]
