@@ -36,6 +36,11 @@ SKY_POINTS_PER_MRAD = 4.0
 SKY_CLIP_MRAD = 6.0
 
 
+#: Title height in axes coordinates. Given, not found: matplotlib's automatic placement (which
+#: measures every tick label to dodge them) costs ~15 % of a per-heliostat figure.
+TITLE_Y = 1.01
+
+
 _SPLIT_COLORS = {"train": "0.55", "validation": "tab:blue", "test": "tab:orange", "unused": "0.8"}
 
 
@@ -114,7 +119,7 @@ def plot_training_size(sweep: pd.DataFrame, heliostat: str,
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small", ncols=2)
-    ax.set_title(f"{heliostat}: test error against training size")
+    ax.set_title(f"{heliostat}: test error against training size", y=TITLE_Y)
     if dist is not None:
         d = g.groupby("n_train", sort=True)[dist].mean()
         ax2.plot(d.index, d.to_numpy(), marker="o", ms=4, color="0.2")
@@ -205,7 +210,7 @@ def plot_sky_map(measurements: pd.DataFrame, split: pd.DataFrame | None,
     title = f"{heliostat}: measurements in sun position"
     if model is not None and ring_drawn:
         title += f"; circle radius = error of {model_name}"
-    ax.set_title(title, fontsize="medium")
+    ax.set_title(title, fontsize="medium", y=TITLE_Y)
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small",
               borderaxespad=0, labelspacing=1.0)
     return fig
@@ -260,7 +265,8 @@ def plot_weight_decay(sweep: pd.DataFrame, heliostat: str, model: str | None,
     ax.set_ylabel("mean error [mrad]")
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3, which="both")
-    ax.set_title(f"{heliostat}: error against weight decay ({model})", fontsize="medium")
+    ax.set_title(f"{heliostat}: error against weight decay ({model})", fontsize="medium",
+                 y=TITLE_Y)
     ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     return fig, None
 
@@ -393,6 +399,6 @@ def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, 
     title = f"{heliostat}: error of {label or model} over time"
     if n_missing:
         title += f" ({n_missing} without timestamp not shown)"
-    ax.set_title(title, fontsize="medium")
+    ax.set_title(title, fontsize="medium", y=TITLE_Y)
     ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     return fig, None

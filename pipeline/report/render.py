@@ -80,10 +80,7 @@ def render_task(task: FigureTask) -> tuple[bytes | None, str | None]:
     fig, why = _draw(task)
     if fig is None:
         return None, why
-    try:
-        return png_bytes(fig), None
-    finally:
-        fig.clear()
+    return png_bytes(fig), None  # (no fig.clear(): it costs ~5 %; the figure is dropped here)
 
 
 # ------------------------------------------------------------------------------------------------
