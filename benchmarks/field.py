@@ -3,15 +3,18 @@
 Simulates a field (default 2,000 heliostats with 100 to 400 measurements each; ``heliocal
 simulate``'s model, seed 0), writes it as a WGS84 calibration log plus PAINT heliostat-properties
 files, then runs ``ingest``, ``split-knn``, ``fit-coarse --preset static-20``, ``fit-hybrid``
-(one weight decay), ``pretrained-nn`` (``fit-hybrid --mode pretrained-nn``: the
-pre-trained network's cost per heliostat, default variant) and ``sweep --study 0`` (the production selection of every heliostat with the
-default weight decays, band sets and ensembles; no training-size study) as separate ``heliocal``
-processes, once with ``--workers 1`` and once with ``--workers 2``, and prints per stage the wall
+(one weight decay), ``pretrained-nn`` (``fit-hybrid --mode pretrained-nn``: the pre-trained
+network's cost per heliostat, default variant), ``sweep --study 0`` (the production selection of
+every heliostat with the default weight decays, band sets and ensembles; no training-size study)
+and ``report`` (every page and figure; the size of ``report/index.html`` and of the report folder
+are printed too) as separate ``heliocal`` processes, once with ``--workers 1`` and once with
+``--workers 2``, and prints per stage the wall
 time, heliostats per second and the peak memory of the stage's whole process tree (summed RSS,
 sampled every 0.1 s), so the scaling ratio is measured in one run. Usage::
 
     .venv/bin/python benchmarks/field.py [--heliostats 2000] [--out runs/field-bench]
-        [--hybrid-epochs 800] [--stages ingest,split-knn,fit-coarse,fit-hybrid,pretrained-nn,sweep]
+        [--hybrid-epochs 800]
+        [--stages ingest,split-knn,fit-coarse,fit-hybrid,pretrained-nn,sweep,report]
         [--solver batched|scipy] [--workers 1,2] [--sweep-args "--no-warm-start"]
 
 The simulated field is cached in OUT/field (delete it to simulate again).
@@ -149,7 +152,7 @@ def main() -> None:
     ap.add_argument("--heliostats", type=int, default=2000)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "field-bench")
     ap.add_argument("--hybrid-epochs", type=int, default=800)
-    ap.add_argument("--stages", default="ingest,split-knn,fit-coarse,fit-hybrid,sweep")
+    ap.add_argument("--stages", default="ingest,split-knn,fit-coarse,fit-hybrid,sweep,report")
     ap.add_argument("--workers", default="1,2")
     ap.add_argument("--solver", default="batched", help="fit-coarse --solver (batched or scipy)")
     ap.add_argument("--sweep-args", default="", help="extra options of the sweep stage")
@@ -160,6 +163,7 @@ def main() -> None:
           f"(simulated in {info['simulate_s']} s, cached in {field_dir})", flush=True)
     stages = args.stages.split(",")
     results = {}
+    sizes: dict[int, tuple[int, int, int]] = {}
     for workers in [int(w) for w in args.workers.split(",")]:
         wd = args.out / f"run-{args.heliostats}-w{workers}"
         if "ingest" in stages:  # a fresh workdir; later stages alone reuse the previous one
@@ -176,6 +180,7 @@ def main() -> None:
                               "--workers", str(workers)],
             "sweep": ["sweep", "--workdir", str(wd), "--study", "0",
                       "--workers", str(workers), *args.sweep_args.split()],
+            "report": ["report", "--workdir", str(wd), "--workers", str(workers)],
         }
         for stage in stages:
             wall, peak = run_stage(commands[stage])
@@ -183,6 +188,14 @@ def main() -> None:
             print(f"  workers={workers} {stage:11s} {wall:8.1f} s  "
                   f"{info['heliostats'] / wall:8.1f} heliostats/s  peak {peak / 2**30:5.2f} GiB",
                   flush=True)
+            if stage == "report":
+                rep = wd / "report"
+                files = [f for f in rep.rglob("*") if f.is_file()]
+                sizes[workers] = ((rep / "index.html").stat().st_size,
+                                  sum(f.stat().st_size for f in files), len(files))
+                print(f"  workers={workers} report/index.html {sizes[workers][0] / 2**20:.2f} MiB;"
+                      f" report/ {sizes[workers][1] / 2**20:.1f} MiB in {sizes[workers][2]} files",
+                      flush=True)
     print("\nstage        " + "".join(f"  wall w={w}   " for w in args.workers.split(","))
           + " speed-up  peak memory")
     ws = [int(w) for w in args.workers.split(",")]
@@ -193,6 +206,9 @@ def main() -> None:
         if len(walls) > 1:
             line += f"  {walls[0] / walls[-1]:5.2f}x"
         line += f"   {max(peaks) / 2**30:5.2f} GiB"
+        if stage == "report" and sizes:
+            index, total, n = sizes[ws[-1]]
+            line += f"   index.html {index / 2**20:.2f} MiB, report/ {total / 2**20:.0f} MiB, {n} files"
         print(line)
 
 

@@ -8,7 +8,9 @@ from typing import Annotated, Optional
 
 import typer
 
-from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, fail, stdout
+from heliocal.pipeline.vocabulary import DEFAULT_ALERT_MRAD
+from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, Workers, command, emit,
+                              fail, stdout)
 
 __all__ = ["report_cmd"]
 
@@ -24,7 +26,15 @@ def _human(summary: dict) -> None:
                      f"{_fmt(h['test_p95_error_mrad'])} mrad", markup=False)
     for note in summary["notes"]:
         stdout.print(f"note: {note}", markup=False)
-    stdout.print(f"wrote {summary['report']} ({len(summary['figures'])} figures), "
+    f = summary.get("field_summary") or {}
+    if f:
+        stdout.print(f"field: {f['n_calibrated']} of {f['n_heliostats']} heliostats calibrated "
+                     f"({f['n_hybrid']} hybrid, {f['n_coarse']} coarse); median test error "
+                     f"{_fmt(f['median_test_error_mrad'])} mrad, p95 "
+                     f"{_fmt(f['p95_test_error_mrad'])} mrad; {f['n_on_alert']} on alert",
+                     markup=False)
+    stdout.print(f"wrote {summary['report']} ({len(summary['figures'])} figures, "
+                 f"{len(summary.get('heliostat_pages', []))} heliostat pages), "
                  f"{summary['markdown']}, {summary['metrics']}", markup=False)
 
 
@@ -35,14 +45,23 @@ def report_cmd(
         "--compare", help="Baseline metrics.json: exit 1 with the differences when accuracy "
                           "regressed beyond tolerance (docs/report.md).",
         dir_okay=False)] = None,
+    workers: Workers = None,
+    alert_mrad: Annotated[float, typer.Option(
+        "--alert-mrad", min=0.0, help="A heliostat whose model (the one aim uses) has a mean test "
+                                      "error above this is on alert [mrad].")] = DEFAULT_ALERT_MRAD,
+    floor_mrad: Annotated[Optional[float], typer.Option(
+        "--floor-mrad", min=0.0, help="Measurement floor drawn on the error distribution [mrad] "
+                                      "(default: the simulator's noise floor for a simulated "
+                                      "field, else none).")] = None,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
-    """Write DIR/report/ (index.html, report.md, figures/*.png, metrics.json) from the artifacts."""
+    """Write DIR/report/: index.html (the field overview), heliostats/<id>.html, field.html,
+    details.html, report.md, figures/*.png and metrics.json, from the artifacts."""
     from heliocal.pipeline.report.regression import compare_metrics, format_report, load_metrics
     from heliocal.pipeline.stages.report import run_report
 
-    summary = run_report(workdir)
+    summary = run_report(workdir, workers=workers, alert_mrad=alert_mrad, floor_mrad=floor_mrad)
     if compare is not None:
         try:
             diffs = compare_metrics(load_metrics(summary["metrics"]), load_metrics(compare))

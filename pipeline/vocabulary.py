@@ -14,7 +14,7 @@ import enum
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
            "PretrainVariant", "AimModel", "CoarseLoss", "CoarseSolver", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
            "DEFAULT_TIME_MIN", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
-           "OCTAVE_BANDS"]
+           "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD"]
 
 
 class Choice(str, enum.Enum):
@@ -151,6 +151,10 @@ HYBRID_BATCH_SIZE = 32
 #: Heliostats in the training-size study by default (``sweep --study``): enough for the paper's
 #: figures; the production selection covers every heliostat.
 DEFAULT_STUDY = 10
+
+#: ``report --alert-mrad``: a heliostat whose model (the one ``aim`` uses) has a mean test error
+#: above this is on alert [mrad] (a plant's choice; 2 mrad is the CDF's coarsest reference line).
+DEFAULT_ALERT_MRAD = 2.0
 #: Fourier bands of the fine network's inputs: every integer 1..32 (see ``FineConfig``).
 DEFAULT_FOURIER_BANDS = tuple(float(b) for b in range(1, 33))
 #: Fourier bands of the ``hybrid-octaves`` candidate: Tancik et al.'s octaves 1, 2, 4, ..., 32.

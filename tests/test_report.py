@@ -40,6 +40,10 @@ TEST_ERRORS = np.linspace(0.5, 1.4, 10)  # mean 0.95, median 0.95, p95 1.355 (nu
 VAL_ERRORS = np.full(10, 0.8)
 TRAIN_ERRORS = np.full(20, 0.6)
 SELECTED = {"AA01": "static-6", "AB02": "static-20"}
+#: mean validation / test error_mrad of the selected preset (coarse_params.parquet): the means of
+#: VAL_ERRORS / TEST_ERRORS, + 0.05 for static-20 (see the coarse predictions below)
+COARSE_VAL = {"AA01": 0.8, "AB02": 0.85}
+COARSE_TEST = {"AA01": 0.95, "AB02": 1.0}
 
 _DEFAULTS = {"string": "x", "float64": 0.0, "int64": 0, "bool": False,
              "timestamp": pd.Timestamp("2023-01-01", tz="UTC")}
@@ -127,7 +131,8 @@ def make_workdir(root: Path, stage: str = "sweep") -> Path:
                "parameter_index": k, "parameter": name, "unit": "rad", "nominal": 0.0,
                "fitted": 0.001 * (k + 1), "std_error": 0.0002, "free": True, "determined": k < 2,
                "n_train": 20, "fit_iterations": 7, "fit_condition_number": 12.0,
-               "fit_implausible": ""}
+               "fit_implausible": "", "val_error_mrad": COARSE_VAL[hid],
+               "test_error_mrad": COARSE_TEST[hid]}
               for hid in HIDS for k, name in enumerate(("joint_1_tilt_e_rad", "joint_1_tilt_n_rad",
                                                         "joint_2_tilt_u_rad"))]
     _write(pd.DataFrame(params), wd, COARSE_PARAMS)
@@ -251,21 +256,33 @@ def _figure_names() -> list[str]:
     return [f"{p}_{h}.png" for p in per for h in HIDS] + ["hybrid_vs_coarse.png"]
 
 
+#: the field's figures: the error distribution (index.html) and the paper's aggregates (field.html)
+FIELD_FIGURES = ["field_error_cdf.png", "field_weight_decay.png", "field_training_size.png",
+                 "field_hybrid_vs_coarse.png"]
+
+
 def test_report_writes_every_figure_and_references_it(full_report):
     wd, summary = full_report
     out = wd / "report"
-    html = (out / "index.html").read_text()
+    details = (out / "details.html").read_text()
+    field = (out / "field.html").read_text()
+    index = (out / "index.html").read_text()
     md = (out / "report.md").read_text()
-    assert sorted(Path(f).name for f in summary["figures"]) == sorted(_figure_names())
+    assert sorted(Path(f).name for f in summary["figures"]) == sorted(_figure_names()
+                                                                      + FIELD_FIGURES)
     for name in _figure_names():
         png = (out / "figures" / name).read_bytes()
         assert png[:8] == b"\x89PNG\r\n\x1a\n", name
-        # embedded (self-contained) and named, and linked from the Markdown
-        assert re.search(rf'data-file="figures/{re.escape(name)}" src="data:image/png;base64,'
-                         r'[A-Za-z0-9+/=]{1000,}"', html), name
+        # the lab notebook links every figure (lazily loaded), and so does the Markdown
+        assert f'loading="lazy" src="figures/{name}"' in details, name
         assert f"](figures/{name})" in md, name
-    assert "<img" in html and 'src="figures/' not in html  # nothing loaded from disk
-    assert sorted(p.name for p in (out / "figures").iterdir()) == sorted(_figure_names())
+    for name in FIELD_FIGURES[1:]:
+        assert f'src="figures/{name}"' in field, name
+    assert 'src="figures/field_error_cdf.png"' in index
+    # no page embeds images: every page stays small whatever the field's size
+    assert "data:image" not in details + field + index
+    assert sorted(p.name for p in (out / "figures").iterdir()) == sorted(_figure_names()
+                                                                        + FIELD_FIGURES)
     assert not any("Omitted" in n for n in summary["notes"])
 
 
@@ -273,7 +290,7 @@ def test_figures_are_readable_images(full_report):
     import matplotlib.image
 
     wd, _ = full_report
-    for name in _figure_names():
+    for name in _figure_names() + FIELD_FIGURES:
         img = matplotlib.image.imread(wd / "report" / "figures" / name)
         assert img.shape[0] >= 300 and img.shape[1] >= 600, (name, img.shape)
 
@@ -342,7 +359,8 @@ def test_report_after_fit_coarse_names_the_missing_stages(tmp_path):
     wd = make_workdir(tmp_path, "coarse")
     summary = run_report(wd)
     names = sorted(Path(f).name for f in summary["figures"])
-    assert names == sorted(f"{p}_{h}.png" for p in ("sky_map", "error_over_time") for h in HIDS)
+    assert names == sorted([f"{p}_{h}.png" for p in ("sky_map", "error_over_time") for h in HIDS]
+                           + ["field_error_cdf.png"])
     md = (wd / "report" / "report.md").read_text()
     assert f"Omitted: needs sweep.parquet; run `heliocal sweep --workdir {wd}`." in md
     assert ("Omitted: needs selection.parquet or hybrid_predictions.parquet; run "
@@ -357,6 +375,9 @@ def test_report_after_ingest_only(tmp_path):
     wd = make_workdir(tmp_path, "ingest")
     summary = run_report(wd)
     assert sorted(Path(f).name for f in summary["figures"]) == [f"sky_map_{h}.png" for h in HIDS]
+    index = (wd / "report" / "index.html").read_text()
+    assert "No model yet: run <code>heliocal fit-coarse --workdir" in index
+    assert "no heliostat has a test error yet" in index
     md = (wd / "report" / "report.md").read_text()
     assert f"No split.parquet: run `heliocal split-knn --workdir {wd}`" in md
     assert f"No predictions: run `heliocal fit-coarse --workdir {wd}`" in md

@@ -76,19 +76,23 @@ def error_statistics(rows: pd.DataFrame) -> dict:
     NaN errors count in ``n`` but not in the statistics (``n_finite`` says how many did); the
     percentile is numpy's default (linear interpolation).
     """
-    err = rows["error_mrad"].to_numpy(float)
+    return _statistics(rows["error_mrad"].to_numpy(float),
+                       *(rows[c].to_numpy(float) if c in rows.columns else None
+                         for c in ("beam_error_mrad", "spot_offset_m")))
+
+
+def _statistics(err: np.ndarray, beam: np.ndarray | None, spot: np.ndarray | None) -> dict:
+    """:func:`error_statistics` of the arrays of one group of rows."""
     ok = np.isfinite(err)
-    out = {"n": int(len(rows)), "n_finite": int(ok.sum()),
+    out = {"n": int(len(err)), "n_finite": int(ok.sum()),
            "mean_error_mrad": None, "median_error_mrad": None, "p95_error_mrad": None,
            "mean_beam_error_mrad": None, "mean_spot_offset_m": None}
     if ok.any():
         e = err[ok]
         out.update(mean_error_mrad=_r(e.mean()), median_error_mrad=_r(np.median(e)),
                    p95_error_mrad=_r(np.percentile(e, 95)))
-    for col, key in (("beam_error_mrad", "mean_beam_error_mrad"),
-                     ("spot_offset_m", "mean_spot_offset_m")):
-        if col in rows.columns:
-            v = rows[col].to_numpy(float)
+    for v, key in ((beam, "mean_beam_error_mrad"), (spot, "mean_spot_offset_m")):
+        if v is not None:
             v = v[np.isfinite(v)]
             if len(v):
                 out[key] = _r(v.mean())
@@ -143,17 +147,20 @@ def final_models(inp: ReportInputs) -> dict[str, dict]:
     out: dict[str, dict] = {}
     p = inp.predictions
     if p is not None:
-        for hid, g in p[p["selected"]].groupby("heliostat_id", sort=True):
-            coarse = g[g["source"] == "coarse_predictions"]["model"].unique()
-            hybrid = g[g["source"] == "hybrid_predictions"]["model"].unique()
-            chosen = g[g["source"] == "selected_predictions"]["model"].unique()
-            out[hid] = {"coarse_preset": str(coarse[0]) if len(coarse) else None,
-                        "model": str(chosen[0]) if len(chosen) else
-                        str(hybrid[0]) if len(hybrid) else
-                        (str(coarse[0]) if len(coarse) else None)}
+        # per heliostat and source the first selected model (one pass, not a mask per heliostat)
+        s = p.loc[p["selected"], ["heliostat_id", "source", "model"]].drop_duplicates(
+            ["heliostat_id", "source"])
+        first = {src: dict(zip(d["heliostat_id"], d["model"].astype(str)))
+                 for src, d in s.groupby("source", sort=False)}
+        coarse, hybrid, chosen = (first.get(f"{k}_predictions", {})
+                                  for k in ("coarse", "hybrid", "selected"))
+        for hid in sorted(set(s["heliostat_id"])):
+            c, h, x = coarse.get(hid), hybrid.get(hid), chosen.get(hid)
+            out[hid] = {"coarse_preset": c,
+                        "model": x if x is not None else h if h is not None else c}
     sel = inp.selection
     if sel is not None and "heliostat_id" in sel.columns:
-        for _, row in sel.iterrows():
+        for row in sel.to_dict("records"):
             hid = str(row["heliostat_id"])
             entry = out.setdefault(hid, {"coarse_preset": None, "model": None})
             if "model" in sel.columns and pd.notna(row["model"]) and entry["model"] != "selected":
@@ -188,11 +195,15 @@ def compute_metrics(inp: ReportInputs) -> dict:
         "artifacts": sorted(inp.paths),
     }
     helios = {}
+    # each frame grouped by heliostat once (a mask per heliostat would cost rows x heliostats)
+    ts_by = {h: g for h, g in ts.groupby(m["heliostat_id"].to_numpy(), sort=False)}
+    split_by = ({h: g for h, g in inp.split.groupby("heliostat_id", sort=False)}
+                if inp.split is not None else {})
+    models_of = _model_statistics(inp.predictions) if inp.predictions is not None else {}
     for hid in hids:
-        rows = m["heliostat_id"] == hid
-        t = ts[rows]
+        t = ts_by[hid]
         h: dict[str, Any] = {
-            "n_measurements": int(rows.sum()),
+            "n_measurements": int(len(t)),
             "first_timestamp": _iso(t.min()) if t.notna().any() else None,
             "last_timestamp": _iso(t.max()) if t.notna().any() else None,
             "split_counts": {},
@@ -203,7 +214,7 @@ def compute_metrics(inp: ReportInputs) -> dict:
             "models": {},
         }
         if inp.split is not None:
-            s = inp.split[inp.split["heliostat_id"] == hid]
+            s = split_by.get(hid, inp.split.iloc[:0])
             counts = s["split"].value_counts()
             h["split_counts"] = {k: int(counts[k]) for k in sorted(counts.index, key=split_sort_key)}
             test = s[s["split"] == "test"]
@@ -216,16 +227,10 @@ def compute_metrics(inp: ReportInputs) -> dict:
                 h["selection"][key] = v
             elif v is not None:
                 h["selection"][key] = _r(v)
-        if inp.predictions is not None:
-            p = inp.predictions[inp.predictions["heliostat_id"] == hid]
-            for model in sorted(p["model"].unique(), key=model_sort_key):
-                g = p[p["model"] == model]
-                h["models"][model] = {
-                    "source": str(g["source"].iloc[0]),
-                    "selected": bool(g["selected"].any()),
-                    "splits": {sp: error_statistics(g[g["split"] == sp])
-                               for sp in sorted(g["split"].unique(), key=split_sort_key)},
-                }
+        for model, mm in sorted(models_of.get(hid, {}).items(),
+                                key=lambda kv: model_sort_key(kv[0])):
+            h["models"][model] = {**mm, "splits": {sp: mm["splits"][sp] for sp in
+                                                   sorted(mm["splits"], key=split_sort_key)}}
         helios[hid] = h
     return {
         "metrics_schema_version": METRICS_SCHEMA_VERSION,
@@ -235,6 +240,28 @@ def compute_metrics(inp: ReportInputs) -> dict:
         "data": data,
         "heliostats": helios,
     }
+
+
+def _model_statistics(p: pd.DataFrame) -> dict:
+    """heliostat -> model -> {source (of its first row), selected (any row), splits: split ->
+    :func:`error_statistics`}, from one groupby's row indices (no frame per group)."""
+    err = p["error_mrad"].to_numpy(float)
+    beam, spot = (p[c].to_numpy(float) if c in p.columns else None
+                  for c in ("beam_error_mrad", "spot_offset_m"))
+    source = p["source"].to_numpy()
+    selected = p["selected"].to_numpy(bool)
+    out: dict[str, dict] = {}
+    for (hid, model, split), idx in p.groupby(["heliostat_id", "model", "split"],
+                                              sort=False).indices.items():
+        mm = out.setdefault(hid, {}).setdefault(model, {"first": idx[0], "selected": False,
+                                                        "splits": {}})
+        mm["first"] = min(mm["first"], idx[0])
+        mm["selected"] = mm["selected"] or bool(selected[idx].any())
+        mm["splits"][split] = _statistics(err[idx], None if beam is None else beam[idx],
+                                          None if spot is None else spot[idx])
+    return {hid: {m: {"source": str(source[mm["first"]]), "selected": mm["selected"],
+                      "splits": mm["splits"]} for m, mm in models.items()}
+            for hid, models in out.items()}
 
 
 def _committed_sha256(workdir: Path, filename: str) -> str | None:

@@ -15,30 +15,32 @@ from typing import Sequence
 import numpy as np
 
 from ..artifacts.schemas import REJECTION_REASONS
-from .figures import (SKY_POINTS_PER_MRAD, hybrid_vs_coarse_table, plot_error_over_time,
-                      plot_hybrid_vs_coarse, plot_sky_map, plot_training_size, plot_weight_decay,
-                      png_bytes)
 from .inputs import ReportInputs
 from .metrics import final_models, split_sort_key
+from .render import FigureTask, ReportFigure, heliostat_figure_plan
 
 __all__ = [
     "build_report",
+    "figure_tasks",
+    "fmt",
+    "fmt_g",
+    "inline_html",
+    "md_inline",
+    "md_text",
+    "page_head",
+    "parameter_tables",
+    "PAGE_CSS",
     "render_html",
     "render_markdown",
+    "resolve_figures",
 ]
 
 
 # ------------------------------------------------------------------------------------------------
 # document: a list of blocks rendered to Markdown and self-contained HTML
 # ------------------------------------------------------------------------------------------------
-@dataclass
-class _Figure:
-    filename: str
-    caption: str
-    png: bytes
-
-
-def _fmt(x, digits: int = 3) -> str:
+def fmt(x, digits: int = 3) -> str:
+    """A value as table text: 3 decimals, "–" for missing, yes/no for booleans."""
     if x is None:
         return "–"
     if isinstance(x, (bool, np.bool_)):
@@ -52,7 +54,8 @@ def _fmt(x, digits: int = 3) -> str:
     return str(x)
 
 
-def _fmt_g(x) -> str:
+def fmt_g(x) -> str:
+    """A number in 6 significant digits ("–" when missing)."""
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "–"
     return f"{float(x):.6g}"
@@ -68,9 +71,29 @@ def _degenerate(inp: ReportInputs) -> dict:
     return {str(h): str(w) for h, w in first.items() if isinstance(w, str) and w}
 
 
+def parameter_tables(coarse_params) -> dict[str, list[list]]:
+    """heliostat -> table rows (parameter, unit, nominal, fitted, std error, determined) of the
+    free parameters of its fit in ``coarse_params`` rows (pass the selected preset's rows), in
+    parameter order. Columns are read once for the whole field."""
+    g = coarse_params
+    if "parameter_index" in g.columns:
+        g = g.sort_values(["heliostat_id", "parameter_index"], kind="stable")
+    free = g[g["free"].astype(bool)] if "free" in g.columns else g
+    col = {c: free[c].tolist() if c in free.columns else None
+           for c in ("parameter", "unit", "nominal", "fitted", "std_error", "determined")}
+    out: dict[str, list[list]] = {}
+    for i, hid in enumerate(free["heliostat_id"].astype(str).tolist()):
+        out.setdefault(hid, []).append([
+            col["parameter"][i], col["unit"][i] if col["unit"] is not None else "",
+            fmt_g(col["nominal"][i]), fmt_g(col["fitted"][i]), fmt_g(col["std_error"][i]),
+            fmt(bool(col["determined"][i])) if col["determined"] is not None else "–"])
+    return out
+
+
 def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
     """The report as blocks: ``("h1"|"h2"|"h3"|"p"|"note", text)``, ``("table", headers, rows)``
-    and ``("figure", _Figure)``."""
+    and ``("task", FigureTask)`` (figures still to draw: :func:`figure_tasks` lists them,
+    :func:`resolve_figures` puts the drawn figures in their place)."""
     blocks: list[tuple] = []
     wd = inp.workdir
     data = metrics["data"]
@@ -96,7 +119,7 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
     headers = ["heliostat", "measurements", *splits, "first", "last", "test→train [deg]"]
     rows = [[hid, h["n_measurements"], *[h["split_counts"].get(s, 0) for s in splits],
              (h["first_timestamp"] or "–")[:10], (h["last_timestamp"] or "–")[:10],
-             _fmt(h["test_train_distance_deg"], 2)] for hid, h in helios.items()]
+             fmt(h["test_train_distance_deg"], 2)] for hid, h in helios.items()]
     blocks.append(("table", headers, rows))
     if inp.split is None:
         blocks.append(("note", f"No split.parquet: run {inp.run_hint('split.parquet')} for the "
@@ -134,9 +157,9 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
             for model, mm in h["models"].items():
                 name = model + (" ★" if mm["selected"] else "")
                 for sp, st in mm["splits"].items():
-                    rows.append([label, name, sp, st["n"], _fmt(st["mean_error_mrad"]),
-                                 _fmt(st["median_error_mrad"]), _fmt(st["p95_error_mrad"]),
-                                 _fmt(st["mean_beam_error_mrad"]), _fmt(st["mean_spot_offset_m"])])
+                    rows.append([label, name, sp, st["n"], fmt(st["mean_error_mrad"]),
+                                 fmt(st["median_error_mrad"]), fmt(st["p95_error_mrad"]),
+                                 fmt(st["mean_beam_error_mrad"]), fmt(st["mean_spot_offset_m"])])
         blocks.append(("table", headers, rows))
 
     # --- selection
@@ -151,6 +174,11 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
         if inp.selection is not None and {"heliostat_id", "model"} <= set(inp.selection.columns):
             choice = dict(zip(inp.selection["heliostat_id"].astype(str),
                               inp.selection["model"].astype(str)))
+        # the selected weight decay unrounded (metrics.json keeps 4 decimals: 1e-5 would show 0)
+        wd_of = {}
+        if inp.selection is not None and "weight_decay" in inp.selection.columns:
+            wd_of = dict(zip(inp.selection["heliostat_id"].astype(str),
+                             inp.selection["weight_decay"].astype(float)))
         for hid, h in helios.items():
             s = dict(h["selection"])
             model = h["models"].get(s["model"] or "", {}).get("splits", {})
@@ -161,11 +189,11 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
             if shown == "selected" and hid in choice:
                 shown = f"selected ({choice[hid]})"
             rows.append([hid, s["coarse_preset"] or "–", shown,
-                         _fmt_g(s["weight_decay"]),
-                         _fmt(pick("val_error_mrad", model, "validation")),
-                         _fmt(pick("test_error_mrad", model, "test")),
-                         _fmt(pick("coarse_val_error_mrad", coarse, "validation")),
-                         _fmt(pick("coarse_test_error_mrad", coarse, "test"))])
+                         fmt_g(wd_of.get(hid, s["weight_decay"])),
+                         fmt(pick("val_error_mrad", model, "validation")),
+                         fmt(pick("test_error_mrad", model, "test")),
+                         fmt(pick("coarse_val_error_mrad", coarse, "validation")),
+                         fmt(pick("coarse_test_error_mrad", coarse, "test"))])
         blocks.append(("table", headers, rows))
 
     # --- coarse parameters
@@ -180,129 +208,48 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                             "the standard error from the Jacobian at the solution. 'determined: "
                             "no' means the data cannot pin the parameter (the weak prior holds "
                             "it near nominal)."))
-        for hid, g in sel.groupby("heliostat_id", sort=True):
-            g = g.sort_values("parameter_index") if "parameter_index" in g.columns else g
-            first = g.iloc[0]
-            diag = []
-            for key, label in (("n_train", "training rows"), ("fit_iterations", "iterations"),
-                               ("fit_condition_number", "condition number")):
-                if key in g.columns:
-                    diag.append(f"{label} {_fmt_g(first[key])}")
+        tables = parameter_tables(sel)
+        for first in sel.drop_duplicates("heliostat_id").sort_values("heliostat_id").to_dict(
+                "records"):  # the fit's diagnostics are repeated on each of its rows
+            hid = str(first["heliostat_id"])
+            diag = [f"{label} {fmt_g(first[key])}" for key, label in (
+                ("n_train", "training rows"), ("fit_iterations", "iterations"),
+                ("fit_condition_number", "condition number")) if key in first]
             blocks.append(("h3", f"{hid}: {first.get('preset', '?')}"
                                  + (f" ({', '.join(diag)})" if diag else "")))
-            if "fit_implausible" in g.columns and str(first["fit_implausible"] or ""):
+            if str(first.get("fit_implausible") or ""):
                 blocks.append(("note", f"Large corrections of the nominal geometry: "
                                        f"{first['fit_implausible']}."))
-            free = g[g["free"].astype(bool)] if "free" in g.columns else g
-            rows = [[r["parameter"], r.get("unit", ""), _fmt_g(r["nominal"]), _fmt_g(r["fitted"]),
-                     _fmt_g(r["std_error"]), _fmt(bool(r["determined"]))
-                     if "determined" in free.columns else "–"] for _, r in free.iterrows()]
             blocks.append(("table", ["parameter", "unit", "nominal", "fitted", "std error",
-                                     "determined"], rows))
+                                     "determined"], tables.get(hid, [])))
 
     # --- figures
     blocks.append(("h2", "Figures"))
-    figs = _figures(inp, metrics, finals)
-    for item in figs:
-        blocks.append(item)
+    blocks += heliostat_figure_plan(inp, metrics, finals)
     return blocks
 
 
-def _figures(inp: ReportInputs, metrics: dict, finals: dict) -> list[tuple]:
-    out: list[tuple] = []
-    hids = list(metrics["heliostats"])
+def figure_tasks(blocks: Sequence[tuple]) -> list[FigureTask]:
+    """The figures the blocks need drawn, in order."""
+    return [b[1] for b in blocks if b[0] == "task"]
 
-    def add(fig, filename, caption):
-        try:
-            out.append(("figure", _Figure(filename, caption, png_bytes(fig))))
-        finally:
-            fig.clear()
 
-    sweep_hint = inp.run_hint("sweep.parquet")
-
-    # fig. 6
-    out.append(("h3", "Error against training size (paper 000, fig. 6)"))
-    if inp.sweep is None:
-        out.append(("note", f"Omitted: needs sweep.parquet; run {sweep_hint}."))
-    else:
-        for hid in hids:
-            sel = metrics["heliostats"][hid]["selection"]
-            coarse = metrics["heliostats"][hid]["models"].get(sel["coarse_preset"] or "")
-            level = coarse["splits"].get("test", {}).get("mean_error_mrad") if coarse else None
-            fig, why = plot_training_size(inp.sweep, hid, level,
-                                          f"coarse {sel['coarse_preset']}")
-            if fig is None:
-                out.append(("note", f"{hid}: omitted ({why})."))
-                continue
-            add(fig, f"training_size_{hid}.png",
-                f"{hid}: mean test error against the number of training measurements per model "
-                "(weight decay chosen on validation; band: spread over seeds). Below: mean distance "
-                "in sun position from the test set to the training set.")
-
-    # fig. 7
-    out.append(("h3", "Sky map (paper 000, fig. 7)"))
-    for hid in hids:
-        model = finals.get(hid, {}).get("model")
-        fig = plot_sky_map(inp.measurements, inp.split, inp.predictions, hid, model)
-        cap = (f"{hid}: measurements over sun azimuth and elevation; dots are training points. "
-               f"Validation and test points are circles whose radius grows linearly with the "
-               f"error of {model} ({SKY_POINTS_PER_MRAD:g} pt per mrad); the grey ring is 1 mrad.")
-        if model is None:
-            cap = f"{hid}: measurements over sun azimuth and elevation (no predictions yet)."
-        add(fig, f"sky_map_{hid}.png", cap)
-
-    # fig. 9a
-    out.append(("h3", "Error against weight decay (paper 000, fig. 9a)"))
-    if inp.sweep is None:
-        out.append(("note", f"Omitted: needs sweep.parquet; run {sweep_hint}."))
-    else:
-        for hid in hids:
-            h = metrics["heliostats"][hid]
-            sel = h["selection"]
-            coarse = h["models"].get(sel["coarse_preset"] or "", {}).get("splits", {})
-            cval = sel["coarse_val_error_mrad"]
-            ctest = sel["coarse_test_error_mrad"]
-            cval = cval if cval is not None else coarse.get("validation", {}).get("mean_error_mrad")
-            ctest = ctest if ctest is not None else coarse.get("test", {}).get("mean_error_mrad")
-            fig, why = plot_weight_decay(inp.sweep, hid, sel["model"], cval, ctest,
-                                         sel["weight_decay"])
-            if fig is None:
-                out.append(("note", f"{hid}: omitted ({why})."))
-                continue
-            add(fig, f"weight_decay_{hid}.png",
-                f"{hid}: mean validation and test error against weight decay at the largest "
-                "training size (band: spread over seeds); dashed lines: the selected coarse "
-                "model's validation and test error; dotted: the selected weight decay.")
-
-    # fig. 8
-    out.append(("h3", "Hybrid against coarse (paper 000, fig. 8)"))
-    table = hybrid_vs_coarse_table(inp)
-    if table is None:
-        out.append(("note", "Omitted: needs selection.parquet or hybrid_predictions.parquet; run "
-                            f"{inp.run_hint('hybrid_predictions.parquet')} and {sweep_hint}."))
-    else:
-        add(plot_hybrid_vs_coarse(table), "hybrid_vs_coarse.png",
-            "Mean validation and test error of the selected hybrid model and the selected coarse "
-            "preset per heliostat.")
-
-    # error over time
-    out.append(("h3", "Error over time"))
-    if inp.predictions is None:
-        out.append(("note", "Omitted: needs predictions; run "
-                            f"{inp.run_hint('coarse_predictions.parquet')}."))
-    else:
-        for hid in hids:
-            f = finals.get(hid, {})
-            if f.get("model") is None:
-                continue
-            fig, why = plot_error_over_time(inp.measurements, inp.predictions, hid, f["model"],
-                                            f.get("coarse_preset"))
-            if fig is None:
-                out.append(("note", f"{hid}: omitted ({why})."))
-                continue
-            add(fig, f"error_over_time_{hid}.png",
-                f"{hid}: error of {f['model']} per measurement over the date, coloured by split, "
-                "with a centred 30-day rolling median (drift and seasonal patterns).")
+def resolve_figures(blocks: Sequence[tuple], drawn: dict[str, tuple]) -> list[tuple]:
+    """Blocks with each ``task`` replaced by ``("figure", ReportFigure, kind)``, or by ``("note",
+    why, heliostat)`` saying why it was omitted. ``drawn``: file name -> ``(png or None, why)`` of :func:`render.render_task`."""
+    out = []
+    for b in blocks:
+        if b[0] != "task":
+            out.append(b)
+            continue
+        task: FigureTask = b[1]
+        png, why = drawn[task.filename]
+        if png is None:
+            who = f"{task.heliostat}: omitted" if task.heliostat is not None else "Omitted"
+            out.append(("note", f"{who} ({why}).", task.heliostat))
+        else:
+            out.append(("figure", ReportFigure(task.filename, task.caption, png, task.heliostat),
+                        task.kind))
     return out
 
 
@@ -379,18 +326,19 @@ def render_markdown(blocks: Sequence[tuple]) -> str:
             headers, rows = b[1], b[2]
             lines.append("| " + " | ".join(md_text(h, False) for h in headers) + " |")
             lines.append("|" + "|".join("---" for _ in headers) + "|")
-            lines += ["| " + " | ".join(md_text(_fmt(c), False) for c in r) + " |" for r in rows]
+            lines += ["| " + " | ".join(md_text(fmt(c), False) for c in r) + " |" for r in rows]
             lines.append("")
         elif kind == "figure":
-            f: _Figure = b[1]
+            f: ReportFigure = b[1]
             link = "figures/" + urllib.parse.quote(f.filename)
             lines += [f"![{md_text(f.caption, False)}]({link})", "",
                       f"*{md_inline(f.caption)}*", ""]
     return "\n".join(lines).rstrip() + "\n"
 
 
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1100px;margin:2em auto;
+#: The style sheet of every page of the report (no external resource: pages work from file://).
+PAGE_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1150px;margin:1.5em auto;
 padding:0 1em;color:#222;line-height:1.45}
 table{border-collapse:collapse;margin:0.5em 0 1.2em;font-size:0.88em}
 th,td{border:1px solid #ccc;padding:2px 8px;text-align:right}
@@ -398,34 +346,66 @@ th{background:#f0f0f0}td:first-child,td:nth-child(2),th:first-child{text-align:l
 figure{margin:1em 0 2em}figure img{max-width:100%;border:1px solid #eee}
 figcaption{font-size:0.9em;color:#444}
 .note{background:#fff8e1;border-left:4px solid #f0b400;padding:0.4em 0.8em}
+nav{font-size:0.92em;margin-bottom:0.6em}nav a{margin-right:1.2em}
+.alert{color:#b00020;font-weight:600}td.t{text-align:left}code{font-size:0.92em}
+.kpi{display:flex;flex-wrap:wrap;gap:0.6em;margin:0.6em 0 1em;padding:0}
+.kpi li{list-style:none;border:1px solid #ddd;border-radius:4px;padding:0.35em 0.8em;background:#fafafa}
+.kpi b{display:block;font-size:1.25em}
+.map{display:flex;flex-wrap:wrap;gap:1em;align-items:flex-start}
+svg text{font-family:system-ui,sans-serif}
+th[data-sort]{cursor:pointer}th[data-sort]:after{content:" \\2195";color:#999}
 """
 
 
-def render_html(blocks: Sequence[tuple]) -> str:
-    """index.html: self-contained, every figure embedded as a base64 PNG ``data:`` URI."""
+def page_head(title: str, extra: str = "") -> list[str]:
+    """The opening lines of a report page (title escaped, the shared style sheet)."""
+    return ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+            '<meta name="viewport" content="width=device-width, initial-scale=1">',
+            f"<title>{html.escape(title)}</title><style>{PAGE_CSS}</style>{extra}</head><body>"]
+
+
+def inline_html(text) -> str:
+    """``text`` HTML-escaped, with each `backtick span` (a command) shown as code."""
+    parts = html.escape(str(text)).split("`")
+    if len(parts) % 2 == 0:
+        return html.escape(str(text))
+    return "".join(f"<code>{p}</code>" if i % 2 else p for i, p in enumerate(parts))
+
+
+def render_html(blocks: Sequence[tuple], *, embed: bool = True, nav: str = "",
+                figure_prefix: str = "figures/") -> str:
+    """The blocks as an HTML page. ``embed``: every figure a base64 PNG ``data:`` URI (a
+    self-contained page); else an ``<img loading="lazy">`` of ``figure_prefix + filename``.
+    ``nav``: HTML put first in the body (links to the other pages)."""
     e = html.escape
     title = next((b[1] for b in blocks if b[0] == "h1"), "heliocal report")
-    out = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
-           f"<title>{e(title)}</title><style>{_CSS}</style></head><body>"]
+    out = page_head(title)
+    if nav:
+        out.append(nav)
     for b in blocks:
         kind = b[0]
         if kind in ("h1", "h2", "h3"):
             out.append(f"<{kind}>{e(b[1])}</{kind}>")
         elif kind == "p":
-            out.append(f"<p>{e(b[1])}</p>")
+            out.append(f"<p>{inline_html(b[1])}</p>")
         elif kind == "note":
-            out.append(f'<p class="note"><b>Note:</b> {e(b[1])}</p>')
+            out.append(f'<p class="note"><b>Note:</b> {inline_html(b[1])}</p>')
         elif kind == "table":
             headers, rows = b[1], b[2]
             out.append("<table><thead><tr>" + "".join(f"<th>{e(str(h))}</th>" for h in headers)
                        + "</tr></thead><tbody>")
-            out += ["<tr>" + "".join(f"<td>{e(_fmt(c))}</td>" for c in r) + "</tr>" for r in rows]
+            out += ["<tr>" + "".join(f"<td>{e(fmt(c))}</td>" for c in r) + "</tr>" for r in rows]
             out.append("</tbody></table>")
         elif kind == "figure":
-            f: _Figure = b[1]
-            data = base64.b64encode(f.png).decode("ascii")
-            out.append(f'<figure id="{e(f.filename)}"><img alt="{e(f.caption)}" '
-                       f'data-file="figures/{e(f.filename)}" src="data:image/png;base64,{data}">'
-                       f"<figcaption>{e(f.caption)}</figcaption></figure>")
+            f: ReportFigure = b[1]
+            if embed:
+                data = base64.b64encode(f.png).decode("ascii")
+                src = f"data:image/png;base64,{data}"
+                extra = f' data-file="{e(figure_prefix + f.filename)}"'
+            else:
+                src = e(figure_prefix + urllib.parse.quote(f.filename))
+                extra = ' loading="lazy"'
+            out.append(f'<figure id="{e(f.filename)}"><img alt="{e(f.caption)}"{extra} '
+                       f'src="{src}"><figcaption>{e(f.caption)}</figcaption></figure>')
     out.append("</body></html>")
     return "\n".join(out) + "\n"

@@ -4,19 +4,16 @@ selected model (the hybrid where the sweep chose it, else the coarse model).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 import pandas as pd
 import torch
 
-from ..artifacts.manifests import load_manifest, read_committed
-from ..artifacts.modelfiles import (check_fine_model_inputs, fine_model_inputs, model_files,
-                                    read_model)
-from ..artifacts.schemas import COARSE_PARAMS, HELIOSTATS, HYBRID_PREDICTIONS, MEASUREMENTS
-from ..artifacts.store import artifact_present, check_fresh, read_artifact
+from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs, read_model
+from ..artifacts.schemas import HELIOSTATS
+from ..artifacts.store import read_artifact
 from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
 from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
 from ..models.pretrained import PretrainedModel
@@ -24,6 +21,7 @@ from ..models.training import FineProblem, grouped_components
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
+from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
 from .fit_coarse import load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
 
@@ -60,108 +58,6 @@ def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict,
         return None
     cfg, state = found
     return cfg, state_to_layers(state)
-
-
-def _model_committed(workdir: Path, mode: str, heliostat_id: str) -> bool:
-    """Whether the stage that writes ``mode``'s models committed one for the heliostat (both its
-    files listed in the stage's manifest; :func:`load_model` checks their content)."""
-    cfg_rel, pt_rel = model_files(mode, heliostat_id)
-    m = load_manifest(workdir, "sweep" if mode == "selected" else "fit-hybrid")
-    return m is not None and cfg_rel in m.files and pt_rel in m.files
-
-
-@restores_process_state
-def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
-               strict: bool = False) -> dict:
-    """Per heliostat the model ``aim --model auto`` uses, and its mean validation and test error.
-
-    The one decision both :func:`aim_steps` and ``heliocal info WORKDIR`` use: the sweep's
-    selection (selection.parquet) where the sweep ran: its coarse model, or its selected hybrid
-    ensemble (``hybrid/selected/``) if that was written; without a selection row for the
-    heliostat, the ``fit-hybrid`` hybrid (``hybrid/hybrid/``) where fitted; otherwise (and when a
-    selected hybrid's files are missing) the coarse model, ``fit-coarse``'s selected preset.
-    Every artifact and model is read through its stage's manifest. With ``strict`` (``aim``),
-    selection.parquet must also be fresh and a selected hybrid's model committed, else a
-    one-line :class:`StageInputError` says what to rerun (``info`` shows what is there).
-
-    Returns
-    -------
-    dict heliostat_id -> {``model`` (``coarse``, ``hybrid`` or ``pretrained-nn``), ``variant``
-    (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
-    ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
-    ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
-    such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
-    empty without coarse_params.parquet.
-    """
-    from ..artifacts.schemas import SELECTION, SPLIT
-
-    workdir = Path(workdir)
-    if not artifact_present(workdir, COARSE_PARAMS):
-        return {}
-    params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
-                           columns=["heliostat_id", "preset", "selected", "val_error_mrad",
-                                    "test_error_mrad"])
-    coarse = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
-    selection = None
-    if artifact_present(workdir, SELECTION):
-        selection = read_artifact(workdir, SELECTION, heliostats=heliostats)  # a committed sweep's
-        if strict:
-            check_fresh(workdir, SELECTION, {"measurements": MEASUREMENTS, "heliostats": HELIOSTATS,
-                                             "split": SPLIT, "coarse_params": COARSE_PARAMS})
-        selection = selection.drop_duplicates("heliostat_id").set_index("heliostat_id")
-    fit_hybrid_errors = None
-    out = {}
-    for hid in sorted(coarse.index):
-        c = coarse.loc[hid]
-        entry = {"heliostat_id": hid, "model": "coarse", "variant": None, "source": "fit-coarse",
-                 "preset": str(c["preset"]), "weight_decay": None,
-                 "val_error_mrad": float(c["val_error_mrad"]),
-                 "test_error_mrad": float(c["test_error_mrad"]), "model_dir": None}
-        choice = (str(selection.loc[hid, "model"])
-                  if selection is not None and hid in selection.index else None)
-        if choice == "coarse":
-            row = selection.loc[hid]
-            entry.update(source="sweep", val_error_mrad=float(row["coarse_val_error_mrad"]),
-                         test_error_mrad=float(row["coarse_test_error_mrad"]))
-        elif choice is not None and (choice.startswith("hybrid") or choice == "pretrained-nn"):
-            if _model_committed(workdir, "selected", hid):
-                row = selection.loc[hid]
-                entry.update(model="pretrained-nn" if choice == "pretrained-nn" else "hybrid",
-                             variant=choice, source="sweep",
-                             weight_decay=(None if choice == "pretrained-nn"
-                                           else float(row["weight_decay"])),
-                             val_error_mrad=float(row["val_error_mrad"]),
-                             test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
-            elif strict:
-                raise StageInputError(f"{workdir}/selection.parquet selects {choice} for {hid}, "
-                                      f"but the sweep committed no model for it; rerun `heliocal "
-                                      f"sweep --workdir {workdir}`")
-        elif _model_committed(workdir, "hybrid", hid):
-            cfg_rel = model_files("hybrid", hid)[0]
-            cfg = json.loads(read_committed(
-                workdir, "fit-hybrid", cfg_rel,
-                hint=f"`heliocal fit-hybrid --workdir {workdir} --mode hybrid`").data)
-            if fit_hybrid_errors is None:
-                fit_hybrid_errors = _fit_hybrid_errors(workdir)
-            val, test = fit_hybrid_errors.get(hid, (float("nan"), float("nan")))
-            entry.update(model="hybrid", variant="hybrid", source="fit-hybrid",
-                         weight_decay=float(cfg.get("weight_decay", float("nan"))),
-                         val_error_mrad=val, test_error_mrad=test, model_dir="hybrid")
-        out[hid] = entry
-    return out
-
-
-def _fit_hybrid_errors(workdir: Path) -> dict:
-    """Mean validation and test error_mrad of fit-hybrid's ``hybrid`` mode per heliostat."""
-    if not artifact_present(workdir, HYBRID_PREDICTIONS):
-        return {}
-    p = read_artifact(workdir, HYBRID_PREDICTIONS,
-                      columns=["heliostat_id", "split", "model", "error_mrad"])
-    p = p[p["model"] == "hybrid"]
-    means = p.groupby(["heliostat_id", "split"])["error_mrad"].mean()
-    return {str(h): (float(means.get((h, "validation"), float("nan"))),
-                     float(means.get((h, "test"), float("nan"))))
-            for h in p["heliostat_id"].unique()}
 
 
 def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Tensor) -> FineProblem:

@@ -1,4 +1,4 @@
-"""``report``: figures, tables and ``metrics.json`` of a work directory.
+"""``report``: a plant's report of a work directory, its figures and ``metrics.json``.
 
 The report works with whatever artifacts exist. ``measurements.parquet`` (from ``ingest``) is the
 only required input; each later artifact adds what it can:
@@ -7,42 +7,68 @@ only required input; each later artifact adds what it can:
 artifact                   adds
 ========================== ==================================================================
 split.parquet              split counts, training points on the sky map, test-to-train distance
-coarse_params.parquet      the fitted coarse parameters with standard errors
+coarse_params.parquet      the model aim uses (field map, error distribution, worst heliostats),
+                           the fitted coarse parameters with standard errors
 coarse_predictions.parquet error tables, error circles on the sky map, error over time
 hybrid_predictions.parquet the hybrid models in every table and figure
 sweep.parquet              error against training size (paper 000, fig. 6) and against weight
-                           decay (fig. 9a)
-selection.parquet          hybrid against coarse per heliostat (fig. 8), the selection
+                           decay (fig. 9a), per heliostat and across the field
+selection.parquet          the sweep's choice per heliostat, hybrid against coarse (fig. 8)
 ========================== ==================================================================
 
 A figure whose inputs are absent is omitted, and the report says which stage to run for it.
 
-Outputs in ``DIR/report/`` (one stage transaction, see :mod:`heliocal.pipeline.artifacts.transaction`): ``index.html`` (self-contained, the
-figures embedded as base64 PNG), ``report.md`` (the same content, figures linked), ``figures/*.png``
-and ``metrics.json`` (schema: ``docs/metrics_schema.json``; sorted keys and rounded floats, so two
-runs of the same pipeline give the same numbers and :mod:`heliocal.pipeline.report.regression` can diff
-them).
+Outputs in ``DIR/report/`` (one stage transaction, see
+:mod:`heliocal.pipeline.artifacts.transaction`):
 
-Figures are drawn on :class:`matplotlib.figure.Figure` objects directly (the non-interactive Agg
-renderer, no pyplot state), so the report runs headless and in threads.
+* ``index.html``: the field overview (summary numbers, field map, error distribution, the 20
+  heliostats that need attention first); small at any field size;
+* ``heliostats/<id>.html``: one page per heliostat; ``heliostats.html``: all of them, sortable;
+* ``field.html``: paper 000's figures as field aggregates;
+* ``details.html``: every table of every model and split (the lab notebook), figures linked;
+* ``report.md`` (the same content as details.html), ``figures/*.png`` and ``metrics.json``
+  (schema: ``docs/metrics_schema.json``; sorted keys and rounded floats, so two runs of the
+  same pipeline give the same numbers and :mod:`heliocal.pipeline.report.regression` can diff
+  them).
+
+The error per heliostat on the overview is the one ``aim`` uses (:func:`.aim_choice.aim_models`, which ``aim`` uses).
+Figures are drawn one per task (matplotlib's Agg renderer, no pyplot state) in ``workers``
+processes (``runtime.parallel.map_tasks``), in this process when there are few.
 """
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 
-from ..artifacts.manifests import current_transaction
-from ..artifacts.paths import safe_name
+from ..artifacts.manifests import current_transaction, load_manifest
+from ..artifacts.paths import safe_child, safe_name
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
+from ..errors import check_int
+from ..report.field import (ALERT_MRAD, ERROR_LINES_MRAD, field_summary, field_table, tower_en_m,
+                            svg_field_map, worst)
+from ..report.field_figures import comparison_table, training_size_frame, weight_decay_frame
 from ..report.inputs import load_inputs
 from ..report.metrics import compute_metrics, metrics_json
-from ..report.pages import build_report, render_html, render_markdown
+from ..report.pages import (build_report, figure_tasks, parameter_tables, render_html,
+                            render_markdown, resolve_figures)
+from ..report.render import FigureTask, ReportFigure, render_task
+from ..report.site import (field_page_blocks, heliostat_html, heliostats_list_html, index_html,
+                           nav_html, why_text)
+from ..runtime.parallel import default_workers, map_tasks
 from ..runtime.process_state import restores_process_state
 
 __all__ = [
+    "measurement_floor",
     "run_report",
 ]
+
+
+#: Fewer figures than this are drawn in this process: starting worker processes (each imports
+#: matplotlib) costs more than it saves.
+MIN_PARALLEL_FIGURES = 40
 
 
 # ------------------------------------------------------------------------------------------------
@@ -50,55 +76,239 @@ __all__ = [
 # ------------------------------------------------------------------------------------------------
 @locks_workdir("report")
 @restores_process_state
-def run_report(workdir: str | Path, out_dir: str | Path | None = None) -> dict:
-    """The ``report`` stage: write index.html, report.md, figures/*.png and metrics.json.
+def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
+               workers: int | None = None, alert_mrad: float = ALERT_MRAD,
+               floor_mrad: float | None = None) -> dict:
+    """The ``report`` stage: write the pages, report.md, figures/*.png and metrics.json.
 
     Parameters
     ----------
     workdir : the work directory (needs at least measurements.parquet).
     out_dir : where to write (default ``workdir/report``). The files are one transaction on
         ``out_dir`` (manifest ``out_dir/report.manifest.json``): a report is replaced whole or not
-        at all. PNGs of figures no longer produced are removed from ``out_dir/figures`` so the
-        folder matches the report.
+        at all. Files of an earlier report that this one does not write (figures, heliostat
+        pages) are removed so the folder matches the report.
+    workers : processes drawing the figures (default: the machine's cores; 1 draws here).
+    alert_mrad : a heliostat whose model has a mean test error above it is on alert [mrad].
+    floor_mrad : the measurement floor drawn on the error distribution [mrad]; default: the
+        simulator's noise floor when the sources are a simulated field (ground_truth.json next
+        to them), else none.
 
     Returns
     -------
-    A summary: paths written, figures, notes, and per heliostat the final model's mean test error.
+    A summary: paths written, figures, notes, the field's numbers and per heliostat the final
+    model's mean test error.
     """
+    workers = default_workers() if workers is None else check_int(workers, "workers", "report", 1)
     workdir = Path(workdir)
     out = Path(out_dir) if out_dir is not None else workdir / "report"
-    summary = _write_report(workdir, out)
-    # figures of a report written before reports were transactions (not in any manifest)
+    summary = _write_report(workdir, out, workers, float(alert_mrad), floor_mrad)
     keep = {Path(f).name for f in summary["figures"]}
-    if (out / "figures").is_dir():
-        for old in (out / "figures").glob("*.png"):
-            if old.name not in keep:
-                old.unlink()
+    pages = {Path(p).name for p in summary["heliostat_pages"]}
+    for folder, kept, pattern in ((out / "figures", keep, "*.png"),
+                                  (out / "heliostats", pages, "*.html")):
+        if folder.is_dir():
+            for old in folder.glob(pattern):
+                if old.name not in kept:
+                    old.unlink()
     return summary
 
 
+def measurement_floor(workdir: Path, floor_mrad: float | None) -> tuple[float | None, str]:
+    """(floor [mrad] or None, where it comes from): ``floor_mrad`` when given, else the median
+    ``noise_floor_mrad`` of the heliostats in the ``ground_truth.json`` of a
+    simulated field the sources came from (``heliocal simulate`` writes it beside them)."""
+    if floor_mrad is not None:
+        return float(floor_mrad), "given with --floor-mrad"
+    m = load_manifest(workdir, "ingest")
+    sources = (m.data.get("options", {}).get("sources") or []) if m is not None else []
+    for src in sources:
+        p = Path(src)
+        truth = (p if p.is_dir() else p.parent) / "ground_truth.json"
+        if truth.is_file():
+            try:
+                helios = json.loads(truth.read_text(encoding="utf-8")).get("heliostats", {})
+                vals = sorted(float(h["noise_floor_mrad"]) for h in helios.values()
+                              if math.isfinite(float(h.get("noise_floor_mrad", "nan"))))
+            except (OSError, ValueError, TypeError, KeyError, AttributeError):
+                continue
+            if vals:
+                mid = len(vals) // 2
+                med = vals[mid] if len(vals) % 2 else (vals[mid - 1] + vals[mid]) / 2
+                return med, "simulator's noise floor, median over the field"
+    return None, ""
+
+
 @stage_transaction("report", root=lambda a: a["out"], consistent_inputs=False)
-def _write_report(workdir: Path, out: Path) -> dict:
+def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
+                  floor_mrad: float | None) -> dict:
+    from .aim_choice import aim_models  # the one answer to "which model does aim use"
+
     txn = current_transaction(out, "report")
     inp = load_inputs(workdir)
     metrics = compute_metrics(inp)
+    helios = metrics["heliostats"]
     blocks = build_report(inp, metrics)
-    figs = [b[1] for b in blocks if b[0] == "figure"]
-    fig_dir = out / "figures"
+    choices = aim_models(workdir)
+    table = field_table(inp, metrics, choices, alert_mrad=alert_mrad)
+    summary = field_summary(table, alert_mrad=alert_mrad)
+    floor, floor_source = measurement_floor(workdir, floor_mrad)
+
+    # field figures
+    wd_frame = weight_decay_frame(inp.sweep)
+    ts_frame = training_size_frame(inp.sweep)
+    comp = comparison_table(wd_frame, inp.selection)
+    cdf_task = FigureTask("field_cdf", "field_error_cdf.png",
+                          "Share of heliostats whose model (the one aim uses) has a mean test error "
+                          "below x; dashed: " + ", ".join(f"{x:g}" for x in ERROR_LINES_MRAD)
+                          + " mrad" + (f"; grey: the measurement floor ({floor_source})"
+                                       if floor is not None else ""), None,
+                          {"errors": table["test_error_mrad"].to_numpy(float),
+                           "lines": ERROR_LINES_MRAD, "floor": floor,
+                           "floor_source": floor_source})
+    field_plan: list[tuple] = [("h2", "Error against weight decay (paper 000, fig. 9a)")]
+    sweep_hint = f"run {inp.run_hint('sweep.parquet')}"
+    if wd_frame is None:
+        field_plan.append(("note", f"Omitted: needs sweep.parquet with two or more weight decays; "
+                                   f"{sweep_hint}."))
+    else:
+        sel = inp.selection
+        levels = {} if sel is None else {
+            "coarse_val": float(sel["coarse_val_error_mrad"].median()),
+            "coarse_test": float(sel["coarse_test_error_mrad"].median())}
+        field_plan.append(("task", FigureTask(
+            "field_weight_decay", "field_weight_decay.png",
+            "Mean validation and test error (over seeds) against weight decay at each "
+            "heliostat's full training size, across the field: line the median over heliostats, "
+            "band the 25-75 % range; dashed: the field median of the coarse "
+            "model.",
+            None, {"frame": wd_frame, **levels})))
+    field_plan.append(("h2", "Error against training size (paper 000, fig. 6)"))
+    if ts_frame is None:
+        field_plan.append(("note", "Omitted: needs the sweep's training-size study (`heliocal "
+                                   f"sweep --study N`); {sweep_hint}."))
+    else:
+        field_plan.append(("task", FigureTask(
+            "field_training_size", "field_training_size.png",
+            "Mean test error against training size per model (weight decay chosen on validation "
+            "per heliostat and size), across the heliostats of the training-size study: line the "
+            "median, band the 25-75 % range, at the sizes at least two thirds of "
+            "them share (log scale when every error is positive).", None,
+            {"frame": ts_frame})))
+    field_plan.append(("h2", "Hybrid against coarse (paper 000, fig. 8)"))
+    if comp is None:
+        field_plan.append(("note", f"Omitted: needs selection.parquet and sweep.parquet; "
+                                   f"{sweep_hint}."))
+    else:
+        field_plan.append(("task", FigureTask(
+            "field_comparison", "field_hybrid_vs_coarse.png",
+            "Per heliostat: the best hybrid candidate (lowest validation error) against the "
+            "coarse model (fit-coarse's selected preset), on validation and test; red: the "
+            "sweep selected the hybrid. Below the diagonal the hybrid is better.", None,
+            {"table": comp})))
+
+    tasks = [cdf_task] + figure_tasks(blocks) + figure_tasks(field_plan)
+    n_workers = workers if len(tasks) >= MIN_PARALLEL_FIGURES else 1
+    results = map_tasks(render_task, tasks, workers=n_workers)
+    drawn = {t.filename: r for t, r in zip(tasks, results)}
+    blocks = resolve_figures(blocks, drawn)
+    field_blocks = resolve_figures(field_plan, drawn)
+    figs = [b[1] for b in blocks + field_blocks if b[0] == "figure"]
+    cdf_png, cdf_why = drawn[cdf_task.filename]
+    cdf = ReportFigure(cdf_task.filename, cdf_task.caption, cdf_png) if cdf_png else None
+    if cdf is not None:
+        figs.append(cdf)
     for f in figs:
         txn.write_bytes(f"figures/{safe_name(f.filename)}", f.png)
+
+    title = f"heliocal report: {workdir}"
+    notes = [b[1] for b in blocks if b[0] == "note"]
+    floor_text = (f"Measurement floor: {floor:.3f} mrad ({floor_source})." if floor is not None
+                  else "Measurement floor: unknown (give `heliocal report --floor-mrad F`).")
+    subtitle = (f"heliocal {metrics['heliocal_version']}, git {metrics['git_revision']}; "
+                f"{metrics['data']['n_measurements']} measurements from "
+                f"{metrics['data']['first_timestamp'] or '?'} to "
+                f"{metrics['data']['last_timestamp'] or '?'}.")
+    run_notes = list(inp.notes)
+    if not choices:
+        run_notes.append(f"No model yet: run {inp.run_hint('coarse_params.parquet')} for the "
+                         "field map's errors and the worst heliostats.")
+    svg = svg_field_map(table, tower_en_m(inp), alert_mrad=alert_mrad)
+    txn.write_bytes("index.html", index_html(
+        title, subtitle, summary, table, worst(table), svg, cdf, cdf_why, floor_text,
+        run_notes).encode("utf-8"))
+    txn.write_bytes("heliostats.html", heliostats_list_html(title, table).encode("utf-8"))
+    txn.write_bytes("field.html", render_html(field_page_blocks(field_blocks), embed=False,
+                                              nav=nav_html()).encode("utf-8"))
+    txn.write_bytes("details.html", render_html(blocks, embed=False,
+                                                nav=nav_html()).encode("utf-8"))
     txn.write_bytes("metrics.json", metrics_json(metrics).encode("utf-8"))
     txn.write_bytes("report.md", render_markdown(blocks).encode("utf-8"))
-    txn.write_bytes("index.html", render_html(blocks).encode("utf-8"))
-    notes = [b[1] for b in blocks if b[0] == "note"]
+    pages = _heliostat_pages(txn, out, inp, helios, table, blocks, wd_frame, title)
+
     heliostats = []
-    for hid, h in metrics["heliostats"].items():
+    for hid, h in helios.items():
         model = h["selection"]["model"]
         test = h["models"].get(model or "", {}).get("splits", {}).get("test", {})
         heliostats.append({"heliostat_id": hid, "model": model,
                            "test_mean_error_mrad": test.get("mean_error_mrad"),
                            "test_p95_error_mrad": test.get("p95_error_mrad")})
+    fig_dir = out / "figures"
     return {"workdir": str(workdir), "report": str(out / "index.html"),
             "markdown": str(out / "report.md"), "metrics": str(out / "metrics.json"),
+            "details": str(out / "details.html"), "field": str(out / "field.html"),
             "figures": [str(fig_dir / f.filename) for f in figs], "notes": notes,
-            "heliostats": heliostats}
+            "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats}
+
+
+def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
+                     title: str) -> list[str]:
+    """Write ``heliostats/<id>.html`` for every heliostat; return their paths."""
+    per: dict[str, list] = {hid: [] for hid in helios}
+    for b in blocks:
+        if b[0] == "figure" and b[1].heliostat in per:
+            per[b[1].heliostat].append(b)
+        elif b[0] in ("note", "hnote") and len(b) > 2 and b[2] in per:
+            per[b[2]].append(("note", b[1]))
+    order = {"sky_map": 0, "error_over_time": 1, "weight_decay": 2, "training_size": 3}
+    best_val = {}
+    if wd_frame is not None:
+        best_val = wd_frame.groupby("heliostat_id")["val_error_mrad"].min().to_dict()
+    params, presets = {}, {}
+    cp = inp.coarse_params
+    if cp is not None:
+        sel = cp[cp["selected"].astype(bool)] if "selected" in cp.columns else cp
+        params = parameter_tables(sel)
+        if "preset" in sel.columns:
+            first = sel.drop_duplicates("heliostat_id")
+            presets = dict(zip(first["heliostat_id"].astype(str), first["preset"].astype(str)))
+    rows = {r["heliostat_id"]: r for _, r in table.iterrows()}
+    ids = list(helios)
+    written = []
+    folder = out / "heliostats"
+    for k, hid in enumerate(ids):
+        row = rows[hid]
+        figs = sorted(per[hid], key=lambda b: order.get(b[2], 9) if b[0] == "figure" else 10)
+        prow = params.get(hid)
+        if prow is None:
+            head = "No coarse fit yet (run `heliocal fit-coarse`)."
+        else:
+            head = (f"Free parameters of the selected preset {presets.get(hid, '?')}: nominal "
+                    "and fitted value with the standard error from the Jacobian at the solution "
+                    "('determined: no': the data cannot pin it; the weak prior holds it near "
+                    "nominal).")
+        mrows = [[model + (" ★" if mm["selected"] else ""), sp, st["n"], st["mean_error_mrad"],
+                  st["median_error_mrad"], st["p95_error_mrad"], st["mean_beam_error_mrad"],
+                  st["mean_spot_offset_m"]]
+                 for model, mm in helios[hid]["models"].items()
+                 for sp, st in mm["splits"].items()]
+        prev_next = (rows[ids[k - 1]]["page"] if k > 0 else None,
+                     rows[ids[k + 1]]["page"] if k + 1 < len(ids) else None)
+        bv = best_val.get(hid)
+        page = heliostat_html(title, row, helios[hid],
+                              why_text(row, helios[hid], None if bv is None else float(bv)),
+                              figs, prow, head, mrows, prev_next)
+        path = safe_child(folder, row["page"])
+        txn.write_bytes(f"heliostats/{path.name}", page.encode("utf-8"))
+        written.append(str(path))
+    return written

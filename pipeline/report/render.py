@@ -1,0 +1,224 @@
+"""The report's figures as tasks: what to draw, with the rows it needs, so that any process can
+draw it.
+
+The report plans its figures in the main process (:func:`heliostat_figure_plan`: captions, file
+names, the order in the pages) and draws them with :func:`render_task`, one matplotlib figure per
+task, in worker processes (``runtime.parallel.map_tasks``; the Agg renderer, no pyplot state).
+Each task carries only its own heliostat's rows (the inputs are grouped by heliostat once), so a
+task is small to send and costs the same whatever the field's size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import pandas as pd
+
+from .figures import (SKY_POINTS_PER_MRAD, plot_error_over_time, plot_hybrid_vs_coarse,
+                      plot_sky_map, plot_training_size, plot_weight_decay, png_bytes)
+from .inputs import ReportInputs
+
+__all__ = [
+    "FigureTask",
+    "ReportFigure",
+    "by_heliostat",
+    "heliostat_figure_plan",
+    "render_task",
+]
+
+
+@dataclass
+class ReportFigure:
+    """A drawn figure: its file name under ``figures/``, caption, PNG bytes and heliostat (None
+    for a figure of several)."""
+
+    filename: str
+    caption: str
+    png: bytes
+    heliostat: str | None = None
+
+
+@dataclass
+class FigureTask:
+    """One figure to draw: ``kind`` names the drawing function, ``args`` its arguments (small
+    per-heliostat frames and numbers), ``heliostat`` its heliostat (None for field figures)."""
+
+    kind: str
+    filename: str
+    caption: str
+    heliostat: str | None = None
+    args: dict[str, Any] = field(default_factory=dict)
+
+
+def _draw(task: FigureTask):
+    """(figure, None) or (None, why) for a task (a figure function's own contract)."""
+    a = task.args
+    if task.kind == "training_size":
+        return plot_training_size(a["sweep"], task.heliostat, a["level"], a["label"])
+    if task.kind == "sky_map":
+        return plot_sky_map(a["measurements"], a["split"], a["predictions"], task.heliostat,
+                            a["model"], a.get("label")), None
+    if task.kind == "weight_decay":
+        return plot_weight_decay(a["sweep"], task.heliostat, a["model"], a["cval"], a["ctest"],
+                                 a["weight_decay"])
+    if task.kind == "error_over_time":
+        return plot_error_over_time(a["measurements"], a["predictions"], task.heliostat,
+                                    a["model"], a["coarse"], label=a.get("label"))
+    if task.kind == "hybrid_vs_coarse":
+        return plot_hybrid_vs_coarse(a["table"]), None
+    if task.kind.startswith("field_"):
+        from .field_figures import draw_field_figure
+
+        return draw_field_figure(task.kind, a)
+    raise ValueError(f"unknown figure kind {task.kind!r}")  # pragma: no cover - a bug
+
+
+def render_task(task: FigureTask) -> tuple[bytes | None, str | None]:
+    """Draw one task: ``(png, None)``, or ``(None, why)`` when its data cannot make the figure.
+    Module level and picklable: the report runs it in worker processes."""
+    fig, why = _draw(task)
+    if fig is None:
+        return None, why
+    return png_bytes(fig), None  # (no fig.clear(): it costs ~5 %; the figure is dropped here)
+
+
+# ------------------------------------------------------------------------------------------------
+# planning (main process)
+# ------------------------------------------------------------------------------------------------
+def by_heliostat(df: pd.DataFrame | None) -> dict[str, pd.DataFrame]:
+    """``df``'s rows per heliostat_id (one groupby over the frame; empty without ``df``)."""
+    if df is None:
+        return {}
+    return {str(h): g for h, g in df.groupby(df["heliostat_id"].astype(str), sort=False)}
+
+
+def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> list[tuple]:
+    """The per-heliostat figures (paper 000 figs. 6, 7, 9a, error over time) and fig. 8, in the
+    order of the report, as blocks: ``("h3", text)``, ``("note", text)``, ``("hnote", text,
+    heliostat)`` (a note for that heliostat's page only) and ``("task", FigureTask)`` (a task
+    whose figure cannot be drawn becomes a note naming why)."""
+    out: list[tuple] = []
+    helios = metrics["heliostats"]
+    hids = list(helios)
+    meas = by_heliostat(inp.measurements)
+    split = by_heliostat(inp.split)
+    preds = by_heliostat(inp.predictions)
+    sweep = by_heliostat(inp.sweep)
+    empty_sweep = inp.sweep.iloc[:0] if inp.sweep is not None else None
+    sweep_hint = inp.run_hint("sweep.parquet")
+    # the sweep's choice behind the predictions of model "selected" (hybrid, hybrid-octaves, coarse)
+    choice = {}
+    if inp.selection is not None and {"heliostat_id", "model"} <= set(inp.selection.columns):
+        choice = dict(zip(inp.selection["heliostat_id"].astype(str),
+                          inp.selection["model"].astype(str)))
+
+    # the selected weight decay as the sweep wrote it (metrics.json rounds to 4 decimals: 1e-5 -> 0)
+    chosen_wd = {}
+    if inp.selection is not None and {"heliostat_id", "weight_decay"} <= set(inp.selection.columns):
+        chosen_wd = dict(zip(inp.selection["heliostat_id"].astype(str),
+                             inp.selection["weight_decay"].astype(float)))
+
+    def label(hid: str, model: str | None) -> str | None:
+        if model == "selected" and hid in choice:
+            return f"the selected model ({choice[hid]})"
+        return model
+
+    out.append(("h3", "Error against training size (paper 000, fig. 6)"))
+    if inp.sweep is None:
+        out.append(("note", f"Omitted: needs sweep.parquet; run {sweep_hint}."))
+    else:
+        outside = []
+        for hid in hids:
+            sel = helios[hid]["selection"]
+            coarse = helios[hid]["models"].get(sel["coarse_preset"] or "")
+            level = coarse["splits"].get("test", {}).get("mean_error_mrad") if coarse else None
+            g = sweep.get(hid)
+            if g is not None and "n_train" in g.columns and g["n_train"].nunique() < 2:
+                # not in the training-size study: said once below, and on its own page
+                outside.append(hid)
+                out.append(("hnote", f"{hid} is not in the sweep's training-size study "
+                                     "(`heliocal sweep --study N` samples N heliostats): no "
+                                     "training-size figure.", hid))
+                continue
+            out.append(("task", FigureTask(
+                "training_size", f"training_size_{hid}.png",
+                f"{hid}: mean test error against the number of training measurements per model "
+                "(weight decay chosen on validation; band: spread over seeds). Below: mean "
+                "distance in sun position from the test set to the training set.", hid,
+                {"sweep": sweep.get(hid, empty_sweep), "level": level,
+                 "label": f"coarse {sel['coarse_preset']}"})))
+        if outside:
+            out.append(("note", f"{len(outside)} of {len(hids)} heliostats are not in the "
+                                "sweep's training-size study (`heliocal sweep --study N` samples "
+                                "N heliostats): no training-size figure for them."))
+
+    out.append(("h3", "Sky map (paper 000, fig. 7)"))
+    for hid in hids:
+        model = finals.get(hid, {}).get("model")
+        cap = (f"{hid}: measurements over sun azimuth and elevation; dots are training points. "
+               f"Validation and test points are circles whose radius grows linearly with the "
+               f"error of {label(hid, model)} ({SKY_POINTS_PER_MRAD:g} pt per mrad); the grey "
+               "ring is 1 mrad.")
+        if model is None:
+            cap = f"{hid}: measurements over sun azimuth and elevation (no predictions yet)."
+        out.append(("task", FigureTask(
+            "sky_map", f"sky_map_{hid}.png", cap, hid,
+            {"measurements": meas[hid], "split": split.get(hid), "predictions": preds.get(hid),
+             "model": model, "label": label(hid, model)})))
+
+    out.append(("h3", "Error against weight decay (paper 000, fig. 9a)"))
+    if inp.sweep is None:
+        out.append(("note", f"Omitted: needs sweep.parquet; run {sweep_hint}."))
+    else:
+        for hid in hids:
+            h = helios[hid]
+            sel = h["selection"]
+            coarse = h["models"].get(sel["coarse_preset"] or "", {}).get("splits", {})
+            cval, ctest = sel["coarse_val_error_mrad"], sel["coarse_test_error_mrad"]
+            cval = cval if cval is not None else coarse.get("validation", {}).get("mean_error_mrad")
+            ctest = ctest if ctest is not None else coarse.get("test", {}).get("mean_error_mrad")
+            out.append(("task", FigureTask(
+                "weight_decay", f"weight_decay_{hid}.png",
+                f"{hid}: mean validation and test error against weight decay at the largest "
+                "training size (band: spread over seeds); dashed lines: the selected coarse "
+                "model's validation and test error; dotted: the selected weight decay.", hid,
+                {"sweep": sweep.get(hid, empty_sweep),
+                 "model": choice.get(hid, sel["model"]) if sel["model"] == "selected"
+                 else sel["model"], "cval": cval,
+                 "ctest": ctest, "weight_decay": chosen_wd.get(hid, sel["weight_decay"])})))
+
+    from .figures import hybrid_vs_coarse_table
+
+    out.append(("h3", "Hybrid against coarse (paper 000, fig. 8)"))
+    table = hybrid_vs_coarse_table(inp)
+    if table is None:
+        out.append(("note", "Omitted: needs selection.parquet or hybrid_predictions.parquet; run "
+                            f"{inp.run_hint('hybrid_predictions.parquet')} and {sweep_hint}."))
+    elif len(table) > 40:
+        out.append(("note", f"Per-heliostat bars omitted for {len(table)} heliostats (unreadable "
+                            "beyond a few dozen): the field page shows hybrid against coarse "
+                            "for every heliostat as one scatter plot."))
+    else:
+        out.append(("task", FigureTask(
+            "hybrid_vs_coarse", "hybrid_vs_coarse.png",
+            "Mean validation and test error of the selected hybrid model and the selected coarse "
+            "preset per heliostat.", None, {"table": table})))
+
+    out.append(("h3", "Error over time"))
+    if inp.predictions is None:
+        out.append(("note", "Omitted: needs predictions; run "
+                            f"{inp.run_hint('coarse_predictions.parquet')}."))
+    else:
+        for hid in hids:
+            f = finals.get(hid, {})
+            if f.get("model") is None or hid not in preds:
+                continue
+            out.append(("task", FigureTask(
+                "error_over_time", f"error_over_time_{hid}.png",
+                f"{hid}: error of {label(hid, f['model'])} per measurement over the date, "
+                "coloured by split, with a centred 30-day rolling median (drift and seasonal "
+                "patterns).", hid,
+                {"measurements": meas[hid], "predictions": preds[hid], "model": f["model"],
+                 "coarse": f.get("coarse_preset"), "label": label(hid, f["model"])})))
+    return out
