@@ -150,6 +150,11 @@ HELIOSTATS = ArtifactSchema(
           "target), east.", nullable=True),
         C("primary_axis_n", "float64", "1", "Primary axis, north.", nullable=True),
         C("primary_axis_u", "float64", "1", "Primary axis, up.", nullable=True),
+        C("renovation_start", "timestamp", "UTC", "Start of the last renovation (PAINT's "
+          "`renovation` property: midnight of its first day); fit-coarse puts a known regime "
+          "break there. Missing if the source has none.", nullable=True),
+        C("renovation_end", "timestamp", "UTC", "End of that renovation (midnight after its "
+          "last day).", nullable=True),
         C("n_measurements", "int64", "", "Kept measurements of this heliostat."),
     ),
 )
