@@ -16,12 +16,13 @@ import pandas as pd
 import torch
 
 from ..artifacts.paths import artifact_path
-from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS
+from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS, REGIMES
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import FitError, check_choice, check_float, check_int
+from ..models.regimes import detect_field, residual_components_mrad
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
@@ -37,6 +38,7 @@ __all__ = [
     "coarse_fit_options",
     "FIT_OPTIONS",
     "load_split_labels",
+    "detect_coarse_regimes",
 ]
 
 log = logging.getLogger("heliocal.coarse")
@@ -169,6 +171,31 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
     return out
 
 
+def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
+                          heliostats: pd.DataFrame) -> pd.DataFrame:
+    """regimes.parquet's rows: :func:`heliocal.pipeline.models.regimes.detect_field` on the
+    selected coarse model's residuals of the training and validation rows (test rows stay
+    unseen), with each heliostat's renovation window as a known break."""
+    pred = predictions[predictions["selected"]
+                       & predictions["split"].isin(["train", "validation"])]
+    pred = pred[["heliostat_id", "measurement_id", "spot_offset_horizontal_m",
+                 "spot_offset_vertical_m"]]
+    geo = ["timestamp", *[f"{w}_{a}_m" for w in ("target", "heliostat") for a in "enu"]]
+    rows = pred.merge(measurements[["heliostat_id", "measurement_id", *geo]],
+                      on=["heliostat_id", "measurement_id"], how="left")
+    distance = np.linalg.norm(rows[[f"target_{a}_m" for a in "enu"]].to_numpy(float)
+                              - rows[[f"heliostat_{a}_m" for a in "enu"]].to_numpy(float), axis=1)
+    rows["residual_horizontal_mrad"], rows["residual_vertical_mrad"] = residual_components_mrad(
+        rows["spot_offset_horizontal_m"], rows["spot_offset_vertical_m"], distance)
+    renovations = {}
+    if "renovation_start" in heliostats.columns:
+        for hid, a, b in zip(heliostats["heliostat_id"], heliostats["renovation_start"],
+                             heliostats["renovation_end"]):
+            if pd.notna(a) or pd.notna(b):
+                renovations[str(hid)] = (a, b)
+    return detect_field(rows, renovations)
+
+
 #: Options of ``fit-coarse`` that decide a fit (its provenance records them; the defaults of
 #: :func:`run_fit_coarse` stand in for a file written before an option existed).
 FIT_OPTIONS = {"solver": "batched", "loss": "soft_l1", "f_scale_mrad": 1.0, "robust_start": "auto"}
@@ -278,12 +305,15 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "heliostats": list(heliostats) if heliostats else None}
     params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
+    regimes = detect_coarse_regimes(measurements, preds, helio.reset_index(drop=True))
     if heliostats:
         # a partial run keeps the other heliostats' fits when the previous run read the same
         # inputs (artifacts.merge_with_previous); the inputs are recorded as they were read
         replaced = lambda old: old["heliostat_id"].isin(set(heliostats))  # noqa: E731
         params = merge_with_previous(workdir, COARSE_PARAMS, params, replaced)
         preds = merge_with_previous(workdir, COARSE_PREDICTIONS, preds, replaced)
+        regimes = merge_with_previous(workdir, REGIMES, regimes, replaced)
     write_artifact(params, workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
     write_artifact(preds, workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
+    write_artifact(regimes, workdir, REGIMES, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries}
