@@ -32,6 +32,7 @@ __all__ = [
     "change_parameters",
     "draw_changes",
     "event_json",
+    "score_detection",
 ]
 
 #: The kinds of change events: ``step`` (lasting), ``episode`` (a few days, then back), ``drift``
@@ -200,3 +201,71 @@ def event_json(event: dict) -> dict:
     out["start"] = str(event["start"].date())
     out["end"] = str(event["end"].date())
     return out
+
+
+def score_detection(truth: dict, regimes: pd.DataFrame, times: dict, *, tolerance_days: float = 3.0,
+                    min_mrad: float = 1.0, min_rows: int = 2) -> dict:
+    """Recall and false alarms of a detection (regimes.parquet rows) against the ground truth.
+
+    Parameters
+    ----------
+    truth : heliostat id -> its change events (ground_truth.json's ``changes`` lists).
+    regimes : regimes.parquet's rows.
+    times : heliostat id -> the timestamps the detection read (UTC).
+    tolerance_days : a true step or episode is found when a detected break (``cause``
+        ``detected`` or ``renovation``) starts within this many days of its start; also counted
+        (``found_first_row``) when it is within this many days of the first row at or after the
+        start, the earliest the data can show it.
+    min_mrad : events whose ``effect_mrad`` is smaller are not counted.
+    min_rows : events with fewer affected rows are not observable and are not counted.
+
+    Returns
+    -------
+    dict: ``events`` (counted), ``found``, ``found_first_row``, ``recall``, ``recall_first_row``,
+    ``static_heliostats``, ``static_years``, ``static_false_alarms`` (detected breaks on
+    heliostats without events), ``false_alarms_per_10_years``, ``unobservable`` (events left
+    out for too few rows), ``missed`` (list of the missed events).
+    """
+    day = pd.Timedelta(days=1)
+    breaks = regimes[regimes["cause"].isin(["detected", "renovation"])]
+    starts = {h: pd.to_datetime(g["start"], utc=True) for h, g in breaks.groupby("heliostat_id")}
+    counted = found = found_row = unobservable = 0
+    missed = []
+    static_years, static_alarms, static_n = 0.0, 0, 0
+    for hid, events in truth.items():
+        t = pd.DatetimeIndex(pd.to_datetime(pd.Series(times.get(hid, [])), utc=True)).sort_values()
+        detected = starts.get(hid, pd.Series([], dtype="datetime64[ns, UTC]"))
+        if not events:
+            if len(t) > 1:
+                static_n += 1
+                static_years += (t[-1] - t[0]) / day / 365.25
+                static_alarms += int(len(detected))
+            continue
+        for e in events:
+            if e["kind"] == "drift":
+                continue
+            start = pd.Timestamp(e["start"], tz="UTC")
+            end = pd.Timestamp(e["end"], tz="UTC")
+            rows_in = (t >= start) & (t < end) if e["kind"] == "episode" else t >= start
+            if int(rows_in.sum()) < min_rows or (e["kind"] == "step" and int((t < start).sum()) < min_rows):
+                unobservable += 1
+                continue
+            if e.get("effect_mrad", 0.0) < min_mrad:
+                continue
+            counted += 1
+            first = t[t >= start][0]
+            gap = np.abs((detected - start) / day).min() if len(detected) else np.inf
+            gap_row = np.abs((detected - first) / day).min() if len(detected) else np.inf
+            found += bool(gap <= tolerance_days)
+            found_row += bool(gap_row <= tolerance_days)
+            if gap_row > tolerance_days:
+                missed.append({"heliostat_id": hid, **{k: e[k] for k in ("kind", "start", "end")},
+                               "size_mrad": e.get("size_mrad"), "effect_mrad": e.get("effect_mrad"),
+                               "rows": int(rows_in.sum()), "nearest_break_days": float(gap_row)})
+    return {"events": counted, "found": found, "found_first_row": found_row,
+            "recall": found / counted if counted else float("nan"),
+            "recall_first_row": found_row / counted if counted else float("nan"),
+            "unobservable": unobservable, "static_heliostats": static_n,
+            "static_years": static_years, "static_false_alarms": static_alarms,
+            "false_alarms_per_10_years": 10.0 * static_alarms / static_years if static_years else float("nan"),
+            "missed": missed}

@@ -15,8 +15,8 @@ Method (per heliostat)
 3. Known breaks. The renovation window of the heliostat (heliostats.parquet) cuts the series;
    each piece is segmented on its own, so a renovation is always a regime break (cause
    ``renovation``), seen or not; its ``evidence`` says whether the data show it.
-4. Change points. PELT (:class:`ruptures.Pelt`, cost ``l2``: a change of the mean of the
-   standardized two-component signal) with the penalty ``penalty_factor * (d + 1) * log(n)``,
+4. Change points. PELT (ruptures' :class:`~ruptures.KernelCPD` with the linear kernel, i.e. the
+   ``l2`` cost: a change of the mean of the standardized two-component signal) with the penalty ``penalty_factor * (d + 1) * log(n)``,
    d = 2 components: the BIC of a mean shift (d new means and one location per change point)
    for unit variance, i.e. scaled by the robust residual variance of step 1. ``penalty_factor``
    > 1 allows for residuals that are not independent (rows of one day share sun positions and a
@@ -96,7 +96,9 @@ def _pelt(z: np.ndarray, penalty: float, min_size: int) -> list[int]:
 
     if len(z) < 2 * min_size:
         return []
-    ends = ruptures.Pelt(model="l2", min_size=min_size, jump=1).fit(z).predict(pen=penalty)
+    # the linear kernel's cost is the l2 cost; KernelCPD runs PELT on it in C (ruptures.Pelt with
+    # model="l2" finds the same breaks, about 1000 times slower on 300 rows)
+    ends = ruptures.KernelCPD(kernel="linear", min_size=min_size).fit(z).predict(pen=penalty)
     return [int(b) for b in ends[:-1]]
 
 

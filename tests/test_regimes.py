@@ -1,0 +1,115 @@
+"""Tests of the regime detection (pipeline/models/regimes.py) and of regimes.parquet.
+
+Expected values come from the series the tests build: piecewise-constant residuals with known
+breaks plus Gaussian noise of known standard deviation (seeded), so a break's place, its size
+(the difference of the levels) and the noise are known exactly; the end-to-end test scores
+fit-coarse's regimes.parquet against the simulator's ground truth (models/changes.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from heliocal.pipeline.models.regimes import (COMPONENTS, detect_field, detect_regimes,
+                                              regime_of_rows, robust_noise_mrad)
+
+NOISE = 0.3  # mrad per component, about the real Juelich residuals' noise
+
+
+def _series(levels, n=300, seed=0, days=365.0, hid="H1"):
+    """n rows, 1 to 4 a day over ``days``; ``levels`` = [(first row, (h, v) mrad), ...]."""
+    rng = np.random.default_rng(seed)
+    t = pd.Timestamp("2023-01-01", tz="UTC") + pd.to_timedelta(np.sort(rng.uniform(0, days, n)), "D")
+    x = rng.normal(0.0, NOISE, (n, 2))
+    for first, level in levels:
+        x[first:] += np.asarray(level)  # levels add up from ``first`` on
+    return pd.DataFrame({"heliostat_id": hid, "measurement_id": [f"{i:05d}" for i in range(n)],
+                         "timestamp": t, COMPONENTS[0]: x[:, 0], COMPONENTS[1]: x[:, 1]})
+
+
+def _breaks(reg):
+    return reg[reg["cause"].isin(["detected", "renovation"])]
+
+
+def test_robust_noise_ignores_steps():
+    rng = np.random.default_rng(1)
+    x = rng.normal(0.0, 0.5, (2000, 2))
+    x[1000:] += 5.0  # a 10-sigma step moves one difference only
+    np.testing.assert_allclose(robust_noise_mrad(x), 0.5, rtol=0.06)  # 2000 rows: ~2 % error
+
+
+def test_steps_found_at_their_row_with_their_size():
+    # a 1 mrad step (3.3 sigma) and a 1.3 mrad step back and sideways
+    df = _series([(100, (1.0, 0.0)), (200, (-0.5, 0.0 + 1.2))])
+    reg = detect_regimes(df)
+    b = _breaks(reg)
+    starts = df["timestamp"].iloc[[100, 200]].to_list()
+    assert len(b) == 2 and list(b["kind"]) == ["regime", "regime"]
+    for got, want in zip(b["start"], starts):
+        assert abs((got - want) / pd.Timedelta(days=1)) <= 3.0  # within a row or two
+    # sizes: distance of the levels (they add up), |(1, 0)| = 1 and |(-0.5, 1.2)| = 1.3, within
+    # the medians' error (~1.25 * 0.3 / sqrt(100) * sqrt(2) = 0.05)
+    np.testing.assert_allclose(b["step_mrad"], [1.0, 1.3], atol=0.15)
+    assert list(reg.loc[reg["kind"] == "regime", "regime"]) == [0, 1, 2]
+    assert (b["evidence"] > 1).all()
+    assert reg["noise_mrad"].iloc[0] == pytest.approx(NOISE, rel=0.15)
+
+
+def test_static_series_give_no_false_alarm():
+    # 40 static heliostat-years of white noise: the BIC penalty x3 should raise none; with the
+    # plain BIC penalty (factor 1/3 of it) PELT does raise some, so this test can fail
+    strict = sum(len(_breaks(detect_regimes(_series([], seed=s)))) for s in range(40))
+    assert strict == 0
+    loose = sum(len(_breaks(detect_regimes(_series([], seed=s), penalty_factor=0.3)))
+                for s in range(40))
+    assert loose > 0
+
+
+def test_episode_is_one_segment_and_the_regime_continues():
+    df = _series([])
+    t = df["timestamp"]
+    on = (t >= t.iloc[150].normalize()) & (t < t.iloc[150].normalize() + pd.Timedelta(days=2))
+    assert on.sum() >= 2
+    rng = np.random.default_rng(5)
+    df.loc[on, COMPONENTS[0]] += 8.0 + rng.normal(0.0, 2.0, on.sum())  # moves with the sun
+    reg = detect_regimes(df)
+    seg = reg[reg["kind"] != "outlier"]
+    assert list(seg["kind"]) == ["regime", "episode", "regime"]
+    assert list(seg["regime"]) == [0, 0, 0]  # back to its level: still regime 0
+    ep = seg.iloc[1]
+    assert ep["n_rows"] == on.sum() and ep["step_mrad"] == pytest.approx(8.0, abs=2.5)
+    rows = regime_of_rows(reg, "H1", df["timestamp"])
+    assert rows["episode"].sum() == on.sum() and (rows["regime"] == 0).all()
+
+
+def test_renovation_is_a_break_with_its_evidence():
+    df = _series([(150, (2.0, 0.0))])
+    when = df["timestamp"].iloc[150].normalize()
+    reg = detect_regimes(df, renovation=(when - pd.Timedelta(hours=1), when))
+    b = _breaks(reg)
+    assert list(b["cause"]) == ["renovation"] and b["evidence"].iloc[0] > 1
+    # a renovation window with rows in it cuts twice (its rows are a segment of their own); a
+    # renovation that changed nothing keeps its breaks, with evidence < 1
+    quiet = detect_regimes(_series([]), renovation=(when, when + pd.Timedelta(days=1)))
+    b = _breaks(quiet)
+    assert list(b["cause"]) == ["renovation", "renovation"] and (b["evidence"] < 1).all()
+    assert list(quiet.loc[quiet["kind"] != "outlier", "kind"]) == ["regime", "episode", "regime"]
+
+
+def test_outlier_is_flagged_not_a_segment_and_nothing_is_dropped():
+    df = _series([])
+    df.loc[120, COMPONENTS[1]] += 15 * NOISE
+    reg = detect_regimes(df)
+    out = reg[reg["kind"] == "outlier"]
+    assert list(out["measurement_id"]) == ["00120"] and out["evidence"].iloc[0] > 6
+    seg = reg[reg["kind"] != "outlier"]
+    assert len(seg) == 1 and seg["n_rows"].sum() == len(df)
+
+
+def test_detect_field_per_heliostat_and_short_series():
+    a = _series([(100, (3.0, 0.0))], hid="A")
+    b = _series([], hid="B", seed=3).iloc[:2]  # two rows: nothing to detect
+    reg = detect_field(pd.concat([a, b]))
+    assert set(reg["heliostat_id"]) == {"A"} and len(_breaks(reg)) == 1
