@@ -334,6 +334,10 @@ REGIMES = ArtifactSchema(
           "robust distance in noise units; missing for the first segment.", nullable=True),
         C("noise_mrad", "float64", "mrad", "Robust noise of the heliostat's residuals (mean of "
           "the two components)."),
+        C("error_mrad", "float64", "mrad", "Mean error of the finally selected coarse model on "
+          "the rows of every split from start to end (outlier: its row); rows of a detected "
+          "episode are left out of that model's training and of its selection, so an episode "
+          "reports here the error no geometry of the heliostat can remove.", nullable=True),
     ),
 )
 

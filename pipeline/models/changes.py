@@ -204,7 +204,7 @@ def event_json(event: dict) -> dict:
 
 
 def score_detection(truth: dict, regimes: pd.DataFrame, times: dict, *, tolerance_days: float = 3.0,
-                    min_mrad: float = 1.0, min_rows: int = 2) -> dict:
+                    min_mrad: float = 1.0, min_rows: int = 2, dynamic: frozenset = frozenset()) -> dict:
     """Recall and false alarms of a detection (regimes.parquet rows) against the ground truth.
 
     Parameters
@@ -218,6 +218,8 @@ def score_detection(truth: dict, regimes: pd.DataFrame, times: dict, *, toleranc
         start, the earliest the data can show it.
     min_mrad : events whose ``effect_mrad`` is smaller are not counted.
     min_rows : events with fewer affected rows are not observable and are not counted.
+    dynamic : heliostats with dynamic disturbances (seasonal tilt, drift, ...): without events
+        they are not static; their breaks are counted apart (``dynamic_alarms``).
 
     Returns
     -------
@@ -232,11 +234,16 @@ def score_detection(truth: dict, regimes: pd.DataFrame, times: dict, *, toleranc
     counted = found = found_row = unobservable = 0
     missed = []
     static_years, static_alarms, static_n = 0.0, 0, 0
+    dyn_years, dyn_alarms, dyn_n = 0.0, 0, 0
     for hid, events in truth.items():
         t = pd.DatetimeIndex(pd.to_datetime(pd.Series(times.get(hid, [])), utc=True)).sort_values()
         detected = starts.get(hid, pd.Series([], dtype="datetime64[ns, UTC]"))
         if not events:
-            if len(t) > 1:
+            if len(t) > 1 and hid in dynamic:
+                dyn_n += 1
+                dyn_years += (t[-1] - t[0]) / day / 365.25
+                dyn_alarms += int(len(detected))
+            elif len(t) > 1:
                 static_n += 1
                 static_years += (t[-1] - t[0]) / day / 365.25
                 static_alarms += int(len(detected))
@@ -268,4 +275,6 @@ def score_detection(truth: dict, regimes: pd.DataFrame, times: dict, *, toleranc
             "unobservable": unobservable, "static_heliostats": static_n,
             "static_years": static_years, "static_false_alarms": static_alarms,
             "false_alarms_per_10_years": 10.0 * static_alarms / static_years if static_years else float("nan"),
+            "dynamic_heliostats": dyn_n, "dynamic_years": dyn_years, "dynamic_alarms": dyn_alarms,
+            "dynamic_alarms_per_10_years": 10.0 * dyn_alarms / dyn_years if dyn_years else float("nan"),
             "missed": missed}

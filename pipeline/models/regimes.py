@@ -136,13 +136,11 @@ def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
     -------
     DataFrame with the columns of ``regimes.parquet`` (empty if fewer than 3 usable rows).
     """
-    from ..artifacts.schemas import REGIMES
-
     ok = rows["timestamp"].notna().to_numpy() & np.isfinite(rows[list(COMPONENTS)].to_numpy()).all(1)
     rows = rows.loc[ok].sort_values(["timestamp", "measurement_id"], kind="mergesort")
     rows = rows.reset_index(drop=True)
     if len(rows) < 3:
-        return pd.DataFrame(columns=REGIMES.column_names())
+        return pd.DataFrame(columns=_columns())
     hid = str(rows["heliostat_id"].iloc[0])
     x = rows[list(COMPONENTS)].to_numpy(float)
     noise = robust_noise_mrad(x)
@@ -194,7 +192,7 @@ def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
                 "center_horizontal_mrad": float(x[i, 0]), "center_vertical_mrad": float(x[i, 1]),
                 "step_mrad": float(np.linalg.norm(x[i] - center)), "evidence": float(dist[j]),
                 "noise_mrad": float(noise.mean())})
-    return pd.DataFrame(out, columns=REGIMES.column_names())
+    return pd.DataFrame(out, columns=_columns())
 
 
 def _merge_episodes(stamps: pd.Series, starts: list[int], ends: list[int], max_days: float,
@@ -215,6 +213,13 @@ def _merge_episodes(stamps: pd.Series, starts: list[int], ends: list[int], max_d
     return out
 
 
+def _columns() -> list[str]:
+    """regimes.parquet's columns this module fills (fit-coarse adds ``error_mrad``)."""
+    from ..artifacts.schemas import REGIMES
+
+    return [c for c in REGIMES.column_names() if c != "error_mrad"]
+
+
 def _differs(a: np.ndarray, b: np.ndarray, noise: np.ndarray, n_a: int, n_b: int,
              penalty: float) -> bool:
     """Do two levels (medians) differ by more than the penalty allows (l2 gain of one break)?"""
@@ -226,14 +231,12 @@ def detect_field(residuals: pd.DataFrame, renovations: Mapping[str, tuple] | Non
                  **options) -> pd.DataFrame:
     """:func:`detect_regimes` for every heliostat of ``residuals``; ``renovations`` maps a
     heliostat id to its (start, end) renovation window."""
-    from ..artifacts.schemas import REGIMES
-
     renovations = renovations or {}
     parts = [detect_regimes(g, renovations.get(str(hid)), **options)
              for hid, g in residuals.groupby("heliostat_id", sort=True)]
     parts = [p for p in parts if len(p)]
     if not parts:
-        return pd.DataFrame(columns=REGIMES.column_names())
+        return pd.DataFrame(columns=_columns())
     return pd.concat(parts, ignore_index=True)
 
 
