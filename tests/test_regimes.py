@@ -113,3 +113,97 @@ def test_detect_field_per_heliostat_and_short_series():
     b = _series([], hid="B", seed=3).iloc[:2]  # two rows: nothing to detect
     reg = detect_field(pd.concat([a, b]))
     assert set(reg["heliostat_id"]) == {"A"} and len(_breaks(reg)) == 1
+
+
+# --------------------------------------------------------------------------------------------
+# end to end: simulate -> ingest -> split-knn -> fit-coarse, scored against the ground truth
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def changing_field(tmp_path_factory):
+    from unittest import mock
+
+    from heliocal.pipeline.artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS,
+                                                     MEASUREMENTS, REGIMES, SPLIT)
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.models.changes import Changes
+    from heliocal.pipeline.models.simulator import simulate_field
+    from heliocal.pipeline.stages import fit_coarse
+    from heliocal.pipeline.stages.ingest import run_ingest
+    from heliocal.pipeline.stages.simulate import write_field
+    from heliocal.pipeline.stages.split import run_split
+
+    root = tmp_path_factory.mktemp("regimes")
+    field = simulate_field(10, seed=2, measurements=(400, 400), dynamic_fraction=0.0,
+                           noise_mrad=0.6, changes=Changes(step_fraction=0.4, episode_fraction=0.4))
+    write_field(field, root / "field")
+    work = root / "work"
+    run_ingest([root / "field" / "paint"], work, IngestOptions())
+    run_split(work)
+
+    def params():
+        p = read_artifact(work, COARSE_PARAMS)
+        return p[p["selected"]].set_index(["heliostat_id", "parameter_index"])
+
+    def errors():  # the selected model's error per row, with its time
+        p = read_artifact(work, COARSE_PREDICTIONS)
+        p = p[p["selected"]][["heliostat_id", "measurement_id", "split", "error_mrad"]]
+        return p.merge(read_artifact(work, MEASUREMENTS, columns=["heliostat_id", "measurement_id",
+                                                                  "timestamp"]))
+
+    no_episodes = lambda regimes, hid, t: pd.DataFrame(  # noqa: E731 - the fit before issue 17
+        {"regime": 0, "episode": False}, index=t.index)
+    with mock.patch.object(fit_coarse, "regime_of_rows", no_episodes):
+        fit_coarse.run_fit_coarse(work)
+    before, errors_before = params(), errors()
+    fit_coarse.run_fit_coarse(work)
+    meas = read_artifact(work, MEASUREMENTS, columns=["heliostat_id", "measurement_id", "timestamp"])
+    split = read_artifact(work, SPLIT, columns=["heliostat_id", "measurement_id", "split"])
+    seen = meas.merge(split, on=["heliostat_id", "measurement_id"])
+    seen = seen[seen["split"].isin(["train", "validation"])]
+    return {"field": field, "regimes": read_artifact(work, REGIMES), "before": before,
+            "after": params(), "errors_before": errors_before, "errors_after": errors(), "times": {h: g["timestamp"] for h, g in seen.groupby("heliostat_id")}}
+
+
+def test_simulated_steps_and_episodes_are_found(changing_field):
+    from heliocal.pipeline.models.changes import score_detection
+
+    field = changing_field["field"]
+    truth = {h: [{**e, "start": str(e["start"].date()), "end": str(e["end"].date())}
+                 for e in v.changes] for h, v in field.heliostats.items()}
+    score = score_detection(truth, changing_field["regimes"], changing_field["times"])
+    # the issue's targets (recall >= 0.95 within +-3 days, <= 1 false alarm per 10 static
+    # heliostat-years) on a small field: every observable event found (benchmarks/regimes.py
+    # measures the rate on 60 heliostats), no break on the static ones
+    assert score["events"] >= 4
+    assert score["found_first_row"] == score["events"], score["missed"]
+    assert score["static_heliostats"] >= 3 and score["static_false_alarms"] == 0
+
+
+def test_static_heliostats_keep_their_fit_and_episodes_are_refitted(changing_field):
+    field, before, after = changing_field["field"], changing_field["before"], changing_field["after"]
+    regimes = changing_field["regimes"]
+    with_episodes = set(regimes.loc[regimes["kind"] == "episode", "heliostat_id"])
+    static = [h for h, v in field.heliostats.items() if not v.changes]
+    for hid in static:  # not refitted: the same numbers as before
+        pd.testing.assert_series_equal(before.loc[hid, "fitted"], after.loc[hid, "fitted"])
+        assert hid not in with_episodes
+    # heliostats whose only changes are episodes (with steps too, the unmodelled step dominates)
+    only = [h for h in with_episodes
+            if {e["kind"] for e in field.heliostats[h].changes} == {"episode"}]
+    assert only  # seed 2 has some
+    for hid in only:
+        # the episode pulled the first fit off: without its rows the error on the other
+        # training rows drops
+        means = []
+        for e in (changing_field["errors_before"], changing_field["errors_after"]):
+            e = e[(e["heliostat_id"] == hid) & (e["split"] == "train")].reset_index(drop=True)
+            outside = ~regime_of_rows(regimes, hid, e["timestamp"])["episode"].to_numpy()
+            means.append(e.loc[outside, "error_mrad"].mean())
+        assert means[1] < means[0]
+    # an episode-only heliostat is calibrated like a healthy one: its regime rows' error within
+    # 1.2x the noise floor (the true model's mean error)
+    for hid in only:
+        seg = regimes[(regimes["heliostat_id"] == hid) & (regimes["kind"] == "regime")]
+        err = (seg["error_mrad"] * seg["n_rows"]).sum() / seg["n_rows"].sum()
+        assert err <= 1.2 * field.heliostats[hid].noise_floor_mrad

@@ -20,6 +20,7 @@ from .figures import (SKY_POINTS_PER_MRAD, hybrid_vs_coarse_table, plot_error_ov
                       png_bytes)
 from .inputs import ReportInputs
 from .metrics import final_models, split_sort_key
+from .regimes import regime_blocks
 
 __all__ = [
     "build_report",
@@ -208,15 +209,20 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
     return blocks
 
 
+def _figure_block(fig, filename: str, caption: str) -> tuple:
+    """A figure as a report block (its PNG); the figure is cleared."""
+    try:
+        return ("figure", _Figure(filename, caption, png_bytes(fig)))
+    finally:
+        fig.clear()
+
+
 def _figures(inp: ReportInputs, metrics: dict, finals: dict) -> list[tuple]:
     out: list[tuple] = []
     hids = list(metrics["heliostats"])
 
     def add(fig, filename, caption):
-        try:
-            out.append(("figure", _Figure(filename, caption, png_bytes(fig))))
-        finally:
-            fig.clear()
+        out.append(_figure_block(fig, filename, caption))
 
     sweep_hint = inp.run_hint("sweep.parquet")
 
@@ -284,6 +290,9 @@ def _figures(inp: ReportInputs, metrics: dict, finals: dict) -> list[tuple]:
         add(plot_hybrid_vs_coarse(table), "hybrid_vs_coarse.png",
             "Mean validation and test error of the selected hybrid model and the selected coarse "
             "preset per heliostat.")
+
+    # regimes (issue 17): alert list and per-heliostat regime figures
+    out += regime_blocks(inp, hids, _figure_block)
 
     # error over time
     out.append(("h3", "Error over time"))
