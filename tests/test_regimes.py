@@ -33,11 +33,19 @@ def _breaks(reg):
     return reg[reg["cause"].isin(["detected", "renovation"])]
 
 
-def test_robust_noise_ignores_steps():
+def test_robust_noise_ignores_steps_and_bursts():
     rng = np.random.default_rng(1)
     x = rng.normal(0.0, 0.5, (2000, 2))
     x[1000:] += 5.0  # a 10-sigma step moves one difference only
-    np.testing.assert_allclose(robust_noise_mrad(x), 0.5, rtol=0.06)  # 2000 rows: ~2 % error
+    days = np.arange(2000)
+    np.testing.assert_allclose(robust_noise_mrad(x, days), 0.5, rtol=0.06)  # ~3 % error
+    # bursts: each day's 4 rows share a day offset of sd 0.5 plus 0.05 of their own; the
+    # noise between days is sqrt(0.5^2 + 0.05^2), not the 0.05 of consecutive rows
+    day_offset = np.repeat(rng.normal(0.0, 0.5, (500, 2)), 4, axis=0)
+    y = day_offset + rng.normal(0.0, 0.05, (2000, 2))
+    np.testing.assert_allclose(robust_noise_mrad(y, np.repeat(np.arange(500), 4)),
+                               np.hypot(0.5, 0.05), rtol=0.1)
+    assert (robust_noise_mrad(y) < 0.1).all()  # row to row: the burst's own scatter only
 
 
 def test_steps_found_at_their_row_with_their_size():

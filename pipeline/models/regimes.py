@@ -5,9 +5,13 @@ error of the mirror normal split along the target plane's horizontal and vertica
 
 Method (per heliostat)
 ----------------------
-1. Noise. ``noise_mrad`` per component is the robust standard deviation of the residuals'
-   first differences in time order, ``1.4826 * MAD(diff) / sqrt(2)``: a step or an episode moves
-   only the differences at its ends, so it hardly inflates the noise estimate.
+1. Noise. ``noise_mrad`` per component is ``1.4826 * MAD / sqrt(2)`` of the differences between
+   each row and the last row of the previous measured day (UTC). Differences hardly see a step
+   or an episode (only the rows right after it); taking them across days, not between
+   consecutive rows, keeps bursts of rows seconds apart and the shared misfit of one day's rows
+   from shrinking the noise (in real logs these differences are far smaller than the scatter
+   from day to day, and a noise taken from them turns every day into a change point). With
+   fewer than three such differences: 1.4826 MAD about the median.
 2. Standardized signal. Each component minus its median, divided by its noise. Isolated
    outliers would otherwise become segments of their own: each value is clipped to within
    ``clip`` noise units of a centred running median of ``window`` rows (a run of at least
@@ -70,15 +74,22 @@ def residual_components_mrad(offset_horizontal_m, offset_vertical_m, distance_m)
     return np.asarray(offset_horizontal_m, float) * scale, np.asarray(offset_vertical_m, float) * scale
 
 
-def robust_noise_mrad(values: np.ndarray) -> np.ndarray:
-    """Robust noise per column of (n, d) values in time order: 1.4826 MAD of the first
-    differences / sqrt(2) (NaN with fewer than 3 rows; at least 1e-6)."""
+def robust_noise_mrad(values: np.ndarray, days=None) -> np.ndarray:
+    """Robust noise per column of (n, d) values in time order (module docstring, step 1):
+    ``days`` (n,) are the rows' days in any comparable form (default: every row its own day).
+    NaN with fewer than 3 rows; at least 1e-6."""
     values = np.asarray(values, float)
     if len(values) < 3:
         return np.full(values.shape[1], np.nan)
-    diff = np.diff(values, axis=0)
-    mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
-    return np.maximum(_MAD_TO_SIGMA * mad / math.sqrt(2.0), _NOISE_FLOOR_MRAD)
+    days = np.arange(len(values)) if days is None else np.asarray(days)
+    prev = np.searchsorted(days, days, side="left") - 1  # last row of an earlier day
+    diff = values[prev >= 0] - values[prev[prev >= 0]]
+    if len(diff) >= 3:
+        mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
+        sigma = _MAD_TO_SIGMA * mad / math.sqrt(2.0)
+    else:
+        sigma = _MAD_TO_SIGMA * np.median(np.abs(values - np.median(values, axis=0)), axis=0)
+    return np.maximum(sigma, _NOISE_FLOOR_MRAD)
 
 
 def _clipped(z: np.ndarray, window: int, clip: float) -> np.ndarray:
@@ -143,7 +154,7 @@ def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
         return pd.DataFrame(columns=_columns())
     hid = str(rows["heliostat_id"].iloc[0])
     x = rows[list(COMPONENTS)].to_numpy(float)
-    noise = robust_noise_mrad(x)
+    noise = robust_noise_mrad(x, _naive(rows["timestamp"]).dt.normalize().to_numpy())
     z = _clipped((x - np.median(x, axis=0)) / noise, window, clip)
     penalty = penalty_factor * (x.shape[1] + 1) * math.log(len(x))
     times = _naive(rows["timestamp"])

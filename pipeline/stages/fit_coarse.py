@@ -208,6 +208,18 @@ def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
     return detect_field(rows, renovations, **options)
 
 
+#: Largest share of a heliostat's rows that detected episodes may hold for them to be left out
+#: of its fit (issue 17: episodes of a few days among months of normal rows).
+MAX_EPISODE_SHARE = 0.25
+
+
+def _selected_error(predictions: pd.DataFrame, mask: np.ndarray) -> float:
+    """Mean error of the selected model on the rows ``mask`` (in the heliostat's row order);
+    NaN (never better) without such rows."""
+    err = predictions.loc[predictions["selected"], "error_mrad"].to_numpy()
+    return _mean(err[mask]) if mask.any() else float("nan")
+
+
 def _segment_errors(regimes: pd.DataFrame, predictions: pd.DataFrame,
                     measurements: pd.DataFrame) -> pd.DataFrame:
     """regimes with ``error_mrad``: the final selected model's mean error on the rows of every
@@ -333,12 +345,22 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         helio.reset_index(drop=True))
     refit = []
     for hid in sorted(set(regimes.loc[regimes["kind"] == "episode", "heliostat_id"])):
-        flags = regime_of_rows(regimes, hid, rows_of[hid]["timestamp"])
-        if flags["episode"].any():
-            rows_of[hid] = rows_of[hid].assign(episode=flags["episode"].to_numpy())
+        flags = regime_of_rows(regimes, hid, rows_of[hid]["timestamp"])["episode"].to_numpy()
+        # episodes are short exceptions; when they hold a large share of the rows the heliostat
+        # is not "a healthy one with episodes" and its fit stays as it is
+        if flags.any() and flags.mean() <= MAX_EPISODE_SHARE:
+            rows_of[hid] = rows_of[hid].assign(episode=flags)
             refit.append(hid)
-    if refit:
-        by_id.update(fit(refit))
+    for hid, res in fit(refit).items() if refit else ():
+        # keep the refit only if it is better on the validation rows outside the episodes (the
+        # rows both fits are meant for): a heliostat must not get worse by it
+        ok = (rows_of[hid]["split"].to_numpy() == "validation") & ~rows_of[hid]["episode"].to_numpy()
+        old, new = (_selected_error(r[1], ok) for r in (by_id[hid], res))
+        if new < old:
+            by_id[hid] = res
+        else:
+            log.info("%s: the fit without its episodes is not better on validation (%.3f vs "
+                     "%.3f mrad); the first fit is kept", hid, new, old)
     all_params, all_preds, summaries = [], [], []
     for params, preds, summary in (by_id[h] for h in ids):
         if summary["degenerate"]:
