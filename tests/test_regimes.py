@@ -169,7 +169,7 @@ def changing_field(tmp_path_factory):
     split = read_artifact(work, SPLIT, columns=["heliostat_id", "measurement_id", "split"])
     seen = meas.merge(split, on=["heliostat_id", "measurement_id"])
     seen = seen[seen["split"].isin(["train", "validation"])]
-    return {"field": field, "regimes": read_artifact(work, REGIMES), "before": before,
+    return {"work": work, "field": field, "regimes": read_artifact(work, REGIMES), "before": before,
             "after": params(), "errors_before": errors_before, "errors_after": errors(), "times": {h: g["timestamp"] for h, g in seen.groupby("heliostat_id")}}
 
 
@@ -215,3 +215,21 @@ def test_static_heliostats_keep_their_fit_and_episodes_are_refitted(changing_fie
         seg = regimes[(regimes["heliostat_id"] == hid) & (regimes["kind"] == "regime")]
         err = (seg["error_mrad"] * seg["n_rows"]).sum() / seg["n_rows"].sum()
         assert err <= 1.2 * field.heliostats[hid].noise_floor_mrad
+
+
+def test_aim_reports_the_latest_regime(changing_field):
+    from heliocal.pipeline.stages.aim import aim_steps
+
+    regimes = changing_field["regimes"]
+    hid = regimes.loc[regimes["cause"] == "detected", "heliostat_id"].iloc[0]
+    result = aim_steps(changing_field["work"], hid, aim_point_enu=np.array([0.0, -3.2, 35.9]),
+                       sun_vector_enu=np.array([0.0, -0.6, 0.8]))
+    seg = regimes[(regimes["heliostat_id"] == hid) & (regimes["kind"] == "regime")]
+    last = seg[seg["regime"] == seg["regime"].max()]
+    assert result["regime"] == {
+        "regime": int(seg["regime"].max()), "since": str(last["start"].min()),
+        "rows": int(last["n_rows"].sum()),
+        "breaks": int(regimes.loc[regimes["heliostat_id"] == hid, "cause"]
+                      .isin(["detected", "renovation"]).sum()),
+        "episodes": int(((regimes["heliostat_id"] == hid) & (regimes["kind"] == "episode")).sum())}
+    assert result["regime"]["regime"] >= 1  # a heliostat with a detected break
