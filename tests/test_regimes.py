@@ -98,12 +98,14 @@ def test_renovation_is_a_break_with_its_evidence():
     reg = detect_regimes(df, renovation=(when - pd.Timedelta(hours=1), when))
     b = _breaks(reg)
     assert list(b["cause"]) == ["renovation"] and b["evidence"].iloc[0] > 1
-    # a renovation window with rows in it cuts twice (its rows are a segment of their own); a
-    # renovation that changed nothing keeps its breaks, with evidence < 1
+    # a renovation window with rows in it cuts twice (its rows are a segment of their own, at the
+    # level before it: not an episode); a renovation that changed nothing keeps its breaks, with
+    # evidence < 1, and starts a new regime
     quiet = detect_regimes(_series([]), renovation=(when, when + pd.Timedelta(days=1)))
     b = _breaks(quiet)
     assert list(b["cause"]) == ["renovation", "renovation"] and (b["evidence"] < 1).all()
-    assert list(quiet.loc[quiet["kind"] != "outlier", "kind"]) == ["regime", "episode", "regime"]
+    seg = quiet[quiet["kind"] != "outlier"]
+    assert list(seg["kind"]) == ["regime"] * 3 and list(seg["regime"]) == [0, 1, 2]
 
 
 def test_outlier_is_flagged_not_a_segment_and_nothing_is_dropped():

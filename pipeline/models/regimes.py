@@ -26,8 +26,9 @@ Method (per heliostat)
    > 1 allows for residuals that are not independent (rows of one day share sun positions and a
    model misfit); its default was chosen on simulated static heliostats (benchmarks/regimes.py),
    never on real data.
-5. Episodes. A segment between two others that lasts at most ``episode_max_days`` is an
-   episode: the heliostat was off for a few days and came back (or changed again).
+5. Episodes. A segment between two others that lasts at most ``episode_max_days`` and whose
+   level differs from the regime before it is an episode: the heliostat was off for a few days
+   and came back (or changed again); consecutive short segments within that time are one.
 6. Outliers. Rows whose robust distance from their segment's median, ``sqrt(sum(((x -
    median) / noise)^2))``, exceeds ``outlier_z``: flagged, never dropped.
 
@@ -170,6 +171,10 @@ def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
     out, level, level_n, regime, last_kind = [], None, 0, 0, "regime"
     for k, (s, e, episode) in enumerate(segments):
         center = np.median(x[s:e], axis=0)
+        # a short segment at the level of the regime before it is the heliostat back to normal
+        # between two episodes, not an episode
+        episode = episode and (level is None or _differs(center, level, noise, e - s, level_n,
+                                                         penalty))
         if k > 0 and not episode:
             # a new regime, except when the heliostat comes back to its level after an episode
             if last_kind != "episode" or _differs(center, level, noise, e - s, level_n, penalty):

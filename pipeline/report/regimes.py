@@ -66,7 +66,7 @@ def plot_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame, regimes:
     for x, a, b in zip(seg.itertuples(index=False), starts, bounds):
         if x.kind == "episode":  # at least two days wide, so that it shows
             b = max(naive(x.end), a + pd.Timedelta(days=2))
-            ax.axvspan(a, b, color=_EPISODE_SHADE, lw=0, zorder=0.5)
+            ax.axvspan(a, b, color=_EPISODE_SHADE, alpha=0.35, lw=0, zorder=0.5)
         else:  # a regime lasts until the next segment starts
             ax.axvspan(a, b, color=_REGIME_SHADES[x.regime % 2], lw=0, zorder=0)
         if x.cause in ("detected", "renovation"):
