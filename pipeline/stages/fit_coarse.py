@@ -388,4 +388,12 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     write_artifact(params, workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
     write_artifact(preds, workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
     write_artifact(regimes, workdir, REGIMES, stage="fit-coarse", options=opts)
-    return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries}
+    return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
+            "regimes": {
+                "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
+                    ["detected", "renovation"]), "heliostat_id"].nunique()),
+                "detected_breaks": int((regimes["cause"] == "detected").sum()),
+                "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
+                "episodes": int((regimes["kind"] == "episode").sum()),
+                "outliers": int((regimes["kind"] == "outlier").sum()),
+                "refitted_without_episodes": sorted(h for h in refit if by_id[h][2]["episode_rows"])}}
