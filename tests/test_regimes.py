@@ -190,7 +190,7 @@ def test_simulated_steps_and_episodes_are_found(changing_field):
     assert score["static_heliostats"] >= 3 and score["static_false_alarms"] == 0
 
 
-def test_static_heliostats_keep_their_fit_and_episodes_are_refitted(changing_field):
+def test_static_heliostats_keep_their_fit_and_episode_refits_need_the_margin(changing_field):
     field, before, after = changing_field["field"], changing_field["before"], changing_field["after"]
     regimes = changing_field["regimes"]
     with_episodes = set(regimes.loc[regimes["kind"] == "episode", "heliostat_id"])
@@ -198,25 +198,24 @@ def test_static_heliostats_keep_their_fit_and_episodes_are_refitted(changing_fie
     for hid in static:  # not refitted: the same numbers as before
         pd.testing.assert_series_equal(before.loc[hid, "fitted"], after.loc[hid, "fitted"])
         assert hid not in with_episodes
-    # heliostats whose only changes are episodes (with steps too, the unmodelled step dominates)
-    only = [h for h in with_episodes
-            if {e["kind"] for e in field.heliostats[h].changes} == {"episode"}]
-    assert only  # seed 2 has some
-    for hid in only:
-        # the episode pulled the first fit off: without its rows the error on the other
-        # training rows drops
+    assert with_episodes  # seed 2 has episodes with rows
+    for hid in with_episodes:
+        # a refit without the episodes replaces the first fit only if it is 20 % better on the
+        # validation rows outside the episodes (fit_coarse.EPISODE_REFIT_MIN_IMPROVEMENT); with
+        # the robust loss these episodes barely pull the fit, so here the first fits stay
         means = []
         for e in (changing_field["errors_before"], changing_field["errors_after"]):
-            e = e[(e["heliostat_id"] == hid) & (e["split"] == "train")].reset_index(drop=True)
+            e = e[(e["heliostat_id"] == hid) & (e["split"] == "validation")].reset_index(drop=True)
             outside = ~regime_of_rows(regimes, hid, e["timestamp"])["episode"].to_numpy()
             means.append(e.loc[outside, "error_mrad"].mean())
-        assert means[1] < means[0]
-    # an episode-only heliostat is calibrated like a healthy one: its regime rows' error within
-    # 1.2x the noise floor (the true model's mean error)
-    for hid in only:
-        seg = regimes[(regimes["heliostat_id"] == hid) & (regimes["kind"] == "regime")]
-        err = (seg["error_mrad"] * seg["n_rows"]).sum() / seg["n_rows"].sum()
-        assert err <= 1.2 * field.heliostats[hid].noise_floor_mrad
+        same = np.allclose(before.loc[hid, "fitted"], after.loc[hid, "fitted"], rtol=0, atol=0)
+        assert same or means[1] < 0.8 * means[0], (hid, means)
+        # an episode-only heliostat is calibrated like a healthy one: its regime rows' error
+        # within 1.2x the noise floor (the true model's mean error)
+        if {e["kind"] for e in field.heliostats[hid].changes} == {"episode"}:
+            seg = regimes[(regimes["heliostat_id"] == hid) & (regimes["kind"] == "regime")]
+            err = (seg["error_mrad"] * seg["n_rows"]).sum() / seg["n_rows"].sum()
+            assert err <= 1.2 * field.heliostats[hid].noise_floor_mrad
 
 
 def test_aim_reports_the_latest_regime(changing_field):

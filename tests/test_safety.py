@@ -380,7 +380,8 @@ def test_hostile_log_end_to_end(runner, tmp_path):
     assert sorted(p.name for p in (wd / "hybrid" / "hybrid").iterdir()) == ["__init__.json",
                                                                             "__init__.pt"]
     assert sorted(p.name for p in (wd / "report" / "figures").iterdir()) == [
-        "error_over_time___init__.png", "hybrid_vs_coarse.png", "sky_map___init__.png"]
+        "error_over_time___init__.png", "hybrid_vs_coarse.png", "regimes___init__.png",
+        "sky_map___init__.png"]
     # nothing was created outside the work directory (the traversal id, had it been kept, would
     # have written d1/d2/d3/tmp/x/pwned.pt from hybrid/hybrid/)
     new = {p for p in tmp_path.rglob("*")} - before

@@ -212,6 +212,13 @@ def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
 #: of its fit (issue 17: episodes of a few days among months of normal rows).
 MAX_EPISODE_SHARE = 0.25
 
+#: Relative validation improvement (outside episodes) the fit without a heliostat's episodes
+#: needs to replace its first fit: the sweep's margin rule (stages.sweep.MIN_IMPROVEMENT). With
+#: the default robust loss episodes pull a fit little, and a refit without them that is only a
+#: few per cent better on 20 validation rows was as often worse on test (sample_data's BH35:
+#: validation -7 %, test +11 %), so a small gain is not taken.
+EPISODE_REFIT_MIN_IMPROVEMENT = 0.20
+
 
 def _selected_error(predictions: pd.DataFrame, mask: np.ndarray) -> float:
     """Mean error of the selected model on the rows ``mask`` (in the heliostat's row order);
@@ -352,15 +359,15 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
             rows_of[hid] = rows_of[hid].assign(episode=flags)
             refit.append(hid)
     for hid, res in fit(refit).items() if refit else ():
-        # keep the refit only if it is better on the validation rows outside the episodes (the
-        # rows both fits are meant for): a heliostat must not get worse by it
+        # the refit is a candidate: kept only if it beats the first fit by the sweep's margin on
+        # the validation rows outside the episodes (the rows both fits are meant for)
         ok = (rows_of[hid]["split"].to_numpy() == "validation") & ~rows_of[hid]["episode"].to_numpy()
         old, new = (_selected_error(r[1], ok) for r in (by_id[hid], res))
-        if new < old:
+        if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old:
             by_id[hid] = res
         else:
-            log.info("%s: the fit without its episodes is not better on validation (%.3f vs "
-                     "%.3f mrad); the first fit is kept", hid, new, old)
+            log.info("%s: the fit without its episodes is not 20 %% better on validation (%.3f "
+                     "vs %.3f mrad); the first fit is kept", hid, new, old)
     all_params, all_preds, summaries = [], [], []
     for params, preds, summary in (by_id[h] for h in ids):
         if summary["degenerate"]:
