@@ -390,7 +390,7 @@ def test_hostile_log_end_to_end(runner, tmp_path):
     assert not [p for p in new if "pwned" in p.name]
     md = (wd / "report" / "report.md").read_text()
     got = _render(md)
-    assert got.tags.count("img") == 3 and "onerror" not in got.attrs  # the 3 figures
+    assert got.tags.count("img") == 4 and "onerror" not in got.attrs  # the 4 figures
     assert got.tags.count("strong") == md.count("> **Note:**")
     text = "".join(got.text)
     assert f"heliocal report: {wd}" in text and "__init__" in text
