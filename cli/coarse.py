@@ -28,6 +28,14 @@ def _human(summary: dict) -> None:
                       h["selected"], _fmt(s["train"]), _fmt(s["validation"]), _fmt(s["test"]))
     stdout.print(table)
     stdout.print("mean error_mrad per split; the preset is chosen by validation error.")
+    r = summary.get("regimes")
+    if r:
+        refit = r["refitted_without_episodes"]
+        stdout.print(f"regimes: {r['detected_breaks']} detected and {r['renovation_breaks']} "
+                     f"renovation breaks in {r['heliostats_with_breaks']} heliostats, "
+                     f"{r['episodes']} episodes, {r['outliers']} outliers (regimes.parquet); "
+                     f"fitted again without their episodes: {', '.join(refit) if refit else 'none'}.",
+                     markup=False)
 
 
 @command("fit-coarse")

@@ -79,18 +79,31 @@ def simulate_cmd(
     start: Annotated[str, typer.Option(
         "--start", help="First day of the calibration period (UTC).")] = "2023-01-01",
     end: Annotated[str, typer.Option("--end", help="Day after the period (UTC).")] = "2024-01-01",
+    step_fraction: Annotated[float, typer.Option(
+        "--step-fraction", help="Share of heliostats with regime steps (1-2 lasting offsets of "
+                                "actuator zero points or tilts, 1-4 mrad), 0 to 1.")] = 0.0,
+    episode_fraction: Annotated[float, typer.Option(
+        "--episode-fraction", help="Share of heliostats with episodes (1-2 offsets of 2-15 mrad "
+                                   "that last 1-4 days), 0 to 1.")] = 0.0,
+    drift_fraction: Annotated[float, typer.Option(
+        "--drift-fraction", help="Share of heliostats whose actuator zero point drifts (1-3 "
+                                 "mrad/year from a date on), 0 to 1.")] = 0.0,
     overwrite: Annotated[bool, typer.Option(
         "--overwrite", help="Replace a previous simulation in --out (only its files are removed).")] = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
     """Simulate a synthetic field with known ground truth, in the formats ingest reads."""
+    from heliocal.pipeline.models.changes import Changes
     from heliocal.pipeline.models.simulator import simulate_field
     from heliocal.pipeline.stages.simulate import write_field
 
     field = simulate_field(heliostats, seed=seed, measurements=_parse_range(measurements),
                            kinematic_types=_parse_list(types), dynamic_fraction=dynamic_fraction,
                            disturbances=_parse_list(disturbances), noise_mrad=noise_mrad,
-                           deviations=deviations, start=start, end=end)
+                           deviations=deviations, start=start, end=end,
+                           changes=Changes(step_fraction=step_fraction,
+                                           episode_fraction=episode_fraction,
+                                           drift_fraction=drift_fraction))
     summary = write_field(field, out, overwrite=overwrite)
     emit(summary, json_, _human)

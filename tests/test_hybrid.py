@@ -74,6 +74,7 @@ HELIOSTAT_ROW = {
     "axis_1_gear_ratio_steps_per_rad": np.nan, "axis_1_angle_offset_rad": np.nan,
     "axis_2_gear_ratio_steps_per_rad": np.nan, "axis_2_angle_offset_rad": np.nan,
     "primary_axis_e": np.nan, "primary_axis_n": np.nan, "primary_axis_u": np.nan,
+    "renovation_start": pd.NaT, "renovation_end": pd.NaT,
 }
 #: static deviations of the "true" heliostat from nominal [rad]
 STATIC = {"joint_1_tilt_n_rad": 1.5e-3, "joint_1_tilt_u_rad": -1.0e-3,

@@ -87,6 +87,29 @@ def test_paint_heliostat_properties(paint):
     # every heliostat lies north of the tower (n > 0) within 300 m and near ground level
     assert (h["heliostat_n_m"] > 0).all() and (np.hypot(h["heliostat_e_m"], h["heliostat_n_m"]) < 300).all()
     assert (h["heliostat_u_m"].abs() < 10).all()
+    # PAINT's renovation property (BE36, BF41, BH35: "2022-06-09"): midnight to midnight, UTC
+    for hid in ("BE36", "BF41", "BH35"):
+        assert h.loc[hid, "renovation_start"] == pd.Timestamp("2022-06-09", tz="UTC")
+        assert h.loc[hid, "renovation_end"] == pd.Timestamp("2022-06-10", tz="UTC")
+
+
+@pytest.mark.parametrize("text, first, last", [
+    ("2020-10-26/2020-11-08", "2020-10-26", "2020-11-09"), ("2021-03-04", "2021-03-04", "2021-03-05"),
+    (None, None, None), ("", None, None)])
+def test_renovation_window(text, first, last):
+    from heliocal.pipeline.io.paint import renovation_window
+
+    w = renovation_window(text)
+    for key, day in (("renovation_start", first), ("renovation_end", last)):
+        assert (pd.isna(w[key]) if day is None else w[key] == pd.Timestamp(day, tz="UTC"))
+
+
+@pytest.mark.parametrize("text", ["2021-13-01", "2021-03-04/2021-03-01", "a/b/c", "2021-03-04T10:00"])
+def test_bad_renovation_is_refused(text):
+    from heliocal.pipeline.io.paint import renovation_window
+
+    with pytest.raises(ValueError):
+        renovation_window(text)
 
 
 def test_juelich_log_accounts_for_all_rows(juelich_log):

@@ -26,7 +26,7 @@ from heliocal.pipeline.stages.report import run_report
 from heliocal.pipeline.report.metrics import compute_metrics, metrics_json
 from heliocal.pipeline.report.inputs import load_inputs
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, all_schemas
-from heliocal.pipeline.artifacts.schemas import SPLIT
+from heliocal.pipeline.artifacts.schemas import REGIMES, SPLIT
 
 ROOT = Path(__file__).resolve().parents[1]
 SCHEMA = json.loads((ROOT / "docs" / "metrics_schema.json").read_text())
@@ -136,6 +136,22 @@ def make_workdir(root: Path, stage: str = "sweep") -> Path:
               for hid in HIDS for k, name in enumerate(("joint_1_tilt_e_rad", "joint_1_tilt_n_rad",
                                                         "joint_2_tilt_u_rad"))]
     _write(pd.DataFrame(params), wd, COARSE_PARAMS)
+    # regimes: AA01 changes at its 20th row (detected), AB02 stays in one regime with an outlier
+    t = m.groupby("heliostat_id")["timestamp"]
+    first, last = t.min(), t.max()
+    at = m.loc[(m["heliostat_id"] == "AA01") & (m["measurement_id"] == "1020"), "timestamp"].iloc[0]
+    _write(pd.DataFrame([
+        {"heliostat_id": "AA01", "kind": "regime", "regime": 0, "start": first["AA01"],
+         "end": at - pd.Timedelta(days=9), "cause": "start", "n_rows": 20, "step_mrad": np.nan,
+         "evidence": np.nan, "error_mrad": 0.6},
+        {"heliostat_id": "AA01", "kind": "regime", "regime": 1, "start": at, "end": last["AA01"],
+         "cause": "detected", "n_rows": 20, "step_mrad": 2.5, "evidence": 40.0, "error_mrad": 0.9},
+        {"heliostat_id": "AB02", "kind": "regime", "regime": 0, "start": first["AB02"],
+         "end": last["AB02"], "cause": "start", "n_rows": 40, "step_mrad": np.nan,
+         "evidence": np.nan, "error_mrad": 0.7},
+        {"heliostat_id": "AB02", "kind": "outlier", "regime": 0, "start": first["AB02"],
+         "end": first["AB02"], "cause": "outlier", "n_rows": 1, "measurement_id": "1000",
+         "step_mrad": 3.0, "evidence": 9.0, "error_mrad": 3.1}]), wd, REGIMES)
     if stage == "coarse":
         return wd
     _write_optional(_predictions({"hybrid": coarse_err * 0.7, "nn-only": coarse_err * 1.5},
@@ -252,7 +268,7 @@ def test_small_validator_catches_what_jsonschema_would():
 # the full report
 # ------------------------------------------------------------------------------------------------
 def _figure_names() -> list[str]:
-    per = ("training_size", "sky_map", "weight_decay", "error_over_time")
+    per = ("training_size", "sky_map", "weight_decay", "regimes", "error_over_time")
     return [f"{p}_{h}.png" for p in per for h in HIDS] + ["hybrid_vs_coarse.png"]
 
 
@@ -332,7 +348,8 @@ def test_metrics_values_and_schema(full_report):
     assert metrics["data"]["first_timestamp"] == "2023-01-05T00:00:00Z"
     assert set(metrics["inputs"]) == {"measurements.parquet", "heliostats.parquet",
                                       "rejected.parquet", "split.parquet", "coarse_params.parquet",
-                                      "coarse_predictions.parquet", "hybrid_predictions.parquet",
+                                      "coarse_predictions.parquet", "regimes.parquet",
+                                      "hybrid_predictions.parquet",
                                       "sweep.parquet", "selection.parquet"}
     assert all(re.fullmatch("[0-9a-f]{64}", h) for h in metrics["inputs"].values())
 
@@ -359,8 +376,8 @@ def test_report_after_fit_coarse_names_the_missing_stages(tmp_path):
     wd = make_workdir(tmp_path, "coarse")
     summary = run_report(wd)
     names = sorted(Path(f).name for f in summary["figures"])
-    assert names == sorted([f"{p}_{h}.png" for p in ("sky_map", "error_over_time") for h in HIDS]
-                           + ["field_error_cdf.png"])
+    assert names == sorted([f"{p}_{h}.png" for p in ("sky_map", "regimes", "error_over_time")
+                            for h in HIDS] + ["field_error_cdf.png"])
     md = (wd / "report" / "report.md").read_text()
     assert f"Omitted: needs sweep.parquet; run `heliocal sweep --workdir {wd}`." in md
     assert ("Omitted: needs selection.parquet or hybrid_predictions.parquet; run "
@@ -462,3 +479,12 @@ def test_cli_report_help(runner):
     res = runner.invoke(app, ["report", "--help"])
     assert res.exit_code == 0
     assert "index.html" in res.stdout and "--compare" in res.stdout
+
+
+def test_alert_list_of_regimes(full_report):
+    # the fake regimes above: one detected change (AA01, 2.5 mrad), no renovation
+    wd, _ = full_report
+    md = (wd / "report" / "report.md").read_text()
+    assert "Alert list" in md
+    alerts = [line for line in md.splitlines() if "regime 1 starts" in line]
+    assert len(alerts) == 1 and "AA01" in alerts[0] and "2.50" in alerts[0]

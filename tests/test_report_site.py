@@ -46,17 +46,20 @@ def test_overview_numbers_are_the_errors_aim_uses(coarse_report):
     # median of (0.95, 1.0); numpy's linear 95th percentile: 0.95 + 0.95 * 0.05
     assert s["median_test_error_mrad"] == pytest.approx(0.975, abs=1e-12)
     assert s["p95_test_error_mrad"] == pytest.approx(0.9975, abs=1e-12)
-    assert (s["n_above_alert"], s["n_on_alert"]) == (1, 1)
+    # AB02 is above the threshold; AA01 is on alert for the regime change the fixture's
+    # regimes.parquet holds (detected, 2.5 mrad, into its latest regime: report.regimes)
+    assert (s["n_above_alert"], s["n_on_alert"]) == (1, 2)
     index = (wd / "report" / "index.html").read_text()
     assert "<b>0.975 mrad</b>median test error" in index
-    # worst first: AB02 (1.0) is rank 1 and on alert, AA01 (0.95) rank 2 without alert
+    # worst first: AB02 (1.0) is rank 1, AA01 (0.95) rank 2
     rows = re.findall(r"<tr><td>(\d)</td><td class=\"t\"><a href=\"heliostats/(\w+)\.html\">"
                       r"\w+</a></td><td>([\d.]+)</td><td>([\d.]+)</td>", index)
     assert rows == [("1", "AB02", "1.000", "0.850"), ("2", "AA01", "0.950", "0.800")]
     assert 'title="test error 1.00 mrad above 0.97 mrad"' in index
-    # the map: one link per heliostat, the one on alert ringed in red
+    assert "regime change detected on" in index and "(2.5 mrad)" in index
+    # the map: one link per heliostat, those on alert ringed in red
     assert re.search(r'<a href="heliostats/AB02.html"><circle [^>]*stroke="#d00000"', index)
-    assert re.search(r'<a href="heliostats/AA01.html"><circle [^>]*stroke="#333"', index)
+    assert re.search(r'<a href="heliostats/AA01.html"><circle [^>]*stroke="#d00000"', index)
     assert 'src="figures/field_error_cdf.png"' in index
 
 
@@ -136,8 +139,9 @@ def test_figures_drawn_in_worker_processes_equal_those_drawn_here(tmp_path, monk
     here = run_report(wd, tmp_path / "here", workers=1)
     monkeypatch.setattr(report_stage, "MIN_PARALLEL_FIGURES", 0)
     pool = run_report(wd, tmp_path / "pool", workers=2)
+    # 13 figures of the sweep workdir plus one regime figure per heliostat (its regimes.parquet)
     names = sorted(Path(f).name for f in here["figures"])
-    assert names == sorted(Path(f).name for f in pool["figures"]) and len(names) == 13
+    assert names == sorted(Path(f).name for f in pool["figures"]) and len(names) == 15
     for n in names:  # the same matplotlib draws the same pixels, wherever it runs
         assert (tmp_path / "here" / "figures" / n).read_bytes() == \
             (tmp_path / "pool" / "figures" / n).read_bytes(), n

@@ -381,7 +381,7 @@ def test_hostile_log_end_to_end(runner, tmp_path):
                                                                             "__init__.pt"]
     assert sorted(p.name for p in (wd / "report" / "figures").iterdir()) == [
         "error_over_time___init__.png", "field_error_cdf.png", "hybrid_vs_coarse.png",
-        "sky_map___init__.png"]
+        "regimes___init__.png", "sky_map___init__.png"]
     assert sorted(p.name for p in (wd / "report" / "heliostats").iterdir()) == ["__init__.html"]
     # nothing was created outside the work directory (the traversal id, had it been kept, would
     # have written d1/d2/d3/tmp/x/pwned.pt from hybrid/hybrid/)
@@ -391,7 +391,7 @@ def test_hostile_log_end_to_end(runner, tmp_path):
     assert not [p for p in new if "pwned" in p.name]
     md = (wd / "report" / "report.md").read_text()
     got = _render(md)
-    assert got.tags.count("img") == 3 and "onerror" not in got.attrs  # the 3 figures
+    assert got.tags.count("img") == 4 and "onerror" not in got.attrs  # the 4 figures
     assert got.tags.count("strong") == md.count("> **Note:**")
     text = "".join(got.text)
     assert f"heliocal report: {wd}" in text and "__init__" in text

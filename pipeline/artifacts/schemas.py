@@ -14,7 +14,7 @@ import re
 
 from .table import ArtifactSchema, Column
 
-__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS",
+__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS", "REGIMES",
            "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
            "nomenclature_markdown"]
@@ -150,6 +150,11 @@ HELIOSTATS = ArtifactSchema(
           "target), east.", nullable=True),
         C("primary_axis_n", "float64", "1", "Primary axis, north.", nullable=True),
         C("primary_axis_u", "float64", "1", "Primary axis, up.", nullable=True),
+        C("renovation_start", "timestamp", "UTC", "Start of the last renovation (PAINT's "
+          "`renovation` property: midnight of its first day); fit-coarse puts a known regime "
+          "break there. Missing if the source has none.", nullable=True),
+        C("renovation_end", "timestamp", "UTC", "End of that renovation (midnight after its "
+          "last day).", nullable=True),
         C("n_measurements", "int64", "", "Kept measurements of this heliostat."),
     ),
 )
@@ -293,6 +298,49 @@ COARSE_PREDICTIONS = ArtifactSchema(
     ),
 )
 
+REGIMES = ArtifactSchema(
+    name="regimes",
+    filename="regimes.parquet",
+    producer="fit-coarse",
+    sort_by=("heliostat_id", "start", "kind", "measurement_id"),
+    description="Per heliostat, its regimes, episodes and outliers, found on the selected coarse "
+                "fit's residuals in time order (training and validation rows; test rows are "
+                "assigned by time): change points by PELT with a BIC penalty scaled by the robust "
+                "residual noise, renovation dates as known breaks, isolated outliers by a robust "
+                "score (heliocal.pipeline.models.regimes says how). One row per segment "
+                "(`regime`, `episode`) and per outlier; outliers are flagged, never dropped.",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("kind", "string", "", "`regime` (the heliostat's geometry between two breaks), "
+          "`episode` (a segment of at most a week between two others: off for a few days) or "
+          "`outlier` (one row far from its segment)."),
+        C("regime", "int64", "", "Regime number, 0 = oldest; an episode and an outlier carry "
+          "the number of the regime they interrupt."),
+        C("start", "timestamp", "UTC", "First measurement of the segment (outlier: its time)."),
+        C("end", "timestamp", "UTC", "Last measurement of the segment (outlier: its time)."),
+        C("cause", "string", "", "What starts the segment: `start` (first), `renovation` (a "
+          "PAINT renovation date), `detected` (a change point), `outlier`."),
+        C("n_rows", "int64", "", "Measurements of the segment that the detection read."),
+        C("measurement_id", "string", "", "The outlier's measurement (missing for segments).",
+          nullable=True),
+        C("center_horizontal_mrad", "float64", "mrad", "Median residual of the mirror normal "
+          "along the target's horizontal axis on the segment (outlier: its residual)."),
+        C("center_vertical_mrad", "float64", "mrad", "Same, vertical axis."),
+        C("step_mrad", "float64", "mrad", "Size of the break at the segment's start: distance "
+          "between its median residual and the previous segment's (outlier: its distance from "
+          "its segment's median); missing for the first segment.", nullable=True),
+        C("evidence", "float64", "", "Break: decrease of the l2 cost by the break divided by "
+          "the penalty (> 1: PELT would break there; a renovation may show less); outlier: its "
+          "robust distance in noise units; missing for the first segment.", nullable=True),
+        C("noise_mrad", "float64", "mrad", "Robust noise of the heliostat's residuals (mean of "
+          "the two components)."),
+        C("error_mrad", "float64", "mrad", "Mean error of the finally selected coarse model on "
+          "the rows of every split from start to end (outlier: its row); rows of a detected "
+          "episode are left out of that model's training and of its selection, so an episode "
+          "reports here the error no geometry of the heliostat can remove.", nullable=True),
+    ),
+)
+
 HYBRID_PREDICTIONS = dataclasses.replace(
     COARSE_PREDICTIONS,
     name="hybrid_predictions",
@@ -370,7 +418,7 @@ SELECTED_PREDICTIONS = ArtifactSchema(
 def all_schemas() -> list[ArtifactSchema]:
     """Every artifact schema of heliocal, in the order of the stages that write them."""
     return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
-            HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
+            REGIMES, HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
 
 
 def nomenclature_markdown() -> str:

@@ -23,6 +23,7 @@ from .text import load_json, shorten
 
 __all__ = [
     "read_paint_properties",
+    "renovation_window",
     "DEFAULT_JUELICH_PROPERTIES",
     "default_properties_row",
     "stage_paint",
@@ -90,6 +91,22 @@ def paint_kinematics_columns(kin: dict) -> dict:
     return row
 
 
+def renovation_window(text) -> dict:
+    """``renovation_start`` and ``renovation_end`` [UTC] of PAINT's ``renovation`` property: a day
+    (``2022-06-09``) or a range of days (``2020-10-26/2020-11-08``); the window runs from the
+    first day's midnight to the midnight after the last day. Missing values give NaT; a value
+    that is not such a date raises ValueError."""
+    if text is None or (isinstance(text, str) and not text.strip()):
+        return {"renovation_start": pd.NaT, "renovation_end": pd.NaT}
+    parts = str(text).strip().split("/")
+    if len(parts) > 2:
+        raise ValueError(f"renovation {text!r} is neither a date nor FIRST/LAST")
+    days = [pd.Timestamp(p.strip(), tz="UTC") for p in parts]
+    if any(d != d.normalize() for d in days) or days[-1] < days[0]:
+        raise ValueError(f"renovation {text!r} is neither a date nor FIRST/LAST")
+    return {"renovation_start": days[0], "renovation_end": days[-1] + pd.Timedelta(days=1)}
+
+
 def read_paint_properties(path: Path, reference) -> dict:
     """One heliostats.parquet row from a PAINT ``<HID>-heliostat-properties.json``.
 
@@ -117,6 +134,7 @@ def read_paint_properties(path: Path, reference) -> dict:
             "initial_orientation_u": orientation[2],
         }
         row.update(paint_kinematics_columns(kin))
+        row.update(renovation_window(data.get("renovation")))
         types = {str(act.get("type_axis", "linear")).lower() for act in actuators}
         if types != {"linear"}:
             raise ValueError(f"actuator types {sorted(types)}; PAINT heliostats have linear actuators")

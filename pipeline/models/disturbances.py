@@ -176,7 +176,8 @@ def disturbance_values(setup: dict, times: pd.DatetimeIndex, t0: pd.Timestamp,
 
 
 def params_per_measurement(true: torch.Tensor, setup: dict, values: dict, n: int) -> torch.Tensor:
-    params = true.unsqueeze(0).repeat(n, 1)
+    """Parameters (n, 28): ``true`` (28,) or (n, 28) plus each disturbance's values."""
+    params = true.clone() if true.dim() == 2 else true.unsqueeze(0).repeat(n, 1)
     for kind, v in values.items():
         i = PARAMETER_INDEX[setup[kind]["parameter"]]
         params[:, i] = params[:, i] + torch.as_tensor(v, dtype=torch.float64)

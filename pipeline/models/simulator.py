@@ -50,10 +50,11 @@ from ..errors import InputError, ParameterError, check_choice, check_float, chec
 from ..io.paint import paint_kinematics_columns
 from ..physics.geodesy import enu_to_wgs84, wgs84_to_enu
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
-from ..physics.metrics import error_mrad, measured_normal, reflect
+from ..physics.metrics import angle_between_mrad, error_mrad, measured_normal, reflect
 from ..physics.parameters import (PARAMETER_NAMES, PRESET_NAMES, HeliostatSpec, nominal_parameters,
                                   preset_parameters)
 from ..physics.sun import spa_sun_position, sun_vector_enu
+from .changes import Changes, change_offsets, draw_changes
 from .disturbances import (DISTURBANCE_COLUMNS, DISTURBANCE_KINDS, Disturbances, deviate_parameters,
                            disturbance_column, disturbance_setup, disturbance_values,
                            params_per_measurement, temperature_c)
@@ -148,6 +149,7 @@ class SimulatedHeliostat:
     disturbances: dict
     params: torch.Tensor | None = None
     paint_properties: dict | None = None
+    changes: list = field(default_factory=list)
     noise_floor_mrad: float = float("nan")
     error_true_static_mrad: float = float("nan")
     error_nominal_mrad: float = float("nan")
@@ -385,7 +387,8 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
                    disturbance_sizes: Disturbances | None = None, noise_mrad: float = 0.2,
                    deviations: str | Sequence[str] = "static-20", start: str = "2023-01-01",
                    end: str = "2024-01-01",
-                   reference: tuple[float, float, float] = JUELICH_REFERENCE) -> SimulatedField:
+                   reference: tuple[float, float, float] = JUELICH_REFERENCE,
+                   changes: Changes | None = None) -> SimulatedField:
     """Simulate a calibrated field with known ground truth (see the module docstring).
 
     Parameters
@@ -403,6 +406,8 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
         (the parameters it frees for each heliostat's type), ``"none"``, or explicit names.
     start, end : calibration period [start, end) (UTC dates).
     reference : plant reference point (lat [deg], lon [deg], ellipsoidal height [m]).
+    changes : regime steps, episodes and drift (:class:`~heliocal.pipeline.models.changes.Changes`;
+        default none); drawn from their own generator, so without them the field is the same.
 
     Returns
     -------
@@ -415,6 +420,7 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
     sizes = disturbance_sizes or Disturbances()
     reference = tuple(float(x) for x in reference)
     rng = np.random.default_rng(seed)
+    change_rng = np.random.default_rng([seed, 17])
     targets = _targets(reference)
     target_names = list(targets)
     slots = _daylight_slots(reference, t0, t1)
@@ -443,6 +449,8 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
         count = int(rng.integers(m_lo, m_hi + 1))
         h = SimulatedHeliostat(hid, kt, spec.actuator_type, dynamic, row, spec, nominal, true, names,
                                setup, paint_properties=paint)
+        if changes is not None and changes.any:
+            h.changes = draw_changes(change_rng, changes, kt, t0, t1)
         frames.append(_simulate_measurements(rng, h, count, slots, t0, targets, target_names,
                                              reference, noise_mrad))
         heliostats[hid] = h
@@ -459,7 +467,24 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
                 "noise_mrad": noise_mrad,
                 "deviations": deviations if isinstance(deviations, str) else list(deviations),
                 "start": str(t0.date()), "end": str(t1.date()), "reference": list(reference)}
+    if changes is not None and changes.any:
+        settings["changes"] = asdict(changes)
     return SimulatedField(reference, targets, heliostats, meas, settings)
+
+
+def _change_effects(h: SimulatedHeliostat, params, steps, times) -> None:
+    """Per event: rows it affects and the mean angle [mrad] it turns the normal on them."""
+    for event in h.changes:
+        without = params - change_offsets([event], times)
+        active = (without != params).any(-1)
+        event["n_rows"] = int(active.sum())
+        if not bool(active.any()):
+            event["effect_mrad"] = 0.0
+            continue
+        with torch.no_grad():
+            n_with, _ = forward_kinematics(params[active], h.spec, steps[active].unsqueeze(-2))
+            n_without, _ = forward_kinematics(without[active], h.spec, steps[active].unsqueeze(-2))
+        event["effect_mrad"] = float(angle_between_mrad(n_with, n_without).mean())
 
 
 def _simulate_measurements(rng, h: SimulatedHeliostat, count: int, slots, t0, targets, target_names,
@@ -484,18 +509,19 @@ def _simulate_measurements(rng, h: SimulatedHeliostat, count: int, slots, t0, ta
         n = len(times)
         base = {k: v for k, v in disturbance_values(h.disturbances, times, t0, temperature,
                                                     np.zeros(n)).items() if k != "gear_error"}
-        params = params_per_measurement(h.true, h.disturbances, base, n)
+        true = h.true + change_offsets(h.changes, times) if h.changes else h.true
+        params = params_per_measurement(true, h.disturbances, base, n)
         steps = _inverse_steps(params, spec, sun, centre)
         values = base
         if "gear_error" in h.disturbances:  # the gear error depends on the steps: fixed point
             for _ in range(3):
                 values = disturbance_values(h.disturbances, times, t0, temperature,
                                              np.nan_to_num(steps[:, 1].numpy()))
-                params = params_per_measurement(h.true, h.disturbances, values, n)
+                params = params_per_measurement(true, h.disturbances, values, n)
                 steps = _inverse_steps(params, spec, sun, centre)
             values = disturbance_values(h.disturbances, times, t0, temperature,
                                          np.nan_to_num(steps[:, 1].numpy()))
-            params = params_per_measurement(h.true, h.disturbances, values, n)
+            params = params_per_measurement(true, h.disturbances, values, n)
         ok = torch.isfinite(steps).all(-1).numpy()
         ok &= np.cumsum(ok) <= need
         sel = torch.as_tensor(ok)
@@ -524,6 +550,7 @@ def _simulate_measurements(rng, h: SimulatedHeliostat, count: int, slots, t0, ta
     static = h.true.unsqueeze(0).expand_as(params)
     h.error_true_static_mrad = _mean_error(static, spec, steps, sun, noisy)
     h.error_nominal_mrad = _mean_error(h.nominal.unsqueeze(0).expand_as(params), spec, steps, sun, noisy)
+    _change_effects(h, params, steps, times)
     frame = pd.DataFrame({
         "heliostat_id": h.heliostat_id,
         "timestamp": times,

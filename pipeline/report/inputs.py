@@ -22,13 +22,14 @@ __all__ = [
 
 
 _OPTIONAL = ("split.parquet", "coarse_params.parquet", "coarse_predictions.parquet",
-             "hybrid_predictions.parquet", "sweep.parquet", "selection.parquet",
+             "regimes.parquet", "hybrid_predictions.parquet", "sweep.parquet", "selection.parquet",
              "selected_predictions.parquet")
 
 
 #: Stage that writes each optional artifact (used when its schema is not importable yet).
 _PRODUCERS = {"split.parquet": "split-knn", "coarse_params.parquet": "fit-coarse",
-              "coarse_predictions.parquet": "fit-coarse", "hybrid_predictions.parquet": "fit-hybrid",
+              "coarse_predictions.parquet": "fit-coarse", "regimes.parquet": "fit-coarse",
+              "hybrid_predictions.parquet": "fit-hybrid",
               "sweep.parquet": "sweep", "selection.parquet": "sweep",
               "selected_predictions.parquet": "sweep"}
 
@@ -49,6 +50,7 @@ class ReportInputs:
     predictions: pd.DataFrame | None = None  # coarse and hybrid predictions, column `source`
     sweep: pd.DataFrame | None = None
     selection: pd.DataFrame | None = None
+    regimes: pd.DataFrame | None = None
     paths: dict[str, Path] = field(default_factory=dict)  # filename -> path of every input read
     notes: list[str] = field(default_factory=list)  # staleness and similar warnings
 
@@ -130,6 +132,8 @@ def load_inputs(workdir: str | Path) -> ReportInputs:
             inp.sweep = df
         elif name == "selection.parquet":
             inp.selection = df
+        elif name == "regimes.parquet":
+            inp.regimes = df
     preds = []
     for name in ("coarse_predictions.parquet", "hybrid_predictions.parquet",
                  "selected_predictions.parquet"):

@@ -67,6 +67,10 @@ def _draw(task: FigureTask):
                                     a["model"], a["coarse"], label=a.get("label"))
     if task.kind == "hybrid_vs_coarse":
         return plot_hybrid_vs_coarse(a["table"]), None
+    if task.kind == "regimes":
+        from .regimes import plot_regimes
+
+        return plot_regimes(a["measurements"], a["predictions"], a["regimes"], task.heliostat)
     if task.kind.startswith("field_"):
         from .field_figures import draw_field_figure
 
@@ -205,6 +209,8 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
             "Mean validation and test error of the selected hybrid model and the selected coarse "
             "preset per heliostat.", None, {"table": table})))
 
+    out += _regime_plan(inp, hids, meas, preds)
+
     out.append(("h3", "Error over time"))
     if inp.predictions is None:
         out.append(("note", "Omitted: needs predictions; run "
@@ -221,4 +227,37 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
                 "patterns).", hid,
                 {"measurements": meas[hid], "predictions": preds[hid], "model": f["model"],
                  "coarse": f.get("coarse_preset"), "label": label(hid, f["model"])})))
+    return out
+
+
+def _regime_plan(inp: ReportInputs, hids, meas: dict, preds: dict) -> list[tuple]:
+    """The field's list of detected changes (regimes.parquet, fit-coarse) and one regime figure
+    per heliostat (:func:`heliocal.pipeline.report.regimes.plot_regimes`)."""
+    from .regimes import alert_table
+
+    out: list[tuple] = [("h3", "Regimes, episodes and outliers")]
+    if inp.regimes is None or inp.predictions is None:
+        out.append(("note", "Omitted: needs regimes.parquet; run "
+                            f"{inp.run_hint('regimes.parquet')}."))
+        return out
+    headers, rows = alert_table(inp.regimes)
+    if rows:
+        out.append(("p", "Alert list: every detected change and renovation, newest first (step: "
+                         "distance of the median residuals before and after; evidence > 1: the "
+                         "change-point "
+                         "test's penalty is exceeded; error: the selected coarse model's mean "
+                         "error on the segment)."))
+        out.append(("table", headers, rows))
+    else:
+        out.append(("p", "No change detected: every heliostat is in one regime."))
+    regimes = by_heliostat(inp.regimes)
+    for hid in hids:
+        if hid not in preds or hid not in regimes:
+            continue
+        out.append(("task", FigureTask(
+            "regimes", f"regimes_{hid}.png",
+            f"{hid}: error of the selected coarse model over time; shaded: regimes "
+            "(alternating), red: episodes; vertical lines: breaks (dashed: renovation); red "
+            "circles: outliers (flagged, kept).", hid,
+            {"measurements": meas[hid], "predictions": preds[hid], "regimes": regimes[hid]})))
     return out

@@ -12,8 +12,8 @@ import pandas as pd
 import torch
 
 from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs, read_model
-from ..artifacts.schemas import HELIOSTATS
-from ..artifacts.store import read_artifact
+from ..artifacts.schemas import HELIOSTATS, REGIMES
+from ..artifacts.store import artifact_present, read_artifact
 from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
 from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
 from ..models.pretrained import PretrainedModel
@@ -29,6 +29,7 @@ __all__ = [
     "load_model",
     "aim_models",
     "aim_steps",
+    "latest_regime",
 ]
 
 # ------------------------------------------------------------------------------------------------
@@ -69,6 +70,26 @@ def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Ten
 
 @restores_process_state
 @single_threaded
+def latest_regime(workdir: str | Path, heliostat_id: str) -> dict | None:
+    """The heliostat's latest regime in regimes.parquet (fit-coarse): number, start, the rows
+    that support it and the breaks before it; ``None`` without regimes.parquet or rows.
+
+    The coarse geometry is one for all regimes (rows of episodes left out of its fit); the
+    latest regime tells how much of the recent data agrees with it."""
+    if not artifact_present(workdir, REGIMES):
+        return None
+    r = read_artifact(workdir, REGIMES, heliostats=[heliostat_id])
+    seg = r[(r["heliostat_id"] == heliostat_id) & (r["kind"] == "regime")].sort_values("start")
+    if seg.empty:
+        return None
+    last = seg.iloc[-1]
+    latest = seg[seg["regime"] == last["regime"]]
+    return {"regime": int(last["regime"]), "since": str(pd.Timestamp(latest["start"].iloc[0])),
+            "rows": int(latest["n_rows"].sum()),
+            "breaks": int(r["cause"].isin(["detected", "renovation"]).sum()),
+            "episodes": int((r["kind"] == "episode").sum())}
+
+
 def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vector_enu=None,
               time_utc=None, env: Mapping[str, float] | None = None, model: str = "auto",
               max_iterations: int = 50, tolerance_steps: float = 1e-6) -> dict:
@@ -199,4 +220,4 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
             "sun_azimuth_deg": float(az[0]), "sun_elevation_deg": float(el[0]),
             "aim_point_enu_m": aim[0].tolist(), "axis_1_steps": float(steps[0, 0]),
             "axis_2_steps": float(steps[0, 1]), "iterations": iterations,
-            "aim_error_mrad": aim_err}
+            "aim_error_mrad": aim_err, "regime": latest_regime(workdir, heliostat_id)}

@@ -55,6 +55,7 @@ from ..report.metrics import compute_metrics, metrics_json
 from ..report.pages import (build_report, figure_tasks, parameter_tables, render_html,
                             render_markdown, resolve_figures)
 from ..report.render import FigureTask, ReportFigure, render_task
+from ..report.regimes import regime_alerts
 from ..report.site import (field_page_blocks, heliostat_html, heliostats_list_html, index_html,
                            nav_html, why_text)
 from ..runtime.parallel import default_workers, map_tasks
@@ -150,7 +151,8 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     helios = metrics["heliostats"]
     blocks = build_report(inp, metrics)
     choices = aim_models(workdir)
-    table = field_table(inp, metrics, choices, alert_mrad=alert_mrad)
+    table = field_table(inp, metrics, choices, alert_mrad=alert_mrad,
+                        extra_alerts=regime_alerts(inp.regimes))
     summary = field_summary(table, alert_mrad=alert_mrad)
     floor, floor_source = measurement_floor(workdir, floor_mrad)
 
@@ -270,7 +272,8 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
             per[b[1].heliostat].append(b)
         elif b[0] in ("note", "hnote") and len(b) > 2 and b[2] in per:
             per[b[2]].append(("note", b[1]))
-    order = {"sky_map": 0, "error_over_time": 1, "weight_decay": 2, "training_size": 3}
+    order = {"sky_map": 0, "error_over_time": 1, "regimes": 2, "weight_decay": 3,
+             "training_size": 4}
     best_val = {}
     if wd_frame is not None:
         best_val = wd_frame.groupby("heliostat_id")["val_error_mrad"].min().to_dict()

@@ -20,6 +20,7 @@ from .. import __version__
 from ..artifacts.paths import atomic_write_text, safe_child
 from ..artifacts.workdir_lock import LOCK_FILENAME, locks_workdir
 from ..errors import InputError
+from ..models.changes import event_json
 from ..models.disturbances import DISTURBANCE_COLUMNS
 from ..models.simulator import SimulatedField
 from ..physics.geodesy import enu_to_wgs84
@@ -101,6 +102,8 @@ def _ground_truth(field_: SimulatedField, files: dict) -> dict:
             "nominal": _named(h.nominal),
             "true": _named(h.true),
         }
+        if "changes" in field_.settings:  # only then: a field without changes stays as it was
+            helio[hid]["changes"] = [event_json(e) for e in h.changes]
     return {
         "generator": f"heliocal {__version__} simulate",
         "settings": field_.settings,
@@ -118,6 +121,13 @@ def _ground_truth(field_: SimulatedField, files: dict) -> dict:
             "noise_floor_mrad": "mean error_mrad (heliocal.pipeline.physics.metrics) of the true model, "
                                 "disturbances included, on the noisy measurements",
             "error_true_static_mrad": "same for the true static geometry without disturbances",
+            **({"changes": "per heliostat, its change events in time order (models.changes): "
+                           "kind step|episode|drift, start (first day, UTC midnight), end (first "
+                           "day back to normal for an episode), size_mrad or rate_mrad_per_year, "
+                           "parameters {name: offset [rad] at full size, per year for a drift}, "
+                           "n_rows (measurements it affects), effect_mrad (mean angle it turns "
+                           "the mirror normal on those rows)"}
+               if "changes" in field_.settings else {}),
             "error_nominal_mrad": "same for the nominal geometry",
             "positions": "ENU metres relative to the plant reference point (WGS84 lat, lon, "
                          "ellipsoidal height)",

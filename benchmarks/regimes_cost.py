@@ -1,0 +1,87 @@
+"""Benchmark: what regime detection (and the refit of heliostats with episodes) adds to
+``fit-coarse``.
+
+Simulates a field (default 200 juelich heliostats, 100 to 400 measurements each over one year,
+half of them dynamic as in benchmarks/field.py, and 20 % with steps, 20 % with episodes, 10 % with
+a drift), runs ``ingest`` and ``split-knn`` once, then ``fit-coarse`` alternately *without*
+detection (the stage as it was before issue 17: the detection patched out, so nothing is
+refitted) and *with* it, ``--repeats`` times each, and prints the median wall times and their
+ratio from this one run. Usage::
+
+    flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/regimes_cost.py \
+        [--heliostats 200] [--repeats 3] [--out runs/regimes-cost]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+from unittest import mock
+
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--heliostats", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "regimes-cost")
+    a = ap.parse_args(argv)
+
+    from heliocal.pipeline.artifacts.schemas import REGIMES
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.models.changes import Changes
+    from heliocal.pipeline.models.regimes import detect_field
+    from heliocal.pipeline.models.simulator import simulate_field
+    from heliocal.pipeline.stages import fit_coarse
+    from heliocal.pipeline.stages.ingest import run_ingest
+    from heliocal.pipeline.stages.simulate import write_field
+    from heliocal.pipeline.stages.split import run_split
+
+    work = a.out / "work"
+    if not (work / "split.parquet").exists():
+        field = simulate_field(a.heliostats, seed=a.seed, measurements=(100, 400),
+                               dynamic_fraction=0.5,
+                               changes=Changes(step_fraction=0.2, episode_fraction=0.2,
+                                               drift_fraction=0.1))
+        write_field(field, a.out / "field", overwrite=True)
+        run_ingest([a.out / "field" / "paint"], work, IngestOptions())
+        run_split(work, seed=a.seed)
+
+    def without(*args, **kwargs):  # fit-coarse before issue 17: nothing detected, no refit
+        return detect_field(pd.DataFrame(columns=["heliostat_id", "measurement_id", "timestamp",
+                                                  "residual_horizontal_mrad",
+                                                  "residual_vertical_mrad"]))
+
+    times = {"without": [], "with": []}
+    for _ in range(a.repeats):
+        for mode in ("without", "with"):
+            t0 = time.perf_counter()
+            if mode == "without":
+                with mock.patch.object(fit_coarse, "detect_coarse_regimes", without):
+                    fit_coarse.run_fit_coarse(work)
+            else:
+                fit_coarse.run_fit_coarse(work)
+            times[mode].append(time.perf_counter() - t0)
+    regimes = read_artifact(work, REGIMES)
+    refit = regimes.loc[regimes["kind"] == "episode", "heliostat_id"].nunique()
+    before, after = statistics.median(times["without"]), statistics.median(times["with"])
+    print(f"fit-coarse on {a.heliostats} heliostats, {a.repeats} runs each (alternating):")
+    print(f"  without detection: median {before:.2f} s  ({', '.join(f'{t:.2f}' for t in times['without'])})")
+    print(f"  with detection:    median {after:.2f} s  ({', '.join(f'{t:.2f}' for t in times['with'])})")
+    print(f"  ratio with/without: {after / before:.3f}  (+{100 * (after / before - 1):.1f} %); "
+          f"{refit} heliostats refitted without their episodes; "
+          f"{int((regimes['cause'] == 'detected').sum())} detected breaks, "
+          f"{int((regimes['kind'] == 'outlier').sum())} outliers")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

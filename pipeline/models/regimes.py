@@ -1,0 +1,279 @@
+"""Regimes, episodes and outliers of a heliostat from its coarse residuals in time order.
+
+Physics-free: plain functions over DataFrames of residual components [mrad] (the coarse model's
+error of the mirror normal split along the target plane's horizontal and vertical axes).
+
+Method (per heliostat)
+----------------------
+1. Noise. ``noise_mrad`` per component is ``1.4826 * MAD / sqrt(2)`` of the differences between
+   each row and the last row of the previous measured day (UTC). Differences hardly see a step
+   or an episode (only the rows right after it); taking them across days, not between
+   consecutive rows, keeps bursts of rows seconds apart and the shared misfit of one day's rows
+   from shrinking the noise (in real logs these differences are far smaller than the scatter
+   from day to day, and a noise taken from them turns every day into a change point). With
+   fewer than three such differences: 1.4826 MAD about the median.
+2. Standardized signal. Each component minus its median, divided by its noise. Isolated
+   outliers would otherwise become segments of their own: each value is clipped to within
+   ``clip`` noise units of a centred running median of ``window`` rows (a run of at least
+   ``window // 2 + 1`` rows at a new level moves the running median and is not clipped).
+3. Known breaks. The renovation window of the heliostat (heliostats.parquet) cuts the series;
+   each piece is segmented on its own, so a renovation is always a regime break (cause
+   ``renovation``), seen or not; its ``evidence`` says whether the data show it.
+4. Change points. PELT (ruptures' :class:`~ruptures.KernelCPD` with the linear kernel, i.e. the
+   ``l2`` cost: a change of the mean of the standardized two-component signal) with the penalty ``penalty_factor * (d + 1) * log(n)``,
+   d = 2 components: the BIC of a mean shift (d new means and one location per change point)
+   for unit variance, i.e. scaled by the robust residual variance of step 1. ``penalty_factor``
+   > 1 allows for residuals that are not independent (rows of one day share sun positions and a
+   model misfit); its default was chosen on simulated static heliostats (benchmarks/regimes.py),
+   never on real data.
+5. Episodes. A segment between two others that lasts at most ``episode_max_days`` and whose
+   level differs from the regime before it is an episode: the heliostat was off for a few days
+   and came back (or changed again); consecutive short segments within that time are one.
+6. Outliers. Rows whose robust distance from their segment's median, ``sqrt(sum(((x -
+   median) / noise)^2))``, exceeds ``outlier_z``: flagged, never dropped.
+
+:func:`detect_regimes` returns one row per segment and per outlier (the columns of
+``regimes.parquet``, :data:`heliocal.pipeline.artifacts.schemas.REGIMES`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+
+__all__ = [
+    "COMPONENTS",
+    "DEFAULTS",
+    "detect_field",
+    "detect_regimes",
+    "regime_of_rows",
+    "residual_components_mrad",
+    "robust_noise_mrad",
+]
+
+#: The residual columns a detection reads [mrad].
+COMPONENTS = ("residual_horizontal_mrad", "residual_vertical_mrad")
+
+#: Defaults of :func:`detect_regimes` (module docstring, steps 2 to 6).
+DEFAULTS = {"penalty_factor": 3.0, "min_size": 2, "window": 5, "clip": 5.0,
+            "episode_max_days": 7.0, "outlier_z": 6.0}
+
+_MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4): MAD of a normal sample -> its sigma
+_NOISE_FLOOR_MRAD = 1e-6
+
+
+def residual_components_mrad(offset_horizontal_m, offset_vertical_m, distance_m):
+    """Residual of the mirror normal along the target plane's axes [mrad] from the spot offset.
+
+    A beam turned by an angle a moves the spot by ``distance * a`` on the target; the normal
+    turns by half the beam's angle, so the normal's component is ``offset / distance / 2``.
+    """
+    scale = 500.0 / np.asarray(distance_m, float)
+    return np.asarray(offset_horizontal_m, float) * scale, np.asarray(offset_vertical_m, float) * scale
+
+
+def robust_noise_mrad(values: np.ndarray, days=None) -> np.ndarray:
+    """Robust noise per column of (n, d) values in time order (module docstring, step 1):
+    ``days`` (n,) are the rows' days in any comparable form (default: every row its own day).
+    NaN with fewer than 3 rows; at least 1e-6."""
+    values = np.asarray(values, float)
+    if len(values) < 3:
+        return np.full(values.shape[1], np.nan)
+    days = np.arange(len(values)) if days is None else np.asarray(days)
+    prev = np.searchsorted(days, days, side="left") - 1  # last row of an earlier day
+    diff = values[prev >= 0] - values[prev[prev >= 0]]
+    if len(diff) >= 3:
+        mad = np.median(np.abs(diff - np.median(diff, axis=0)), axis=0)
+        sigma = _MAD_TO_SIGMA * mad / math.sqrt(2.0)
+    else:
+        sigma = _MAD_TO_SIGMA * np.median(np.abs(values - np.median(values, axis=0)), axis=0)
+    return np.maximum(sigma, _NOISE_FLOOR_MRAD)
+
+
+def _clipped(z: np.ndarray, window: int, clip: float) -> np.ndarray:
+    med = pd.DataFrame(z).rolling(window, center=True, min_periods=1).median().to_numpy()
+    return med + np.clip(z - med, -clip, clip)
+
+
+def _l2(z: np.ndarray) -> float:
+    return float(((z - z.mean(axis=0)) ** 2).sum()) if len(z) else 0.0
+
+
+def _pelt(z: np.ndarray, penalty: float, min_size: int) -> list[int]:
+    """Interior break indices (start of each new segment) of PELT with an l2 cost."""
+    import ruptures  # local: only fit-coarse's detection needs it
+
+    if len(z) < 2 * min_size:
+        return []
+    # the linear kernel's cost is the l2 cost; KernelCPD runs PELT on it in C (ruptures.Pelt with
+    # model="l2" finds the same breaks, about 1000 times slower on 300 rows)
+    ends = ruptures.KernelCPD(kernel="linear", min_size=min_size).fit(z).predict(pen=penalty)
+    return [int(b) for b in ends[:-1]]
+
+
+def _known_breaks(times: pd.Series, renovation: tuple | None) -> list[int]:
+    """Row indices where a renovation window starts and ends (strictly inside the series)."""
+    if renovation is None:
+        return []
+    out = set()
+    for edge in renovation:
+        if edge is None or pd.isna(edge):
+            continue
+        edge = pd.Timestamp(edge)
+        edge = edge.tz_convert("UTC").tz_localize(None) if edge.tzinfo else edge
+        k = int(np.searchsorted(times.to_numpy(), edge.to_datetime64()))
+        if 0 < k < len(times):
+            out.add(k)
+    return sorted(out)
+
+
+def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
+                   penalty_factor: float = DEFAULTS["penalty_factor"],
+                   min_size: int = DEFAULTS["min_size"], window: int = DEFAULTS["window"],
+                   clip: float = DEFAULTS["clip"],
+                   episode_max_days: float = DEFAULTS["episode_max_days"],
+                   outlier_z: float = DEFAULTS["outlier_z"]) -> pd.DataFrame:
+    """Segments and outliers of one heliostat (module docstring).
+
+    Parameters
+    ----------
+    rows : one heliostat's rows: ``heliostat_id``, ``measurement_id``, ``timestamp`` (UTC) and
+        :data:`COMPONENTS` [mrad]; rows without a timestamp or a finite residual are ignored.
+    renovation : (start, end) UTC of its last renovation, or None.
+
+    Returns
+    -------
+    DataFrame with the columns of ``regimes.parquet`` (empty if fewer than 3 usable rows).
+    """
+    ok = rows["timestamp"].notna().to_numpy() & np.isfinite(rows[list(COMPONENTS)].to_numpy()).all(1)
+    rows = rows.loc[ok].sort_values(["timestamp", "measurement_id"], kind="mergesort")
+    rows = rows.reset_index(drop=True)
+    if len(rows) < 3:
+        return pd.DataFrame(columns=_columns())
+    hid = str(rows["heliostat_id"].iloc[0])
+    x = rows[list(COMPONENTS)].to_numpy(float)
+    noise = robust_noise_mrad(x, _naive(rows["timestamp"]).dt.normalize().to_numpy())
+    z = _clipped((x - np.median(x, axis=0)) / noise, window, clip)
+    penalty = penalty_factor * (x.shape[1] + 1) * math.log(len(x))
+    times = _naive(rows["timestamp"])
+    known = _known_breaks(times, renovation)
+    bounds = [0, *known, len(x)]
+    breaks: dict[int, str] = {k: "renovation" for k in known}
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        for k in _pelt(z[a:b], penalty, min_size):
+            breaks.setdefault(a + k, "detected")
+    stamps = rows["timestamp"]
+    segments = _merge_episodes(stamps, [0, *sorted(breaks)], [*sorted(breaks), len(x)],
+                               episode_max_days, set(known))
+    out, level, level_n, regime, last_kind = [], None, 0, 0, "regime"
+    for k, (s, e, episode) in enumerate(segments):
+        center = np.median(x[s:e], axis=0)
+        # a short segment at the level of the regime before it is the heliostat back to normal
+        # between two episodes, not an episode
+        episode = episode and (level is None or _differs(center, level, noise, e - s, level_n,
+                                                         penalty))
+        if k > 0 and not episode:
+            # a new regime, except when the heliostat comes back to its level after an episode
+            if last_kind != "episode" or _differs(center, level, noise, e - s, level_n, penalty):
+                regime += 1
+        if not episode:
+            level, level_n = center, e - s
+        last_kind = "episode" if episode else "regime"
+        if k:
+            p = segments[k - 1][0]
+            previous = np.median(x[p:s], axis=0)
+            step = float(np.linalg.norm(center - previous))
+            evidence = (_l2(z[p:e]) - _l2(z[p:s]) - _l2(z[s:e])) / penalty
+        else:
+            step = evidence = float("nan")
+        out.append({
+            "heliostat_id": hid, "kind": "episode" if episode else "regime", "regime": regime,
+            "start": stamps.iloc[s], "end": stamps.iloc[e - 1],
+            "cause": "start" if k == 0 else breaks[s], "n_rows": int(e - s),
+            "measurement_id": None,
+            "center_horizontal_mrad": float(center[0]), "center_vertical_mrad": float(center[1]),
+            "step_mrad": step, "evidence": float(evidence), "noise_mrad": float(noise.mean())})
+        if episode:  # an episode's rows are all off: flagged as the episode, not one by one
+            continue
+        dist = np.sqrt((((x[s:e] - center) / noise) ** 2).sum(axis=1))
+        for j in np.flatnonzero(dist > outlier_z):
+            i = s + int(j)
+            out.append({
+                "heliostat_id": hid, "kind": "outlier", "regime": regime,
+                "start": stamps.iloc[i], "end": stamps.iloc[i], "cause": "outlier", "n_rows": 1,
+                "measurement_id": str(rows["measurement_id"].iloc[i]),
+                "center_horizontal_mrad": float(x[i, 0]), "center_vertical_mrad": float(x[i, 1]),
+                "step_mrad": float(np.linalg.norm(x[i] - center)), "evidence": float(dist[j]),
+                "noise_mrad": float(noise.mean())})
+    return pd.DataFrame(out, columns=_columns())
+
+
+def _merge_episodes(stamps: pd.Series, starts: list[int], ends: list[int], max_days: float,
+                    known: set[int]) -> list[tuple[int, int, bool]]:
+    """(start, end, is_episode) of the segments, consecutive short interior segments (at most
+    ``max_days`` from their first to their last row) merged into one episode: an episode's
+    residuals move with the sun, so PELT may cut it in pieces. A renovation break is kept."""
+    day = pd.Timedelta(days=1)
+    short = [0 < k < len(starts) - 1 and (stamps.iloc[e - 1] - stamps.iloc[s]) / day <= max_days
+             for k, (s, e) in enumerate(zip(starts, ends))]
+    out: list[tuple[int, int, bool]] = []
+    for s, e, is_short in zip(starts, ends, short):
+        if (is_short and out and out[-1][2] and s not in known
+                and (stamps.iloc[e - 1] - stamps.iloc[out[-1][0]]) / day <= max_days):
+            out[-1] = (out[-1][0], e, True)
+        else:
+            out.append((s, e, is_short))
+    return out
+
+
+def _columns() -> list[str]:
+    """regimes.parquet's columns this module fills (fit-coarse adds ``error_mrad``)."""
+    from ..artifacts.schemas import REGIMES
+
+    return [c for c in REGIMES.column_names() if c != "error_mrad"]
+
+
+def _differs(a: np.ndarray, b: np.ndarray, noise: np.ndarray, n_a: int, n_b: int,
+             penalty: float) -> bool:
+    """Do two levels (medians) differ by more than the penalty allows (l2 gain of one break)?"""
+    gain = (((a - b) / noise) ** 2).sum() * n_a * n_b / (n_a + n_b)
+    return bool(gain > penalty)
+
+
+def detect_field(residuals: pd.DataFrame, renovations: Mapping[str, tuple] | None = None,
+                 **options) -> pd.DataFrame:
+    """:func:`detect_regimes` for every heliostat of ``residuals``; ``renovations`` maps a
+    heliostat id to its (start, end) renovation window."""
+    renovations = renovations or {}
+    parts = [detect_regimes(g, renovations.get(str(hid)), **options)
+             for hid, g in residuals.groupby("heliostat_id", sort=True)]
+    parts = [p for p in parts if len(p)]
+    if not parts:
+        return pd.DataFrame(columns=_columns())
+    return pd.concat(parts, ignore_index=True)
+
+
+def _naive(times) -> pd.Series:
+    """UTC times without a zone (datetime64, for searchsorted)."""
+    return pd.to_datetime(pd.Series(times), utc=True).dt.tz_localize(None)
+
+
+def regime_of_rows(regimes: pd.DataFrame, heliostat_id: str, timestamps: pd.Series) -> pd.DataFrame:
+    """Per row (timestamps of one heliostat): ``regime`` (number) and ``episode`` (True inside a
+    detected episode's time span) from regimes.parquet's rows of that heliostat. Rows before the
+    first segment get regime 0; rows without a timestamp get the latest regime."""
+    seg = regimes[(regimes["heliostat_id"] == heliostat_id) & (regimes["kind"] != "outlier")]
+    seg = seg.sort_values("start", kind="mergesort")
+    t = _naive(timestamps)
+    regime = np.zeros(len(t), dtype=np.int64)
+    episode = np.zeros(len(t), dtype=bool)
+    if len(seg):
+        k = np.searchsorted(_naive(seg["start"]).to_numpy(), t.to_numpy(), side="right") - 1
+        k = np.where(t.isna().to_numpy(), len(seg) - 1, np.maximum(k, 0))
+        regime = seg["regime"].to_numpy(np.int64)[k]
+        inside = t.to_numpy() <= _naive(seg["end"]).to_numpy()[k]
+        episode = (seg["kind"].to_numpy()[k] == "episode") & inside
+    return pd.DataFrame({"regime": regime, "episode": episode}, index=timestamps.index)
