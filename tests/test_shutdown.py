@@ -99,7 +99,16 @@ def _start(workdir: Path, tag: str, scheduler: str) -> subprocess.Popen:
         [str(HELIOCAL), "sweep", "--workdir", str(workdir), "--workers", "2",
          "--scheduler", scheduler, "--quiet"],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True)  # its own process group, as a command started in a terminal
+        start_new_session=True,  # its own process group, as a command started in a terminal
+        preexec_fn=_foreground_signals)
+
+
+def _foreground_signals() -> None:
+    """Ctrl-C at its default, as for a command in a terminal's foreground. A runner started as a
+    background job of a non-interactive shell (``make test &``, CI wrappers) ignores SIGINT, the
+    ignore is inherited, and Python then installs no KeyboardInterrupt handler: the sweep would
+    rightly ignore the test's Ctrl-C (a background job is not meant to receive it)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def _wait_for_workers(proc: subprocess.Popen, tag: str, scheduler: str, timeout: float = 90) -> dict:
