@@ -1,7 +1,7 @@
 """The report's view of regimes.parquet: per heliostat the coarse residual against time with its
 regimes shaded, episodes and outliers marked; for the field an alert list of the detected
-changes. Kept apart from the page layout: :func:`regime_blocks` returns report blocks that a
-page places where it wants them.
+changes, and the regime alerts of the field overview. Kept apart from the page layout:
+``report.render`` places the figure and the list on the pages.
 """
 
 from __future__ import annotations
@@ -9,13 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .inputs import ReportInputs
 
 __all__ = [
     "alert_table",
     "regime_alerts",
     "plot_regimes",
-    "regime_blocks",
 ]
 
 _REGIME_SHADES = ("#deebf7", "#fee6ce")  # alternate regimes
@@ -117,32 +115,3 @@ def plot_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame, regimes:
                  f"episode{'s' if n_ep != 1 else ''}", fontsize="medium")
     ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     return fig, None
-
-
-def regime_blocks(inp: ReportInputs, heliostats, figure_block) -> list[tuple]:
-    """Report blocks: the alert list and one regime figure per heliostat
-    (``figure_block(fig, filename, caption)`` turns a figure into the page's block)."""
-    out: list[tuple] = [("h3", "Regimes, episodes and outliers")]
-    if inp.regimes is None or inp.predictions is None:
-        out.append(("note", "Omitted: needs regimes.parquet; run "
-                            f"{inp.run_hint('regimes.parquet')}."))
-        return out
-    headers, rows = alert_table(inp.regimes)
-    if rows:
-        out.append(("p", "Alert list: every detected change and renovation, newest first (step: "
-                         "distance of the median residuals before and after; evidence > 1: the "
-                         "change-point test's penalty is exceeded; error: the selected coarse "
-                         "model's mean error on the segment)."))
-        out.append(("table", headers, rows))
-    else:
-        out.append(("p", "No change detected: every heliostat is in one regime."))
-    for hid in heliostats:
-        fig, why = plot_regimes(inp.measurements, inp.predictions, inp.regimes, hid)
-        if fig is None:
-            out.append(("note", f"{hid}: omitted ({why})."))
-            continue
-        out.append(figure_block(fig, f"regimes_{hid}.png",
-                       f"{hid}: error of the selected coarse model over time; shaded: regimes "
-                       "(alternating), red: episodes; vertical lines: breaks (dashed: "
-                       "renovation); red circles: outliers (flagged, kept)."))
-    return out

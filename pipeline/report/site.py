@@ -172,20 +172,15 @@ def why_text(row, h: dict, best_hybrid_val: float | None) -> str:
     if row["model"] is None:
         return ("No model yet: fit-coarse has not fitted this heliostat, so aim cannot point it "
                 "(run `heliocal fit-coarse`).")
-    if row["source"] == "sweep" and row["model"] == "hybrid":
+    if row["source"] == "sweep" and row["model"] in ("hybrid", "pretrained-nn"):
         change = (f" ({100 * (row['val_error_mrad'] / cval - 1):+.0f} %)"
                   if cval and math.isfinite(row["val_error_mrad"]) else "")
-        return (f"aim uses the sweep's selected {row['variant']} model (weight decay "
-                f"{fmt_g(row['weight_decay'])}) on the coarse preset {row['preset']}: its "
+        what = (f"selected {row['variant']} model (weight decay {fmt_g(row['weight_decay'])})"
+                if row["model"] == "hybrid" else
+                "selected pre-trained network (pretrained-nn, sweep --select-pretrained)")
+        return (f"aim uses the sweep's {what} on the coarse preset {row['preset']}: its "
                 f"validation error {_num(row['val_error_mrad'])} mrad against the coarse "
                 f"model's {_num(cval)} mrad{change}.")
-    if row["source"] == "sweep" and row["model"] == "pretrained-nn":
-        change = (f" ({100 * (row['val_error_mrad'] / cval - 1):+.0f} %)"
-                  if cval and math.isfinite(row["val_error_mrad"]) else "")
-        return (f"aim uses the sweep's selected pre-trained network (pretrained-nn, sweep "
-                f"--select-pretrained) on the coarse preset {row['preset']}: its validation "
-                f"error {_num(row['val_error_mrad'])} mrad against the coarse model's "
-                f"{_num(cval)} mrad{change}.")
     if row["source"] == "sweep":
         best = (f" (the best hybrid candidate reached {_num(best_hybrid_val)} mrad)"
                 if best_hybrid_val is not None else "")
