@@ -12,7 +12,7 @@ from __future__ import annotations
 import enum
 
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
-           "PretrainVariant", "AimModel", "CoarseLoss", "CoarseSolver", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
+           "PretrainVariant", "AimModel", "CoarseLoss", "CoarseSolver", "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
            "DEFAULT_TIME_MIN", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
            "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD"]
 
@@ -39,6 +39,14 @@ class CoarsePreset(Choice):
     static_20 = "static-20"
     static_28 = "static-28"
     stone_8 = "stone-8"
+
+
+class TrainingDtype(Choice):
+    """``fit-hybrid/sweep --training-dtype``: the precision of the fine model's training
+    arithmetic; the kept weights and every reported error are float64 either way."""
+
+    float32 = "float32"
+    float64 = "float64"
 
 
 class RobustStart(Choice):

@@ -39,6 +39,7 @@ __all__ = [
     "take_rows",
     "grouped_components",
     "stack_problems",
+    "problem_as",
 ]
 
 
@@ -117,6 +118,23 @@ def _take_members(problem: FineProblem, keep: torch.Tensor) -> FineProblem:
     return dataclasses.replace(problem, spec=spec, data=data, context=problem.context[keep],
                                scales=problem.scales[keep],
                                cached_features=problem.features()[keep])
+
+
+def problem_as(problem: FineProblem, dtype: torch.dtype) -> FineProblem:
+    """The problem with every floating-point tensor (spec, base, scales, measurements, context,
+    encoded inputs) in ``dtype``; the training's precision (``FineConfig.training_dtype``)."""
+    if problem.base.dtype == dtype:
+        return problem
+    cast = lambda t: t if t is None or not t.is_floating_point() else t.to(dtype)
+    spec = copy.copy(problem.spec)
+    for name in SPEC_TENSORS:
+        object.__setattr__(spec, name, cast(getattr(spec, name)))
+    d = problem.data
+    data = MeasurementBatch(d.measurement_id, cast(d.steps), cast(d.sun), cast(d.focal_spot),
+                            cast(d.target_center), cast(d.target_normal))
+    return dataclasses.replace(problem, spec=spec, data=data, base=cast(problem.base),
+                               scales=cast(problem.scales), context=cast(problem.context),
+                               cached_features=cast(problem.features()))
 
 
 def _keep_rows_of_leaf(theta: torch.Tensor, opt: torch.optim.Adam, keep: torch.Tensor, lr: float):
@@ -353,7 +371,10 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     used = (tm | vm).any(0)
     if not bool(used.all()):  # rows no member trains or stops on (test rows) cost per epoch
         problem, tm, vm = take_rows(problem, used), tm[:, used], vm[:, used]
+    dtype = getattr(torch, config.training_dtype)
+    problem, wd = problem_as(problem, dtype), wd.to(dtype)
     layers = initial if initial is not None else init_mlp(problem.sizes(config), seeds)
+    layers = [(w.to(dtype), b.to(dtype)) for w, b in layers]
     theta = flatten_layers(layers).detach().clone().requires_grad_(True)     # (L, T), L live
     cur = layer_views(theta, layers)
     opt = torch.optim.Adam([theta], lr=config.learning_rate)
@@ -384,9 +405,9 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
         train_mse = sq.sum(-1) / run_n
         with torch.no_grad():
             val = torch.full((m,), float("nan"), dtype=torch.float64)
-            val[live] = _masked_mean(torch.nan_to_num(err.detach(), nan=1e6), run_vm)
+            val[live] = _masked_mean(torch.nan_to_num(err.detach(), nan=1e6), run_vm).to(val.dtype)
             mse = torch.full((m,), float("nan"), dtype=torch.float64)
-            mse[live] = train_mse.detach()
+            mse[live] = train_mse.detach().to(mse.dtype)
             hist_train.append(mse)
             hist_val.append(val.clone())
             improved = active & (torch.where(has_val, val, -torch.ones_like(val)) < best_val)
@@ -408,7 +429,9 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
         opt.step()
         if progress:
             progress(epoch + 1, config.max_epochs)
-    best = [(w.clone(), b.clone()) for w, b in layer_views(best, layers)]
+    # the kept weights in float64, the precision every prediction and reported error uses
+    best = [(w.to(torch.float64, copy=True), b.to(torch.float64, copy=True))
+            for w, b in layer_views(best, layers)]
     best_val = torch.where(has_val, best_val, torch.full_like(best_val, float("nan")))
     return MemberResult(best, best_epoch, best_val, torch.minimum(stopped_at, torch.tensor(epoch)),
                         torch.stack(hist_train), torch.stack(hist_val),

@@ -39,23 +39,33 @@ __all__ = [
     "linear_angle_to_steps",
     "linear_stroke_length",
     "actuator_sign",
+    "real_tensor",
 ]
 
 ACTUATOR_TYPES = ("linear", "ideal")
 """Actuator types understood by :mod:`heliocal.pipeline.physics.kinematics`."""
 
 
-def _t(x) -> torch.Tensor:
-    """Return ``x`` as a float64 tensor (tensors keep their graph; numbers are converted)."""
+def real_tensor(x, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """Return ``x`` as a floating-point tensor: a float32 or float64 tensor keeps its dtype and
+    graph; anything else (numbers, arrays, integer or bool tensors) becomes ``dtype``.
+
+    The physics is float64 by convention; only the fine model's training feeds it float32
+    tensors (``FineConfig.training_dtype``, docs/hybrid.md "Training precision"), and then every
+    intermediate stays float32.
+    """
     if isinstance(x, torch.Tensor):
-        return x if x.dtype == torch.float64 else x.to(torch.float64)
-    return torch.as_tensor(x, dtype=torch.float64)
+        return x if x.dtype in (torch.float32, torch.float64) else x.to(dtype)
+    return torch.as_tensor(x, dtype=dtype)
 
 
-def actuator_sign(clockwise) -> torch.Tensor:
-    """+1 for clockwise, -1 otherwise (float64, broadcastable)."""
+_t = real_tensor
+
+
+def actuator_sign(clockwise, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    """+1 for clockwise, -1 otherwise (``dtype``, broadcastable)."""
     cw = clockwise if isinstance(clockwise, torch.Tensor) else torch.as_tensor(clockwise)
-    return torch.where(cw.to(torch.bool), 1.0, -1.0).to(torch.float64)
+    return torch.where(cw.to(torch.bool), 1.0, -1.0).to(dtype)
 
 
 def ideal_steps_to_angle(steps, gear_ratio_steps_per_rad, angle_offset_rad) -> torch.Tensor:
@@ -150,7 +160,7 @@ def linear_steps_to_angle(steps, increment_steps_per_m, initial_stroke_length_m,
                                offset_m, pivot_radius_m)
     absolute_initial = _absolute_angle(initial_stroke, offset_m, pivot_radius_m)
     delta = absolute_initial - absolute
-    return _t(initial_angle_rad) + actuator_sign(clockwise) * delta
+    return _t(initial_angle_rad) + actuator_sign(clockwise, delta.dtype) * delta
 
 
 def linear_angle_to_steps(angle_rad, increment_steps_per_m, initial_stroke_length_m, offset_m,
@@ -177,7 +187,8 @@ def linear_angle_to_steps(angle_rad, increment_steps_per_m, initial_stroke_lengt
     pivot_radius_m = _t(pivot_radius_m)
     increment = _t(increment_steps_per_m)
     initial_stroke = _t(initial_stroke_length_m)
-    delta = actuator_sign(clockwise) * (_t(angle_rad) - _t(initial_angle_rad))
+    delta = (_t(angle_rad) - _t(initial_angle_rad))
+    delta = actuator_sign(clockwise, delta.dtype) * delta
     absolute = _absolute_angle(initial_stroke, offset_m, pivot_radius_m) - delta
     stroke_sq = offset_m**2 + pivot_radius_m**2 - 2.0 * offset_m * pivot_radius_m * torch.cos(absolute)
     stroke = torch.sqrt(torch.clamp(stroke_sq, min=0.0))

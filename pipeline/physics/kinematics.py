@@ -16,7 +16,8 @@ section 3.1), laid out like ARTIST's ``RigidBody`` kinematics
 ``R_e``, ``R_n``, ``R_u`` are *right-handed* rotations about the east, north and up axes of the
 parent frame (positive angle = counter-clockwise looking down the axis toward the origin). Angles
 come from the actuators (:mod:`heliocal.pipeline.physics.actuators`). ``B`` is the identity except for the
-target-aligned type. Everything is batched over heliostats and measurements, float64 and
+target-aligned type. Everything is batched over heliostats and measurements, float64 (float32
+inputs stay float32: the fine model's training, :func:`.actuators.real_tensor`) and
 differentiable, and free of in-place operations so that :mod:`torch.func` (``vmap``, ``jacrev``,
 ``jacfwd``) works on :func:`forward_kinematics`.
 
@@ -55,7 +56,7 @@ import torch
 
 from ..errors import ParameterError
 from .actuators import (ideal_angle_to_steps, ideal_steps_to_angle, linear_angle_to_steps,
-                        linear_steps_to_angle)
+                        linear_steps_to_angle, real_tensor)
 from .parameters import JOINT_AXES, PARAMETER_NAMES, REFERENCE_NORMALS, HeliostatSpec
 
 __all__ = [
@@ -77,7 +78,7 @@ __all__ = [
 
 
 def rotation_matrix(axis: int, angle) -> torch.Tensor:
-    angle = torch.as_tensor(angle, dtype=torch.float64)
+    angle = real_tensor(angle)
     c, s = torch.cos(angle), torch.sin(angle)
     one, zero = torch.ones_like(c), torch.zeros_like(c)
     if axis == 0:
@@ -158,7 +159,7 @@ class ParameterComponents(tuple):
     """
 
     def __new__(cls, components):
-        components = tuple(torch.as_tensor(c, dtype=torch.float64) for c in components)
+        components = tuple(real_tensor(c) for c in components)
         if len(components) != len(PARAMETER_NAMES):
             raise ParameterError("ParameterComponents needs one tensor per parameter (28). "
                                  f"Got {len(components)} instead.")
@@ -259,7 +260,7 @@ def joint_angles(params, spec: HeliostatSpec, steps) -> torch.Tensor:
         (..., N, 2) joint angles [rad].
     """
     params = _check_params(params)
-    steps = torch.as_tensor(steps, dtype=torch.float64)
+    steps = real_tensor(steps)
     increment, stroke0, offset, radius, angle0 = _actuator_values(params)
     if spec.actuator_type == "ideal":
         return ideal_steps_to_angle(steps, increment, angle0)
@@ -279,8 +280,8 @@ def base_frame(spec: HeliostatSpec):
     if spec.kinematic_type != "target-aligned":
         return None
     p = spec.primary_axis
-    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand_as(p)
-    east = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64).expand_as(p)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=p.dtype).expand_as(p)
+    east = torch.tensor([1.0, 0.0, 0.0], dtype=p.dtype).expand_as(p)
     e = torch.linalg.cross(p, up, dim=-1)
     norm = torch.linalg.vector_norm(e, dim=-1, keepdim=True)
     e = torch.where(norm > 1e-9, e / norm.clamp_min(1e-300), east)
@@ -298,7 +299,7 @@ def rotation_chain(params, spec: HeliostatSpec, angles, directions=None):
     that broadcasts over the N joint-angle pairs.
     """
     (ax1, _), (ax2, _) = JOINT_AXES[spec.kinematic_type]
-    phi = angles * JOINT_SENSES[spec.kinematic_type]
+    phi = angles * JOINT_SENSES[spec.kinematic_type].to(angles.dtype)
     c1, c2 = torch.cos(phi).unbind(-1)
     s1, s2 = torch.sin(phi).unbind(-1)
     comps = _components(params)                                         # 28 x (..., 1)

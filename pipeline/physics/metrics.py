@@ -11,8 +11,8 @@ Conventions
   bisector idea).
 * Angles are returned in milliradians.
 
-Every function works on torch tensors (float64, differentiable, batched over leading dimensions,
-usable under :mod:`torch.func`) and also accepts numpy arrays / lists: if no argument is a torch
+Every function works on torch tensors (float64, or float32 kept as float32; differentiable,
+batched over leading dimensions, usable under :mod:`torch.func`) and also accepts numpy arrays / lists: if no argument is a torch
 tensor, the result is returned as numpy (a tuple of numpy arrays for :func:`spot_offset_m`).
 """
 
@@ -52,8 +52,8 @@ def _numpy_friendly(func):
 
 
 def _as_tensor(x):
-    if isinstance(x, torch.Tensor):
-        return x if x.dtype == torch.float64 else x.to(torch.float64)
+    if isinstance(x, torch.Tensor):   # float32 tensors stay float32 (see actuators.real_tensor)
+        return x if x.dtype in (torch.float32, torch.float64) else x.to(torch.float64)
     return torch.as_tensor(np.asarray(x, dtype=np.float64))
 
 
@@ -188,7 +188,7 @@ def spot_offset_m(sun_vector, predicted_normal, concentrator_position, focal_spo
     hit = concentrator_position + distance.unsqueeze(-1) * beam
     diff = hit - focal_spot
     diff = diff - _dot(diff, nt).unsqueeze(-1) * nt
-    up = torch.zeros_like(nt) + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    up = torch.zeros_like(nt) + torch.tensor([0.0, 0.0, 1.0], dtype=nt.dtype)
     horizontal_axis = _unit(torch.linalg.cross(nt, up, dim=-1))
     vertical_axis = torch.linalg.cross(horizontal_axis, nt, dim=-1)
     horizontal = _dot(diff, horizontal_axis)
