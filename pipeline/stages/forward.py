@@ -1,0 +1,264 @@
+"""Forward-in-time evaluation (issue 17): every model evaluated on the time split as well.
+
+``split-knn`` writes, beside the split that selects models (kNN by default), a time split of
+every heliostat with timestamps (split.parquet ``time_split``: the latest measurements are test,
+the ones before them validation, the earlier ones train). The operational question is
+"calibrate now, aim for the coming weeks", and a model that saw a recent row cannot answer it for
+that row: evaluating the kNN-trained model on the time split's test rows would leak (those rows
+may be among its training rows). So the *selected* model is trained a second time, the same way,
+on the time split's training rows only, and its errors on every row are written beside the
+model's own (``time_error_mrad``):
+
+- ``fit-coarse``: the selected preset fitted again (same solver, loss and robust start rules) on
+  the time split's training rows (:func:`fit_coarse_time_split`); its parameters are
+  coarse_params.parquet's ``time_fitted``. (Rows of detected episodes are not left out of this
+  fit: the episodes were found on residuals that include the recent rows.)
+- ``fit-hybrid``: the fitted mode trained again with the same weight decay and seed on top of
+  that time-split coarse fit.
+- ``sweep``: the selected model (the variant, weight decay and seed the kNN selection chose)
+  trained again on top of the time-split coarse fit, along the same weight-decay path up to the
+  selected weight decay (:func:`time_split_errors`); a heliostat whose selected model is the
+  coarse one takes fit-coarse's time-split errors, at no cost.
+
+The selection itself never looks at the time split. A heliostat without a time split (no or too
+few timestamps) has no ``time_error_mrad`` and every forward-in-time figure of it is "n/a".
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+
+from ..artifacts.schemas import COARSE_PARAMS, SPLIT
+from ..artifacts.store import artifact_present, read_artifact
+from ..models.coarse import MeasurementBatch, fit_presets, predict
+from ..models.config import ensemble_seeds
+from ..models.pretrained import fit_pretrained
+from ..models.training import build_problem, ensemble_errors_mrad, stack_problems, take_rows
+from ..physics.metrics import error_mrad, measured_normal
+from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec, nominal_parameters
+from ..runtime.parallel import map_tasks
+
+__all__ = [
+    "TIME_COLUMN",
+    "load_time_labels",
+    "time_labels_of",
+    "fit_coarse_time_split",
+    "attach_coarse_time",
+    "load_time_parameters",
+    "time_split_errors",
+    "time_rows",
+]
+
+log = logging.getLogger("heliocal.forward")
+
+#: split.parquet's column of the time split.
+TIME_COLUMN = "time_split"
+
+
+def load_time_labels(workdir: str | Path, measurements: pd.DataFrame) -> np.ndarray:
+    """split.parquet's ``time_split`` label per measurement row (object array; ``None`` where
+    the row has none, and for every row without split.parquet)."""
+    if not artifact_present(workdir, SPLIT):
+        return np.full(len(measurements), None, dtype=object)
+    split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", TIME_COLUMN])
+    lookup = {(str(h), str(m)): v for h, m, v in zip(split["heliostat_id"], split["measurement_id"],
+                                                      split[TIME_COLUMN])}
+    return np.array([None if (v := lookup.get((str(h), str(m)))) is None or pd.isna(v) else str(v)
+                     for h, m in zip(measurements["heliostat_id"], measurements["measurement_id"])],
+                    dtype=object)
+
+
+def time_labels_of(rows: pd.DataFrame) -> np.ndarray | None:
+    """The ``time_split`` labels of one heliostat's rows, or ``None`` when it has no time split
+    (no such column, or no time-split training row)."""
+    if TIME_COLUMN not in rows.columns:
+        return None
+    labels = rows[TIME_COLUMN].to_numpy(dtype=object)
+    return labels if (labels == "train").sum() >= 2 else None
+
+
+def time_rows(labels: np.ndarray | None) -> np.ndarray:
+    """``labels`` with the rows outside the time split as ``unused`` (for training code that
+    treats every label other than train/validation/test as unused)."""
+    return np.array(["unused" if v is None else v for v in labels], dtype=object)
+
+
+# ------------------------------------------------------------------------------------------------
+# fit-coarse
+# ------------------------------------------------------------------------------------------------
+def _coarse_time_task(task) -> list[tuple[np.ndarray, np.ndarray]]:
+    """One chunk (one type and preset): the preset fitted on each heliostat's time-split training
+    rows; per heliostat (params (28,), error_mrad of every row)."""
+    solver, hrows, rows, preset, options = task
+    hrows = [pd.Series(h) for h in hrows]
+    specs = [HeliostatSpec.from_row(h) for h in hrows]
+    data = [MeasurementBatch.from_frame(r) for r in rows]
+    trains = [d.subset(r[TIME_COLUMN].to_numpy(dtype=object) == "train") for d, r in zip(data, rows)]
+    fits = fit_presets(specs, [nominal_parameters(h) for h in hrows], trains, (preset,),
+                       solver=solver, **options)
+    return [(f[0].params.numpy().copy(), predict(f[0].params, s, d)["error_mrad"].to_numpy())
+            for f, s, d in zip(fits, specs, data)]
+
+
+def fit_coarse_time_split(helio: pd.DataFrame, rows_of: dict, preset_of: dict, *, solver: str,
+                          batch_size: int, options: dict, workers=1, scheduler="local",
+                          dask_address=None) -> dict:
+    """The selected preset of every heliostat with a time split, fitted again on the time
+    split's training rows with fit-coarse's solver and ``options`` (loss, f_scale_mrad,
+    robust_start).
+
+    Parameters
+    ----------
+    helio : heliostats.parquet indexed by heliostat id.
+    rows_of : heliostat -> its rows (with the ``time_split`` column), in fit-coarse's order.
+    preset_of : heliostat -> its selected preset.
+
+    Returns
+    -------
+    heliostat -> (params (28,) numpy, error_mrad (N,) of every row in ``rows_of``'s order).
+    """
+    ids = [h for h in sorted(preset_of) if time_labels_of(rows_of[h]) is not None]
+    groups: dict = {}
+    for hid in ids:
+        key = (str(helio.loc[hid, "kinematic_type"]), str(helio.loc[hid, "actuator_type"]),
+               preset_of[hid])
+        groups.setdefault(key, []).append(hid)
+    chunks = []
+    for key in sorted(groups):
+        members = sorted(groups[key], key=lambda h: (int((rows_of[h][TIME_COLUMN] == "train").sum()), h))
+        step = 1 if solver == "scipy" else batch_size
+        chunks += [(key[2], members[i:i + step]) for i in range(0, len(members), step)]
+    tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
+              preset, options) for preset, chunk in chunks]
+    results = map_tasks(_coarse_time_task, tasks, workers=workers, scheduler=scheduler,
+                        dask_address=dask_address) if tasks else []
+    return {h: r for (_, chunk), res in zip(chunks, results) for h, r in zip(chunk, res)}
+
+
+def _mean(values: np.ndarray) -> float:
+    return float(np.mean(values)) if len(values) else float("nan")
+
+
+def attach_coarse_time(params: pd.DataFrame, preds: pd.DataFrame, fits: dict,
+                       rows_of: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """coarse_params with ``time_fitted``, ``time_val_error_mrad``, ``time_test_error_mrad`` and
+    coarse_predictions with ``time_error_mrad``, on the selected preset's rows of the heliostats
+    in ``fits`` (:func:`fit_coarse_time_split`); missing elsewhere."""
+    params = params.assign(time_fitted=np.nan, time_val_error_mrad=np.nan,
+                           time_test_error_mrad=np.nan)
+    preds = preds.assign(time_error_mrad=np.nan)
+    if not fits:
+        return params, preds
+    p_sel = params["selected"].to_numpy(bool)
+    p_hid = params["heliostat_id"].to_numpy()
+    e_sel = preds["selected"].to_numpy(bool)
+    e_hid = preds["heliostat_id"].to_numpy()
+    by_p = pd.Series(np.arange(len(params))).groupby(p_hid).indices
+    by_e = pd.Series(np.arange(len(preds))).groupby(e_hid).indices
+    tf, tv, tt = (params[c].to_numpy(float).copy() for c in
+                  ("time_fitted", "time_val_error_mrad", "time_test_error_mrad"))
+    te = preds["time_error_mrad"].to_numpy(float).copy()
+    for hid, (theta, err) in fits.items():
+        labels = rows_of[hid][TIME_COLUMN].to_numpy(dtype=object)
+        pi = by_p[hid][p_sel[by_p[hid]]]
+        order = params["parameter_index"].to_numpy()[pi]
+        tf[pi] = theta[order]
+        tv[pi] = _mean(err[labels == "validation"])
+        tt[pi] = _mean(err[labels == "test"])
+        ei = by_e[hid][e_sel[by_e[hid]]]
+        # a heliostat's prediction rows of one model are in the order of its rows
+        position = pd.Series(np.arange(len(labels)),
+                             index=rows_of[hid]["measurement_id"].astype(str).to_numpy())
+        te[ei] = err[position.loc[preds["measurement_id"].astype(str).to_numpy()[ei]].to_numpy()]
+    params["time_fitted"], params["time_val_error_mrad"], params["time_test_error_mrad"] = tf, tv, tt
+    preds["time_error_mrad"] = te
+    return params, preds
+
+
+def load_time_parameters(workdir: str | Path, heliostats: Sequence[str] | None = None) -> dict:
+    """heliostat -> the time-split fit of its selected preset (torch (28,)), for the heliostats
+    that have one (coarse_params.parquet ``time_fitted``)."""
+    df = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
+                       columns=["heliostat_id", "selected", "parameter_index", "time_fitted"])
+    df = df[df["selected"]].sort_values(["heliostat_id", "parameter_index"])
+    out = {}
+    for hid, g in df.groupby("heliostat_id", sort=True):
+        v = g["time_fitted"].to_numpy(np.float64)
+        if len(v) == len(PARAMETER_NAMES) and np.isfinite(v).all():
+            out[str(hid)] = torch.tensor(v)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# sweep
+# ------------------------------------------------------------------------------------------------
+def time_split_errors(helios: Sequence, best: Sequence[dict], weight_decays: Sequence[float],
+                      path, train_path: Callable, pretrain_config=None) -> dict[int, np.ndarray]:
+    """Forward-in-time errors of the sweep's selected models of one chunk.
+
+    Parameters
+    ----------
+    helios : the chunk's heliostats (the sweep's per-heliostat inputs: ``rows`` with
+        ``time_split``, ``hrow``, ``spec``, ``data``, ``selected`` with ``time_params``,
+        ``coarse`` predictions per model).
+    best : per heliostat the selection (``model``, ``weight_decay``, ``seed``, ``cfg``).
+    weight_decays : the sweep's path, strong to weak; ``path``, ``train_path``: how it trains.
+    pretrain_config : the pre-trained network's config (for a selected ``pretrained-nn``).
+
+    Returns
+    -------
+    index in ``helios`` -> error_mrad (N,) of every row of the selected model trained on the time
+    split's training rows; heliostats without a time split are absent.
+    """
+    out: dict[int, np.ndarray] = {}
+    hybrids: dict = {}
+    for i, (h, b) in enumerate(zip(helios, best)):
+        labels = time_labels_of(h.rows)
+        theta = h.selected.get("time_params")
+        if labels is None or theta is None:
+            continue
+        if b["model"] == "coarse":
+            out[i] = h.coarse[h.selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
+        elif b["model"] == "pretrained-nn":
+            _, _, normal, position = fit_pretrained(theta, h.spec, h.hrow, h.rows, h.data,
+                                                    time_rows(labels), b["seed"], pretrain_config)
+            with torch.no_grad():
+                out[i] = error_mrad(normal, measured_normal(h.data.sun, position,
+                                                            h.data.focal_spot)).numpy()
+        else:
+            hybrids.setdefault(b["model"], []).append(i)
+    for kind, members in hybrids.items():
+        cfg = best[members[0]]["cfg"]
+        k_ens = cfg.ensemble
+        problems, taken, fit_labels = [], [], []
+        for i in members:
+            h = helios[i]
+            labels = time_rows(time_labels_of(h.rows))
+            p = build_problem(h.rows, h.hrow, h.selected["time_params"], h.selected["free"], cfg)
+            fitting = np.isin(labels, ("train", "validation"))
+            problems.append(p)
+            taken.append(take_rows(p, torch.as_tensor(fitting)))
+            fit_labels.append(labels[fitting])
+        stacked, valid = stack_problems([t for t in taken for _ in range(k_ens)])
+        n = stacked.data.steps.shape[1]
+        lab = np.array([np.resize(x, n) for x in fit_labels for _ in range(k_ens)])
+        seeds = [s for i in members for s in ensemble_seeds(best[i]["seed"], k_ens)]
+        last = min(best[i]["weight_decay"] for i in members)
+        wds = [w for w in weight_decays if w >= last]
+        for wd, result in train_path(stacked, torch.as_tensor(lab == "train") & valid,
+                                     torch.as_tensor(lab == "validation") & valid, seeds, wds,
+                                     cfg, path):
+            for k, i in enumerate(members):
+                if best[i]["weight_decay"] != wd:
+                    continue
+                nets = slice(k * k_ens, (k + 1) * k_ens)
+                layers = [(w[nets], b_[nets]) for w, b_ in result.layers]
+                with torch.no_grad():
+                    out[i] = ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]
+    return out
