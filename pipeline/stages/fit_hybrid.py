@@ -98,6 +98,7 @@ from ..physics.parameters import HeliostatSpec
 from ..runtime.parallel import map_tasks
 from .fit_coarse import load_selected_parameters, load_split_labels
 from ..vocabulary import HYBRID_BATCH_SIZE
+from .forward import load_time_labels, load_time_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
 
 __all__ = [
@@ -279,6 +280,30 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
         _hybrid_chunk_task, tasks, workers=workers, scheduler=scheduler, dask_address=dask_address,
         progress=(lambda d, t: progress(d, t, None)) if progress else None) for r in chunk]
     results.sort(key=lambda r: r[1]["heliostat_id"])
+    # forward in time: the same mode, weight decay and seed trained again on the time split's
+    # training rows, on top of fit-coarse's time-split fit (heliostats without one: n/a)
+    time_params = load_time_parameters(workdir, heliostats)
+    labels_of = {h: load_time_labels(workdir, groups[h]) for h in ids if h in time_params}
+    time_ids = [h for h in ids if h in labels_of and (labels_of[h] == "train").sum() >= 2]
+    time_tasks = [([(hid, groups[hid].assign(split=np.where(pd.isna(labels_of[hid]), "excluded",
+                                                             labels_of[hid])),
+                     helio.loc[hid].to_dict(), {**selected[hid], "params": time_params[hid]})
+                    for hid in chunk], mode, weight_decay, seed, config, pretrain_config)
+                  for chunk in hybrid_chunks(time_ids, selected, helio, batch_size)]
+    time_err = {r[1]["heliostat_id"]: r[0].set_index("measurement_id")["error_mrad"]
+                for chunk in (map_tasks(_hybrid_chunk_task, time_tasks, workers=workers,
+                                        scheduler=scheduler, dask_address=dask_address)
+                              if time_tasks else []) for r in chunk}
+    for pred, summary, _, _ in results:
+        hid = summary["heliostat_id"]
+        err = time_err.get(hid)
+        pred["time_error_mrad"] = (np.nan if err is None else
+                                   err.reindex(pred["measurement_id"].to_numpy()).to_numpy(float))
+        summary["time_test"] = None
+        if err is not None:
+            label = dict(zip(groups[hid]["measurement_id"], labels_of[hid]))
+            test = np.array([label.get(m) == "test" for m in pred["measurement_id"]], dtype=bool)
+            summary["time_test"] = _mean(pred["time_error_mrad"].to_numpy(float)[test])
     preds, summaries = [], []
     for pred, summary, state, cfg in results:
         hid = summary["heliostat_id"]

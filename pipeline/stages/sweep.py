@@ -76,6 +76,7 @@ from ..vocabulary import DEFAULT_STUDY
 from ..vocabulary import OCTAVE_BANDS
 from ..models.config import PathConfig
 from ..runtime.process_state import restores_process_state
+from .forward import TIME_COLUMN, load_time_parameters, time_split_errors
 
 __all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants", "MIN_IMPROVEMENT",
            "train_path", "study_heliostats"]
@@ -240,7 +241,8 @@ def _fit_pretrained_errors(h: _Heliostat, coarse, labels, seed: int, config: Pre
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
 def _select_chunk(items, variants, weight_decays, seeds, path,
-                  pretrain_config: PretrainConfig | None = None) -> list[dict]:
+                  pretrain_config: PretrainConfig | None = None, time_split: bool = True,
+                  time_pretrain_config: PretrainConfig | None = None) -> list[dict]:
     """The full-size candidates and the selection of a chunk of heliostats that share one
     kinematic type, actuator type and coarse preset (one batched program per weight decay);
     with ``pretrain_config`` the pre-trained network (first seed) is a candidate too."""
@@ -311,8 +313,11 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
                            "seed": int(seeds[0]), "val": v,
                            "test": _stats(err, test_masks[i])[0], "pretrained": model,
                            "normal": normal, "position": position, "info": info}
+    # forward in time: the selected model trained again on the time split's training rows
+    time_err = (time_split_errors(helios, best, weight_decays, path, train_path,
+                                  time_pretrain_config) if time_split else {})
     results = []
-    for h, rows, b in zip(helios, out_rows, best):
+    for i, (h, rows, b) in enumerate(zip(helios, out_rows, best)):
         state = None
         if b["model"] == "coarse":
             pred = _sel_frame(h, h.coarse[h.selected["preset"]])
@@ -340,11 +345,17 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
                            "scales": problem.scales.tolist(),
                            "coarse_preset": h.selected["preset"], "sizes": problem.sizes(cfg),
                            "path": path.to_dict(), "selected_by": "sweep"}}
+        t_test = h.rows[TIME_COLUMN].to_numpy(dtype=object) == "test"
+        pred["time_error_mrad"] = time_err.get(i, np.full(len(h.rows), np.nan))
+        coarse_time = h.coarse[h.selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
         selection = {"heliostat_id": h.hid, "model": b["model"], "preset": h.selected["preset"],
                      "weight_decay": b["weight_decay"], "seed": int(b["seed"]),
                      "n_train": h.n_full, "val_error_mrad": b["val"],
                      "test_error_mrad": b["test"], "coarse_val_error_mrad": h.coarse_val,
-                     "coarse_test_error_mrad": h.coarse_test}
+                     "coarse_test_error_mrad": h.coarse_test,
+                     "time_test_error_mrad": _stats(pred["time_error_mrad"].to_numpy(float),
+                                                    t_test)[0],
+                     "coarse_time_test_error_mrad": _stats(coarse_time, t_test)[0]}
         results.append({"rows": rows, "selection": selection, "selected_state": state,
                         "predictions": pred})
     return results
@@ -475,7 +486,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               extra_bands: Sequence[Sequence[float]] = (OCTAVE_BANDS,),
               study: int | Sequence[str] | None = DEFAULT_STUDY, study_seed: int = 0,
               path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE,
-              select_pretrained: bool = False) -> dict:
+              select_pretrained: bool = False, time_split: bool = True) -> dict:
     """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
     (and ``hybrid/selected/``), return a summary.
 
@@ -495,6 +506,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     batch_size : heliostats per batched program of the production selection.
     select_pretrained : the pre-trained network (``pretrain_config``, first seed) is a candidate
         of the production selection too, for every heliostat, under the hybrids' margin rule.
+    time_split : evaluate every heliostat's selected model forward in time: train it again (the
+        same variant, weight decay and seed, on fit-coarse's time-split fit) on the time split's
+        training rows (:mod:`heliocal.pipeline.stages.forward`); it never changes the selection.
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
     workdir = Path(workdir)
@@ -525,6 +539,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     check_fresh(workdir, COARSE_PREDICTIONS, {"measurements": MEASUREMENTS, "split": SPLIT})
     split = read_artifact(workdir, SPLIT, heliostats=heliostats)
     selected = load_selected_parameters(workdir, heliostats)
+    for hid, theta in load_time_parameters(workdir, heliostats).items():
+        if hid in selected:
+            selected[hid]["time_params"] = theta
     coarse_options = coarse_fit_options(workdir)
     params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
                            columns=["heliostat_id", "preset", "selected", "val_error_mrad",
@@ -532,7 +549,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     params = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
     preds = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats)
     pred_of = dict(tuple(preds.groupby("heliostat_id", sort=False)))
-    merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
+    merged = measurements.merge(split[["heliostat_id", "measurement_id", "split", TIME_COLUMN]],
                                 on=["heliostat_id", "measurement_id"], how="inner")
     rows_of = dict(tuple(merged.groupby("heliostat_id", sort=False)))   # not a scan per heliostat
     split_of = dict(tuple(split.groupby("heliostat_id", sort=False)))
@@ -554,7 +571,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     ids = sorted(items, key=lambda h: (len(items[h][1]), h))
     chunks = hybrid_chunks(ids, selected, helio, batch_size)
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
-                         pretrain_config if select_pretrained else None))
+                         pretrain_config if select_pretrained else None, bool(time_split),
+                         pretrain_config))
              for chunk in chunks]
     studied = study_heliostats(list(items), study, study_seed)
     for hid in studied:
@@ -588,6 +606,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "study": study if study is None or isinstance(study, (int, np.integer)) else list(study),
             "study_seed": study_seed, "study_heliostats": studied, "path": path.to_dict(),
             "batch_size": batch_size, "select_pretrained": bool(select_pretrained),
+            "time_split": bool(time_split),
             "coarse_options": coarse_options,
             "heliostats": list(heliostats) if heliostats else None}
     # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
