@@ -51,7 +51,7 @@ __all__ = [
     "fit_coarse_time_split",
     "attach_coarse_time",
     "load_time_parameters",
-    "time_split_errors",
+    "add_sweep_time_split",
     "time_rows",
 ]
 
@@ -198,67 +198,122 @@ def load_time_parameters(workdir: str | Path, heliostats: Sequence[str] | None =
 # ------------------------------------------------------------------------------------------------
 # sweep
 # ------------------------------------------------------------------------------------------------
-def time_split_errors(helios: Sequence, best: Sequence[dict], weight_decays: Sequence[float],
-                      path, train_path: Callable, pretrain_config=None) -> dict[int, np.ndarray]:
-    """Forward-in-time errors of the sweep's selected models of one chunk.
+def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
+    """One group of heliostats whose selected models train together (one hybrid variant, one
+    kinematic and actuator type and free parameters; or one heliostat's pretrained-nn): per
+    heliostat its selected model trained on the time split's training rows, error_mrad of every
+    row (rows' order)."""
+    kind, entries, cfg, weight_decays, path, train_path = task
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    out = []
+    prepared = []
+    for hid, rows, hrow, labels, theta, free, wd, seed in entries:
+        hrow = pd.Series(hrow)
+        prepared.append((hid, rows, hrow, time_rows(labels), theta, free, wd, seed,
+                         HeliostatSpec.from_row(hrow), MeasurementBatch.from_frame(rows)))
+    if kind == "pretrained-nn":
+        for hid, rows, hrow, labels, theta, _, _, seed, spec, data in prepared:
+            _, _, normal, position = fit_pretrained(theta, spec, hrow, rows, data, labels, seed,
+                                                    cfg)
+            with torch.no_grad():
+                out.append((hid, error_mrad(normal, measured_normal(data.sun, position,
+                                                                    data.focal_spot)).numpy()))
+        return out
+    k_ens = cfg.ensemble
+    problems, taken, fit_labels = [], [], []
+    for hid, rows, hrow, labels, theta, free, *_ in prepared:
+        p = build_problem(rows, hrow, theta, free, cfg)
+        fitting = np.isin(labels, ("train", "validation"))
+        problems.append(p)
+        taken.append(take_rows(p, torch.as_tensor(fitting)))
+        fit_labels.append(labels[fitting])
+    stacked, valid = stack_problems([t for t in taken for _ in range(k_ens)])
+    n = stacked.data.steps.shape[1]
+    lab = np.array([np.resize(x, n) for x in fit_labels for _ in range(k_ens)])
+    seeds = [s for e in prepared for s in ensemble_seeds(e[7], k_ens)]
+    # the selected weight decays are reached along the sweep's path (strong to weak)
+    wds = [w for w in weight_decays if w >= min(e[6] for e in prepared)]
+    for wd, result in train_path(stacked, torch.as_tensor(lab == "train") & valid,
+                                 torch.as_tensor(lab == "validation") & valid, seeds, wds, cfg,
+                                 path):
+        for k, e in enumerate(prepared):
+            if e[6] == wd:
+                nets = slice(k * k_ens, (k + 1) * k_ens)
+                layers = [(w[nets], b[nets]) for w, b in result.layers]
+                with torch.no_grad():
+                    out.append((e[0], ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]))
+    return out
+
+
+def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, weight_decays,
+                         path, pretrain_config, train_path: Callable, enabled: bool = True, *,
+                         batch_size: int = 64, workers=1, scheduler="local",
+                         dask_address=None) -> None:
+    """Evaluate the sweep's selected models forward in time (in place): every result of
+    ``chosen`` gets ``time_error_mrad`` in its predictions and ``time_test_error_mrad``,
+    ``coarse_time_test_error_mrad`` in its selection.
+
+    The selected model (variant, weight decay, seed) is trained again on top of fit-coarse's
+    time-split fit (coarse_params.parquet ``time_fitted``) on the time split's training rows, with early
+    stopping on its validation rows, along the sweep's weight-decay path down to the selected
+    weight decay (``train_path``, ``path``), heliostats of one variant and type batched as in
+    the selection; a heliostat whose selected model is the coarse one takes fit-coarse's
+    time-split errors. ``enabled=False`` (``sweep --no-time-split``): only the coarse model's
+    (free) figures are written, the selected model's are missing.
 
     Parameters
     ----------
-    helios : the chunk's heliostats (the sweep's per-heliostat inputs: ``rows`` with
-        ``time_split``, ``hrow``, ``spec``, ``data``, ``selected`` with ``time_params``,
-        ``coarse`` predictions per model).
-    best : per heliostat the selection (``model``, ``weight_decay``, ``seed``, ``cfg``).
-    weight_decays : the sweep's path, strong to weak; ``path``, ``train_path``: how it trains.
-    pretrain_config : the pre-trained network's config (for a selected ``pretrained-nn``).
-
-    Returns
-    -------
-    index in ``helios`` -> error_mrad (N,) of every row of the selected model trained on the time
-    split's training rows; heliostats without a time split are absent.
+    chosen : the selection results (``selection``, ``predictions``) of the sweep.
+    items : heliostat -> the sweep's inputs (id, rows, heliostat row, split rows, selected
+        coarse fit, coarse predictions per model, ...).
+    variants : the sweep's ``(name, FineConfig)``; ``pretrain_config``: a selected
+        pretrained-nn's.
     """
-    out: dict[int, np.ndarray] = {}
-    hybrids: dict = {}
-    for i, (h, b) in enumerate(zip(helios, best)):
-        labels = time_labels_of(h.rows)
-        theta = h.selected.get("time_params")
-        if labels is None or theta is None:
+    cfg_of = dict(variants)
+    time_params = load_time_parameters(workdir, sorted(items))
+    entries: dict = {}
+    errors: dict[str, np.ndarray] = {}
+    for res in chosen:
+        sel = res["selection"]
+        hid = sel["heliostat_id"]
+        _, rows, hrow, srows, selected, coarse, *_ = items[hid]
+        rows = rows.reset_index(drop=True)
+        by_id = dict(zip(srows["measurement_id"].astype(str), srows[TIME_COLUMN]))
+        labels = np.array([None if pd.isna(v := by_id.get(m)) else v
+                           for m in rows["measurement_id"].astype(str)], dtype=object)
+        res["time_labels"] = labels
+        theta = time_params.get(hid)
+        if (labels == "train").sum() < 2 or theta is None:
             continue
-        if b["model"] == "coarse":
-            out[i] = h.coarse[h.selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
-        elif b["model"] == "pretrained-nn":
-            _, _, normal, position = fit_pretrained(theta, h.spec, h.hrow, h.rows, h.data,
-                                                    time_rows(labels), b["seed"], pretrain_config)
-            with torch.no_grad():
-                out[i] = error_mrad(normal, measured_normal(h.data.sun, position,
-                                                            h.data.focal_spot)).numpy()
-        else:
-            hybrids.setdefault(b["model"], []).append(i)
-    for kind, members in hybrids.items():
-        cfg = best[members[0]]["cfg"]
-        k_ens = cfg.ensemble
-        problems, taken, fit_labels = [], [], []
-        for i in members:
-            h = helios[i]
-            labels = time_rows(time_labels_of(h.rows))
-            p = build_problem(h.rows, h.hrow, h.selected["time_params"], h.selected["free"], cfg)
-            fitting = np.isin(labels, ("train", "validation"))
-            problems.append(p)
-            taken.append(take_rows(p, torch.as_tensor(fitting)))
-            fit_labels.append(labels[fitting])
-        stacked, valid = stack_problems([t for t in taken for _ in range(k_ens)])
-        n = stacked.data.steps.shape[1]
-        lab = np.array([np.resize(x, n) for x in fit_labels for _ in range(k_ens)])
-        seeds = [s for i in members for s in ensemble_seeds(best[i]["seed"], k_ens)]
-        last = min(best[i]["weight_decay"] for i in members)
-        wds = [w for w in weight_decays if w >= last]
-        for wd, result in train_path(stacked, torch.as_tensor(lab == "train") & valid,
-                                     torch.as_tensor(lab == "validation") & valid, seeds, wds,
-                                     cfg, path):
-            for k, i in enumerate(members):
-                if best[i]["weight_decay"] != wd:
-                    continue
-                nets = slice(k * k_ens, (k + 1) * k_ens)
-                layers = [(w[nets], b_[nets]) for w, b_ in result.layers]
-                with torch.no_grad():
-                    out[i] = ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]
-    return out
+        if sel["model"] == "coarse":
+            errors[hid] = coarse[selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
+            continue
+        if not enabled:
+            continue
+        free = selected["free"]
+        key = (sel["model"], str(hrow["kinematic_type"]), str(hrow["actuator_type"]),
+               tuple(bool(x) for x in free.tolist()))
+        entries.setdefault(key, []).append((hid, rows, hrow, labels, theta, free,
+                                            float(sel["weight_decay"]), int(sel["seed"])))
+    tasks = []
+    for key in sorted(entries):
+        step = 1 if key[0] == "pretrained-nn" else batch_size
+        cfg = pretrain_config if key[0] == "pretrained-nn" else cfg_of[key[0]]
+        members = entries[key]
+        tasks += [(key[0], members[i:i + step], cfg, list(weight_decays), path, train_path)
+                  for i in range(0, len(members), step)]
+    for part in (map_tasks(_sweep_time_task, tasks, workers=workers, scheduler=scheduler,
+                           dask_address=dask_address) if tasks else []):
+        errors.update(dict(part))
+    for res in chosen:
+        sel, pred = res["selection"], res["predictions"]
+        hid, labels = sel["heliostat_id"], res.pop("time_labels")
+        rows = items[hid][1].reset_index(drop=True)
+        err = errors.get(hid)
+        position = pd.Series(np.arange(len(rows)), index=rows["measurement_id"].astype(str))
+        at = position.loc[pred["measurement_id"].astype(str).to_numpy()].to_numpy()
+        pred["time_error_mrad"] = np.nan if err is None else err[at]
+        test = labels == "test"
+        coarse = items[hid][5][items[hid][4]["preset"]]["time_error_mrad"].to_numpy(np.float64)
+        sel["time_test_error_mrad"] = _mean(err[test]) if err is not None else float("nan")
+        sel["coarse_time_test_error_mrad"] = _mean(coarse[test])

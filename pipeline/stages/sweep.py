@@ -52,7 +52,6 @@ from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from ..models.coarse import MeasurementBatch, fit_presets, metrics_frame, normal_errors_mrad
 from .fit_coarse import coarse_fit_options, load_selected_parameters
 from ..errors import FitError, ParameterError, check_float, check_int
-from ..vocabulary import HYBRID_BATCH_SIZE
 from .fit_hybrid import hybrid_chunks
 from ..models.config import FineConfig, ensemble_seeds
 from ..models.network import layers_to_state
@@ -60,23 +59,19 @@ from ..models.training import (FineProblem, MemberResult, take_rows, build_probl
                                ensemble_errors_mrad, predict_ensembles, predictions_frame,
                                stack_problems, train_members)
 from ..models.pretrained import PretrainConfig, fit_pretrained
-
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.metrics import error_mrad, measured_normal
 from ..runtime.parallel import map_tasks
-from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
+from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, SELECTED_PREDICTIONS, SELECTION, SPLIT, SWEEP
 from ..artifacts.modelfiles import write_model
-from ..artifacts.schemas import SPLIT
 from .split import restrict_training
 from ..artifacts.manifests import current_transaction
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
-from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
-from ..vocabulary import DEFAULT_STUDY
-from ..vocabulary import OCTAVE_BANDS
+from ..vocabulary import DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS
 from ..models.config import PathConfig
 from ..runtime.process_state import restores_process_state
-from .forward import TIME_COLUMN, load_time_parameters, time_split_errors
+from .forward import add_sweep_time_split
 
 __all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants", "MIN_IMPROVEMENT",
            "train_path", "study_heliostats"]
@@ -241,8 +236,7 @@ def _fit_pretrained_errors(h: _Heliostat, coarse, labels, seed: int, config: Pre
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
 def _select_chunk(items, variants, weight_decays, seeds, path,
-                  pretrain_config: PretrainConfig | None = None, time_split: bool = True,
-                  time_pretrain_config: PretrainConfig | None = None) -> list[dict]:
+                  pretrain_config: PretrainConfig | None = None) -> list[dict]:
     """The full-size candidates and the selection of a chunk of heliostats that share one
     kinematic type, actuator type and coarse preset (one batched program per weight decay);
     with ``pretrain_config`` the pre-trained network (first seed) is a candidate too."""
@@ -313,11 +307,8 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
                            "seed": int(seeds[0]), "val": v,
                            "test": _stats(err, test_masks[i])[0], "pretrained": model,
                            "normal": normal, "position": position, "info": info}
-    # forward in time: the selected model trained again on the time split's training rows
-    time_err = (time_split_errors(helios, best, weight_decays, path, train_path,
-                                  time_pretrain_config) if time_split else {})
     results = []
-    for i, (h, rows, b) in enumerate(zip(helios, out_rows, best)):
+    for h, rows, b in zip(helios, out_rows, best):
         state = None
         if b["model"] == "coarse":
             pred = _sel_frame(h, h.coarse[h.selected["preset"]])
@@ -345,17 +336,11 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
                            "scales": problem.scales.tolist(),
                            "coarse_preset": h.selected["preset"], "sizes": problem.sizes(cfg),
                            "path": path.to_dict(), "selected_by": "sweep"}}
-        t_test = h.rows[TIME_COLUMN].to_numpy(dtype=object) == "test"
-        pred["time_error_mrad"] = time_err.get(i, np.full(len(h.rows), np.nan))
-        coarse_time = h.coarse[h.selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
         selection = {"heliostat_id": h.hid, "model": b["model"], "preset": h.selected["preset"],
                      "weight_decay": b["weight_decay"], "seed": int(b["seed"]),
                      "n_train": h.n_full, "val_error_mrad": b["val"],
                      "test_error_mrad": b["test"], "coarse_val_error_mrad": h.coarse_val,
-                     "coarse_test_error_mrad": h.coarse_test,
-                     "time_test_error_mrad": _stats(pred["time_error_mrad"].to_numpy(float),
-                                                    t_test)[0],
-                     "coarse_time_test_error_mrad": _stats(coarse_time, t_test)[0]}
+                     "coarse_test_error_mrad": h.coarse_test}
         results.append({"rows": rows, "selection": selection, "selected_state": state,
                         "predictions": pred})
     return results
@@ -506,9 +491,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     batch_size : heliostats per batched program of the production selection.
     select_pretrained : the pre-trained network (``pretrain_config``, first seed) is a candidate
         of the production selection too, for every heliostat, under the hybrids' margin rule.
-    time_split : evaluate every heliostat's selected model forward in time: train it again (the
-        same variant, weight decay and seed, on fit-coarse's time-split fit) on the time split's
-        training rows (:mod:`heliocal.pipeline.stages.forward`); it never changes the selection.
+    time_split : evaluate the selected models forward in time (:mod:`.forward`; no effect on it).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
     workdir = Path(workdir)
@@ -539,9 +522,6 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     check_fresh(workdir, COARSE_PREDICTIONS, {"measurements": MEASUREMENTS, "split": SPLIT})
     split = read_artifact(workdir, SPLIT, heliostats=heliostats)
     selected = load_selected_parameters(workdir, heliostats)
-    for hid, theta in load_time_parameters(workdir, heliostats).items():
-        if hid in selected:
-            selected[hid]["time_params"] = theta
     coarse_options = coarse_fit_options(workdir)
     params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
                            columns=["heliostat_id", "preset", "selected", "val_error_mrad",
@@ -549,7 +529,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     params = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
     preds = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats)
     pred_of = dict(tuple(preds.groupby("heliostat_id", sort=False)))
-    merged = measurements.merge(split[["heliostat_id", "measurement_id", "split", TIME_COLUMN]],
+    merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
                                 on=["heliostat_id", "measurement_id"], how="inner")
     rows_of = dict(tuple(merged.groupby("heliostat_id", sort=False)))   # not a scan per heliostat
     split_of = dict(tuple(split.groupby("heliostat_id", sort=False)))
@@ -571,8 +551,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     ids = sorted(items, key=lambda h: (len(items[h][1]), h))
     chunks = hybrid_chunks(ids, selected, helio, batch_size)
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
-                         pretrain_config if select_pretrained else None, bool(time_split),
-                         pretrain_config))
+                         pretrain_config if select_pretrained else None))
              for chunk in chunks]
     studied = study_heliostats(list(items), study, study_seed)
     for hid in studied:
@@ -589,6 +568,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     results = [r for part in parts for r in part]
     chosen = sorted((r for r in results if "selection" in r),
                     key=lambda r: r["selection"]["heliostat_id"])
+    add_sweep_time_split(workdir, chosen, items, variants, weight_decays, path, pretrain_config,
+                         train_path, time_split, batch_size=batch_size, workers=workers,
+                         scheduler=scheduler, dask_address=dask_address)
     rows = [r for res in results for r in res["rows"]]
     selection = pd.DataFrame([res["selection"] for res in chosen])
     txn = current_transaction(workdir, "sweep")
@@ -606,8 +588,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "study": study if study is None or isinstance(study, (int, np.integer)) else list(study),
             "study_seed": study_seed, "study_heliostats": studied, "path": path.to_dict(),
             "batch_size": batch_size, "select_pretrained": bool(select_pretrained),
-            "time_split": bool(time_split),
-            "coarse_options": coarse_options,
+            "coarse_options": coarse_options, "time_split": bool(time_split),
             "heliostats": list(heliostats) if heliostats else None}
     # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
     # previous sweep read the same inputs (artifacts.merge_with_previous)
