@@ -283,7 +283,9 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     # forward in time: the same mode, weight decay and seed trained again on the time split's
     # training rows, on top of fit-coarse's time-split fit (heliostats without one: n/a)
     time_params = load_time_parameters(workdir, heliostats)
-    labels_of = {h: load_time_labels(workdir, groups[h]) for h in ids if h in time_params}
+    time_labels = pd.Series(load_time_labels(workdir, measurements), index=measurements.index)
+    labels_of = {h: time_labels.loc[groups[h].index].to_numpy(dtype=object)
+                 for h in ids if h in time_params}
     time_ids = [h for h in ids if h in labels_of and (labels_of[h] == "train").sum() >= 2]
     time_tasks = [([(hid, groups[hid].assign(split=np.where(pd.isna(labels_of[hid]), "excluded",
                                                              labels_of[hid])),
