@@ -49,7 +49,7 @@ def run_dataset(work: Path, sources, properties, workers: int) -> tuple[pd.DataF
     run_ingest(sources, work, IngestOptions(properties=properties) if properties else IngestOptions())
     run_split(work)
     run_fit_coarse(work, workers=workers)
-    run_sweep(work, study=0, workers=workers)
+    run_sweep(work, study=0, workers=workers, time_split=True)
     return read_artifact(work, SELECTION).set_index("heliostat_id"), time.perf_counter() - t0
 
 
