@@ -347,7 +347,7 @@ def aim_workdir(tmp_path_factory):
     # one weight decay of the grid (the one the full sweep selects on SS48), trained from scratch
     # with the full budget of FineConfig, so the fixture runs in seconds
     run_sweep(w, weight_decays=[1e-2], baselines=(), config=config, heliostats=["SS48", "SQ04"],
-              extra_bands=(), study=0, path=PathConfig(warm_start=False))
+              extra_bands=(), study=0, path=PathConfig(warm_start=False), time_split=True)
     return w
 
 

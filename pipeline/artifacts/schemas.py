@@ -425,8 +425,8 @@ SELECTION = ArtifactSchema(
           "(fit-coarse's, as coarse_params.parquet).", nullable=True),
         C("time_test_error_mrad", "float64", "mrad", "Forward in time: mean error on the time "
           "split's test rows of the selected model (the same model, weight decay and seed) "
-          "trained again on the time split's training rows (missing: no time split, or the "
-          "sweep ran with --no-time-split).", nullable=True),
+          "trained again on the time split's training rows (missing: no time split, or a "
+          "selected hybrid of a sweep without --time-split).", nullable=True),
         C("coarse_time_test_error_mrad", "float64", "mrad", "The same for the coarse model "
           "(fit-coarse's time-split fit, as coarse_params.parquet).", nullable=True),
     ),

@@ -209,7 +209,8 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                             "default). Forward in time: the same model trained again on the "
                             "time split's training rows only, its mean error on the time "
                             "split's test rows (the latest measurements); n/a: the heliostat "
-                            "has no time split (too few timestamps)."))
+                            "has no time split (too few timestamps), or its selected hybrid "
+                            "was not trained again (`heliocal sweep --time-split`)."))
 
     # --- coarse parameters
     blocks.append(("h2", "Coarse parameters"))

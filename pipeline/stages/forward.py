@@ -15,10 +15,13 @@ model's own (``time_error_mrad``):
   fit: the episodes were found on residuals that include the recent rows.)
 - ``fit-hybrid``: the fitted mode trained again with the same weight decay and seed on top of
   that time-split coarse fit.
-- ``sweep``: the selected model (the variant, weight decay and seed the kNN selection chose)
-  trained again on top of the time-split coarse fit, along the same weight-decay path up to the
-  selected weight decay (:func:`time_split_errors`); a heliostat whose selected model is the
-  coarse one takes fit-coarse's time-split errors, at no cost.
+- ``sweep``: a heliostat whose selected model is the coarse one takes fit-coarse's time-split
+  errors, at no cost; with ``sweep --time-split`` a selected hybrid (or pretrained-nn) is trained
+  again (the variant, weight decay and seed the kNN selection chose) on top of the time-split
+  coarse fit, along the same weight-decay path down to the selected weight decay
+  (:func:`add_sweep_time_split`). That is a second training program per chunk, measured at +50 %
+  of the sweep's time on a simulated field (benchmarks/forward_cost.py), so it is not the
+  default; without it the selected hybrids' forward-in-time errors are missing ("n/a").
 
 The selection itself never looks at the time split. A heliostat without a time split (no or too
 few timestamps) has no ``time_error_mrad`` and every forward-in-time figure of it is "n/a".
@@ -258,8 +261,8 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
     stopping on its validation rows, along the sweep's weight-decay path down to the selected
     weight decay (``train_path``, ``path``), heliostats of one variant and type batched as in
     the selection; a heliostat whose selected model is the coarse one takes fit-coarse's
-    time-split errors. ``enabled=False`` (``sweep --no-time-split``): only the coarse model's
-    (free) figures are written, the selected model's are missing.
+    time-split errors. ``enabled=False`` (the sweep's default): only the coarse model's (free)
+    figures are written, a selected hybrid's are missing.
 
     Parameters
     ----------

@@ -471,7 +471,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               extra_bands: Sequence[Sequence[float]] = (OCTAVE_BANDS,),
               study: int | Sequence[str] | None = DEFAULT_STUDY, study_seed: int = 0,
               path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE,
-              select_pretrained: bool = False, time_split: bool = True) -> dict:
+              select_pretrained: bool = False, time_split: bool = False) -> dict:
     """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
     (and ``hybrid/selected/``), return a summary.
 
@@ -491,7 +491,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     batch_size : heliostats per batched program of the production selection.
     select_pretrained : the pre-trained network (``pretrain_config``, first seed) is a candidate
         of the production selection too, for every heliostat, under the hybrids' margin rule.
-    time_split : evaluate the selected models forward in time (:mod:`.forward`; no effect on it).
+    time_split : also train the selected hybrids forward in time (:mod:`.forward`; +50 % time).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
     workdir = Path(workdir)
