@@ -42,6 +42,10 @@ def _print_summary(summary: dict) -> None:
     stdout.print(table)
     stdout.print("kNN <set>: mean kNN distance of the set (deg); test->train: mean distance from "
                  "a test measurement to the nearest training measurement (deg).", markup=False)
+    timed = [h for h in summary["heliostats"] if h.get("time_split_counts")]
+    stdout.print(f"time split beside it (the latest rows test, forward-in-time evaluation): "
+                 f"{len(timed)} of {len(summary['heliostats'])} heliostats; the others have too "
+                 "few timestamps (n/a).", markup=False)
     stdout.print(f"wrote {summary['artifact']}", markup=False)
 
 

@@ -85,17 +85,27 @@ def _measurements() -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+#: The time split (split.parquet time_split): AA01's rows in time order (its timestamps grow with
+#: the row), AB02 without one (n/a)
+TIME_SPLITS = {"AA01": SPLITS, "AB02": [None] * N}
+#: time_error_mrad of AA01's models evaluated forward in time (the selected coarse preset and the
+#: hybrid): their error + 1.0 and + 0.5 (hand-chosen; metrics.json's forward_in_time follows)
+TIME_OFFSET = {"static-6": 1.0, "hybrid": 0.5}
+
+
 def _predictions(model_errors: dict[str, np.ndarray], selected: dict[str, str]) -> pd.DataFrame:
     rows = []
     for hid in HIDS:
         for model, err in model_errors.items():
             for i in range(N):
+                off = TIME_OFFSET.get(model) if hid == "AA01" else None
                 rows.append({"heliostat_id": hid, "measurement_id": f"{1000 + i}",
                              "split": SPLITS[i], "model": model,
                              "selected": selected.get(hid) == model,
                              "error_mrad": float(err[i]), "beam_error_mrad": 2 * float(err[i]),
                              "spot_offset_horizontal_m": 0.01, "spot_offset_vertical_m": 0.0,
-                             "spot_offset_m": 0.01})
+                             "spot_offset_m": 0.01,
+                             "time_error_mrad": np.nan if off is None else float(err[i]) + off})
     return pd.DataFrame(rows)
 
 
@@ -117,6 +127,7 @@ def make_workdir(root: Path, stage: str = "sweep") -> Path:
         return wd
     split = m[["heliostat_id", "measurement_id", "sun_azimuth_deg", "sun_elevation_deg"]].copy()
     split["split"] = SPLITS * len(HIDS)
+    split["time_split"] = [v for hid in HIDS for v in TIME_SPLITS[hid]]
     split["knn_distance_deg"] = 3.0
     split["knn_rank"] = list(range(N)) * len(HIDS)
     split["nearest_train_distance_deg"] = np.where(split["split"] == "test", 12.5, 4.0)
@@ -324,7 +335,10 @@ def test_tables_in_markdown(full_report):
     assert "| sun_below_horizon | 1 |" in md
     # coarse parameters with standard errors
     assert "| joint_1_tilt_n_rad | rad | 0 | 0.002 | 0.0002 | yes |" in md
-    assert "| AA01 | static-6 | hybrid | 0.01 | 0.560 | 0.665 | 0.800 | 0.950 |" in md
+    # test forward in time: 0.95 * 0.7 + 0.5 (hybrid) and 0.95 + 1.0 (coarse); AB02 has none
+    assert ("| AA01 | static-6 | hybrid | 0.01 | 0.560 | 0.665 | 0.800 | 0.950 | 1.165 | 1.950 |"
+            in md)
+    assert "| AB02 | static-20 | hybrid | 0.01 | 0.600 | 0.700 | 0.850 | 1.000 | n/a | n/a |" in md
 
 
 def test_metrics_values_and_schema(full_report):
@@ -343,6 +357,26 @@ def test_metrics_values_and_schema(full_report):
     assert a["selection"] == {"coarse_preset": "static-6", "model": "hybrid", "weight_decay": 0.01,
                               "val_error_mrad": 0.56, "test_error_mrad": 0.665,
                               "coarse_val_error_mrad": 0.8, "coarse_test_error_mrad": 0.95}
+    # forward in time (hand computation from TIME_OFFSET): the kNN test error of the selected
+    # preset and of the final model beside their time-split test error; AB02 n/a
+    f = a["forward_in_time"]
+    assert f["time_split_counts"] == {"train": 20, "validation": 10, "test": 10}
+    assert f["coarse"]["model"] == "static-6" and f["final"]["model"] == "hybrid"
+    assert f["coarse"]["knn_test"] == a["models"]["static-6"]["splits"]["test"] | {
+        "mean_beam_error_mrad": None, "mean_spot_offset_m": None}
+    assert f["coarse"]["time_test"]["mean_error_mrad"] == 1.95
+    assert f["coarse"]["time_test"]["p95_error_mrad"] == 2.355
+    assert (f["final"]["knn_test"]["mean_error_mrad"], f["final"]["time_test"]["mean_error_mrad"],
+            f["final"]["time_test"]["median_error_mrad"]) == (0.665, 1.165, 1.165)
+    b = metrics["heliostats"]["AB02"]["forward_in_time"]
+    assert b["time_split_counts"] == {} and b["final"]["time_test"]["n"] == 0
+    assert b["final"]["time_test"]["mean_error_mrad"] is None
+    assert b["final"]["knn_test"]["mean_error_mrad"] == 0.665  # its hybrid rows: 0.95 * 0.7
+    field = metrics["field"]["forward_in_time"]
+    assert field["n_heliostats_time_split"] == 1
+    assert (field["final"]["knn_test"]["n"], field["final"]["time_test"]["n"]) == (20, 10)
+    assert field["final"]["knn_test"]["mean_error_mrad"] == 0.665
+    assert field["final"]["time_test"]["mean_error_mrad"] == 1.165
     assert metrics["data"]["n_measurements"] == 80
     assert metrics["data"]["rejected_by_reason"] == {"missing_value": 2, "sun_below_horizon": 1}
     assert metrics["data"]["first_timestamp"] == "2023-01-05T00:00:00Z"

@@ -51,10 +51,13 @@ def test_overview_numbers_are_the_errors_aim_uses(coarse_report):
     assert (s["n_above_alert"], s["n_on_alert"]) == (1, 2)
     index = (wd / "report" / "index.html").read_text()
     assert "<b>0.975 mrad</b>median test error" in index
-    # worst first: AB02 (1.0) is rank 1, AA01 (0.95) rank 2
+    # worst first: AB02 (1.0) is rank 1, AA01 (0.95) rank 2; beside the test error the one
+    # forward in time (AA01: its coarse preset's time_error_mrad, 0.95 + 1.0; AB02: n/a)
     rows = re.findall(r"<tr><td>(\d)</td><td class=\"t\"><a href=\"heliostats/(\w+)\.html\">"
-                      r"\w+</a></td><td>([\d.]+)</td><td>([\d.]+)</td>", index)
-    assert rows == [("1", "AB02", "1.000", "0.850"), ("2", "AA01", "0.950", "0.800")]
+                      r"\w+</a></td><td>([\d.]+)</td><td>([\d.]+|n/a)</td><td>([\d.]+)</td>",
+                      index)
+    assert rows == [("1", "AB02", "1.000", "n/a", "0.850"),
+                    ("2", "AA01", "0.950", "1.950", "0.800")]
     assert 'title="test error 1.00 mrad above 0.97 mrad"' in index
     assert "regime change detected on" in index and "(2.5 mrad)" in index
     # the map: one link per heliostat, those on alert ringed in red

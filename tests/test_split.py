@@ -193,6 +193,46 @@ def test_time_methods_keep_untimed_rows_as_training(caplog):
         split_measurements(f, method="solstice", k=1, n_test=2, n_val=2)
 
 
+def test_time_split_beside_the_knn_split_hand_computed(caplog):
+    # the comparison table above (m0..m9 monthly, m9 latest) with the default kNN method: the
+    # split column is the kNN split, time_split the time split of the same sizes
+    ts = pd.to_datetime([f"2023-{month:02d}-21T12:00Z" for month in range(1, 11)])
+    f = pd.DataFrame({"heliostat_id": "H", "measurement_id": [f"m{i}" for i in range(10)],
+                      "timestamp": ts[::-1], "sun_azimuth_deg": [0, 10, 95, 30, 40, 50, 60, 70, 80, 90],
+                      "sun_elevation_deg": 30.0})   # m0 is the latest, m9 the earliest
+    knn, _ = split_measurements(f, k=1, n_test=2, n_val=2)
+    table, _ = split_measurements(f, k=1, n_test=2, n_val=3, n_train=2)
+    t = table.set_index("measurement_id")
+    # the latest two (m0, m1) test, the three before (m2, m3, m4) validation, the earlier five
+    # train candidates; n_train=2 keeps the two with the largest kNN distance (k=1, azimuths
+    # 50..90 step 10: all 10; the tie goes by id: m5, m6), the kNN rule of --n-train
+    assert t["time_split"].to_dict() == {
+        "m0": "test", "m1": "test", "m2": "validation", "m3": "validation", "m4": "validation",
+        "m5": "train", "m6": "train", "m7": "unused", "m8": "unused", "m9": "unused"}
+    # the selection split is the kNN one: the time split only sits beside it
+    assert set(knn["method"]) == {"knn"}
+    # k=1 distances: 5 for m2 (95 -> 90) and m9 (90 -> 95), 10 for all others; ties by id:
+    # kNN test m0, m1 and validation m3, m4, while the time split's validation is m2, m3
+    k = knn.set_index("measurement_id")
+    assert sorted(k.index[k["split"] == "validation"]) == ["m3", "m4"]
+    assert sorted(k.index[k["time_split"] == "validation"]) == ["m2", "m3"]
+    same, _ = split_measurements(f, method="time", k=1, n_test=2, n_val=3, n_train=2)
+    assert same["split"].tolist() == table["time_split"].tolist()
+    # no timestamps at all: no time split, n/a, never an error
+    bare, _ = split_measurements(f.drop(columns="timestamp"), k=1, n_test=2, n_val=2)
+    assert bare["time_split"].isna().all() and (bare["split"] == knn["split"]).all()
+    # one untimed row: it cannot be placed in time and gets no label; too few timed rows: none
+    g = f.copy()
+    g.loc[0, "timestamp"] = pd.NaT
+    t = split_measurements(g, k=1, n_test=2, n_val=2)[0].set_index("measurement_id")["time_split"]
+    assert pd.isna(t["m0"]) and sorted(t[t == "test"].index) == ["m1", "m2"]
+    g.loc[:5, "timestamp"] = pd.NaT
+    t = split_measurements(g, k=1, n_test=2, n_val=2)[0]["time_split"]
+    assert t.isna().all()
+    assert "heliostat H has no time split (4 of its measurements have a timestamp, the time " \
+           "split needs 6)" in caplog.text
+
+
 def test_skipped_and_none_left():
     f = pd.concat([_grid(30, "BIG"), _grid(9, "SMALL")], ignore_index=True)
     table, skipped = split_measurements(f, k=3, n_test=5, n_val=3)

@@ -347,7 +347,7 @@ def aim_workdir(tmp_path_factory):
     # one weight decay of the grid (the one the full sweep selects on SS48), trained from scratch
     # with the full budget of FineConfig, so the fixture runs in seconds
     run_sweep(w, weight_decays=[1e-2], baselines=(), config=config, heliostats=["SS48", "SQ04"],
-              extra_bands=(), study=0, path=PathConfig(warm_start=False))
+              extra_bands=(), study=0, path=PathConfig(warm_start=False), time_split=True)
     return w
 
 
@@ -405,3 +405,38 @@ def test_info_names_the_model_aim_uses(aim_workdir, runner):
     res = runner.invoke(app, ["info", str(aim_workdir)])
     line = next(l for l in res.stdout.splitlines() if l.strip().startswith("SS48"))
     assert "hybrid on" in line and "0.01" in line and "sweep" in line
+
+
+def test_forward_in_time_errors_come_from_the_selected_model_trained_on_the_past(aim_workdir,
+                                                                                 tmp_path):
+    # SQ04 keeps the coarse model: its forward-in-time figures are fit-coarse's time-split fit's
+    from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS, SPLIT
+    from heliocal.pipeline.artifacts.store import read_artifact
+
+    sel = pd.read_parquet(aim_workdir / SELECTION.filename).set_index("heliostat_id")
+    fc = _fit_coarse_selected(aim_workdir)
+    assert sel.loc["SQ04", "time_test_error_mrad"] == fc.loc["SQ04", "time_test_error_mrad"]
+    for hid in ("SQ04", "SS48"):   # the coarse model's, whatever was selected (exact)
+        assert sel.loc[hid, "coarse_time_test_error_mrad"] == fc.loc[hid, "time_test_error_mrad"]
+    pred = read_artifact(aim_workdir, SELECTED_PREDICTIONS).merge(
+        read_artifact(aim_workdir, SPLIT, columns=["heliostat_id", "measurement_id", "time_split"]))
+    for hid in ("SQ04", "SS48"):
+        p = pred[(pred["heliostat_id"] == hid) & (pred["time_split"] == "test")]
+        assert len(p) == 30
+        assert p["time_error_mrad"].mean() == pytest.approx(sel.loc[hid, "time_test_error_mrad"],
+                                                            rel=1e-12)
+    # SS48's hybrid trained again on the time split: the same model as fit-hybrid trains with
+    # the selected weight decay and seed on the time split (one weight decay, no warm start:
+    # train_members from the seeded weights in both), on another code path: equal numbers
+    w = tmp_path / "copy"
+    shutil.copytree(aim_workdir, w)
+    assert sel.loc["SS48", "model"] == "hybrid" and sel.loc["SS48", "weight_decay"] == 1e-2
+    run_fit_hybrid(w, mode="hybrid", weight_decay=1e-2, seed=int(sel.loc["SS48", "seed"]),
+                   heliostats=["SS48"], config=FineConfig(env=("temperature",)))
+    hyb = read_artifact(w, HYBRID_PREDICTIONS)
+    hyb = hyb[(hyb["heliostat_id"] == "SS48") & (hyb["model"] == "hybrid")]
+    ss = pred[pred["heliostat_id"] == "SS48"].set_index("measurement_id")
+    mine = hyb.set_index("measurement_id")["time_error_mrad"].reindex(ss.index)
+    np.testing.assert_allclose(mine.to_numpy(), ss["time_error_mrad"].to_numpy(), rtol=1e-9)
+    # and it is another model than the kNN-trained one (it did not see the latest rows)
+    assert not np.allclose(ss["time_error_mrad"], ss["error_mrad"])

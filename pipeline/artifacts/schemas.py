@@ -212,7 +212,13 @@ SPLIT = ArtifactSchema(
         C("heliostat_id", "string", "", "Heliostat name."),
         C("measurement_id", "string", "", "Measurement id (as in measurements.parquet)."),
         C("split", "string", "", "`train`, `validation`, `test`, or `unused` (a training "
-          "candidate dropped by the training-size limit)."),
+          "candidate dropped by the training-size limit): the split that selects models."),
+        C("time_split", "string", "", "The forward-in-time split beside it, with the same sizes: "
+          "`test` the latest n_test measurements, `validation` the n_val before them, `train` "
+          "the earlier ones (`unused`: dropped by the training-size limit, kNN rule). Every "
+          "model is evaluated on it too, trained on its `train` rows only. Missing for a "
+          "measurement without timestamp and for every measurement of a heliostat with too few "
+          "timestamps (its forward-in-time errors are n/a).", nullable=True),
         C("knn_distance_deg", "float64", "deg", "Mean distance in sun position to the k nearest "
           "other measurements of the same heliostat (k and metric as recorded in the "
           "provenance; computed for every method)."),
@@ -271,6 +277,13 @@ COARSE_PARAMS = ArtifactSchema(
           nullable=True),
         C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
           nullable=True),
+        C("time_fitted", "float64", "", "Selected preset only: the parameter fitted again, the "
+          "same way, on the time split's training rows (split.parquet `time_split`); missing "
+          "for the other presets and where the heliostat has no time split.", nullable=True),
+        C("time_val_error_mrad", "float64", "mrad", "Selected preset only: mean error of that "
+          "time-split fit on the time split's validation rows (missing: n/a).", nullable=True),
+        C("time_test_error_mrad", "float64", "mrad", "Selected preset only: its mean error on "
+          "the time split's test rows, the latest measurements (missing: n/a).", nullable=True),
     ),
 )
 
@@ -295,6 +308,11 @@ COARSE_PREDICTIONS = ArtifactSchema(
         C("spot_offset_vertical_m", "float64", "m", "Same, vertical axis (up)."),
         C("spot_offset_m", "float64", "m", "Distance between predicted and measured spot on the "
           "target plane."),
+        C("time_error_mrad", "float64", "mrad", "The selected model only: error_mrad of the same "
+          "model (preset, or hybrid configuration) trained again on the time split's training "
+          "rows (split.parquet `time_split`), so that on the time split's validation and test "
+          "rows it is an honest forward-in-time error; missing for the other models and where "
+          "the heliostat has no time split.", nullable=True),
     ),
 )
 
@@ -405,6 +423,12 @@ SELECTION = ArtifactSchema(
           "model: fit-coarse's selected preset (the value of coarse_params.parquet)."),
         C("coarse_test_error_mrad", "float64", "mrad", "Mean test error of the coarse model "
           "(fit-coarse's, as coarse_params.parquet).", nullable=True),
+        C("time_test_error_mrad", "float64", "mrad", "Forward in time: mean error on the time "
+          "split's test rows of the selected model (the same model, weight decay and seed) "
+          "trained again on the time split's training rows (missing: no time split, or a "
+          "selected hybrid of a sweep without --time-split).", nullable=True),
+        C("coarse_time_test_error_mrad", "float64", "mrad", "The same for the coarse model "
+          "(fit-coarse's time-split fit, as coarse_params.parquet).", nullable=True),
     ),
 )
 

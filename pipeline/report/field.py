@@ -63,7 +63,9 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
     Columns: ``heliostat_id``, ``e_m``, ``n_m`` (position, ENU metres; heliostats.parquet, else
     the mean of the measurement rows; NaN if neither), ``model`` (``coarse`` / ``hybrid`` /
     None), ``variant``, ``preset``, ``source`` (the stage that chose the model), ``val_error_mrad``
-    and ``test_error_mrad`` (mean, of the model aim uses, from ``choices``), ``n_measurements``,
+    and ``test_error_mrad`` (mean, of the model aim uses, from ``choices``),
+    ``time_test_error_mrad`` (forward in time: the final model trained on the time split's
+    training rows, mean on its test rows; NaN: n/a), ``n_measurements``,
     ``n_test``, ``alerts`` (list of texts, empty when none), ``page`` (file name of its page).
 
     Alerts: no model (fit-coarse has not run for it), no test rows, test error above
@@ -108,13 +110,22 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
                      "preset": c["preset"] if c else None, "source": c["source"] if c else None,
                      "weight_decay": c["weight_decay"] if c else None,
                      "val_error_mrad": val, "test_error_mrad": test,
+                     "time_test_error_mrad": _forward_test(h),
                      "n_measurements": int(h["n_measurements"]),
                      "n_test": int(h["split_counts"].get("test", 0)), "alerts": alerts,
                      "page": heliostat_page_name(hid)})
     return pd.DataFrame(rows, columns=["heliostat_id", "e_m", "n_m", "model", "variant", "preset",
                                        "source", "weight_decay", "val_error_mrad",
-                                       "test_error_mrad", "n_measurements", "n_test", "alerts",
-                                       "page"])
+                                       "test_error_mrad", "time_test_error_mrad",
+                                       "n_measurements", "n_test", "alerts", "page"])
+
+
+def _forward_test(h: dict) -> float:
+    """The final model's forward-in-time test error (metrics.json's ``forward_in_time``; NaN:
+    n/a, the heliostat has no time split)."""
+    v = (((h.get("forward_in_time") or {}).get("final") or {}).get("time_test") or {}).get(
+        "mean_error_mrad")
+    return float("nan") if v is None else float(v)
 
 
 def field_summary(table: pd.DataFrame, *, alert_mrad: float = ALERT_MRAD) -> dict:

@@ -200,6 +200,7 @@ def compute_metrics(inp: ReportInputs) -> dict:
     split_by = ({h: g for h, g in inp.split.groupby("heliostat_id", sort=False)}
                 if inp.split is not None else {})
     models_of = _model_statistics(inp.predictions) if inp.predictions is not None else {}
+    forward = _forward_in_time(inp, finals)
     for hid in hids:
         t = ts_by[hid]
         h: dict[str, Any] = {
@@ -231,6 +232,7 @@ def compute_metrics(inp: ReportInputs) -> dict:
                                 key=lambda kv: model_sort_key(kv[0])):
             h["models"][model] = {**mm, "splits": {sp: mm["splits"][sp] for sp in
                                                    sorted(mm["splits"], key=split_sort_key)}}
+        h["forward_in_time"] = forward[0].get(hid) or _empty_forward(finals.get(hid, {}))
         helios[hid] = h
     return {
         "metrics_schema_version": METRICS_SCHEMA_VERSION,
@@ -239,7 +241,70 @@ def compute_metrics(inp: ReportInputs) -> dict:
         "inputs": {name: _committed_sha256(inp.workdir, name) for name in sorted(inp.paths)},
         "data": data,
         "heliostats": helios,
+        "field": {"forward_in_time": forward[1]},
     }
+
+
+#: The two models of the forward-in-time comparison: fit-coarse's selected preset and the final
+#: model (the one metrics.json's selection names).
+FORWARD_ROLES = ("coarse", "final")
+
+
+def _empty_forward(final: dict) -> dict:
+    none = _statistics(np.array([]), None, None)
+    return {"time_split_counts": {},
+            **{role: {"model": final.get("coarse_preset" if role == "coarse" else "model"),
+                      "knn_test": none, "time_test": none} for role in FORWARD_ROLES}}
+
+
+def _forward_in_time(inp: ReportInputs, finals: dict) -> tuple[dict, dict]:
+    """Per heliostat and pooled over the field: the kNN test error (``error_mrad`` on the split's
+    test rows) and the forward-in-time test error (``time_error_mrad``: the same model trained
+    on the time split's training rows, on the time split's test rows) of the selected coarse
+    preset and of the final model. A heliostat without time split has empty ``time_test``
+    statistics (n = 0): "n/a"."""
+    p, split = inp.predictions, inp.split
+    per: dict[str, dict] = {}
+    pooled = {role: {"knn_test": [], "time_test": []} for role in FORWARD_ROLES}
+    if p is not None and split is not None:
+        want = pd.DataFrame(
+            [(hid, role, f.get("coarse_preset" if role == "coarse" else "model"))
+             for hid, f in finals.items() for role in FORWARD_ROLES],
+            columns=["heliostat_id", "role", "model"]).dropna()
+        cols = ["heliostat_id", "measurement_id", "model", "source", "split", "error_mrad"]
+        rows = p[cols + (["time_error_mrad"] if "time_error_mrad" in p.columns else [])]
+        if "time_error_mrad" not in rows.columns:
+            rows = rows.assign(time_error_mrad=np.nan)
+        rows = rows.merge(want, on=["heliostat_id", "model"])
+        # the coarse role's rows are fit-coarse's; a model name in several sources: its first
+        rows = rows[(rows["role"] != "coarse") | (rows["source"] == "coarse_predictions")]
+        rows = rows.drop_duplicates(["role", "heliostat_id", "measurement_id"])
+        tcol = split["time_split"] if "time_split" in split.columns else pd.Series(
+            None, index=split.index, dtype=object)
+        rows = rows.merge(split[["heliostat_id", "measurement_id"]].assign(time_split=tcol),
+                          on=["heliostat_id", "measurement_id"], how="left")
+        err = rows["error_mrad"].to_numpy(float)
+        terr = rows["time_error_mrad"].to_numpy(float)
+        knn = (rows["split"] == "test").to_numpy()
+        tt = (rows["time_split"] == "test").to_numpy()
+        tcounts = {hid: {k: int(v) for k, v in g.value_counts().items()}
+                   for hid, g in tcol.groupby(split["heliostat_id"].to_numpy()) if g.notna().any()}
+        for (role, hid), idx in rows.groupby(["role", "heliostat_id"]).indices.items():
+            entry = per.setdefault(hid, _empty_forward(finals.get(hid, {})))
+            entry["time_split_counts"] = {k: tcounts.get(hid, {})[k] for k in sorted(
+                tcounts.get(hid, {}), key=split_sort_key)}
+            k_idx, t_idx = idx[knn[idx]], idx[tt[idx]]
+            entry[role]["knn_test"] = _statistics(err[k_idx], None, None)
+            entry[role]["time_test"] = _statistics(terr[t_idx], None, None)
+            pooled[role]["knn_test"].append(err[k_idx])
+            pooled[role]["time_test"].append(terr[t_idx])
+    field = {"n_heliostats_time_split": sum(1 for e in per.values()
+                                            if e["final"]["time_test"]["n_finite"]
+                                            or e["coarse"]["time_test"]["n_finite"])}
+    for role in FORWARD_ROLES:
+        field[role] = {k: _statistics(np.concatenate(v) if v else np.array([]), None, None)
+                       for k, v in pooled[role].items()}
+    return per, field
 
 
 def _model_statistics(p: pd.DataFrame) -> dict:

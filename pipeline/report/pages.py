@@ -61,6 +61,14 @@ def fmt_g(x) -> str:
     return f"{float(x):.6g}"
 
 
+def _forward_cell(h: dict, role: str) -> str:
+    """A heliostat's forward-in-time test error of ``role`` (final or coarse) from metrics.json;
+    "n/a" when it has no time split."""
+    v = (((h.get("forward_in_time") or {}).get(role) or {}).get("time_test") or {}).get(
+        "mean_error_mrad")
+    return "n/a" if v is None else fmt(v)
+
+
 def _degenerate(inp: ReportInputs) -> dict:
     """heliostat -> why its training data cannot determine the coarse model (coarse_params'
     ``fit_degenerate``), for the heliostats where they cannot."""
@@ -167,7 +175,8 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
         blocks.append(("h3", "Selection"))
         headers = ["heliostat", "coarse preset", "final model", "weight decay",
                    "validation [mrad]", "test [mrad]", "coarse validation [mrad]",
-                   "coarse test [mrad]"]
+                   "coarse test [mrad]", "test forward in time [mrad]",
+                   "coarse test forward in time [mrad]"]
         rows = []
         # the sweep's choice (hybrid, hybrid-octaves or coarse) behind the "selected" rows
         choice = {}
@@ -193,8 +202,15 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                          fmt(pick("val_error_mrad", model, "validation")),
                          fmt(pick("test_error_mrad", model, "test")),
                          fmt(pick("coarse_val_error_mrad", coarse, "validation")),
-                         fmt(pick("coarse_test_error_mrad", coarse, "test"))])
+                         fmt(pick("coarse_test_error_mrad", coarse, "test")),
+                         *(_forward_cell(h, role) for role in ("final", "coarse"))])
         blocks.append(("table", headers, rows))
+        blocks.append(("p", "Test: the split that selects (split.parquet `split`, kNN by "
+                            "default). Forward in time: the same model trained again on the "
+                            "time split's training rows only, its mean error on the time "
+                            "split's test rows (the latest measurements); n/a: the heliostat "
+                            "has no time split (too few timestamps), or its selected hybrid "
+                            "was not trained again (`heliocal sweep --time-split`)."))
 
     # --- coarse parameters
     blocks.append(("h2", "Coarse parameters"))

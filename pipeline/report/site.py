@@ -75,6 +75,12 @@ def _num(x, digits: int = 3) -> str:
     return fmt(None if x is None or (isinstance(x, float) and not math.isfinite(x)) else x, digits)
 
 
+def _time_num(row) -> str:
+    """The forward-in-time test error of a field-table row, "n/a" without a time split."""
+    v = row.get("time_test_error_mrad") if hasattr(row, "get") else None
+    return "n/a" if v is None or not math.isfinite(float(v)) else _num(float(v))
+
+
 def _link(row, prefix: str = "heliostats/") -> str:
     return (f'<a href="{e(prefix + urllib.parse.quote(row["page"]))}">'
             f'{e(str(row["heliostat_id"]))}</a>')
@@ -88,7 +94,8 @@ def _alerts_cell(alerts: Sequence[str]) -> str:
 
 
 def _heliostat_table(rows: pd.DataFrame, prefix: str, rank: bool = False) -> str:
-    head = (["#"] if rank else []) + ["heliostat", "test [mrad]", "validation [mrad]", "model",
+    head = (["#"] if rank else []) + ["heliostat", "test [mrad]", "forward in time [mrad]",
+                                      "validation [mrad]", "model",
                                       "measurements", "test rows", "east [m]", "north [m]",
                                       "alerts"]
     out = ['<table class="sortable"><thead><tr>' + "".join(f"<th>{e(h)}</th>" for h in head)
@@ -96,6 +103,7 @@ def _heliostat_table(rows: pd.DataFrame, prefix: str, rank: bool = False) -> str
     for k, (_, r) in enumerate(rows.iterrows(), 1):
         cells = ([f"<td>{k}</td>"] if rank else []) + [
             f'<td class="t">{_link(r, prefix)}</td>', f"<td>{_num(r['test_error_mrad'])}</td>",
+            f"<td>{_time_num(r)}</td>",
             f"<td>{_num(r['val_error_mrad'])}</td>", f'<td class="t">{e(model_label(r))}</td>',
             f"<td>{int(r['n_measurements'])}</td>", f"<td>{int(r['n_test'])}</td>",
             f"<td>{_num(r['e_m'], 1)}</td>", f"<td>{_num(r['n_m'], 1)}</td>",
@@ -212,7 +220,9 @@ def heliostat_html(title: str, row, h: dict, why: str, figures: Sequence[tuple],
     out.append(f"<h1>Heliostat {e(hid)}</h1>" + (f"<p>{' '.join(links)}</p>" if links else ""))
     for a in row["alerts"]:
         out.append(f'<p class="note alert">Alert: {e(a)}</p>')
+    t = _time_num(row)
     kpis = [("test error", f"{_num(row['test_error_mrad'])} mrad"),
+            ("test error forward in time", t if t == "n/a" else f"{t} mrad"),
             ("validation error", f"{_num(row['val_error_mrad'])} mrad"),
             ("model aim uses", model_label(row)),
             ("measurements", row["n_measurements"]), ("test rows", row["n_test"]),

@@ -29,6 +29,7 @@ from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks
 from ..runtime.process_state import restores_process_state
+from .forward import TIME_COLUMN, attach_coarse_time, fit_coarse_time_split, load_time_labels
 
 __all__ = [
     "fit_heliostat_chunk",
@@ -318,6 +319,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
     helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
     measurements["split"] = load_split_labels(workdir, measurements).to_numpy()
+    measurements[TIME_COLUMN] = load_time_labels(workdir, measurements)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     helio = helio.set_index("heliostat_id", drop=False)
     with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])
@@ -384,6 +386,17 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "heliostats": list(heliostats) if heliostats else None}
     params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
+    # forward in time: the selected preset fitted again on the time split's training rows
+    time_fits = fit_coarse_time_split(
+        helio, rows_of, {h: by_id[h][2]["selected"] for h in ids}, solver=solver,
+        batch_size=batch_size, options=kwargs, workers=workers, scheduler=scheduler,
+        dask_address=dask_address)
+    params, preds = attach_coarse_time(params, preds, time_fits, rows_of)
+    for s in summaries:
+        tf = time_fits.get(s["heliostat_id"])
+        labels = rows_of[s["heliostat_id"]][TIME_COLUMN].to_numpy(dtype=object)
+        s["time_split"] = None if tf is None else {
+            sp: _mean(tf[1][labels == sp]) for sp in ("train", "validation", "test")}
     regimes = _segment_errors(regimes, preds, measurements)
     if heliostats:
         # a partial run keeps the other heliostats' fits when the previous run read the same

@@ -98,6 +98,7 @@ from ..physics.parameters import HeliostatSpec
 from ..runtime.parallel import map_tasks
 from .fit_coarse import load_selected_parameters, load_split_labels
 from ..vocabulary import HYBRID_BATCH_SIZE
+from .forward import load_time_labels, load_time_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
 
 __all__ = [
@@ -106,6 +107,10 @@ __all__ = [
 ]
 
 _FUNC = "fit_hybrid"
+
+#: Prefix of the id under which a heliostat's time-split training runs in a chunk (not an id
+#: ingest would keep: it starts with NUL).
+_TIME_MARK = "\0time:"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -272,13 +277,43 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     batch_size = check_int(batch_size, "batch_size", _FUNC, 1)
     groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
     ids = sorted(ids, key=lambda h: (len(groups[h]), h))
-    tasks = [([(hid, groups[hid], helio.loc[hid].to_dict(), selected[hid]) for hid in chunk],
+    # forward in time: every heliostat with a time split is trained a second time, the same mode,
+    # weight decay and seed, on the time split's training rows on top of fit-coarse's
+    # time-split fit, as one more member of the same batched program (its networks are tiny, so
+    # a program's cost is mostly per epoch, not per member); its models are not kept
+    time_params = load_time_parameters(workdir, heliostats)
+    time_labels = pd.Series(load_time_labels(workdir, measurements), index=measurements.index)
+    labels_of = {h: time_labels.loc[groups[h].index].to_numpy(dtype=object)
+                 for h in ids if h in time_params}
+    labels_of = {h: v for h, v in labels_of.items() if (v == "train").sum() >= 2}
+
+    def time_item(hid):
+        rows = groups[hid].assign(split=np.where(pd.isna(labels_of[hid]), "excluded",
+                                                 labels_of[hid]))
+        return (_TIME_MARK + hid, rows, helio.loc[hid].to_dict(),
+                {**selected[hid], "params": time_params[hid]})
+
+    tasks = [([(hid, groups[hid], helio.loc[hid].to_dict(), selected[hid]) for hid in chunk]
+              + [time_item(hid) for hid in chunk if hid in labels_of],
               mode, weight_decay, seed, config, pretrain_config)
              for chunk in hybrid_chunks(ids, selected, helio, batch_size)]
     results = [r for chunk in map_tasks(
         _hybrid_chunk_task, tasks, workers=workers, scheduler=scheduler, dask_address=dask_address,
         progress=(lambda d, t: progress(d, t, None)) if progress else None) for r in chunk]
-    results.sort(key=lambda r: r[1]["heliostat_id"])
+    time_err = {r[1]["heliostat_id"][len(_TIME_MARK):]: r[0].set_index("measurement_id")["error_mrad"]
+                for r in results if r[1]["heliostat_id"].startswith(_TIME_MARK)}
+    results = sorted((r for r in results if not r[1]["heliostat_id"].startswith(_TIME_MARK)),
+                     key=lambda r: r[1]["heliostat_id"])
+    for pred, summary, _, _ in results:
+        hid = summary["heliostat_id"]
+        err = time_err.get(hid)
+        pred["time_error_mrad"] = (np.nan if err is None else
+                                   err.reindex(pred["measurement_id"].to_numpy()).to_numpy(float))
+        summary["time_test"] = None
+        if err is not None:
+            label = dict(zip(groups[hid]["measurement_id"], labels_of[hid]))
+            test = np.array([label.get(m) == "test" for m in pred["measurement_id"]], dtype=bool)
+            summary["time_test"] = _mean(pred["time_error_mrad"].to_numpy(float)[test])
     preds, summaries = [], []
     for pred, summary, state, cfg in results:
         hid = summary["heliostat_id"]

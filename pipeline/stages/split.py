@@ -54,6 +54,8 @@ __all__ = [
     "required_measurements",
     "summarize_split",
     "run_split",
+    "time_split_labels",
+    "TIME_SPLIT_LABELS",
 ]
 
 #: Split methods; ``knn`` is the default (paper 000, section 3.2).
@@ -62,6 +64,8 @@ METHODS = SplitMethod.values()
 METRICS = SplitMetric.values()
 #: Values of the ``split`` column.
 SPLIT_LABELS = ("train", "validation", "test", "unused")
+#: Values of the ``time_split`` column (missing where a heliostat has no time split).
+TIME_SPLIT_LABELS = ("train", "validation", "test", "unused")
 
 #: Fewest training rows a heliostat must keep: a training row's distance to the nearest *other*
 #: training row is defined only when there are two of them.
@@ -253,6 +257,50 @@ def _held_out_order(g: pd.DataFrame, method: str, n_test: int, n_val: int, seed:
     raise AssertionError(method)  # pragma: no cover - validated by check_choice
 
 
+def time_split_labels(g: pd.DataFrame, n_test: int, n_val: int, n_train: int | None,
+                      knn_d: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """The forward-in-time split of one heliostat, beside its selection split (issue 17).
+
+    The latest ``n_test`` timed rows are ``test``, the ``n_val`` before them ``validation``, the
+    earlier rows ``train`` (with ``n_train``: the kNN rule of :func:`restrict_training` among
+    them, the rest ``unused``), i.e. the sizes of the kNN split. A row without timestamp cannot
+    be placed in time and gets no label (``None``); nor does any row of a heliostat with fewer
+    than ``n_test + n_val + max(n_train, 2)`` timed rows (then the reason is returned as text).
+
+    Parameters
+    ----------
+    g : one heliostat's rows sorted by ``measurement_id`` (columns ``measurement_id`` and,
+        if present, ``timestamp``).
+    knn_d : the rows' kNN distances [deg] (for ``n_train``).
+
+    Returns
+    -------
+    (labels, why_not): object array of labels or ``None`` per row, and ``None`` or why the
+    heliostat has no time split.
+    """
+    labels = np.full(len(g), None, dtype=object)
+    if "timestamp" not in g.columns:
+        return labels, "the measurements have no timestamps"
+    timed = g["timestamp"].notna().to_numpy()
+    need = n_test + n_val + (MIN_TRAIN if n_train is None else n_train)
+    if timed.sum() < need:
+        return labels, f"{int(timed.sum())} of its measurements have a timestamp, the time split needs {need}"
+    idx = np.flatnonzero(timed)
+    sub = g.iloc[idx]
+    epoch = pd.Timestamp("1970-01-01", tz="UTC")
+    t = (pd.to_datetime(sub["timestamp"], utc=True) - epoch).dt.total_seconds().to_numpy()
+    order = idx[_order_by(t, sub["measurement_id"].to_numpy(dtype=object), descending=True)]
+    labels[idx] = "train"
+    labels[order[:n_test]] = "test"
+    labels[order[n_test:n_test + n_val]] = "validation"
+    if n_train is not None:
+        cand = order[n_test + n_val:]
+        ranked = cand[_order_by(knn_d[cand], g["measurement_id"].to_numpy(dtype=object)[cand],
+                                True)]
+        labels[ranked[n_train:]] = "unused"
+    return labels, None
+
+
 # --------------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------------
@@ -362,6 +410,10 @@ def split_measurements(measurements: pd.DataFrame, *, method: str = "knn", k: in
         knn_d = knn_distance_deg(az, el, k, metric)
         knn3 = knn_distance_deg(az, el, 3, "euclidean") if method == "high-variance" else None
         order = _held_out_order(g, method, n_test, n_val, seed, knn_d, knn3)
+        time_label, why_not = time_split_labels(g, n_test, n_val, n_train, knn_d)
+        if why_not:
+            log.warning("heliostat %s has no time split (%s): its forward-in-time errors are n/a",
+                        hid, why_not)
         label = np.full(len(g), "train", dtype=object)
         label[order[:n_test]] = "test"
         label[order[n_test:n_test + n_val]] = "validation"
@@ -369,7 +421,8 @@ def split_measurements(measurements: pd.DataFrame, *, method: str = "knn", k: in
         rank[_order_by(knn_d, g["measurement_id"].to_numpy(dtype=object), True)] = np.arange(len(g))
         parts.append(pd.DataFrame({
             "heliostat_id": g["heliostat_id"], "measurement_id": g["measurement_id"],
-            "split": label, "knn_distance_deg": knn_d, "knn_rank": rank,
+            "split": label, "time_split": time_label, "knn_distance_deg": knn_d,
+            "knn_rank": rank,
             "nearest_train_distance_deg": np.nan, "method": method, "metric": metric,
             "sun_azimuth_deg": az, "sun_elevation_deg": el,
         }))
@@ -451,10 +504,15 @@ def summarize_split(split_df: pd.DataFrame) -> list[dict[str, Any]]:
     rows = []
     for hid, g in split_df.groupby("heliostat_id", sort=True):
         by = {s: g[g["split"] == s] for s in SPLIT_LABELS}
+        tcounts = (g["time_split"].value_counts() if "time_split" in g.columns
+                   else pd.Series(dtype=int))
         rows.append({
             "heliostat_id": str(hid),
             "n_measurements": int(len(g)),
             "counts": {s: int(len(by[s])) for s in SPLIT_LABELS},
+            # the forward-in-time split beside it; None: the heliostat has none (no timestamps)
+            "time_split_counts": ({s: int(tcounts.get(s, 0)) for s in TIME_SPLIT_LABELS}
+                                  if len(tcounts) else None),
             "mean_knn_distance_deg": {s: _mean(by[s]["knn_distance_deg"])
                                       for s in ("train", "validation", "test")},
             "mean_test_to_train_distance_deg": _mean(by["test"]["nearest_train_distance_deg"]),

@@ -52,7 +52,6 @@ from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from ..models.coarse import MeasurementBatch, fit_presets, metrics_frame, normal_errors_mrad
 from .fit_coarse import coarse_fit_options, load_selected_parameters
 from ..errors import FitError, ParameterError, check_float, check_int
-from ..vocabulary import HYBRID_BATCH_SIZE
 from .fit_hybrid import hybrid_chunks
 from ..models.config import FineConfig, ensemble_seeds
 from ..models.network import layers_to_state
@@ -60,22 +59,19 @@ from ..models.training import (FineProblem, MemberResult, take_rows, build_probl
                                ensemble_errors_mrad, predict_ensembles, predictions_frame,
                                stack_problems, train_members)
 from ..models.pretrained import PretrainConfig, fit_pretrained
-
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.metrics import error_mrad, measured_normal
 from ..runtime.parallel import map_tasks
-from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
+from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, SELECTED_PREDICTIONS, SELECTION, SPLIT, SWEEP
 from ..artifacts.modelfiles import write_model
-from ..artifacts.schemas import SPLIT
 from .split import restrict_training
 from ..artifacts.manifests import current_transaction
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
-from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
-from ..vocabulary import DEFAULT_STUDY
-from ..vocabulary import OCTAVE_BANDS
+from ..vocabulary import DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS
 from ..models.config import PathConfig
 from ..runtime.process_state import restores_process_state
+from .forward import add_sweep_time_split
 
 __all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants", "MIN_IMPROVEMENT",
            "train_path", "study_heliostats"]
@@ -475,7 +471,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               extra_bands: Sequence[Sequence[float]] = (OCTAVE_BANDS,),
               study: int | Sequence[str] | None = DEFAULT_STUDY, study_seed: int = 0,
               path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE,
-              select_pretrained: bool = False) -> dict:
+              select_pretrained: bool = False, time_split: bool = False) -> dict:
     """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
     (and ``hybrid/selected/``), return a summary.
 
@@ -495,6 +491,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     batch_size : heliostats per batched program of the production selection.
     select_pretrained : the pre-trained network (``pretrain_config``, first seed) is a candidate
         of the production selection too, for every heliostat, under the hybrids' margin rule.
+    time_split : also train the selected hybrids forward in time (:mod:`.forward`; +50 % time).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
     workdir = Path(workdir)
@@ -571,6 +568,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     results = [r for part in parts for r in part]
     chosen = sorted((r for r in results if "selection" in r),
                     key=lambda r: r["selection"]["heliostat_id"])
+    add_sweep_time_split(workdir, chosen, items, variants, weight_decays, path, pretrain_config,
+                         train_path, time_split, batch_size=batch_size, workers=workers,
+                         scheduler=scheduler, dask_address=dask_address)
     rows = [r for res in results for r in res["rows"]]
     selection = pd.DataFrame([res["selection"] for res in chosen])
     txn = current_transaction(workdir, "sweep")
@@ -588,7 +588,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "study": study if study is None or isinstance(study, (int, np.integer)) else list(study),
             "study_seed": study_seed, "study_heliostats": studied, "path": path.to_dict(),
             "batch_size": batch_size, "select_pretrained": bool(select_pretrained),
-            "coarse_options": coarse_options,
+            "coarse_options": coarse_options, "time_split": bool(time_split),
             "heliostats": list(heliostats) if heliostats else None}
     # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
     # previous sweep read the same inputs (artifacts.merge_with_previous)
