@@ -437,6 +437,9 @@ def test_forward_in_time_errors_come_from_the_selected_model_trained_on_the_past
     hyb = hyb[(hyb["heliostat_id"] == "SS48") & (hyb["model"] == "hybrid")]
     ss = pred[pred["heliostat_id"] == "SS48"].set_index("measurement_id")
     mine = hyb.set_index("measurement_id")["time_error_mrad"].reindex(ss.index)
-    np.testing.assert_allclose(mine.to_numpy(), ss["time_error_mrad"].to_numpy(), rtol=1e-9)
+    # float32 training: the two programs differ in batch composition, so they round apart in
+    # the last bits (measured 4e-9 mrad, 1e-7 relative); 1e-5 mrad is far below any model change
+    np.testing.assert_allclose(mine.to_numpy(), ss["time_error_mrad"].to_numpy(), rtol=0,
+                               atol=1e-5)
     # and it is another model than the kNN-trained one (it did not see the latest rows)
     assert not np.allclose(ss["time_error_mrad"], ss["error_mrad"])
