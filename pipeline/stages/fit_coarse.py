@@ -16,12 +16,14 @@ import pandas as pd
 import torch
 
 from ..artifacts.paths import artifact_path
-from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS, REGIMES
+from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS,
+                                 REGIME_PARAMS, REGIMES)
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import FitError, check_choice, check_float, check_int
+from ..models.regime_fit import base_preset, regime_candidates
 from ..models.regimes import detect_field, regime_of_rows, residual_components_mrad
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
@@ -165,8 +167,10 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
 
     Returns
     -------
-    dict heliostat_id -> {"preset": str, "params": torch.Tensor (28,), "free": torch.BoolTensor
-    (28,), "nominal": torch.Tensor (28,), "std_error": torch.Tensor (28,)}
+    dict heliostat_id -> {"preset": str, "base_preset": str, "params": torch.Tensor (28,),
+    "free": torch.BoolTensor (28,), "nominal": torch.Tensor (28,), "std_error": torch.Tensor
+    (28,)}: ``preset`` is the selected model (a preset, or a regime-aware candidate whose
+    ``params`` are its latest regime's), ``base_preset`` the preset of its geometry.
     """
     df = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats)
     df = df[df["selected"]].sort_values(["heliostat_id", "parameter_index"])
@@ -174,6 +178,7 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
     for hid, g in df.groupby("heliostat_id", sort=True):
         out[str(hid)] = {
             "preset": str(g["preset"].iloc[0]),
+            "base_preset": base_preset(str(g["preset"].iloc[0])),
             "params": torch.tensor(g["fitted"].to_numpy(np.float64)),
             "free": torch.tensor(g["free"].to_numpy(bool)),
             "nominal": torch.tensor(g["nominal"].to_numpy(np.float64)),
@@ -368,6 +373,17 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         else:
             log.info("%s: the fit without its episodes is not 20 %% better on validation (%.3f "
                      "vs %.3f mrad); the first fit is kept", hid, new, old)
+    # regime-aware candidates (per-regime offsets, drift) of heliostats with a break: each
+    # replaces the fit above only if it beats it by the same margin on validation
+    regime_rows, with_breaks = [], regimes.loc[regimes["cause"].isin(["detected", "renovation"]),
+                                               "heliostat_id"]
+    for hid in sorted(set(with_breaks) & set(by_id)):
+        by_id[hid], rows = regime_candidates(
+            hid, HeliostatSpec.from_row(helio.loc[hid]), rows_of[hid], regimes, by_id[hid],
+            loss=loss, f_scale_mrad=f_scale_mrad, margin=EPISODE_REFIT_MIN_IMPROVEMENT,
+            max_episode_share=MAX_EPISODE_SHARE)
+        regime_rows += rows
+    regime_params = pd.DataFrame(regime_rows, columns=REGIME_PARAMS.column_names())
     all_params, all_preds, summaries = [], [], []
     for params, preds, summary in (by_id[h] for h in ids):
         if summary["degenerate"]:
@@ -392,9 +408,11 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         params = merge_with_previous(workdir, COARSE_PARAMS, params, replaced)
         preds = merge_with_previous(workdir, COARSE_PREDICTIONS, preds, replaced)
         regimes = merge_with_previous(workdir, REGIMES, regimes, replaced)
+        regime_params = merge_with_previous(workdir, REGIME_PARAMS, regime_params, replaced)
     write_artifact(params, workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
     write_artifact(preds, workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
     write_artifact(regimes, workdir, REGIMES, stage="fit-coarse", options=opts)
+    write_artifact(regime_params, workdir, REGIME_PARAMS, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
             "regimes": {
                 "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
@@ -403,4 +421,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                 "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
                 "episodes": int((regimes["kind"] == "episode").sum()),
                 "outliers": int((regimes["kind"] == "outlier").sum()),
-                "refitted_without_episodes": sorted(h for h in refit if by_id[h][2]["episode_rows"])}}
+                "refitted_without_episodes": sorted(h for h in refit if by_id[h][2]["episode_rows"]),
+                "regime_models_fitted": int(regime_params["heliostat_id"].nunique()),
+                "regime_models_selected": sorted(
+                    h for h in ids if by_id[h][2].get("regime_candidates", {}).get("selected"))}}

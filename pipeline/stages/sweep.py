@@ -371,7 +371,7 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
         test = restricted["split"] == "test"
         dists[n] = (float(restricted.loc[test, "nearest_train_distance_deg"].mean())
                     if test.any() else float("nan"))
-    base_preset = h.selected["preset"]
+    base_preset = h.selected["base_preset"]   # a regime-aware model's preset (refitted plain)
     small = [n for n in sizes if n < h.n_full]
     fitted = tuple(dict.fromkeys(tuple(presets) + (base_preset,)))
     bases = {h.n_full: h.selected["params"]}
