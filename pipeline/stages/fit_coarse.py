@@ -276,6 +276,13 @@ def _fit_task(task) -> list[tuple]:
     return fit_heliostat_chunk([pd.Series(h) for h in hrows], rows, presets, **kwargs)
 
 
+def _candidates_task(task) -> tuple:
+    """The regime-aware candidates of one heliostat (a picklable task for ``map_tasks``)."""
+    hid, hrow, rows, regimes, outputs, options = task
+    return regime_candidates(hid, HeliostatSpec.from_row(pd.Series(hrow)), rows, regimes,
+                             outputs, **options)
+
+
 def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
                     batch_size: int) -> list[list[str]]:
     """Heliostat ids in chunks for the batched solver: one kinematic and actuator type per chunk,
@@ -375,13 +382,18 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                      "vs %.3f mrad); the first fit is kept", hid, new, old)
     # regime-aware candidates (per-regime offsets, drift) of heliostats with a break: each
     # replaces the fit above only if it beats it by the same margin on validation
-    regime_rows, with_breaks = [], regimes.loc[regimes["cause"].isin(["detected", "renovation"]),
-                                               "heliostat_id"]
-    for hid in sorted(set(with_breaks) & set(by_id)):
-        by_id[hid], rows = regime_candidates(
-            hid, HeliostatSpec.from_row(helio.loc[hid]), rows_of[hid], regimes, by_id[hid],
-            loss=loss, f_scale_mrad=f_scale_mrad, margin=EPISODE_REFIT_MIN_IMPROVEMENT,
-            max_episode_share=MAX_EPISODE_SHARE)
+    with_breaks = sorted(set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]),
+                                         "heliostat_id"]) & set(by_id))
+    tasks = [(hid, helio.loc[hid].to_dict(), rows_of[hid],
+              regimes[regimes["heliostat_id"] == hid], by_id[hid],
+              {"loss": loss, "f_scale_mrad": f_scale_mrad,
+               "margin": EPISODE_REFIT_MIN_IMPROVEMENT, "max_episode_share": MAX_EPISODE_SHARE})
+             for hid in with_breaks]
+    regime_rows = []
+    for hid, (outputs, rows) in zip(with_breaks, map_tasks(
+            _candidates_task, tasks, workers=workers, scheduler=scheduler,
+            dask_address=dask_address)):
+        by_id[hid] = outputs
         regime_rows += rows
     regime_params = pd.DataFrame(regime_rows, columns=REGIME_PARAMS.column_names())
     all_params, all_preds, summaries = [], [], []
