@@ -14,8 +14,11 @@ the plain fit of the selected preset, two candidates on the regimes of ``regimes
     moves linearly in time within a regime, around the mean time of the regime's training rows.
     Linear is the lowest-order smooth motion: two parameters per regime, enough for the slow
     creep of an actuator (the simulator's drift is linear; the Jülich log's drifting heliostats
-    move by a few mrad over months), and it extrapolates predictably into the coming weeks,
-    where a spline or a polynomial would not. A re-homing starts a new regime and so resets it.
+    move by a few mrad over months), where a spline or a polynomial would follow noise. A
+    re-homing starts a new regime and so resets it. The line is trusted only over the time its
+    training rows span: a row before the first or after the last training row of its regime
+    (a later regime without rows of its own, the latest parameters ``aim`` uses) gets the
+    zero point at that end, since a rate fitted on a short span extrapolates badly.
 
 Both are fitted by :func:`scipy.optimize.least_squares` with the plain fit's objective
 (:mod:`heliocal.pipeline.models.coarse`: residuals ``1000 (n_pred - n_meas)`` [mrad] of every
@@ -111,6 +114,8 @@ class RegimeFit:
     offsets : (F, len(moved)) [rad] (row 0 is zero: the reference).
     rates : (F, len(drifting)) [rad/year].
     reference_s : (F,) drift reference time per fitted regime [s since 1970, UTC].
+    span_s : (F, 2) first and last training row's time per fitted regime [s]: the drift is
+        held constant outside.
     n_train : (F,) training rows of each fitted regime.
     condition_number : of the data Jacobian at the solution, columns scaled by the prior sigmas.
     """
@@ -124,6 +129,7 @@ class RegimeFit:
     offsets: np.ndarray
     rates: np.ndarray
     reference_s: np.ndarray
+    span_s: np.ndarray
     n_train: np.ndarray
     iterations: int
     cost: float
@@ -145,14 +151,16 @@ class RegimeFit:
         """Parameters (N, 28) of rows in regimes ``regime`` (N,) at UTC ``times`` (N,); a row
         without a time is taken at its regime's reference time."""
         return _row_parameters(self.base, self.moved, self.drifting, self.offsets, self.rates,
-                               self.reference_s, self.source(regime), _seconds(times))
+                               self.reference_s, self.span_s, self.source(regime),
+                               _seconds(times))
 
 
-def _row_parameters(base, moved, drifting, offsets, rates, reference_s, k, seconds):
+def _row_parameters(base, moved, drifting, offsets, rates, reference_s, span_s, k, seconds):
     p = base.to(torch.float64).expand(len(k), len(PARAMETER_NAMES)).clone()
     p[:, [PARAMETER_INDEX[n] for n in moved]] += torch.as_tensor(offsets[k])
     if drifting:
-        years = np.nan_to_num((seconds - reference_s[k]) / _YEAR_S)
+        held = np.clip(seconds, span_s[k, 0], span_s[k, 1])
+        years = np.nan_to_num((held - reference_s[k]) / _YEAR_S)
         p[:, [PARAMETER_INDEX[n] for n in drifting]] += torch.as_tensor(rates[k] * years[:, None])
     return p
 
@@ -215,6 +223,9 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
     sec = seconds[use]
     reference_s = np.array([np.nanmean(sec[k == f]) if np.isfinite(sec[k == f]).any() else 0.0
                             for f in range(len(fitted))])
+    span_s = np.array([[np.nanmin(sec[k == f]), np.nanmax(sec[k == f])]
+                       if np.isfinite(sec[k == f]).any() else [0.0, 0.0]
+                       for f in range(len(fitted))])
     sub = data.subset(use)
     steps, sun, focal = sub.steps.unsqueeze(1), sub.sun.unsqueeze(1), sub.focal_spot.unsqueeze(1)
     n, n_free, n_off, n_rate = len(sub), len(free_idx), len(moved), len(drifting)
@@ -232,7 +243,8 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
 
     def rows(x):
         shared, offsets, rates = unpack(x)
-        return _row_parameters(shared, moved, drifting, offsets, rates, reference_s, k, sec)
+        return _row_parameters(shared, moved, drifting, offsets, rates, reference_s, span_s, k,
+                               sec)
 
     sig_shared = prior_sigma(base)[free_idx]
     prior_mean = base[torch.as_tensor(free_idx)].numpy()
@@ -280,7 +292,7 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
     ev = np.linalg.eigvalsh(js.T @ js)
     cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
     return RegimeFit(model, preset, shared.detach(), moved, drifting, fitted, offsets, rates,
-                     reference_s, n_train, int(res.njev or res.nfev), float(res.cost),
+                     reference_s, span_s, n_train, int(res.njev or res.nfev), float(res.cost),
                      str(res.message), cond, time.perf_counter() - t0)
 
 
