@@ -249,3 +249,52 @@ def test_aim_uses_the_latest_regime(stepped):
     reg = result["regime"]
     assert reg["coarse_model"] == latest["model"] and reg["fitted_rows"] == latest["n_train"] >= 10
     assert reg["fitted_regime"] == reg["regime"] >= 2   # its own rows, after both steps
+
+
+def test_fine_models_train_on_each_rows_regime(stepped):
+    """The fine model builds on the selected regime-aware coarse model row by row: the per-row
+    parameters rebuilt from the artifacts (coarse_row_parameters: regime_params.parquet,
+    regimes.parquet, coarse_params.parquet) predict every row exactly as fit-coarse did
+    (coarse_predictions, to 1e-9 mrad), and an untrained hybrid (zero output layer) on top of
+    them, taken to a subset of rows and stacked with a member on a shared (28,) base, is that
+    coarse model row by row (and the other member its shared geometry)."""
+    from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.models.config import FineConfig
+    from heliocal.pipeline.models.network import init_mlp
+    from heliocal.pipeline.models.regime_fit import predict_parameters
+    from heliocal.pipeline.models.training import (build_problem, predict_ensembles, stack_problems,
+                                                   take_rows)
+    from heliocal.pipeline.physics.parameters import HeliostatSpec
+    from heliocal.pipeline.stages.fit_coarse import coarse_row_parameters, load_selected_parameters
+
+    work = stepped["work"]
+    selected = load_selected_parameters(work)
+    helio = read_artifact(work, HELIOSTATS).set_index("heliostat_id", drop=False)
+    pred = stepped["after"][1]
+    for hid in ("SK13", "SI13"):   # plain, regime-aware (its variables are used below)
+        rows = read_artifact(work, MEASUREMENTS, heliostats=[hid]).reset_index(drop=True)
+        params = coarse_row_parameters(selected[hid], rows["timestamp"])
+        data = MeasurementBatch.from_frame(rows)
+        spec = HeliostatSpec.from_row(helio.loc[hid])
+        got = predict_parameters(params, spec, data)["error_mrad"].to_numpy()
+        p = pred[(pred["heliostat_id"] == hid) & pred["selected"]].set_index("measurement_id")
+        np.testing.assert_allclose(got, p.loc[rows["measurement_id"], "error_mrad"].to_numpy(),
+                                   rtol=0, atol=1e-9)
+        assert (hid == "SI13") == bool((params != params[:1]).any())   # rows differ by regime
+    # SI13's rows and parameters from the loop above: one member per row, one shared
+    keep = torch.as_tensor(np.arange(len(rows)) % 3 != 0)
+    problems = [take_rows(build_problem(rows, helio.loc["SI13"], base, selected["SI13"]["free"],
+                                        FineConfig()), keep) for base in (params, params[-1])]
+    expected = [predict_parameters(p, spec, data)["error_mrad"].to_numpy()[keep.numpy()]
+                for p in (params, params[-1:].expand_as(params))]
+    stacked, valid = stack_problems(problems)
+    assert stacked.base.shape == (2, int(keep.sum()), 28) and stacked.per_row_base
+    layers = init_mlp(stacked.sizes(FineConfig()), [0, 1])   # zero output layer
+    with torch.no_grad():
+        normal, position = predict_ensembles(stacked, layers, 1)
+        err = error_mrad(normal, measured_normal(stacked.data.sun, position,
+                                                 stacked.data.focal_spot)).numpy()
+    for m in range(2):
+        np.testing.assert_allclose(err[m][valid[m].numpy()], expected[m], rtol=0, atol=1e-9)
+    assert expected[1].mean() > 2 * expected[0].mean()   # the latest geometry misses old regimes

@@ -372,10 +372,17 @@ REGIME_PARAMS = ArtifactSchema(
         C("parameter", "string", "", "Parameter with an offset (unit in the name)."),
         C("offset_rad", "float64", "rad", "Offset of the parameter in this regime, relative to the "
           "shared geometry (0 for the reference regime)."),
+        C("value_rad", "float64", "rad", "The parameter's value in this regime: shared geometry "
+          "plus offset (with a drift: at `drift_reference`)."),
         C("drift_rad_per_year", "float64", "rad/year", "Rate of the parameter in this regime "
           "(0 where it does not drift)."),
         C("drift_reference", "timestamp", "UTC", "Time at which the drift adds nothing (mean "
           "time of the regime's training rows); missing where it does not drift.", nullable=True),
+        C("drift_from", "timestamp", "UTC", "First training row of the regime whose rows fitted "
+          "the drift: before it the drift is held at its value there; missing where it does not "
+          "drift.", nullable=True),
+        C("drift_to", "timestamp", "UTC", "Last training row of that regime: after it the drift "
+          "is held (no extrapolation); missing where it does not drift.", nullable=True),
         C("latest", "bool", "", "True for the heliostat's latest regime (the one `aim` uses)."),
     ),
 )

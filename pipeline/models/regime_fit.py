@@ -66,6 +66,8 @@ __all__ = [
     "base_preset",
     "fit_regime_model",
     "predict_rows",
+    "predict_parameters",
+    "table_row_parameters",
 ]
 
 #: The candidates, in the order they are fitted.
@@ -176,10 +178,7 @@ def _row_parameters(base, moved, drifting, offsets, rates, reference_s, span_s, 
 def predict_rows(fit: RegimeFit, spec: HeliostatSpec, data: MeasurementBatch, regime,
                  times) -> pd.DataFrame:
     """coarse_predictions' metric columns of every row of ``data`` (each at its own parameters)."""
-    params = fit.row_parameters(regime, times)
-    with torch.no_grad():
-        normal, position = forward_kinematics(params, spec, data.steps.unsqueeze(1))
-    return metrics_frame(data, normal[:, 0], position[:, 0])
+    return predict_parameters(fit.row_parameters(regime, times), spec, data)
 
 
 def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, free,
@@ -304,6 +303,55 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
                      str(res.message), cond, time.perf_counter() - t0)
 
 
+def table_row_parameters(params: torch.Tensor, table: pd.DataFrame, regimes: pd.DataFrame,
+                         timestamps) -> torch.Tensor:
+    """Per-row parameters (N, 28) of a regime-aware model from the artifacts, as
+    :meth:`RegimeFit.row_parameters` gives them at fit time.
+
+    Parameters
+    ----------
+    params : (28,) the model's latest regime's parameters (coarse_params' ``fitted``); the
+        parameters without offsets are the shared geometry.
+    table : the model's regime_params.parquet rows (one heliostat, one model).
+    regimes : the heliostat's regimes.parquet rows (which regime each time is in).
+    timestamps : (N,) UTC times of the rows; a regime the table does not list takes the latest.
+    """
+    from .regimes import regime_of_rows
+
+    hid = str(table["heliostat_id"].iloc[0])
+    times = pd.Series(np.asarray(timestamps))
+    regime = regime_of_rows(regimes, hid, times)["regime"].to_numpy()
+    latest = int(table.loc[table["latest"].astype(bool), "regime"].max()
+                 if table["latest"].any() else table["regime"].max())
+    seconds = _seconds(times)
+    out = params.to(torch.float64).expand(len(regime), len(PARAMETER_NAMES)).clone()
+    for name, g in table.groupby("parameter", sort=False):
+        g = g.drop_duplicates("regime").set_index("regime")
+        row = g.loc[np.where(np.isin(regime, g.index), regime, latest)]
+        rate = row["drift_rad_per_year"].to_numpy(np.float64)
+        held = np.clip(seconds, _seconds(row["drift_from"]), _seconds(row["drift_to"]))
+        years = np.nan_to_num((held - _seconds(row["drift_reference"])) / _YEAR_S)
+        out[:, PARAMETER_INDEX[name]] = torch.as_tensor(row["value_rad"].to_numpy(np.float64)
+                                                        + rate * years)
+    return out
+
+
+def predict_parameters(params: torch.Tensor, spec: HeliostatSpec,
+                       data: MeasurementBatch) -> pd.DataFrame:
+    """coarse_predictions' metric columns of every row of ``data`` at its own parameters
+    (N, 28)."""
+    with torch.no_grad():
+        normal, position = forward_kinematics(params, spec, data.steps.unsqueeze(1))
+    return metrics_frame(data, normal[:, 0], position[:, 0])
+
+
+def _stamp(seconds: float, drifting) -> pd.Timestamp:
+    """A drift time as a UTC timestamp (whole seconds); missing where nothing drifts."""
+    if drifting is None or not np.isfinite(seconds):
+        return pd.NaT
+    return pd.Timestamp(round(float(seconds)), unit="s", tz="UTC")
+
+
 # ------------------------------------------------------------------------------------------------
 # fit-coarse's candidates of one heliostat
 # ------------------------------------------------------------------------------------------------
@@ -406,9 +454,10 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
                     "end": span["end"].max() if len(span) else pd.NaT,
                     "n_train": int(fit.n_train[s]), "parameter": name,
                     "offset_rad": float(fit.offsets[s, c]),
+                    "value_rad": float(fit.base[PARAMETER_INDEX[name]]) + float(fit.offsets[s, c]),
                     "drift_rad_per_year": float(fit.rates[s, d]) if d is not None else 0.0,
-                    "drift_reference": (pd.Timestamp(round(fit.reference_s[s]), unit="s", tz="UTC")
-                                        if d is not None else pd.NaT),
+                    "drift_reference": _stamp(fit.reference_s[s], d),
+                    "drift_from": _stamp(fit.span_s[s, 0], d), "drift_to": _stamp(fit.span_s[s, 1], d),
                     "latest": number == latest})
     summary["regime_candidates"] = {"plain_validation": plain_val, "validation_days": int(days),
                                     **{f.model: v for f, v in zip(fits, vals)},

@@ -23,7 +23,7 @@ from ..artifacts.store import (artifact_present, check_fresh, merge_with_previou
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import FitError, check_choice, check_float, check_int
-from ..models.regime_fit import base_preset, regime_candidates
+from ..models.regime_fit import base_preset, regime_candidates, table_row_parameters
 from ..models.regimes import detect_field, regime_of_rows, residual_components_mrad
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
@@ -41,6 +41,7 @@ __all__ = [
     "FIT_OPTIONS",
     "load_split_labels",
     "detect_coarse_regimes",
+    "coarse_row_parameters",
 ]
 
 log = logging.getLogger("heliocal.coarse")
@@ -169,14 +170,24 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
     -------
     dict heliostat_id -> {"preset": str, "base_preset": str, "params": torch.Tensor (28,),
     "free": torch.BoolTensor (28,), "nominal": torch.Tensor (28,), "std_error": torch.Tensor
-    (28,)}: ``preset`` is the selected model (a preset, or a regime-aware candidate whose
-    ``params`` are its latest regime's), ``base_preset`` the preset of its geometry.
+    (28,), "regime_table", "regimes"}: ``preset`` is the selected model (a preset, or a
+    regime-aware candidate whose ``params`` are its latest regime's), ``base_preset`` the preset
+    of its geometry; for a regime-aware model ``regime_table`` and ``regimes`` are its
+    regime_params.parquet rows and the heliostat's regimes.parquet rows (else None), which
+    :func:`coarse_row_parameters` turns into each row's parameters.
     """
     df = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats)
     df = df[df["selected"]].sort_values(["heliostat_id", "parameter_index"])
+    tables = segments = {}
+    if df["preset"].str.contains("+", regex=False).any():   # a regime-aware model is selected
+        t = read_artifact(workdir, REGIME_PARAMS, heliostats=heliostats)
+        tables = dict(tuple(t[t["selected"]].groupby("heliostat_id", sort=False)))
+        r = read_artifact(workdir, REGIMES, heliostats=heliostats)
+        segments = dict(tuple(r.groupby("heliostat_id", sort=False)))
     out = {}
     for hid, g in df.groupby("heliostat_id", sort=True):
         out[str(hid)] = {
+            "regime_table": tables.get(hid), "regimes": segments.get(hid),
             "preset": str(g["preset"].iloc[0]),
             "base_preset": base_preset(str(g["preset"].iloc[0])),
             "params": torch.tensor(g["fitted"].to_numpy(np.float64)),
@@ -185,6 +196,16 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
             "std_error": torch.tensor(g["std_error"].to_numpy(np.float64)),
         }
     return out
+
+
+def coarse_row_parameters(selected: dict, timestamps) -> torch.Tensor:
+    """Each row's coarse parameters (N, 28) under a heliostat's selected fit (an entry of
+    :func:`load_selected_parameters`) at UTC ``timestamps`` (N,): the plain fit's parameters for
+    every row, or a regime-aware model's parameters of the row's regime (and time)."""
+    if selected.get("regime_table") is None:
+        return selected["params"].expand(len(timestamps), len(PARAMETER_NAMES)).clone()
+    return table_row_parameters(selected["params"], selected["regime_table"],
+                                selected["regimes"], timestamps)
 
 
 def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
