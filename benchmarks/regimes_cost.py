@@ -1,11 +1,12 @@
-"""Benchmark: what regime detection (and the refit of heliostats with episodes) adds to
-``fit-coarse``.
+"""Benchmark: what regime detection (with the refit of heliostats with episodes and the
+regime-aware candidates of heliostats with breaks) adds to ``fit-coarse``.
 
 Simulates a field (default 200 juelich heliostats, 100 to 400 measurements each over one year,
 half of them dynamic as in benchmarks/field.py, and 20 % with steps, 20 % with episodes, 10 % with
 a drift), runs ``ingest`` and ``split-knn`` once, then ``fit-coarse`` alternately *without*
 detection (the stage as it was before issue 17: the detection patched out, so nothing is
-refitted) and *with* it, ``--repeats`` times each, and prints the median wall times and their
+refitted and no heliostat has a break, so no candidate is fitted), with detection but without
+the candidates, and *with* both, ``--repeats`` times each, and prints the median wall times and their
 ratio from this one run. Usage::
 
     flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/regimes_cost.py \
@@ -34,7 +35,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "regimes-cost")
     a = ap.parse_args(argv)
 
-    from heliocal.pipeline.artifacts.schemas import REGIMES
+    from heliocal.pipeline.artifacts.schemas import REGIME_PARAMS, REGIMES
     from heliocal.pipeline.artifacts.store import read_artifact
     from heliocal.pipeline.io.staged import IngestOptions
     from heliocal.pipeline.models.changes import Changes
@@ -60,26 +61,38 @@ def main(argv=None) -> int:
                                                   "residual_horizontal_mrad",
                                                   "residual_vertical_mrad"]))
 
-    times = {"without": [], "with": []}
+    def plain_only(hid, spec, rows, regimes, outputs, **options):  # no regime-aware candidates
+        return outputs, []
+
+    times = {"without": [], "detection": [], "with": []}
     for _ in range(a.repeats):
-        for mode in ("without", "with"):
+        for mode in times:
             t0 = time.perf_counter()
             if mode == "without":
                 with mock.patch.object(fit_coarse, "detect_coarse_regimes", without):
+                    fit_coarse.run_fit_coarse(work)
+            elif mode == "detection":
+                with mock.patch.object(fit_coarse, "regime_candidates", plain_only):
                     fit_coarse.run_fit_coarse(work)
             else:
                 fit_coarse.run_fit_coarse(work)
             times[mode].append(time.perf_counter() - t0)
     regimes = read_artifact(work, REGIMES)
+    candidates = read_artifact(work, REGIME_PARAMS)
     refit = regimes.loc[regimes["kind"] == "episode", "heliostat_id"].nunique()
     before, after = statistics.median(times["without"]), statistics.median(times["with"])
+    detect = statistics.median(times["detection"])
     print(f"fit-coarse on {a.heliostats} heliostats, {a.repeats} runs each (alternating):")
     print(f"  without detection: median {before:.2f} s  ({', '.join(f'{t:.2f}' for t in times['without'])})")
+    print(f"  detection, no candidates: median {detect:.2f} s  "
+          f"({', '.join(f'{t:.2f}' for t in times['detection'])}); ratio {detect / before:.3f}")
     print(f"  with detection:    median {after:.2f} s  ({', '.join(f'{t:.2f}' for t in times['with'])})")
     print(f"  ratio with/without: {after / before:.3f}  (+{100 * (after / before - 1):.1f} %); "
           f"{refit} heliostats refitted without their episodes; "
           f"{int((regimes['cause'] == 'detected').sum())} detected breaks, "
-          f"{int((regimes['kind'] == 'outlier').sum())} outliers")
+          f"{int((regimes['kind'] == 'outlier').sum())} outliers; "
+          f"{candidates['heliostat_id'].nunique()} heliostats with regime-aware candidates, "
+          f"{candidates.loc[candidates['selected'], 'heliostat_id'].nunique()} selected")
     return 0
 
 

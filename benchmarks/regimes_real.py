@@ -4,11 +4,13 @@ does to their test errors, on the kNN split and on the time split.
 For each dataset (``../shared/data/juelich``: the CSV log of 120 heliostats with the PAINT
 properties, and its PAINT folder; ``sample_data/juelich``) and each split method (``knn``, the
 default, and ``time``: train on the past, validate and test on the latest rows, same sizes), it
-runs ``ingest``, ``split-knn`` and ``fit-coarse`` twice: *before* (episodes not used: the fit
-every heliostat got until now; regime detection then only reports) and *after* (this version:
-heliostats with detected episodes are fitted again without the episodes' rows). It prints the
-regimes of the heliostats asked for (default AK32, BF41), their test errors before and after,
-and for every heliostat whether its test error got worse by more than 2 %. Usage::
+runs ``ingest``, ``split-knn`` and ``fit-coarse`` twice: *before* (episodes not used and no
+regime-aware candidates: the plain fit every heliostat got before issue 17; regime detection then
+only reports) and *after* (this version: heliostats with detected episodes are fitted again
+without the episodes' rows, heliostats with breaks get the regime-aware candidates of
+models/regime_fit.py, each kept only when 20 % better on validation). It prints the regimes of
+the heliostats asked for (default AK32, BF41), their test errors before and after, the selected
+models, and for every heliostat whether its test error got worse by more than 2 %. Usage::
 
     flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/regimes_real.py \
         [--heliostats AK32,BF41] [--out runs/regimes-real]
@@ -40,6 +42,11 @@ def _no_episodes(regimes, heliostat_id, timestamps):
     return pd.DataFrame({"regime": 0, "episode": False}, index=timestamps.index)
 
 
+def _plain_only(hid, spec, rows, regimes, outputs, **options):
+    """fit_coarse's regime_candidates as if there were none: the plain fit is kept."""
+    return outputs, []
+
+
 def run_one(work: Path, sources, properties, method: str, before: bool) -> tuple[pd.DataFrame, pd.DataFrame]:
     from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, REGIMES
     from heliocal.pipeline.artifacts.store import read_artifact
@@ -52,7 +59,8 @@ def run_one(work: Path, sources, properties, method: str, before: bool) -> tuple
         run_ingest(sources, work, IngestOptions(properties=properties) if properties else IngestOptions())
         run_split(work, method=method)
     if before:
-        with mock.patch.object(fit_coarse, "regime_of_rows", _no_episodes):
+        with mock.patch.object(fit_coarse, "regime_of_rows", _no_episodes), \
+                mock.patch.object(fit_coarse, "regime_candidates", _plain_only):
             fit_coarse.run_fit_coarse(work)
     else:
         fit_coarse.run_fit_coarse(work)
@@ -86,6 +94,9 @@ def main(argv=None) -> int:
                   f"{int((regimes['cause'] == 'renovation').sum())} renovation breaks, "
                   f"{int((regimes['kind'] == 'outlier').sum())} outliers; refitted heliostats "
                   f"whose test error changed: {len(changed)}; worse by more than 2 %: {len(worse)}")
+            models = cmp["preset_after"].str.partition("+")[2].replace("", "plain")
+            print("selected after: " + ", ".join(f"{k} {v}" for k, v in
+                                                  models.value_counts().sort_index().items()))
             print(f"mean test error before {cmp['test_before'].mean():.3f} mrad, after "
                   f"{cmp['test_after'].mean():.3f} mrad; median ratio after/before of the changed "
                   f"{changed['ratio'].median() if len(changed) else float('nan'):.3f}")
@@ -95,8 +106,9 @@ def main(argv=None) -> int:
                 if hid not in cmp.index:
                     continue
                 r = regimes[regimes["heliostat_id"] == hid]
-                print(f"-- {hid}: test error before {cmp.loc[hid, 'test_before']:.3f} mrad, after "
-                      f"{cmp.loc[hid, 'test_after']:.3f} mrad")
+                print(f"-- {hid}: test error before {cmp.loc[hid, 'test_before']:.3f} mrad "
+                      f"({cmp.loc[hid, 'preset_before']}), after "
+                      f"{cmp.loc[hid, 'test_after']:.3f} mrad ({cmp.loc[hid, 'preset_after']})")
                 cols = ["kind", "regime", "start", "end", "cause", "n_rows", "step_mrad", "evidence",
                         "noise_mrad", "error_mrad"]
                 print(r[cols].round(3).to_string(index=False))

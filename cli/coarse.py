@@ -36,6 +36,10 @@ def _human(summary: dict) -> None:
                      f"{r['episodes']} episodes, {r['outliers']} outliers (regimes.parquet); "
                      f"fitted again without their episodes: {', '.join(refit) if refit else 'none'}.",
                      markup=False)
+        chosen = r.get("regime_models_selected") or []
+        stdout.print(f"regime-aware candidates (regime_params.parquet) fitted for "
+                     f"{r.get('regime_models_fitted', 0)} heliostats, selected for "
+                     f"{', '.join(chosen) if chosen else 'none'}.", markup=False)
 
 
 @command("fit-coarse")

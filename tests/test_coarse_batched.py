@@ -83,6 +83,14 @@ def test_batched_and_scipy_agree_on_the_sample_heliostats(tmp_path, sample):
     key = ["heliostat_id", "preset", "parameter_index"]
     pd.testing.assert_frame_equal(ref[key + ["selected", "free", "determined"]],
                                   new[key + ["selected", "free", "determined"]])
+    # the regime-aware candidates (scipy either way, models/regime_fit.py) start from the two
+    # solvers' plain fits: their errors agree to 1e-2 mrad (solved to a relative 1e-6)
+    regime = ref["preset"].str.contains("+", regex=False).to_numpy()
+    c = ref[regime].groupby(["heliostat_id", "preset"]).first()
+    d = new[regime].groupby(["heliostat_id", "preset"]).first()
+    for col in ("train_error_mrad", "val_error_mrad", "test_error_mrad"):
+        assert len(c) == 0 or float((c[col] - d[col]).abs().max()) < 1e-2, col
+    ref, new = ref[~regime].reset_index(drop=True), new[~regime].reset_index(drop=True)
     a = ref.groupby(["heliostat_id", "preset"]).first()
     b = new.groupby(["heliostat_id", "preset"]).first()
     assert len(a) == {"juelich": 3, "synthetic": 4}[sample] * 5

@@ -16,7 +16,7 @@ def test_nomenclature_file_is_current():
 def test_every_stage_artifact_is_documented():
     names = {s.filename for s in all_schemas()}
     assert {"measurements.parquet", "heliostats.parquet", "rejected.parquet", "split.parquet",
-            "coarse_params.parquet", "coarse_predictions.parquet", "regimes.parquet",
+            "coarse_params.parquet", "coarse_predictions.parquet", "regimes.parquet", "regime_params.parquet",
             "hybrid_predictions.parquet",
             "sweep.parquet", "selection.parquet"} <= names
     for schema in all_schemas():

@@ -232,5 +232,6 @@ def test_aim_reports_the_latest_regime(changing_field):
         "rows": int(last["n_rows"].sum()),
         "breaks": int(regimes.loc[regimes["heliostat_id"] == hid, "cause"]
                       .isin(["detected", "renovation"]).sum()),
-        "episodes": int(((regimes["heliostat_id"] == hid) & (regimes["kind"] == "episode")).sum())}
+        "episodes": int(((regimes["heliostat_id"] == hid) & (regimes["kind"] == "episode")).sum()),
+        **{k: result["regime"][k] for k in ("coarse_model", "fitted_regime", "fitted_rows")}}
     assert result["regime"]["regime"] >= 1  # a heliostat with a detected break

@@ -396,7 +396,8 @@ def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
     names = [f for f in files if f.endswith(".parquet")]
     assert names == ["coarse_params.parquet", "coarse_predictions.parquet", "heliostats.parquet",
                      *(["hybrid_predictions.parquet"] if hybrid else []),
-                     "measurements.parquet", "regimes.parquet", "rejected.parquet", "split.parquet"]
+                     "measurements.parquet", "regime_params.parquet", "regimes.parquet",
+                     "rejected.parquet", "split.parquet"]
     for name in names:
         a, b = pd.read_parquet(first / name), pd.read_parquet(second / name)
         assert len(a) > 0 or name == "rejected.parquet", name  # the sample keeps all 496 rows
@@ -423,9 +424,12 @@ def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
     for name in ("measurements.parquet", "heliostats.parquet", "rejected.parquet", "split.parquet",
                  "coarse_params.parquet"):
         assert _sha(first / name) == _sha(second / name), name
-    # the fit did something: BE36's selected static-6 fit has a finite test error
+    # the fit did something: BE36's static-6 fit (and, BE36 having breaks, its regime-aware
+    # candidates) have finite test errors, and one of them is selected
     params = pd.read_parquet(first / "coarse_params.parquet")
-    assert set(params["heliostat_id"]) == {"BE36"} and params["selected"].all()
+    assert set(params["heliostat_id"]) == {"BE36"}
+    assert set(params["preset"]) <= {"static-6", "static-6+offsets", "static-6+drift"}
+    assert params.groupby("preset")["selected"].all().sum() == 1
     assert np.isfinite(params["test_error_mrad"]).all()
 
 

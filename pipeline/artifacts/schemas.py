@@ -15,6 +15,7 @@ import re
 from .table import ArtifactSchema, Column
 
 __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS", "REGIMES",
+           "REGIME_PARAMS",
            "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
            "nomenclature_markdown"]
@@ -248,7 +249,10 @@ COARSE_PARAMS = ArtifactSchema(
                 "error, free or fixed, plus the fit's diagnostics (repeated on each row of a fit).",
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
-        C("preset", "string", "", "Parameter preset of the fit (static-6 ... static-28, stone-8)."),
+        C("preset", "string", "", "Parameter preset of the fit (static-6 ... static-28, stone-8), "
+          "or a regime-aware candidate on the selected preset (`<preset>+offsets`, "
+          "`<preset>+drift`; regime_params.parquet): its `fitted` values are the latest "
+          "regime's parameters."),
         C("selected", "bool", "", "True for the preset used downstream (chosen by validation error "
           "with --preset auto)."),
         C("parameter_index", "int64", "", "Position in the 28-parameter vector."),
@@ -298,7 +302,9 @@ COARSE_PREDICTIONS = ArtifactSchema(
         C("heliostat_id", "string", "", "Heliostat."),
         C("measurement_id", "string", "", "Measurement."),
         C("split", "string", "", "train, validation, test or unused (all train without split.parquet)."),
-        C("model", "string", "", "`nominal` or the preset name (hybrid stages add theirs)."),
+        C("model", "string", "", "`nominal`, the preset name or a regime-aware candidate "
+          "(`<preset>+offsets`, `<preset>+drift`: each row at its regime's parameters); hybrid "
+          "stages add theirs."),
         C("selected", "bool", "", "True for the model used downstream."),
         C("error_mrad", "float64", "mrad", "Angle between predicted and measured mirror normal."),
         C("beam_error_mrad", "float64", "mrad", "Angle between the predicted reflected beam and the "
@@ -356,6 +362,46 @@ REGIMES = ArtifactSchema(
           "the rows of every split from start to end (outlier: its row); rows of a detected "
           "episode are left out of that model's training and of its selection, so an episode "
           "reports here the error no geometry of the heliostat can remove.", nullable=True),
+    ),
+)
+
+REGIME_PARAMS = ArtifactSchema(
+    name="regime_params",
+    filename="regime_params.parquet",
+    producer="fit-coarse",
+    sort_by=("heliostat_id", "model", "regime", "parameter"),
+    description="Per heliostat with a detected or renovation break, regime-aware candidate "
+                "(`<preset>+offsets`: per-regime offsets of the actuator zero points and small "
+                "tilts on the selected preset's shared geometry; `<preset>+drift`: the same with "
+                "zero points linear in time per regime), regime and moved parameter: its offset "
+                "and drift (heliocal.pipeline.models.regime_fit says how). A candidate is "
+                "selected only if it beats the plain fit by the sweep's 20 % margin on validation; "
+                "its latest regime's parameters are then coarse_params' `fitted` values.",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("model", "string", "", "`<preset>+offsets` or `<preset>+drift` (as in coarse_params)."),
+        C("selected", "bool", "", "True if the candidate is the heliostat's selected coarse model."),
+        C("regime", "int64", "", "Regime number (regimes.parquet)."),
+        C("fitted_regime", "int64", "", "The regime whose training rows determined the offsets "
+          "this regime uses (itself, or the one before when it has too few training rows)."),
+        C("start", "timestamp", "UTC", "First measurement of the regime.", nullable=True),
+        C("end", "timestamp", "UTC", "Last measurement of the regime.", nullable=True),
+        C("n_train", "int64", "", "Training rows (outside episodes) of `fitted_regime`."),
+        C("parameter", "string", "", "Parameter with an offset (unit in the name)."),
+        C("offset_rad", "float64", "rad", "Offset of the parameter in this regime, relative to the "
+          "shared geometry (0 for the reference regime)."),
+        C("value_rad", "float64", "rad", "The parameter's value in this regime: shared geometry "
+          "plus offset (with a drift: at `drift_reference`)."),
+        C("drift_rad_per_year", "float64", "rad/year", "Rate of the parameter in this regime "
+          "(0 where it does not drift)."),
+        C("drift_reference", "timestamp", "UTC", "Time at which the drift adds nothing (mean "
+          "time of the regime's training rows); missing where it does not drift.", nullable=True),
+        C("drift_from", "timestamp", "UTC", "First training row of the regime whose rows fitted "
+          "the drift: before it the drift is held at its value there; missing where it does not "
+          "drift.", nullable=True),
+        C("drift_to", "timestamp", "UTC", "Last training row of that regime: after it the drift "
+          "is held (no extrapolation); missing where it does not drift.", nullable=True),
+        C("latest", "bool", "", "True for the heliostat's latest regime (the one `aim` uses)."),
     ),
 )
 
@@ -442,7 +488,7 @@ SELECTED_PREDICTIONS = ArtifactSchema(
 def all_schemas() -> list[ArtifactSchema]:
     """Every artifact schema of heliocal, in the order of the stages that write them."""
     return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
-            REGIMES, HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
+            REGIMES, REGIME_PARAMS, HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
 
 
 def nomenclature_markdown() -> str:

@@ -49,6 +49,7 @@ from ..vocabulary import CoarseLoss, CoarseSolver
 __all__ = [
     "AUTO_PRESETS",
     "PRIOR_SIGMA",
+    "prior_sigma",
     "PLAUSIBLE_CORRECTION",
     "MeasurementBatch",
     "CoarseFit",
@@ -185,7 +186,8 @@ class CoarseFit:
     wall_time_s: float
 
 
-def _prior_sigma(nominal: torch.Tensor) -> np.ndarray:
+def prior_sigma(nominal: torch.Tensor) -> np.ndarray:
+    """Prior sigma (28,) of each parameter: :data:`PRIOR_SIGMA` of its kind (increments relative)."""
     sig = np.empty(len(PARAMETER_NAMES))
     for i, name in enumerate(PARAMETER_NAMES):
         kind = parameter_kind(name)
@@ -266,7 +268,7 @@ def _fit_setup(spec: HeliostatSpec, nominal: torch.Tensor, train: MeasurementBat
     (nominal, explicit, or the robust start's) and the free parameters' prior sigma (P,)."""
     free = preset_mask(preset, spec.actuator_type, spec.kinematic_type).numpy()
     free_idx = np.flatnonzero(free)
-    sigma = _prior_sigma(nominal)
+    sigma = prior_sigma(nominal)
     x0_full = start.clone() if start is not None else nominal.clone()
     mode = {True: "always", False: "never"}.get(robust_start, robust_start)
     check_choice(mode, "robust_start", "fit_heliostat", ("always", "auto", "never"))
@@ -547,7 +549,7 @@ def data_degeneracy(spec: HeliostatSpec, params: torch.Tensor, nominal: torch.Te
     J = torch.nan_to_num(jac[:, :, torch.as_tensor(free_idx)].reshape(-1, len(free_idx)),
                          nan=0.0, posinf=0.0, neginf=0.0).numpy()
     r = torch.nan_to_num(r.reshape(-1), nan=0.0).numpy()
-    _, determined, _ = _fit_diagnostics(J, r, len(r), free_idx, _prior_sigma(nominal))
+    _, determined, _ = _fit_diagnostics(J, r, len(r), free_idx, prior_sigma(nominal))
     n_det = int(determined[free_idx].sum())
     if n_det == len(free_idx):
         return ""

@@ -53,7 +53,8 @@ class FineProblem:
     Attributes
     ----------
     spec : the heliostat's fixed description.
-    base : (28,) parameters the deviations are added to (coarse fit or nominal).
+    base : (28,) parameters the deviations are added to (coarse fit or nominal), or (N, 28):
+        each row its own (a regime-aware coarse model: each row at its regime's parameters).
     free : bool (28,) parameters that get a deviation (the network's outputs, in order).
     scales : (P,) deviation per unit output (:func:`output_scales`).
     encoder : the input encoding.
@@ -63,7 +64,8 @@ class FineProblem:
         heliostats each have their own encoder).
 
     :func:`stack_problems` makes one problem of M heliostats: every tensor above then has a
-    leading member axis (spec batch (M, 1), base (M, 1, 28), scales (M, P), data (M, N, ...)).
+    leading member axis (spec batch (M, 1), base (M, 1, 28) or per row (M, N, 28), scales
+    (M, P), data (M, N, ...)).
     """
 
     spec: HeliostatSpec
@@ -74,6 +76,11 @@ class FineProblem:
     data: MeasurementBatch
     context: torch.Tensor
     cached_features: torch.Tensor | None = None
+
+    @property
+    def per_row_base(self) -> bool:
+        """True when ``base`` has a row axis ((N, 28) or (M, N, 28))."""
+        return self.base.dim() >= 2 and self.base.shape[-2] > 1
 
     @property
     def free_index(self) -> torch.Tensor:
@@ -98,7 +105,8 @@ def take_rows(problem: FineProblem, rows: torch.Tensor) -> FineProblem:
     d = problem.data
     data = MeasurementBatch(d.measurement_id[..., rows.numpy()], take(d.steps), take(d.sun),
                             take(d.focal_spot), take(d.target_center), take(d.target_normal))
-    return dataclasses.replace(problem, data=data, context=take(problem.context),
+    base = take(problem.base) if problem.per_row_base else problem.base
+    return dataclasses.replace(problem, base=base, data=data, context=take(problem.context),
                                cached_features=take(features))
 
 
@@ -182,7 +190,11 @@ def stack_problems(problems: Sequence[FineProblem]) -> tuple[FineProblem, torch.
         target_center=pad(lambda p: p.data.target_center),
         target_normal=pad(lambda p: p.data.target_normal))
     valid = torch.stack([torch.arange(n) < len(p.data) for p in problems])
-    stacked = FineProblem(spec, torch.stack([p.base for p in problems]).unsqueeze(1), free,
+    if any(p.per_row_base for p in problems):   # (M, N, 28): every row its own base
+        base = pad(lambda p: p.base if p.per_row_base else p.base.expand(len(p.data), -1))
+    else:
+        base = torch.stack([p.base for p in problems]).unsqueeze(1)
+    stacked = FineProblem(spec, base, free,
                           torch.stack([p.scales for p in problems]), problems[0].encoder, data,
                           pad(lambda p: p.context), pad(lambda p: p.features()))
     return stacked, valid

@@ -12,7 +12,7 @@ import pandas as pd
 import torch
 
 from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs, read_model
-from ..artifacts.schemas import HELIOSTATS, REGIMES
+from ..artifacts.schemas import HELIOSTATS, REGIME_PARAMS, REGIMES
 from ..artifacts.store import artifact_present, read_artifact
 from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
 from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
@@ -74,8 +74,11 @@ def latest_regime(workdir: str | Path, heliostat_id: str) -> dict | None:
     """The heliostat's latest regime in regimes.parquet (fit-coarse): number, start, the rows
     that support it and the breaks before it; ``None`` without regimes.parquet or rows.
 
-    The coarse geometry is one for all regimes (rows of episodes left out of its fit); the
-    latest regime tells how much of the recent data agrees with it."""
+    ``coarse_model`` names the selected regime-aware coarse model (regime_params.parquet) whose
+    latest regime's parameters ``aim`` uses, ``fitted_regime`` and ``fitted_rows`` the regime
+    and the training rows those parameters rest on (the latest regime's own when it has enough,
+    else the regime before it); all three are ``None`` when the plain fit is selected: its
+    geometry is one for all regimes, and ``rows`` tells how much of the recent data agrees."""
     if not artifact_present(workdir, REGIMES):
         return None
     r = read_artifact(workdir, REGIMES, heliostats=[heliostat_id])
@@ -84,10 +87,19 @@ def latest_regime(workdir: str | Path, heliostat_id: str) -> dict | None:
         return None
     last = seg.iloc[-1]
     latest = seg[seg["regime"] == last["regime"]]
-    return {"regime": int(last["regime"]), "since": str(pd.Timestamp(latest["start"].iloc[0])),
-            "rows": int(latest["n_rows"].sum()),
-            "breaks": int(r["cause"].isin(["detected", "renovation"]).sum()),
-            "episodes": int((r["kind"] == "episode").sum())}
+    out = {"regime": int(last["regime"]), "since": str(pd.Timestamp(latest["start"].iloc[0])),
+           "rows": int(latest["n_rows"].sum()),
+           "breaks": int(r["cause"].isin(["detected", "renovation"]).sum()),
+           "episodes": int((r["kind"] == "episode").sum()),
+           "coarse_model": None, "fitted_regime": None, "fitted_rows": None}
+    if artifact_present(workdir, REGIME_PARAMS):
+        p = read_artifact(workdir, REGIME_PARAMS, heliostats=[heliostat_id])
+        p = p[(p["heliostat_id"] == heliostat_id) & p["selected"] & p["latest"]]
+        if len(p):
+            out.update(coarse_model=str(p["model"].iloc[0]),
+                       fitted_regime=int(p["fitted_regime"].iloc[0]),
+                       fitted_rows=int(p["n_train"].iloc[0]))
+    return out
 
 
 def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vector_enu=None,

@@ -16,12 +16,14 @@ import pandas as pd
 import torch
 
 from ..artifacts.paths import artifact_path
-from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS, REGIMES
+from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS,
+                                 REGIME_PARAMS, REGIMES)
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import FitError, check_choice, check_float, check_int
+from ..models.regime_fit import base_preset, regime_candidates, table_row_parameters
 from ..models.regimes import detect_field, regime_of_rows, residual_components_mrad
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
@@ -40,6 +42,7 @@ __all__ = [
     "FIT_OPTIONS",
     "load_split_labels",
     "detect_coarse_regimes",
+    "coarse_row_parameters",
 ]
 
 log = logging.getLogger("heliocal.coarse")
@@ -166,21 +169,44 @@ def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | No
 
     Returns
     -------
-    dict heliostat_id -> {"preset": str, "params": torch.Tensor (28,), "free": torch.BoolTensor
-    (28,), "nominal": torch.Tensor (28,), "std_error": torch.Tensor (28,)}
+    dict heliostat_id -> {"preset": str, "base_preset": str, "params": torch.Tensor (28,),
+    "free": torch.BoolTensor (28,), "nominal": torch.Tensor (28,), "std_error": torch.Tensor
+    (28,), "regime_table", "regimes"}: ``preset`` is the selected model (a preset, or a
+    regime-aware candidate whose ``params`` are its latest regime's), ``base_preset`` the preset
+    of its geometry; for a regime-aware model ``regime_table`` and ``regimes`` are its
+    regime_params.parquet rows and the heliostat's regimes.parquet rows (else None), which
+    :func:`coarse_row_parameters` turns into each row's parameters.
     """
     df = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats)
     df = df[df["selected"]].sort_values(["heliostat_id", "parameter_index"])
+    tables = segments = {}
+    if df["preset"].str.contains("+", regex=False).any():   # a regime-aware model is selected
+        t = read_artifact(workdir, REGIME_PARAMS, heliostats=heliostats)
+        tables = dict(tuple(t[t["selected"]].groupby("heliostat_id", sort=False)))
+        r = read_artifact(workdir, REGIMES, heliostats=heliostats)
+        segments = dict(tuple(r.groupby("heliostat_id", sort=False)))
     out = {}
     for hid, g in df.groupby("heliostat_id", sort=True):
         out[str(hid)] = {
+            "regime_table": tables.get(hid), "regimes": segments.get(hid),
             "preset": str(g["preset"].iloc[0]),
+            "base_preset": base_preset(str(g["preset"].iloc[0])),
             "params": torch.tensor(g["fitted"].to_numpy(np.float64)),
             "free": torch.tensor(g["free"].to_numpy(bool)),
             "nominal": torch.tensor(g["nominal"].to_numpy(np.float64)),
             "std_error": torch.tensor(g["std_error"].to_numpy(np.float64)),
         }
     return out
+
+
+def coarse_row_parameters(selected: dict, timestamps) -> torch.Tensor:
+    """Each row's coarse parameters (N, 28) under a heliostat's selected fit (an entry of
+    :func:`load_selected_parameters`) at UTC ``timestamps`` (N,): the plain fit's parameters for
+    every row, or a regime-aware model's parameters of the row's regime (and time)."""
+    if selected.get("regime_table") is None:
+        return selected["params"].expand(len(timestamps), len(PARAMETER_NAMES)).clone()
+    return table_row_parameters(selected["params"], selected["regime_table"],
+                                selected["regimes"], timestamps)
 
 
 def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
@@ -270,6 +296,13 @@ def _fit_task(task) -> list[tuple]:
     if solver == "scipy":
         return [fit_one_heliostat(pd.Series(hrows[0]), rows[0], presets, **kwargs)]
     return fit_heliostat_chunk([pd.Series(h) for h in hrows], rows, presets, **kwargs)
+
+
+def _candidates_task(task) -> tuple:
+    """The regime-aware candidates of one heliostat (a picklable task for ``map_tasks``)."""
+    hid, hrow, rows, regimes, outputs, options = task
+    return regime_candidates(hid, HeliostatSpec.from_row(pd.Series(hrow)), rows, regimes,
+                             outputs, **options)
 
 
 def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
@@ -370,6 +403,22 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         else:
             log.info("%s: the fit without its episodes is not 20 %% better on validation (%.3f "
                      "vs %.3f mrad); the first fit is kept", hid, new, old)
+    # regime-aware candidates (per-regime offsets, drift) of heliostats with a break: each
+    # replaces the fit above only if it beats it by the same margin on validation
+    with_breaks = sorted(set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]),
+                                         "heliostat_id"]) & set(by_id))
+    tasks = [(hid, helio.loc[hid].to_dict(), rows_of[hid],
+              regimes[regimes["heliostat_id"] == hid], by_id[hid],
+              {"loss": loss, "f_scale_mrad": f_scale_mrad,
+               "margin": EPISODE_REFIT_MIN_IMPROVEMENT, "max_episode_share": MAX_EPISODE_SHARE})
+             for hid in with_breaks]
+    regime_rows = []
+    for hid, (outputs, rows) in zip(with_breaks, map_tasks(
+            _candidates_task, tasks, workers=workers, scheduler=scheduler,
+            dask_address=dask_address)):
+        by_id[hid] = outputs
+        regime_rows += rows
+    regime_params = pd.DataFrame(regime_rows, columns=REGIME_PARAMS.column_names())
     all_params, all_preds, summaries = [], [], []
     for params, preds, summary in (by_id[h] for h in ids):
         if summary["degenerate"]:
@@ -405,9 +454,11 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         params = merge_with_previous(workdir, COARSE_PARAMS, params, replaced)
         preds = merge_with_previous(workdir, COARSE_PREDICTIONS, preds, replaced)
         regimes = merge_with_previous(workdir, REGIMES, regimes, replaced)
+        regime_params = merge_with_previous(workdir, REGIME_PARAMS, regime_params, replaced)
     write_artifact(params, workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
     write_artifact(preds, workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
     write_artifact(regimes, workdir, REGIMES, stage="fit-coarse", options=opts)
+    write_artifact(regime_params, workdir, REGIME_PARAMS, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
             "regimes": {
                 "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
@@ -416,4 +467,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                 "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
                 "episodes": int((regimes["kind"] == "episode").sum()),
                 "outliers": int((regimes["kind"] == "outlier").sum()),
-                "refitted_without_episodes": sorted(h for h in refit if by_id[h][2]["episode_rows"])}}
+                "refitted_without_episodes": sorted(h for h in refit if by_id[h][2]["episode_rows"]),
+                "regime_models_fitted": int(regime_params["heliostat_id"].nunique()),
+                "regime_models_selected": sorted(
+                    h for h in ids if by_id[h][2].get("regime_candidates", {}).get("selected"))}}

@@ -88,7 +88,8 @@ from ..artifacts.store import (merge_with_previous, previous_run_matches, read_a
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import FitError, check_choice, check_float, check_int
-from ..models.coarse import MeasurementBatch, predict
+from ..models.coarse import MeasurementBatch
+from ..models.regime_fit import predict_parameters
 from ..models.network import MODES, layers_to_state
 from ..models.config import FineConfig, ensemble_seeds
 from ..models.pretrained import PretrainConfig, fit_pretrained
@@ -96,7 +97,7 @@ from ..models.training import (FineProblem, build_problem, predict_ensembles, pr
                                stack_problems, take_rows, train_members)
 from ..physics.parameters import HeliostatSpec
 from ..runtime.parallel import map_tasks
-from .fit_coarse import load_selected_parameters, load_split_labels
+from .fit_coarse import coarse_row_parameters, load_selected_parameters, load_split_labels
 from ..vocabulary import HYBRID_BATCH_SIZE
 from .forward import load_time_labels, load_time_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
@@ -140,11 +141,12 @@ def _hybrid_chunk_task(task):
         rows = rows[rows["split"] != "excluded"].reset_index(drop=True)
         spec = HeliostatSpec.from_row(hrow)
         data = MeasurementBatch.from_frame(rows)
+        coarse = coarse_row_parameters(sel, rows["timestamp"])   # each row at its regime's
         prepared.append((hid, rows, hrow, sel, rows["split"].to_numpy(), spec, data,
-                         predict(sel["params"], spec, data)))
+                         predict_parameters(coarse, spec, data), coarse))
     out = []
     if mode == "pretrained-nn":
-        for hid, rows, hrow, sel, labels, spec, data, coarse_pred in prepared:
+        for hid, rows, hrow, sel, labels, spec, data, coarse_pred, _ in prepared:
             t1 = time.perf_counter()
             model, info, normal, position = fit_pretrained(
                 sel["params"], spec, hrow, rows, data, labels, seed, pretrain_config)
@@ -158,8 +160,8 @@ def _hybrid_chunk_task(task):
                                        time.perf_counter() - t1))
         return out
     problems = []
-    for hid, rows, hrow, sel, labels, spec, data, coarse_pred in prepared:
-        base = sel["params"] if mode == "hybrid" else sel["nominal"]
+    for hid, rows, hrow, sel, labels, spec, data, coarse_pred, coarse in prepared:
+        base = coarse if mode == "hybrid" else sel["nominal"]
         problems.append(build_problem(rows, hrow, base, sel["free"], config))
     # train on the rows that matter (train and validation); test rows are predicted afterwards.
     # Member h * K + j is network j of heliostat h's ensemble of K.
@@ -175,7 +177,7 @@ def _hybrid_chunk_task(task):
                            [weight_decay] * len(labels_fit),
                            ensemble_seeds(seed, k_ens) * len(problems), config)
     wall = (time.perf_counter() - t0) / len(problems)
-    for h, ((hid, rows, hrow, sel, labels, spec, data, coarse_pred), problem) in enumerate(
+    for h, ((hid, rows, hrow, sel, labels, spec, data, coarse_pred, _), problem) in enumerate(
             zip(prepared, problems)):
         nets = slice(h * k_ens, (h + 1) * k_ens)
         layers = [(w[nets], b[nets]) for w, b in result.layers]
@@ -185,7 +187,9 @@ def _hybrid_chunk_task(task):
                 "epochs": result.epochs_run[nets].tolist()}
         cfg = {"mode": mode, "heliostat_id": hid, "seed": seed, "weight_decay": weight_decay,
                "fine_config": config.to_dict(), "encoder": problem.encoder.to_dict(),
-               "base_params": problem.base.tolist(), "free": sel["free"].tolist(),
+               # aim's base: the latest regime's parameters under a regime-aware coarse model
+               "base_params": (sel["params"] if problem.per_row_base else problem.base).tolist(),
+               "free": sel["free"].tolist(),
                "scales": problem.scales.tolist(), "coarse_preset": sel["preset"],
                "sizes": problem.sizes(config), **info}
         out.append(_hybrid_outputs(hid, mode, sel, labels, problem, normal[0], position[0],

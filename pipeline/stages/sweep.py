@@ -50,7 +50,7 @@ from ..artifacts.store import (check_fresh, merge_with_previous, previous_run_ma
                                read_artifact, write_artifact)
 from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from ..models.coarse import MeasurementBatch, fit_presets, metrics_frame, normal_errors_mrad
-from .fit_coarse import coarse_fit_options, load_selected_parameters
+from .fit_coarse import coarse_fit_options, coarse_row_parameters, load_selected_parameters
 from ..errors import FitError, ParameterError, check_float, check_int
 from .fit_hybrid import hybrid_chunks
 from ..models.config import FineConfig, ensemble_seeds
@@ -258,8 +258,8 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
     n_seeds = len(seeds)
     for kind, cfg in variants:
         k_ens = cfg.ensemble
-        problems = [build_problem(h.rows, h.hrow, h.selected["params"], h.selected["free"], cfg)
-                    for h in helios]
+        problems = [build_problem(h.rows, h.hrow, coarse_row_parameters(   # each row its regime's
+            h.selected, h.rows["timestamp"]), h.selected["free"], cfg) for h in helios]
         fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
         taken = [take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
         per_h = n_seeds * k_ens           # networks per heliostat: seeds x ensemble
@@ -331,7 +331,7 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
                 "config": {"mode": "hybrid", "heliostat_id": h.hid, "seed": b["seed"],
                            "weight_decay": float(b["weight_decay"]),
                            "fine_config": cfg.to_dict(), "encoder": problem.encoder.to_dict(),
-                           "variant": b["model"], "base_params": problem.base.tolist(),
+                           "variant": b["model"], "base_params": h.selected["params"].tolist(),
                            "free": h.selected["free"].tolist(),
                            "scales": problem.scales.tolist(),
                            "coarse_preset": h.selected["preset"], "sizes": problem.sizes(cfg),
@@ -367,7 +367,7 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
         test = restricted["split"] == "test"
         dists[n] = (float(restricted.loc[test, "nearest_train_distance_deg"].mean())
                     if test.any() else float("nan"))
-    base_preset = h.selected["preset"]
+    base_preset = h.selected["base_preset"]   # a regime-aware model's preset (refitted plain)
     small = [n for n in sizes if n < h.n_full]
     fitted = tuple(dict.fromkeys(tuple(presets) + (base_preset,)))
     bases = {h.n_full: h.selected["params"]}
@@ -559,7 +559,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         sizes = (sorted({min(check_int(n, "n_train", "sweep", 2), n_full) for n in n_train}
                         | {n_full}) if n_train else default_ladder(n_full))
         study_presets = tuple(presets) if presets else tuple(
-            m for m in items[hid][5] if m != "nominal")
+            m for m in items[hid][5] if m != "nominal" and "+" not in m)   # no regime models
         tasks.append(("study", (items[hid], sizes, study_presets, variants, weight_decays, seeds,
                                 path, pretrain_config, tuple(baselines), coarse_options)))
     parts = map_tasks(_sweep_task, tasks, workers=workers, scheduler=scheduler,

@@ -1,0 +1,469 @@
+"""Coarse models that follow a heliostat through its regimes (issue 17, item 4).
+
+A re-mount or a re-homing moves a few parameters of a heliostat for good: its actuator zero
+points and small tilts, the parameters :func:`heliocal.pipeline.models.changes.change_parameters`
+names (``axis_1_initial_angle_rad``, ``axis_2_initial_angle_rad`` and Stone's tilts alpha, beta
+and delta of the kinematic type). Pivots, lever arms, increments and translations stay. Beside
+the plain fit of the selected preset, two candidates on the regimes of ``regimes.parquet``:
+
+``offsets``
+    One shared geometry (the preset's free parameters) and per regime an offset of the moved
+    parameters [rad]; the first regime with its own offsets is the reference (offset 0).
+``drift``
+    The same, plus per regime a rate of each actuator zero point [rad/year]: the zero point
+    moves linearly in time within a regime, around the mean time of the regime's training rows.
+    Linear is the lowest-order smooth motion: two parameters per regime, enough for the slow
+    creep of an actuator (the simulator's drift is linear; the Jülich log's drifting heliostats
+    move by a few mrad over months), where a spline or a polynomial would follow noise. A
+    re-homing starts a new regime and so resets it. The line is trusted only over the time its
+    training rows span: a row before the first or after the last training row of its regime
+    (a later regime without rows of its own, the latest parameters ``aim`` uses) gets the
+    zero point at that end, since a rate fitted on a short span extrapolates badly.
+
+Both are fitted by :func:`scipy.optimize.least_squares` with the plain fit's objective
+(:mod:`heliocal.pipeline.models.coarse`: residuals ``1000 (n_pred - n_meas)`` [mrad] of every
+training row, now at the row's own parameter vector; the exact Jacobian of
+:mod:`heliocal.pipeline.physics.jacobian`; the same loss and ``f_scale``) and Gaussian priors:
+the shared parameters toward the plain fit with the preset's sigmas
+(:func:`~heliocal.pipeline.models.coarse.prior_sigma`; the data's curvature is 10^5 to 10^9
+times larger, so this only holds the directions the data do not determine where the plain fit
+put them), offsets toward 0 with :data:`OFFSET_PRIOR_SIGMA_RAD`, rates toward 0 with
+:data:`DRIFT_PRIOR_SIGMA_RAD_PER_YEAR`. The start is the plain fit with zero offsets and rates.
+
+A regime with fewer than :data:`MIN_REGIME_ROWS` training rows (outside episodes) gets no
+offsets of its own: its rows are predicted with the offsets of the fitted regime before it (the
+first fitted regime's if none is before) and are left out of the fit.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+from scipy.optimize import least_squares
+
+from ..errors import check_choice
+from ..physics.jacobian import forward_state, residual_and_jacobian
+from ..physics.kinematics import forward_kinematics
+from ..physics.metrics import measured_normal
+from ..physics.parameters import PARAMETER_INDEX, PARAMETER_NAMES, HeliostatSpec
+from ..runtime.process_state import one_thread
+from .changes import change_parameters
+from .coarse import MeasurementBatch, metrics_frame, prior_sigma
+
+__all__ = [
+    "REGIME_MODELS",
+    "DRIFT_PARAMETERS",
+    "MIN_REGIME_ROWS",
+    "MIN_VALIDATION_DAYS",
+    "OFFSET_PRIOR_SIGMA_RAD",
+    "DRIFT_PRIOR_SIGMA_RAD_PER_YEAR",
+    "RegimeFit",
+    "base_preset",
+    "fit_regime_model",
+    "predict_rows",
+    "predict_parameters",
+    "table_row_parameters",
+]
+
+#: The candidates, in the order they are fitted.
+REGIME_MODELS = ("offsets", "drift")
+
+#: Parameters that drift (``drift``): the actuator zero points.
+DRIFT_PARAMETERS = ("axis_1_initial_angle_rad", "axis_2_initial_angle_rad")
+
+#: Training rows a regime needs for offsets of its own: two per moved parameter (each row
+#: measures two independent components of the normal, so 10 rows give 20 equations for 5
+#: offsets plus, with ``drift``, 2 rates).
+MIN_REGIME_ROWS = 10
+
+#: Distinct UTC days the validation rows (outside episodes) must cover for a candidate to be
+#: judged: the rows of one day share their sun positions and that day's misfit, so one or two
+#: days are one or two samples, not a validation of a model that changes with time (on the
+#: Jülich log's time split AK32's 20 validation rows are one burst of 26 minutes: a candidate
+#: 45 % better there was 80 % worse on the month of test rows).
+MIN_VALIDATION_DAYS = 3
+
+#: Prior sigma of an offset [rad]: 10 mrad, several times the steps of re-mounts seen (simulated
+#: 1-4 mrad; the Jülich data's breaks 0.9-5.7 mrad), so it does not bias them, but holds the
+#: offsets of a regime whose few rows cannot determine them all.
+OFFSET_PRIOR_SIGMA_RAD = 0.01
+
+#: Prior sigma of a drift rate [rad/year]: 10 mrad/year, above the drifts seen (1-3 mrad/year).
+DRIFT_PRIOR_SIGMA_RAD_PER_YEAR = 0.01
+
+_YEAR_S = 365.25 * 86400.0
+
+
+def base_preset(model: str) -> str:
+    """The preset of a coarse model's geometry: ``static-14`` for ``static-14+offsets``."""
+    return model.split("+", 1)[0]
+
+
+def _seconds(times) -> np.ndarray:
+    """UTC times (anything pandas reads) as float seconds since 1970; NaN for missing."""
+    t = pd.to_datetime(pd.Series(np.asarray(times)), utc=True)
+    return (t - pd.Timestamp(0, tz="UTC")).dt.total_seconds().to_numpy(np.float64)
+
+
+@dataclass
+class RegimeFit:
+    """A fitted regime-aware model of one heliostat (module docstring).
+
+    Attributes
+    ----------
+    model : ``offsets`` or ``drift``.
+    preset : the preset of the shared geometry.
+    base : (28,) the reference regime's parameters (the shared geometry).
+    moved, drifting : names of the parameters with offsets and with rates.
+    fitted : (F,) regime numbers with their own offsets, ascending.
+    offsets : (F, len(moved)) [rad] (row 0 is zero: the reference).
+    rates : (F, len(drifting)) [rad/year].
+    reference_s : (F,) drift reference time per fitted regime [s since 1970, UTC].
+    span_s : (F, 2) first and last training row's time per fitted regime [s]: the drift is
+        held constant outside.
+    n_train : (F,) training rows of each fitted regime.
+    condition_number : of the data Jacobian at the solution, columns scaled by the prior sigmas.
+    """
+
+    model: str
+    preset: str
+    base: torch.Tensor
+    moved: tuple[str, ...]
+    drifting: tuple[str, ...]
+    fitted: np.ndarray
+    offsets: np.ndarray
+    rates: np.ndarray
+    reference_s: np.ndarray
+    span_s: np.ndarray
+    n_train: np.ndarray
+    iterations: int
+    cost: float
+    status: str
+    condition_number: float
+    wall_time_s: float
+
+    @property
+    def name(self) -> str:
+        """The model's name in coarse_params and coarse_predictions: ``<preset>+<model>``."""
+        return f"{self.preset}+{self.model}"   # base_preset() inverts it
+
+    def source(self, regime) -> np.ndarray:
+        """Index into :attr:`fitted` of the offsets each regime number uses."""
+        k = np.searchsorted(self.fitted, np.asarray(regime, np.int64), side="right") - 1
+        return np.maximum(k, 0)
+
+    def row_parameters(self, regime, times) -> torch.Tensor:
+        """Parameters (N, 28) of rows in regimes ``regime`` (N,) at UTC ``times`` (N,); a row
+        without a time is taken at its regime's reference time."""
+        return _row_parameters(self.base, self.moved, self.drifting, self.offsets, self.rates,
+                               self.reference_s, self.span_s, self.source(regime),
+                               _seconds(times))
+
+
+def _row_parameters(base, moved, drifting, offsets, rates, reference_s, span_s, k, seconds):
+    p = base.to(torch.float64).expand(len(k), len(PARAMETER_NAMES)).clone()
+    p[:, [PARAMETER_INDEX[n] for n in moved]] += torch.as_tensor(offsets[k])
+    if drifting:
+        held = np.clip(seconds, span_s[k, 0], span_s[k, 1])
+        years = np.nan_to_num((held - reference_s[k]) / _YEAR_S)
+        p[:, [PARAMETER_INDEX[n] for n in drifting]] += torch.as_tensor(rates[k] * years[:, None])
+    return p
+
+
+def predict_rows(fit: RegimeFit, spec: HeliostatSpec, data: MeasurementBatch, regime,
+                 times) -> pd.DataFrame:
+    """coarse_predictions' metric columns of every row of ``data`` (each at its own parameters)."""
+    return predict_parameters(fit.row_parameters(regime, times), spec, data)
+
+
+def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, free,
+                     data: MeasurementBatch, regime: Sequence[int], times, train, model: str, *,
+                     loss: str = "soft_l1", f_scale_mrad: float = 1.0, max_nfev: int = 100,
+                     tolerance: float = 1e-6, start: "RegimeFit | None" = None,
+                     prior_weight: float = 1.0) -> RegimeFit | None:
+    """Fit a regime-aware candidate on one heliostat's training rows.
+
+    Parameters
+    ----------
+    spec : the heliostat.
+    preset, params, free : the plain fit's preset, parameters (28,) and free mask (28,): the
+        shared geometry's free parameters and the start.
+    data : all its rows; regime : (N,) regime number of each row (``regime_of_rows``);
+        times : (N,) UTC times; train : (N,) bool, the rows to fit (training rows outside
+        episodes).
+    model : one of :data:`REGIME_MODELS`.
+    loss, f_scale_mrad : the plain fit's (``fit-coarse``'s options).
+    max_nfev, tolerance : scipy's limit and its xtol = ftol = gtol (1e-6: a candidate is judged
+        by its validation error to a few per cent; 1e-8 moved a simulated two-step heliostat's
+        validation error by less than 1e-4 mrad and took half as long again).
+    prior_weight : multiplier of every prior's curvature (1: the sigmas of the module
+        docstring; a tiny value leaves the data alone to decide, as in the noiseless tests).
+    start : a fit of the same rows (``offsets`` for ``drift``) to start from instead of the
+        plain fit (the priors stay those of the plain fit).
+
+    Returns
+    -------
+    The fit, or ``None`` when fewer than two regimes have :data:`MIN_REGIME_ROWS` training rows
+    (nothing to offset: the plain fit is the model of one regime).
+    """
+    check_choice(model, "model", "fit_regime_model", REGIME_MODELS)
+    t0 = time.perf_counter()
+    regime = np.asarray(regime, np.int64)
+    train = np.asarray(train, bool)
+    seconds = _seconds(times)
+    numbers, counts = np.unique(regime[train], return_counts=True)
+    fitted = numbers[counts >= MIN_REGIME_ROWS]
+    if len(fitted) < 2:
+        return None
+    moved = tuple(change_parameters(spec.kinematic_type))
+    drifting = DRIFT_PARAMETERS if model == "drift" else ()
+    free = np.asarray(free, bool)
+    free_idx = np.flatnonzero(free)
+    moved_idx = [PARAMETER_INDEX[n] for n in moved]
+    drift_idx = [PARAMETER_INDEX[n] for n in drifting]
+    use = train & np.isin(regime, fitted)
+    k_all = np.maximum(np.searchsorted(fitted, regime, side="right") - 1, 0)
+    k = k_all[use]
+    sec = seconds[use]
+    reference_s = np.array([np.nanmean(sec[k == f]) if np.isfinite(sec[k == f]).any() else 0.0
+                            for f in range(len(fitted))])
+    span_s = np.array([[np.nanmin(sec[k == f]), np.nanmax(sec[k == f])]
+                       if np.isfinite(sec[k == f]).any() else [0.0, 0.0]
+                       for f in range(len(fitted))])
+    sub = data.subset(use)
+    steps, sun, focal = sub.steps.unsqueeze(1), sub.sun.unsqueeze(1), sub.focal_spot.unsqueeze(1)
+    n, n_free, n_off, n_rate = len(sub), len(free_idx), len(moved), len(drifting)
+    n_f = len(fitted)
+    base = params.to(torch.float64).clone()
+    years = np.nan_to_num((sec - reference_s[k]) / _YEAR_S)
+    onehot = np.eye(n_f)[k]                                         # (n, F)
+
+    def unpack(x):
+        shared = base.clone()
+        shared[torch.as_tensor(free_idx)] = torch.as_tensor(x[:n_free])
+        offsets = np.vstack([np.zeros(n_off), x[n_free:n_free + (n_f - 1) * n_off].reshape(-1, n_off)])
+        rates = x[n_free + (n_f - 1) * n_off:].reshape(n_f, n_rate)
+        return shared, offsets, rates
+
+    def rows(x):
+        shared, offsets, rates = unpack(x)
+        return _row_parameters(shared, moved, drifting, offsets, rates, reference_s, span_s, k,
+                               sec)
+
+    sig_shared = prior_sigma(base)[free_idx]
+    prior_mean = base[torch.as_tensor(free_idx)].numpy()
+    scale = np.concatenate([sig_shared, np.full((n_f - 1) * n_off, OFFSET_PRIOR_SIGMA_RAD),
+                            np.full(n_f * n_rate, DRIFT_PRIOR_SIGMA_RAD_PER_YEAR)])
+    scale = scale / np.sqrt(prior_weight)
+    mean = np.concatenate([prior_mean, np.zeros(len(scale) - n_free)])
+    states: dict = {}
+
+    def fun(x):
+        with torch.no_grad():
+            state = forward_state(rows(x), spec, steps)
+            meas = measured_normal(sun, state[2], focal)
+            r = torch.nan_to_num(1000.0 * (state[1] - meas).reshape(-1), nan=1e4).numpy()
+        states.clear()
+        states[x.tobytes()] = state
+        return np.concatenate([r, (x - mean) / scale])
+
+    def jac(x):
+        with torch.no_grad():
+            _, j28 = residual_and_jacobian(rows(x), spec, steps, sun, focal,
+                                           state=states.get(x.tobytes()))
+        j28 = torch.nan_to_num(j28[:, 0], nan=0.0, posinf=0.0, neginf=0.0).numpy()  # (n, 3, 28)
+        blocks = [j28[:, :, free_idx]]
+        if n_f > 1:   # offsets of the regimes after the reference: columns (regime, parameter)
+            blocks.append((onehot[:, None, 1:, None] * j28[:, :, None, moved_idx]).reshape(n, 3, -1))
+        if n_rate:
+            w = onehot * years[:, None]
+            blocks.append((w[:, None, :, None] * j28[:, :, None, drift_idx]).reshape(n, 3, -1))
+        return np.vstack([np.concatenate(blocks, axis=2).reshape(3 * n, -1), np.diag(1.0 / scale)])
+
+    x0 = mean.copy()
+    if start is not None and np.array_equal(start.fitted, fitted):
+        x0[:n_free] = start.base[torch.as_tensor(free_idx)].numpy()
+        x0[n_free:n_free + (n_f - 1) * n_off] = start.offsets[1:].reshape(-1)
+    method = "lm" if loss == "linear" else "trf"
+    kwargs = dict(jac=jac, method=method, x_scale=scale, max_nfev=max_nfev, xtol=tolerance,
+                  ftol=tolerance, gtol=tolerance)
+    if method == "trf":
+        kwargs.update(loss=loss, f_scale=f_scale_mrad)
+    res = least_squares(fun, x0, **kwargs)
+    shared, offsets, rates = unpack(res.x)
+    n_train = np.array([int((k == f).sum()) for f in range(n_f)])
+    js = np.asarray(res.jac)[:3 * n] * scale   # the data rows, columns in prior-sigma units
+    ev = np.linalg.eigvalsh(js.T @ js)
+    cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
+    return RegimeFit(model, preset, shared.detach(), moved, drifting, fitted, offsets, rates,
+                     reference_s, span_s, n_train, int(res.njev or res.nfev), float(res.cost),
+                     str(res.message), cond, time.perf_counter() - t0)
+
+
+def table_row_parameters(params: torch.Tensor, table: pd.DataFrame, regimes: pd.DataFrame,
+                         timestamps) -> torch.Tensor:
+    """Per-row parameters (N, 28) of a regime-aware model from the artifacts, as
+    :meth:`RegimeFit.row_parameters` gives them at fit time.
+
+    Parameters
+    ----------
+    params : (28,) the model's latest regime's parameters (coarse_params' ``fitted``); the
+        parameters without offsets are the shared geometry.
+    table : the model's regime_params.parquet rows (one heliostat, one model).
+    regimes : the heliostat's regimes.parquet rows (which regime each time is in).
+    timestamps : (N,) UTC times of the rows; a regime the table does not list takes the latest.
+    """
+    from .regimes import regime_of_rows
+
+    hid = str(table["heliostat_id"].iloc[0])
+    times = pd.Series(np.asarray(timestamps))
+    regime = regime_of_rows(regimes, hid, times)["regime"].to_numpy()
+    latest = int(table.loc[table["latest"].astype(bool), "regime"].max()
+                 if table["latest"].any() else table["regime"].max())
+    seconds = _seconds(times)
+    out = params.to(torch.float64).expand(len(regime), len(PARAMETER_NAMES)).clone()
+    for name, g in table.groupby("parameter", sort=False):
+        g = g.drop_duplicates("regime").set_index("regime")
+        row = g.loc[np.where(np.isin(regime, g.index), regime, latest)]
+        rate = row["drift_rad_per_year"].to_numpy(np.float64)
+        held = np.clip(seconds, _seconds(row["drift_from"]), _seconds(row["drift_to"]))
+        years = np.nan_to_num((held - _seconds(row["drift_reference"])) / _YEAR_S)
+        out[:, PARAMETER_INDEX[name]] = torch.as_tensor(row["value_rad"].to_numpy(np.float64)
+                                                        + rate * years)
+    return out
+
+
+def predict_parameters(params: torch.Tensor, spec: HeliostatSpec,
+                       data: MeasurementBatch) -> pd.DataFrame:
+    """coarse_predictions' metric columns of every row of ``data`` at its own parameters
+    (N, 28)."""
+    with torch.no_grad():
+        normal, position = forward_kinematics(params, spec, data.steps.unsqueeze(1))
+    return metrics_frame(data, normal[:, 0], position[:, 0])
+
+
+def _stamp(seconds: float, drifting) -> pd.Timestamp:
+    """A drift time as a UTC timestamp (whole seconds); missing where nothing drifts."""
+    if drifting is None or not np.isfinite(seconds):
+        return pd.NaT
+    return pd.Timestamp(round(float(seconds)), unit="s", tz="UTC")
+
+
+# ------------------------------------------------------------------------------------------------
+# fit-coarse's candidates of one heliostat
+# ------------------------------------------------------------------------------------------------
+def _mean(values: np.ndarray) -> float:
+    return float(np.mean(values)) if len(values) else float("nan")
+
+
+def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes: pd.DataFrame,
+                      outputs: tuple, *, loss: str, f_scale_mrad: float, margin: float,
+                      max_episode_share: float, models: Sequence[str] = REGIME_MODELS):
+    """The regime-aware candidates of one heliostat beside its plain fit, and the selection.
+
+    Parameters
+    ----------
+    hid, spec, rows : the heliostat, its rows (with ``split`` and ``timestamp``) in the order of
+        ``outputs``' predictions.
+    regimes : regimes.parquet's rows (the detection on the plain fit's residuals).
+    outputs : ``fit-coarse``'s (param rows, predictions, summary) of the heliostat.
+    loss, f_scale_mrad : ``fit-coarse``'s options.
+    margin : relative validation improvement a candidate needs over the plain fit (the sweep's
+        rule); validation rows of detected episodes are left out of both errors. Without
+        validation rows on :data:`MIN_VALIDATION_DAYS` days no candidate is fitted.
+    max_episode_share : episodes' rows are left out of the fits when they hold at most this
+        share of the rows (``fit-coarse``'s rule for its episode refit).
+
+    Returns
+    -------
+    (outputs with the candidates' rows added and the selection moved to the chosen one,
+    regime_params.parquet rows of the candidates)
+    """
+    from .regimes import regime_of_rows
+
+    param_rows, pred, summary = outputs
+    flags = regime_of_rows(regimes, hid, rows["timestamp"])
+    regime = flags["regime"].to_numpy()
+    episode = flags["episode"].to_numpy(bool)
+    if episode.mean() > max_episode_share:
+        episode = np.zeros_like(episode)
+    labels = rows["split"].to_numpy()
+    train, val = (labels == "train") & ~episode, (labels == "validation") & ~episode
+    chosen_rows = [r for r in param_rows if r["selected"]]
+    plain = chosen_rows[0]["preset"]
+    params = torch.tensor([r["fitted"] for r in chosen_rows], dtype=torch.float64)
+    free = np.array([r["free"] for r in chosen_rows], bool)
+    data = MeasurementBatch.from_frame(rows)
+    times = rows["timestamp"]
+    plain_val = _mean(pred.loc[pred["selected"], "error_mrad"].to_numpy()[val])
+    days = pd.to_datetime(rows["timestamp"], utc=True).dt.normalize()[val].nunique()
+    fits, frames = [], []
+    with one_thread(blas=True):   # small problems: threads only add overhead and contention
+        for model in models if days >= MIN_VALIDATION_DAYS else ():
+            fit = fit_regime_model(spec, plain, params, free, data, regime, times, train, model,
+                                   loss=loss, f_scale_mrad=f_scale_mrad,
+                                   start=fits[-1] if fits else None)
+            if fit is None:
+                break   # the same regimes for every model
+            fits.append(fit)
+            frames.append(predict_rows(fit, spec, data, regime, times))
+    vals = [_mean(f["error_mrad"].to_numpy()[val]) for f in frames]
+    best = None
+    for k, v in enumerate(vals):
+        if np.isfinite(v) and np.isfinite(plain_val) and v < (1.0 - margin) * plain_val:
+            if best is None or v < vals[best]:
+                best = k
+    seg = regimes[(regimes["heliostat_id"] == hid) & (regimes["kind"] == "regime")]
+    latest = int(seg.sort_values("start")["regime"].iloc[-1]) if len(seg) else int(regime.max())
+    t_end = pd.to_datetime(times, utc=True).max()
+    new_params, new_preds, out_rows = [], [], []
+    if best is not None:
+        for r in param_rows:
+            r["selected"] = False
+        pred["selected"] = False
+        summary["selected"] = fits[best].name
+    for k, (fit, frame) in enumerate(zip(fits, frames)):
+        err = frame["error_mrad"].to_numpy()
+        errs = {sp: _mean(err[labels == sp]) for sp in ("train", "validation", "test")}
+        summary["presets"][fit.name] = errs
+        latest_params = fit.row_parameters([latest], [t_end])[0]
+        for r in chosen_rows:
+            i = r["parameter_index"]
+            new_params.append({**r, "preset": fit.name, "selected": k == best,
+                               "fitted": float(latest_params[i]), "std_error": float("nan"),
+                               "fit_iterations": fit.iterations, "fit_cost": fit.cost,
+                               "fit_condition_number": fit.condition_number, "fit_status": fit.status,
+                               "n_train": int(fit.n_train.sum()), "train_error_mrad": errs["train"],
+                               "val_error_mrad": errs["validation"],
+                               "test_error_mrad": errs["test"]})
+        new_preds.append(frame.assign(model=fit.name, heliostat_id=hid, split=labels,
+                                      selected=k == best))
+        numbers = sorted(set(seg["regime"].astype(int)) | set(np.unique(regime).tolist()))
+        for number in numbers:
+            s = int(fit.source([number])[0])
+            span = seg[seg["regime"] == number]
+            for c, name in enumerate(fit.moved):
+                d = fit.drifting.index(name) if name in fit.drifting else None
+                out_rows.append({
+                    "heliostat_id": hid, "model": fit.name, "selected": k == best,
+                    "regime": number, "fitted_regime": int(fit.fitted[s]),
+                    "start": span["start"].min() if len(span) else pd.NaT,
+                    "end": span["end"].max() if len(span) else pd.NaT,
+                    "n_train": int(fit.n_train[s]), "parameter": name,
+                    "offset_rad": float(fit.offsets[s, c]),
+                    "value_rad": float(fit.base[PARAMETER_INDEX[name]]) + float(fit.offsets[s, c]),
+                    "drift_rad_per_year": float(fit.rates[s, d]) if d is not None else 0.0,
+                    "drift_reference": _stamp(fit.reference_s[s], d),
+                    "drift_from": _stamp(fit.span_s[s, 0], d), "drift_to": _stamp(fit.span_s[s, 1], d),
+                    "latest": number == latest})
+    summary["regime_candidates"] = {"plain_validation": plain_val, "validation_days": int(days),
+                                    **{f.model: v for f, v in zip(fits, vals)},
+                                    "selected": fits[best].model if best is not None else None}
+    if new_preds:
+        pred = pd.concat([pred, *new_preds], ignore_index=True)
+    return (param_rows + new_params, pred, summary), out_rows
