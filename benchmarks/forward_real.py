@@ -24,16 +24,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "data" / "juelich"
-if not SHARED.is_dir():
-    SHARED = Path("/work/shared/data/juelich")
-
-DATASETS = {
-    "juelich-csv": ([SHARED / "csv" / "juelich_calibration_log.csv"], SHARED / "paint"),
-    "juelich-paint": ([SHARED / "paint"], None),
-    "sample_data": ([ROOT / "sample_data" / "juelich" / "paint"], None),
-}
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from regimes_real import DATASETS, ROOT  # noqa: E402  (the same real datasets, named once)
 
 
 def run_dataset(work: Path, sources, properties, workers: int) -> tuple[pd.DataFrame, float]:

@@ -435,9 +435,10 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "heliostats": list(heliostats) if heliostats else None}
     params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
-    # forward in time: the selected preset fitted again on the time split's training rows
+    # forward in time: the selected preset fitted again on the time split's training rows (a
+    # regime-aware selection: its base preset; the time split's regimes are not refitted)
     time_fits = fit_coarse_time_split(
-        helio, rows_of, {h: by_id[h][2]["selected"] for h in ids}, solver=solver,
+        helio, rows_of, {h: base_preset(by_id[h][2]["selected"]) for h in ids}, solver=solver,
         batch_size=batch_size, options=kwargs, workers=workers, scheduler=scheduler,
         dask_address=dask_address)
     params, preds = attach_coarse_time(params, preds, time_fits, rows_of)
