@@ -27,6 +27,7 @@ restored afterwards, so the caller's environment is unchanged by the call.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import pickle
 import select
@@ -277,6 +278,7 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
                 # an interrupted or failed call leaves nothing queued or running on the cluster
                 interrupted = True
                 if cluster is not None:
+                    _silence_distributed_logs()
                     _kill_local_workers(cluster)
                 else:
                     with contextlib.suppress(Exception):
@@ -302,6 +304,17 @@ def _kill_child_processes() -> None:
     for p in mp.active_children():
         with contextlib.suppress(Exception):
             p.kill()
+
+
+def _silence_distributed_logs() -> None:
+    """Mute Dask distributed's own loggers for the rest of this process. Called when we stop our
+    own LocalCluster on purpose: its comms then report the connections we cut (``CommClosedError``
+    tracebacks from background threads, at INFO or ERROR level), which are expected and would
+    bury the one line the CLI prints about the interruption."""
+    names = [n for n in logging.root.manager.loggerDict
+             if n.split(".")[0] in ("distributed", "tornado")]
+    for name in ["distributed", "tornado", *names]:
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
 
 def _kill_local_workers(cluster) -> None:
