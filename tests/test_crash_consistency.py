@@ -5,9 +5,9 @@ How (no timing involved): a *zygote* child process imports heliocal once; for ea
 and the fork replaces ``heliocal.pipeline.artifacts.transaction._write_point`` (called after every write of a
 transaction) by a counter that SIGKILLs the process at the N-th write point. A complete run first
 lists the stage's write points; then the stage is run once per write point on a fresh copy of the
-work directory and killed there. After each kill the test reads the stage's outputs the way every
-reader does (``read_artifact``, ``load_model``, ``aim_steps``, ``check_fresh``, ``heliocal info``'s
-``describe_workdir``) and compares the *content* it gets (table fingerprints, model tensors,
+work directory and killed there (two such runs at a time, one per core). After each kill the test
+reads the stage's outputs the way every reader does (``read_artifact``, ``load_model``,
+``aim_steps``, ``check_fresh``, ``heliocal info``'s ``describe_workdir``) and compares the *content* it gets (table fingerprints, model tensors,
 report bytes) with the previous run (before the kill point of the manifest rename) and with an
 uninterrupted new run (from it on). Then it completes the interrupted commit the way the next run
 does (``transaction.recover``) and checks that nothing changes for the readers and nothing is
@@ -23,12 +23,14 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import queue
 import re
 import shutil
 import signal
 import subprocess
 import sys
 import textwrap
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pyarrow as pa
@@ -278,6 +280,37 @@ def zygote(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def zygotes(zygote, tmp_path_factory):
+    """Two zygotes: the killed runs of one case are independent, so they run two at a time (one
+    per core; each run is single-threaded: one worker, no thread pool at the kill points)."""
+    z = Zygote(tmp_path_factory.mktemp("zygote2"))
+    yield [zygote, z]
+    z.close()
+
+
+def _killed_runs(zygotes: list, template: Path, tmp_path: Path, argv: list[str], kill_points):
+    """For each write point number n of ``kill_points`` (in order, lazily): (n, work directory,
+    exit status, write points reached) of ``argv`` run on a fresh copy of ``template`` and
+    SIGKILLed at write point n; the runs go to the zygotes two at a time."""
+    idle: queue.Queue = queue.Queue()
+    for z in zygotes:
+        idle.put(z)
+
+    def killed(n: int):
+        workdir = tmp_path / f"kill-{n}"
+        shutil.copytree(template, workdir)
+        z = idle.get()
+        try:
+            status, reached = z.run(argv, workdir, kill_at=n)
+        finally:
+            idle.put(z)
+        return n, workdir, status, reached
+
+    with ThreadPoolExecutor(len(zygotes)) as pool:
+        yield from pool.map(killed, kill_points)
+
+
+@pytest.fixture(scope="module")
 def base(zygote, tmp_path_factory) -> Path:
     """The previous run of every stage (OLD), in one work directory."""
     workdir = tmp_path_factory.mktemp("crash") / "base"
@@ -297,8 +330,8 @@ def _differences(a: dict, b: dict) -> list[str]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, stage, prepare, argv", CASES, ids=[c[0] for c in CASES])
-def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, argv, zygote, base,
-                                                         tmp_path):
+def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, argv, zygote,
+                                                         zygotes, base, tmp_path):
     from heliocal.pipeline.artifacts.manifests import all_manifests, load_manifest
     from heliocal.pipeline.artifacts.transaction import recover, stale_staging_folders
 
@@ -327,10 +360,8 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
     commit_at = events.index("commit") + 1  # the write point number of the manifest's rename
     assert events.count("commit") == 1 and events[-1] == "cleanup"
 
-    for n, (event, path) in enumerate(points, start=1):
-        workdir = tmp_path / f"kill-{n}"
-        shutil.copytree(template, workdir)
-        status, reached = zygote.run(argv, workdir, kill_at=n)
+    runs = _killed_runs(zygotes, template, tmp_path, argv, range(1, len(points) + 1))
+    for (event, path), (n, workdir, status, reached) in zip(points, runs):
         assert status["signal"] == signal.SIGKILL, (n, status)
         assert reached == points[:n]  # the same write points, up to the kill
         expected = "new" if n >= commit_at else "old"
@@ -361,18 +392,16 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
 # ------------------------------------------------------------------------------------------------
 # the moments issue 22 names (cases 1-3), each checked with what the issue saw going wrong
 # ------------------------------------------------------------------------------------------------
-def _killed_copies(zygote, base: Path, tmp_path: Path, argv: list[str], moments) -> dict:
+def _killed_copies(zygotes, base: Path, tmp_path: Path, argv: list[str], moments) -> dict:
     """Work directories where ``argv`` was killed right after each (event, path) of ``moments``."""
     complete = tmp_path / "complete"
     shutil.copytree(base, complete)
-    status, points = zygote.run(argv, complete)
+    status, points = zygotes[0].run(argv, complete)
     assert status["code"] == 0, status["log"]
+    numbers = [points.index(moment) + 1 for moment in moments]
     out = {}
-    for moment in moments:
-        n = points.index(moment) + 1
-        workdir = tmp_path / f"{moment[0]}-{n}"
-        shutil.copytree(base, workdir)
-        status, _ = zygote.run(argv, workdir, kill_at=n)
+    for moment, (n, workdir, status, _) in zip(moments, _killed_runs(zygotes, base, tmp_path,
+                                                                      argv, numbers)):
         assert status["signal"] == signal.SIGKILL
         out[moment] = workdir
     return out
@@ -386,7 +415,7 @@ def _committed_provenance(workdir: Path, stage: str, rel: str) -> dict:
 
 
 @pytest.mark.slow
-def test_case_1_fit_coarse_killed_between_its_writes(zygote, base, tmp_path):
+def test_case_1_fit_coarse_killed_between_its_writes(zygotes, base, tmp_path):
     """Issue case 1: coarse_params of the new run beside coarse_predictions of the old, both
     'fresh', the report selecting another preset than aim. Now one run or the other."""
     from heliocal.cli.info import describe_workdir
@@ -398,7 +427,7 @@ def test_case_1_fit_coarse_killed_between_its_writes(zygote, base, tmp_path):
     argv = ["fit-coarse", "--preset", "stone-8", "--workers", "1"]
     moments = [("staged", ".txn-fit-coarse-<run>/coarse_params.parquet"),  # between the writes
                ("apply", "coarse_params.parquet")]  # between the renames
-    for moment, wd in _killed_copies(zygote, base, tmp_path, argv, moments).items():
+    for moment, wd in _killed_copies(zygotes, base, tmp_path, argv, moments).items():
         run = load_manifest(wd, "fit-coarse").run_id
         provs = [_committed_provenance(wd, "fit-coarse", f) for f in
                  ("coarse_params.parquet", "coarse_predictions.parquet")]
@@ -415,7 +444,7 @@ def test_case_1_fit_coarse_killed_between_its_writes(zygote, base, tmp_path):
 
 
 @pytest.mark.slow
-def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygote, base, tmp_path):
+def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygotes, base, tmp_path):
     """Issue case 2: new weights with the old config (aim: 'mat1 and mat2 shapes cannot be
     multiplied'), and models of one run beside predictions of another. Now one run or the other,
     and aim works at every moment."""
@@ -426,7 +455,7 @@ def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygote, ba
     moments = [("staged", ".txn-fit-hybrid-<run>/hybrid/hybrid/BE36.pt"),  # .pt, not yet .json
                ("apply", "hybrid/hybrid/BE36.pt"),  # weights and config in place, predictions not
                ("apply", "hybrid/hybrid/BE36.json")]
-    for moment, wd in _killed_copies(zygote, base, tmp_path, argv, moments).items():
+    for moment, wd in _killed_copies(zygotes, base, tmp_path, argv, moments).items():
         cfg, layers = load_model(wd, "hybrid", "BE36")
         pred = _committed_provenance(wd, "fit-hybrid", "hybrid_predictions.parquet")
         assert cfg["seed"] == pred["seed"] == (0 if moment[0] == "staged" else 1)
@@ -437,14 +466,14 @@ def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygote, ba
 
 
 @pytest.mark.slow
-def test_case_3_sweep_killed_between_sweep_and_selection(zygote, base, tmp_path):
+def test_case_3_sweep_killed_between_sweep_and_selection(zygotes, base, tmp_path):
     """Issue case 3: sweep.parquet and selection.parquet from different runs. Now one run."""
     argv = ["sweep", "--n-train", "100", "--wd-max", "1", "--wd-min", "0.1", "--ensemble", "1",
             "--baselines", "none", "--no-octaves", "--max-epochs", "20", "--seeds", "1",
             "--workers", "1"]
     moments = [("staged", ".txn-sweep-<run>/sweep.parquet"), ("apply", "sweep.parquet"),
                ("apply", "selection.parquet")]
-    for moment, wd in _killed_copies(zygote, base, tmp_path, argv, moments).items():
+    for moment, wd in _killed_copies(zygotes, base, tmp_path, argv, moments).items():
         opts = [_committed_provenance(wd, "sweep", f)["options"]["n_train"]
                 for f in ("sweep.parquet", "selection.parquet", "selected_predictions.parquet")]
         assert opts == [[60] if moment[0] == "staged" else [100]] * 3
