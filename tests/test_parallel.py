@@ -17,7 +17,7 @@ from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
 from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.stages.ingest import run_ingest
-from heliocal.pipeline.runtime.parallel import map_tasks
+from heliocal.pipeline.runtime.parallel import map_tasks, shared_pool
 from heliocal.pipeline.stages.split import run_split
 
 #: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
@@ -74,6 +74,42 @@ def test_a_failing_task_stops_the_pool_and_raises():
     # the pool's workers were terminated and joined, not left behind
     assert not [p for p in multiprocessing.active_children() if "Process" in type(p).__name__
                 and p.is_alive()]
+
+
+def _pid(_):
+    import os
+
+    return os.getpid()
+
+
+def _live_workers() -> list:
+    import multiprocessing
+
+    return [p for p in multiprocessing.active_children() if "Process" in type(p).__name__
+            and p.is_alive()]
+
+
+def test_calls_in_a_shared_pool_block_reuse_its_workers_and_the_block_stops_them(monkeypatch):
+    """Inside shared_pool() every local call runs on the same two worker processes (started
+    once, with the one-thread environment), and none is left when the block ends, normally or
+    by an exception; outside, each call has its own pool."""
+    import os
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    with shared_pool():
+        first = set(map_tasks(_pid, list(range(16)), workers=2))
+        views = map_tasks(_worker_view, list(range(4)), workers=2)
+        second = set(map_tasks(_pid, list(range(16)), workers=2))
+        assert "OMP_NUM_THREADS" not in os.environ
+    assert len(first) == 2 and second == first and os.getpid() not in first
+    assert all(env["OMP_NUM_THREADS"] == "1" for env, _ in views)
+    assert _live_workers() == []
+    with pytest.raises(ValueError, match="task 3 failed"):
+        with shared_pool():
+            map_tasks(_pid, list(range(4)), workers=2)
+            map_tasks(_fail_on_3, list(range(8)), workers=2)
+    assert _live_workers() == []
+    assert set(map_tasks(_pid, list(range(16)), workers=2)).isdisjoint(first)
 
 
 @pytest.fixture(scope="module")

@@ -181,6 +181,63 @@ def predict_rows(fit: RegimeFit, spec: HeliostatSpec, data: MeasurementBatch, re
     return predict_parameters(fit.row_parameters(regime, times), spec, data)
 
 
+@dataclass
+class RegimeLayout:
+    """One heliostat's candidate problem (:func:`regime_layout`): which regimes get offsets,
+    which parameters move, and per fitted row (training rows of those regimes, ``use``) its
+    index ``k`` into ``fitted``, its time and its years from its regime's reference time."""
+
+    fitted: np.ndarray        # (F,) regime numbers with their own offsets
+    moved: tuple[str, ...]
+    drifting: tuple[str, ...]
+    free_idx: np.ndarray      # (P,) the shared geometry's free parameters
+    use: np.ndarray           # (N,) bool: the rows fitted
+    k: np.ndarray             # (n,) index into fitted of each fitted row
+    seconds: np.ndarray       # (n,) [s since 1970, UTC]
+    reference_s: np.ndarray   # (F,)
+    span_s: np.ndarray        # (F, 2)
+    years: np.ndarray         # (n,) from the row's regime's reference time
+    n_train: np.ndarray       # (F,)
+
+
+def regime_layout(spec: HeliostatSpec, free, regime, times, train,
+                  model: str) -> RegimeLayout | None:
+    """The layout of a candidate (arguments as :func:`fit_regime_model`); None when fewer than
+    two regimes have :data:`MIN_REGIME_ROWS` training rows."""
+    regime = np.asarray(regime, np.int64)
+    train = np.asarray(train, bool)
+    numbers, counts = np.unique(regime[train], return_counts=True)
+    fitted = numbers[counts >= MIN_REGIME_ROWS]
+    if len(fitted) < 2:
+        return None
+    use = train & np.isin(regime, fitted)
+    k = np.maximum(np.searchsorted(fitted, regime, side="right") - 1, 0)[use]
+    sec = _seconds(times)[use]
+    n_f = len(fitted)
+    reference_s = np.array([np.nanmean(sec[k == f]) if np.isfinite(sec[k == f]).any() else 0.0
+                            for f in range(n_f)])
+    span_s = np.array([[np.nanmin(sec[k == f]), np.nanmax(sec[k == f])]
+                       if np.isfinite(sec[k == f]).any() else [0.0, 0.0] for f in range(n_f)])
+    return RegimeLayout(fitted, tuple(change_parameters(spec.kinematic_type)),
+                        DRIFT_PARAMETERS if model == "drift" else (),
+                        np.flatnonzero(np.asarray(free, bool)), use, k, sec, reference_s, span_s,
+                        np.nan_to_num((sec - reference_s[k]) / _YEAR_S),
+                        np.array([int((k == f).sum()) for f in range(n_f)]))
+
+
+def prior_rows(base: torch.Tensor, free_idx, n_f: int, n_off: int, n_rate: int,
+               prior_weight: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, sigma) of the priors of a candidate's variables: the shared free parameters (at
+    the plain fit, :func:`~heliocal.pipeline.models.coarse.prior_sigma`), then ``(n_f - 1) *
+    n_off`` offsets and ``n_f * n_rate`` rates (at 0; module docstring)."""
+    sigma = np.concatenate([prior_sigma(base)[free_idx],
+                            np.full((n_f - 1) * n_off, OFFSET_PRIOR_SIGMA_RAD),
+                            np.full(n_f * n_rate, DRIFT_PRIOR_SIGMA_RAD_PER_YEAR)])
+    mean = np.concatenate([base[torch.as_tensor(free_idx)].numpy(),
+                           np.zeros(len(sigma) - len(free_idx))])
+    return mean, sigma / np.sqrt(prior_weight)
+
+
 def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, free,
                      data: MeasurementBatch, regime: Sequence[int], times, train, model: str, *,
                      loss: str = "soft_l1", f_scale_mrad: float = 1.0, max_nfev: int = 100,
@@ -213,34 +270,18 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
     """
     check_choice(model, "model", "fit_regime_model", REGIME_MODELS)
     t0 = time.perf_counter()
-    regime = np.asarray(regime, np.int64)
-    train = np.asarray(train, bool)
-    seconds = _seconds(times)
-    numbers, counts = np.unique(regime[train], return_counts=True)
-    fitted = numbers[counts >= MIN_REGIME_ROWS]
-    if len(fitted) < 2:
+    lay = regime_layout(spec, free, regime, times, train, model)
+    if lay is None:
         return None
-    moved = tuple(change_parameters(spec.kinematic_type))
-    drifting = DRIFT_PARAMETERS if model == "drift" else ()
-    free = np.asarray(free, bool)
-    free_idx = np.flatnonzero(free)
+    fitted, moved, drifting, free_idx = lay.fitted, lay.moved, lay.drifting, lay.free_idx
     moved_idx = [PARAMETER_INDEX[n] for n in moved]
     drift_idx = [PARAMETER_INDEX[n] for n in drifting]
-    use = train & np.isin(regime, fitted)
-    k_all = np.maximum(np.searchsorted(fitted, regime, side="right") - 1, 0)
-    k = k_all[use]
-    sec = seconds[use]
-    reference_s = np.array([np.nanmean(sec[k == f]) if np.isfinite(sec[k == f]).any() else 0.0
-                            for f in range(len(fitted))])
-    span_s = np.array([[np.nanmin(sec[k == f]), np.nanmax(sec[k == f])]
-                       if np.isfinite(sec[k == f]).any() else [0.0, 0.0]
-                       for f in range(len(fitted))])
-    sub = data.subset(use)
+    k, sec, reference_s, span_s, years = lay.k, lay.seconds, lay.reference_s, lay.span_s, lay.years
+    sub = data.subset(lay.use)
     steps, sun, focal = sub.steps.unsqueeze(1), sub.sun.unsqueeze(1), sub.focal_spot.unsqueeze(1)
     n, n_free, n_off, n_rate = len(sub), len(free_idx), len(moved), len(drifting)
     n_f = len(fitted)
     base = params.to(torch.float64).clone()
-    years = np.nan_to_num((sec - reference_s[k]) / _YEAR_S)
     onehot = np.eye(n_f)[k]                                         # (n, F)
 
     def unpack(x):
@@ -255,12 +296,7 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
         return _row_parameters(shared, moved, drifting, offsets, rates, reference_s, span_s, k,
                                sec)
 
-    sig_shared = prior_sigma(base)[free_idx]
-    prior_mean = base[torch.as_tensor(free_idx)].numpy()
-    scale = np.concatenate([sig_shared, np.full((n_f - 1) * n_off, OFFSET_PRIOR_SIGMA_RAD),
-                            np.full(n_f * n_rate, DRIFT_PRIOR_SIGMA_RAD_PER_YEAR)])
-    scale = scale / np.sqrt(prior_weight)
-    mean = np.concatenate([prior_mean, np.zeros(len(scale) - n_free)])
+    mean, scale = prior_rows(base, free_idx, n_f, n_off, n_rate, prior_weight)
     states: dict = {}
 
     def fun(x):
@@ -296,7 +332,7 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
         kwargs.update(loss=loss, f_scale=f_scale_mrad)
     res = least_squares(fun, x0, **kwargs)
     shared, offsets, rates = unpack(res.x)
-    n_train = np.array([int((k == f).sum()) for f in range(n_f)])
+    n_train = lay.n_train
     js = np.asarray(res.jac)[:3 * n] * scale   # the data rows, columns in prior-sigma units
     ev = np.linalg.eigvalsh(js.T @ js)
     cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
@@ -361,9 +397,56 @@ def _mean(values: np.ndarray) -> float:
     return float(np.mean(values)) if len(values) else float("nan")
 
 
+@dataclass
+class CandidateSetup:
+    """What the candidates of one heliostat are fitted and judged on (:func:`candidate_setup`)."""
+
+    regime: np.ndarray        # (N,) regime number of each row
+    labels: np.ndarray        # (N,) split label
+    train: np.ndarray         # (N,) bool: training rows outside episodes (the fitted rows)
+    val: np.ndarray           # (N,) bool: validation rows outside episodes (the judged rows)
+    times: pd.Series          # (N,) UTC
+    data: MeasurementBatch
+    preset: str               # the plain fit's preset
+    params: torch.Tensor      # (28,) its parameters
+    free: np.ndarray          # (28,) its free mask
+    plain_val: float          # its mean validation error on ``val`` [mrad]
+    days: int                 # distinct UTC days of ``val``
+
+    @property
+    def eligible(self) -> bool:
+        """Enough validation days to judge a candidate (:data:`MIN_VALIDATION_DAYS`)."""
+        return self.days >= MIN_VALIDATION_DAYS
+
+
+def candidate_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs: tuple,
+                    max_episode_share: float) -> CandidateSetup:
+    """The rows, regimes and plain fit of one heliostat's candidates (arguments as
+    :func:`regime_candidates`)."""
+    from .regimes import regime_of_rows
+
+    param_rows, pred, _ = outputs
+    flags = regime_of_rows(regimes, hid, rows["timestamp"])
+    episode = flags["episode"].to_numpy(bool)
+    if episode.mean() > max_episode_share:
+        episode = np.zeros_like(episode)
+    labels = rows["split"].to_numpy()
+    val = (labels == "validation") & ~episode
+    chosen_rows = [r for r in param_rows if r["selected"]]
+    return CandidateSetup(
+        flags["regime"].to_numpy(), labels, (labels == "train") & ~episode, val,
+        rows["timestamp"], MeasurementBatch.from_frame(rows), chosen_rows[0]["preset"],
+        torch.tensor([r["fitted"] for r in chosen_rows], dtype=torch.float64),
+        np.array([r["free"] for r in chosen_rows], bool),
+        _mean(pred.loc[pred["selected"], "error_mrad"].to_numpy()[val]),
+        int(pd.to_datetime(rows["timestamp"], utc=True).dt.normalize()[val].nunique()))
+
+
 def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes: pd.DataFrame,
                       outputs: tuple, *, loss: str, f_scale_mrad: float, margin: float,
-                      max_episode_share: float, models: Sequence[str] = REGIME_MODELS):
+                      max_episode_share: float, models: Sequence[str] = REGIME_MODELS,
+                      fits: "Sequence[RegimeFit] | None" = None,
+                      setup: CandidateSetup | None = None):
     """The regime-aware candidates of one heliostat beside its plain fit, and the selection.
 
     Parameters
@@ -378,40 +461,31 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
         validation rows on :data:`MIN_VALIDATION_DAYS` days no candidate is fitted.
     max_episode_share : episodes' rows are left out of the fits when they hold at most this
         share of the rows (``fit-coarse``'s rule for its episode refit).
+    fits : the candidates already fitted (``regime_batch.fit_candidates_batched``, one LM
+        program for many heliostats); None fits them here, one scipy solve per model.
+    setup : :func:`candidate_setup` of these arguments, if already made.
 
     Returns
     -------
     (outputs with the candidates' rows added and the selection moved to the chosen one,
     regime_params.parquet rows of the candidates)
     """
-    from .regimes import regime_of_rows
-
     param_rows, pred, summary = outputs
-    flags = regime_of_rows(regimes, hid, rows["timestamp"])
-    regime = flags["regime"].to_numpy()
-    episode = flags["episode"].to_numpy(bool)
-    if episode.mean() > max_episode_share:
-        episode = np.zeros_like(episode)
-    labels = rows["split"].to_numpy()
-    train, val = (labels == "train") & ~episode, (labels == "validation") & ~episode
     chosen_rows = [r for r in param_rows if r["selected"]]
-    plain = chosen_rows[0]["preset"]
-    params = torch.tensor([r["fitted"] for r in chosen_rows], dtype=torch.float64)
-    free = np.array([r["free"] for r in chosen_rows], bool)
-    data = MeasurementBatch.from_frame(rows)
-    times = rows["timestamp"]
-    plain_val = _mean(pred.loc[pred["selected"], "error_mrad"].to_numpy()[val])
-    days = pd.to_datetime(rows["timestamp"], utc=True).dt.normalize()[val].nunique()
-    fits, frames = [], []
-    with one_thread(blas=True):   # small problems: threads only add overhead and contention
-        for model in models if days >= MIN_VALIDATION_DAYS else ():
-            fit = fit_regime_model(spec, plain, params, free, data, regime, times, train, model,
-                                   loss=loss, f_scale_mrad=f_scale_mrad,
-                                   start=fits[-1] if fits else None)
-            if fit is None:
-                break   # the same regimes for every model
-            fits.append(fit)
-            frames.append(predict_rows(fit, spec, data, regime, times))
+    c = setup or candidate_setup(hid, rows, regimes, outputs, max_episode_share)
+    regime, labels, val, times, data = c.regime, c.labels, c.val, c.times, c.data
+    plain_val, days = c.plain_val, c.days
+    if fits is None:
+        fits = []
+        with one_thread(blas=True):   # small problems: threads only add overhead and contention
+            for model in models if c.eligible else ():
+                fit = fit_regime_model(spec, c.preset, c.params, c.free, data, regime, times,
+                                       c.train, model, loss=loss, f_scale_mrad=f_scale_mrad,
+                                       start=fits[-1] if fits else None)
+                if fit is None:
+                    break   # the same regimes for every model
+                fits.append(fit)
+    frames = [predict_rows(fit, spec, data, regime, times) for fit in fits]
     vals = [_mean(f["error_mrad"].to_numpy()[val]) for f in frames]
     best = None
     for k, v in enumerate(vals):

@@ -22,6 +22,11 @@ that waits on the caller's pid (a Linux pidfd, else polling) and exits; workers 
 their cluster's process by themselves (distributed closes them when their parent's pipe closes).
 The one-thread environment variables the workers need are set only while the pool starts and
 restored afterwards, so the caller's environment is unchanged by the call.
+
+A stage that maps several times (``fit-coarse``: the fits, the regime detection, the regime-aware
+candidates, the time split's refit) runs inside :func:`shared_pool`: its local calls then share
+one process pool instead of starting one each (a worker's start, importing torch and heliocal,
+costs about a second of CPU). Leaving the block by an exception stops the pool's workers as above.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ from ..errors import ParameterError, check_choice, check_int
 from .process_state import one_thread
 from ..vocabulary import Scheduler
 
-__all__ = ["default_workers", "map_tasks", "SCHEDULERS"]
+__all__ = ["default_workers", "map_tasks", "shared_pool", "SCHEDULERS"]
 
 SCHEDULERS = Scheduler.values()
 
@@ -189,24 +194,63 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
     return _map_local(func, tasks, workers, progress, chunks_per_worker)
 
 
-def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
+#: The pools of the running :func:`shared_pool` block by worker count (``None``: no block).
+_SHARED_POOLS: dict[int, ProcessPoolExecutor] | None = None
+
+
+@contextlib.contextmanager
+def shared_pool():
+    """Within this block (or a function decorated with it), local :func:`map_tasks` calls with
+    the same worker count reuse one process pool, started by the first and stopped when the
+    block ends (module docstring); an inner block joins the outer one."""
+    global _SHARED_POOLS
+    if _SHARED_POOLS is not None:
+        yield
+        return
+    _SHARED_POOLS = {}
+    try:
+        yield
+    except BaseException:
+        for pool in _SHARED_POOLS.values():
+            _stop_pool(pool)
+        raise
+    else:
+        for pool in _SHARED_POOLS.values():
+            pool.shutdown(wait=True)
+    finally:
+        _SHARED_POOLS = None
+
+
+def _new_pool(workers: int) -> ProcessPoolExecutor:
     import multiprocessing as mp
 
-    chunks = _chunks(tasks, workers * chunks_per_worker)
-    results: list = [None] * len(chunks)
-    done = 0
     ctx = mp.get_context("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
     # the one-thread variables reach the forkserver (started with the first pool) and the workers
-    # before numpy loads there; this process's environment is restored when the pool has started
+    # before numpy loads there; this process's environment is restored when the workers started
     with _environment({var: "1" for var in _ONE_THREAD_ENV}):
         pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
                                    initializer=_init_local_worker, initargs=(os.getpid(),))
-        try:
-            pending = {pool.submit(_run_chunk_pickled, func, c): i for i, c in enumerate(chunks)}
+        try:  # the workers start now, while the variables are set
+            for fut in [pool.submit(os.getpid) for _ in range(workers)]:
+                fut.result()
         except BaseException:
             _stop_pool(pool)
             raise
+    return pool
+
+
+def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
+    chunks = _chunks(tasks, workers * chunks_per_worker)
+    results: list = [None] * len(chunks)
+    done = 0
+    shared = _SHARED_POOLS is not None
+    pool = _SHARED_POOLS.get(workers) if shared else None
+    if pool is None:
+        pool = _new_pool(workers)
+        if shared:
+            _SHARED_POOLS[workers] = pool
     try:
+        pending = {pool.submit(_run_chunk_pickled, func, c): i for i, c in enumerate(chunks)}
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
@@ -217,8 +261,11 @@ def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
                     progress(done, len(tasks))
     except BaseException:
         _stop_pool(pool)
+        if shared:
+            _SHARED_POOLS.pop(workers, None)
         raise
-    pool.shutdown(wait=True)
+    if not shared:
+        pool.shutdown(wait=True)
     return [r for chunk in results for r in chunk]
 
 

@@ -29,7 +29,7 @@ from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, Measureme
                              data_degeneracy, fit_presets, predict)
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
                                   nominal_parameters)
-from ..runtime.parallel import map_tasks
+from ..runtime.parallel import map_tasks, shared_pool
 from ..runtime.process_state import restores_process_state
 from .forward import TIME_COLUMN, attach_coarse_time, fit_coarse_time_split, load_time_labels
 
@@ -209,12 +209,22 @@ def coarse_row_parameters(selected: dict, timestamps) -> torch.Tensor:
                                 selected["regimes"], timestamps)
 
 
+def _detect_task(task) -> pd.DataFrame:
+    """The detection of a group of heliostats (a picklable task for ``map_tasks``)."""
+    rows, renovations, options = task
+    return detect_field(rows, renovations, **options)
+
+
 def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
-                          heliostats: pd.DataFrame, **options) -> pd.DataFrame:
+                          heliostats: pd.DataFrame, *, workers: int | None = 1,
+                          scheduler: str = "local", dask_address: str | None = None,
+                          **options) -> pd.DataFrame:
     """regimes.parquet's rows: :func:`heliocal.pipeline.models.regimes.detect_field` on the
     selected coarse model's residuals of the training and validation rows (test rows stay
     unseen), with each heliostat's renovation window as a known break; ``options`` go to
-    :func:`~heliocal.pipeline.models.regimes.detect_regimes`."""
+    :func:`~heliocal.pipeline.models.regimes.detect_regimes`. Groups of heliostats are detected
+    in parallel (``workers``, ``scheduler``, ``dask_address`` as ``map_tasks``; each heliostat's
+    detection is its own, so the rows do not depend on them)."""
     pred = predictions[predictions["selected"]
                        & predictions["split"].isin(["train", "validation"])]
     pred = pred[["heliostat_id", "measurement_id", "spot_offset_horizontal_m",
@@ -232,7 +242,17 @@ def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
                              heliostats["renovation_end"]):
             if pd.notna(a) or pd.notna(b):
                 renovations[str(hid)] = (a, b)
-    return detect_field(rows, renovations, **options)
+    groups = [g for _, g in rows.groupby("heliostat_id", sort=True)]
+    n = max(1, min(len(groups), 8 * (workers or 2)))
+    tasks = [(pd.concat(groups[i::n]) if groups[i::n] else rows.iloc[:0], renovations, options)
+             for i in range(n)]
+    parts = map_tasks(_detect_task, tasks, workers=workers, scheduler=scheduler,
+                      dask_address=dask_address)
+    parts = [p for p in parts if len(p)]
+    if not parts:
+        return detect_field(rows.iloc[:0])
+    return (pd.concat(parts, ignore_index=True)
+            .sort_values("heliostat_id", kind="mergesort").reset_index(drop=True))
 
 
 #: Largest share of a heliostat's rows that detected episodes may hold for them to be left out
@@ -321,6 +341,7 @@ def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
 @locks_workdir("fit-coarse")
 @stage_transaction("fit-coarse")
 @restores_process_state
+@shared_pool()
 def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "soft_l1",
                    f_scale_mrad: float = 1.0, robust_start: str = "auto",
                    heliostats: Sequence[str] | None = None, progress=None,
@@ -384,7 +405,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     # the episodes' rows (they pulled the geometry off), the others keep their fit
     regimes = detect_coarse_regimes(
         measurements, pd.concat([by_id[h][1] for h in ids], ignore_index=True),
-        helio.reset_index(drop=True))
+        helio.reset_index(drop=True), workers=workers, scheduler=scheduler,
+        dask_address=dask_address)
     refit = []
     for hid in sorted(set(regimes.loc[regimes["kind"] == "episode", "heliostat_id"])):
         flags = regime_of_rows(regimes, hid, rows_of[hid]["timestamp"])["episode"].to_numpy()
