@@ -429,8 +429,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     # replaces the fit above only if it beats it by the same margin on validation
     with_breaks = sorted(set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]),
                                          "heliostat_id"]) & set(by_id))
-    tasks = [(hid, helio.loc[hid].to_dict(), rows_of[hid],
-              regimes[regimes["heliostat_id"] == hid], by_id[hid],
+    regimes_of = dict(tuple(regimes.groupby("heliostat_id", sort=False))) if with_breaks else {}
+    tasks = [(hid, helio.loc[hid].to_dict(), rows_of[hid], regimes_of[hid], by_id[hid],
               {"loss": loss, "f_scale_mrad": f_scale_mrad,
                "margin": EPISODE_REFIT_MIN_IMPROVEMENT, "max_episode_share": MAX_EPISODE_SHARE})
              for hid in with_breaks]
