@@ -7,10 +7,13 @@ a drift), runs ``ingest`` and ``split-knn`` once, then ``fit-coarse`` alternatel
 detection (the stage as it was before issue 17: the detection patched out, so nothing is
 refitted and no heliostat has a break, so no candidate is fitted), with detection but without
 the candidates, and *with* both, ``--repeats`` times each, and prints the median wall times and their
-ratio from this one run. Usage::
+ratio from this one run. ``--workdir`` takes an ingested and split work directory instead (the
+issue's benchmark: ``benchmarks/field.py``'s field, whose fit-coarse runs ``--preset static-20``
+with 2 workers; its dynamic heliostats drift, so about half of them get candidates). Usage::
 
     flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/regimes_cost.py \
-        [--heliostats 200] [--repeats 3] [--out runs/regimes-cost]
+        [--heliostats 200] [--repeats 3] [--out runs/regimes-cost] \
+        [--workdir runs/field-bench/run-2000-w2 --preset static-20] [--workers 2]
 """
 
 from __future__ import annotations
@@ -33,8 +36,13 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "regimes-cost")
+    ap.add_argument("--workdir", type=Path, default=None,
+                    help="an ingested and split work directory to use instead of simulating")
+    ap.add_argument("--preset", default="auto")
+    ap.add_argument("--workers", type=int, default=1)
     a = ap.parse_args(argv)
 
+    from heliocal.pipeline.artifacts.schemas import HELIOSTATS as HELIOSTATS_SCHEMA
     from heliocal.pipeline.artifacts.schemas import REGIME_PARAMS, REGIMES
     from heliocal.pipeline.artifacts.store import read_artifact
     from heliocal.pipeline.io.staged import IngestOptions
@@ -46,8 +54,8 @@ def main(argv=None) -> int:
     from heliocal.pipeline.stages.simulate import write_field
     from heliocal.pipeline.stages.split import run_split
 
-    work = a.out / "work"
-    if not (work / "split.parquet").exists():
+    work = a.workdir or a.out / "work"
+    if a.workdir is None and not (work / "split.parquet").exists():
         field = simulate_field(a.heliostats, seed=a.seed, measurements=(100, 400),
                                dynamic_fraction=0.5,
                                changes=Changes(step_fraction=0.2, episode_fraction=0.2,
@@ -61,28 +69,35 @@ def main(argv=None) -> int:
                                                   "residual_horizontal_mrad",
                                                   "residual_vertical_mrad"]))
 
-    def plain_only(hid, spec, rows, regimes, outputs, **options):  # no regime-aware candidates
-        return outputs, []
+    real_map = fit_coarse.map_tasks
 
+    def plain_only(func, tasks, **kwargs):  # no regime-aware candidates (patched in this
+        if func is fit_coarse._candidates_task:  # process: the workers do not see a patch)
+            return [(task[4], []) for task in tasks]
+        return real_map(func, tasks, **kwargs)
+
+    fit = {"preset": a.preset, "workers": a.workers}
     times = {"without": [], "detection": [], "with": []}
     for _ in range(a.repeats):
         for mode in times:
             t0 = time.perf_counter()
             if mode == "without":
                 with mock.patch.object(fit_coarse, "detect_coarse_regimes", without):
-                    fit_coarse.run_fit_coarse(work)
+                    fit_coarse.run_fit_coarse(work, **fit)
             elif mode == "detection":
-                with mock.patch.object(fit_coarse, "regime_candidates", plain_only):
-                    fit_coarse.run_fit_coarse(work)
+                with mock.patch.object(fit_coarse, "map_tasks", plain_only):
+                    fit_coarse.run_fit_coarse(work, **fit)
             else:
-                fit_coarse.run_fit_coarse(work)
+                fit_coarse.run_fit_coarse(work, **fit)
             times[mode].append(time.perf_counter() - t0)
     regimes = read_artifact(work, REGIMES)
     candidates = read_artifact(work, REGIME_PARAMS)
     refit = regimes.loc[regimes["kind"] == "episode", "heliostat_id"].nunique()
     before, after = statistics.median(times["without"]), statistics.median(times["with"])
     detect = statistics.median(times["detection"])
-    print(f"fit-coarse on {a.heliostats} heliostats, {a.repeats} runs each (alternating):")
+    n = read_artifact(work, HELIOSTATS_SCHEMA)["heliostat_id"].nunique()
+    print(f"fit-coarse --preset {a.preset} --workers {a.workers} on {n} heliostats ({work}), "
+          f"{a.repeats} runs each (alternating):")
     print(f"  without detection: median {before:.2f} s  ({', '.join(f'{t:.2f}' for t in times['without'])})")
     print(f"  detection, no candidates: median {detect:.2f} s  "
           f"({', '.join(f'{t:.2f}' for t in times['detection'])}); ratio {detect / before:.3f}")
