@@ -29,6 +29,7 @@ uses in-place operations, so all of them work under :mod:`torch.func` (``vmap``,
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -56,7 +57,8 @@ def real_tensor(x, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """
     if isinstance(x, torch.Tensor):
         return x if x.dtype in (torch.float32, torch.float64) else x.to(dtype)
-    return torch.as_tensor(x, dtype=dtype)
+    # through numpy, which also reads pandas objects (a DataFrame's values, a Series)
+    return torch.as_tensor(np.asarray(x, dtype=np.float32 if dtype == torch.float32 else np.float64))
 
 
 _t = real_tensor

@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import functools
 
-import numpy as np
 import torch
+
+from .actuators import real_tensor
 
 __all__ = [
     "reflect",
@@ -34,13 +35,14 @@ __all__ = [
 
 
 def _numpy_friendly(func):
-    """Convert array-likes to float64 tensors; return numpy when no input was a tensor."""
+    """Convert array-likes to tensors (:func:`~heliocal.pipeline.physics.actuators.real_tensor`:
+    float64; a float32 tensor stays float32); return numpy when no input was a tensor."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         any_tensor = any(isinstance(a, torch.Tensor) for a in (*args, *kwargs.values()))
-        args = tuple(_as_tensor(a) for a in args)
-        kwargs = {k: _as_tensor(v) for k, v in kwargs.items()}
+        args = tuple(real_tensor(a) for a in args)
+        kwargs = {k: real_tensor(v) for k, v in kwargs.items()}
         out = func(*args, **kwargs)
         if any_tensor:
             return out
@@ -49,12 +51,6 @@ def _numpy_friendly(func):
         return out.detach().numpy()
 
     return wrapper
-
-
-def _as_tensor(x):
-    if isinstance(x, torch.Tensor):   # float32 tensors stay float32 (see actuators.real_tensor)
-        return x if x.dtype in (torch.float32, torch.float64) else x.to(torch.float64)
-    return torch.as_tensor(np.asarray(x, dtype=np.float64))
 
 
 def _unit(v: torch.Tensor) -> torch.Tensor:
