@@ -4,10 +4,10 @@ regime-aware candidates of heliostats with breaks) adds to ``fit-coarse``.
 Simulates a field (default 200 juelich heliostats, 100 to 400 measurements each over one year,
 half of them dynamic as in benchmarks/field.py, and 20 % with steps, 20 % with episodes, 10 % with
 a drift), runs ``ingest`` and ``split-knn`` once, then ``fit-coarse`` alternately *without*
-detection (the stage as it was before issue 17: the detection patched out, so nothing is
-refitted and no heliostat has a break, so no candidate is fitted), with detection but without
-the candidates, and *with* both, ``--repeats`` times each, and prints the median wall times and their
-ratio from this one run. ``--workdir`` takes an ingested and split work directory instead (the
+detection (``regime_steps="off"``: the stage as it was before issue 17, nothing detected,
+refitted or offered as a candidate), with detection and the episode refit but without the
+candidates (``"detect"``), and *with* both (``"candidates"``, the default), ``--repeats`` times
+each, and prints the median wall times and their ratio from this one run. ``--workdir`` takes an ingested and split work directory instead (the
 issue's benchmark: ``benchmarks/field.py``'s field, whose fit-coarse runs ``--preset static-20``
 with 2 workers; its dynamic heliostats drift, so about half of them get candidates). Usage::
 
@@ -23,9 +23,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from unittest import mock
 
-import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,7 +45,6 @@ def main(argv=None) -> int:
     from heliocal.pipeline.artifacts.store import read_artifact
     from heliocal.pipeline.io.staged import IngestOptions
     from heliocal.pipeline.models.changes import Changes
-    from heliocal.pipeline.models.regimes import detect_field
     from heliocal.pipeline.models.simulator import simulate_field
     from heliocal.pipeline.stages import fit_coarse
     from heliocal.pipeline.stages.ingest import run_ingest
@@ -64,31 +61,13 @@ def main(argv=None) -> int:
         run_ingest([a.out / "field" / "paint"], work, IngestOptions())
         run_split(work, seed=a.seed)
 
-    def without(*args, **kwargs):  # fit-coarse before issue 17: nothing detected, no refit
-        return detect_field(pd.DataFrame(columns=["heliostat_id", "measurement_id", "timestamp",
-                                                  "residual_horizontal_mrad",
-                                                  "residual_vertical_mrad"]))
-
-    real_map = fit_coarse.map_tasks
-
-    def plain_only(func, tasks, **kwargs):  # no regime-aware candidates (patched in this
-        if func is fit_coarse._candidates_task:  # process: the workers do not see a patch)
-            return [(task[4], []) for task in tasks]
-        return real_map(func, tasks, **kwargs)
-
     fit = {"preset": a.preset, "workers": a.workers}
-    times = {"without": [], "detection": [], "with": []}
+    steps = {"without": "off", "detection": "detect", "with": "candidates"}
+    times = {mode: [] for mode in steps}
     for _ in range(a.repeats):
-        for mode in times:
+        for mode, regime_steps in steps.items():
             t0 = time.perf_counter()
-            if mode == "without":
-                with mock.patch.object(fit_coarse, "detect_coarse_regimes", without):
-                    fit_coarse.run_fit_coarse(work, **fit)
-            elif mode == "detection":
-                with mock.patch.object(fit_coarse, "map_tasks", plain_only):
-                    fit_coarse.run_fit_coarse(work, **fit)
-            else:
-                fit_coarse.run_fit_coarse(work, **fit)
+            fit_coarse.run_fit_coarse(work, regime_steps=regime_steps, **fit)
             times[mode].append(time.perf_counter() - t0)
     regimes = read_artifact(work, REGIMES)
     candidates = read_artifact(work, REGIME_PARAMS)

@@ -145,10 +145,6 @@ def workdir(tmp_path_factory):
     The coarse fit is the plain rigid body: fit-coarse's regime-aware candidates are left out
     (the detection cuts the monthly tilt into regimes, and per-regime offsets would follow it;
     these tests are about what the network learns on top of a rigid body)."""
-    from unittest import mock
-
-    from heliocal.pipeline.stages import fit_coarse
-
     wd = tmp_path_factory.mktemp("hybrid")
     rows = synthetic_measurements()
     n = len(rows)
@@ -156,9 +152,7 @@ def workdir(tmp_path_factory):
     write_artifact(rows, wd, MEASUREMENTS, stage="test")
     write_artifact(pd.DataFrame([hrow]), wd, HELIOSTATS, stage="test")
     run_split(wd, n_test=30, n_val=20)
-    plain = lambda hid, spec, rows, regimes, outputs, **kw: (outputs, [])   # noqa: E731
-    with mock.patch.object(fit_coarse, "regime_candidates", plain):
-        run_fit_coarse(wd, preset="static-6", robust_start=False)
+    run_fit_coarse(wd, preset="static-6", robust_start=False, regime_steps="detect")
     summary = run_fit_hybrid(wd, mode="hybrid", weight_decay=0.0, seed=0, config=FAST)
     return wd, summary
 

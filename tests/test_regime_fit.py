@@ -9,7 +9,6 @@ true per-row geometry on the test rows, i.e. what a perfect calibration would sh
 
 from __future__ import annotations
 
-from unittest import mock
 
 import numpy as np
 import pandas as pd
@@ -121,9 +120,8 @@ def stepped(tmp_path_factory):
     run_split(work)
     read = lambda: (read_artifact(work, COARSE_PARAMS),   # noqa: E731
                     read_artifact(work, COARSE_PREDICTIONS))
-    plain_only = lambda hid, spec, rows, regimes, outputs, **kw: (outputs, [])   # noqa: E731
-    with mock.patch.object(fit_coarse, "regime_candidates", plain_only):   # before issue 17.4
-        fit_coarse.run_fit_coarse(work)
+    fit_coarse.run_fit_coarse(work, regime_steps="detect")   # before issue 17.4: no candidates
+    assert len(read_artifact(work, REGIME_PARAMS)) == 0
     before = read()
     summary = fit_coarse.run_fit_coarse(work)
     return {"field": field, "work": work, "before": before, "after": read(), "summary": summary,

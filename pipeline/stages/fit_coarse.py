@@ -24,6 +24,7 @@ from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import FitError, check_choice, check_float, check_int
 from ..models.regime_fit import base_preset, regime_candidates, table_row_parameters
+from ..models.regimes import COMPONENTS as REGIME_COMPONENTS
 from ..models.regimes import detect_field, regime_of_rows, residual_components_mrad
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
@@ -209,22 +210,13 @@ def coarse_row_parameters(selected: dict, timestamps) -> torch.Tensor:
                                 selected["regimes"], timestamps)
 
 
-def _detect_task(task) -> pd.DataFrame:
-    """The detection of a group of heliostats (a picklable task for ``map_tasks``)."""
-    rows, renovations, options = task
-    return detect_field(rows, renovations, **options)
-
-
 def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
-                          heliostats: pd.DataFrame, *, workers: int | None = 1,
-                          scheduler: str = "local", dask_address: str | None = None,
-                          **options) -> pd.DataFrame:
+                          heliostats: pd.DataFrame, **options) -> pd.DataFrame:
     """regimes.parquet's rows: :func:`heliocal.pipeline.models.regimes.detect_field` on the
     selected coarse model's residuals of the training and validation rows (test rows stay
     unseen), with each heliostat's renovation window as a known break; ``options`` go to
-    :func:`~heliocal.pipeline.models.regimes.detect_regimes`. Groups of heliostats are detected
-    in parallel (``workers``, ``scheduler``, ``dask_address`` as ``map_tasks``; each heliostat's
-    detection is its own, so the rows do not depend on them)."""
+    :func:`~heliocal.pipeline.models.regimes.detect_regimes`. Each heliostat's detection is its
+    own: the stage runs this on each chunk of heliostats in that chunk's task."""
     pred = predictions[predictions["selected"]
                        & predictions["split"].isin(["train", "validation"])]
     pred = pred[["heliostat_id", "measurement_id", "spot_offset_horizontal_m",
@@ -242,17 +234,7 @@ def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
                              heliostats["renovation_end"]):
             if pd.notna(a) or pd.notna(b):
                 renovations[str(hid)] = (a, b)
-    groups = [g for _, g in rows.groupby("heliostat_id", sort=True)]
-    n = max(1, min(len(groups), 8 * (workers or 2)))
-    tasks = [(pd.concat(groups[i::n]) if groups[i::n] else rows.iloc[:0], renovations, options)
-             for i in range(n)]
-    parts = map_tasks(_detect_task, tasks, workers=workers, scheduler=scheduler,
-                      dask_address=dask_address)
-    parts = [p for p in parts if len(p)]
-    if not parts:
-        return detect_field(rows.iloc[:0])
-    return (pd.concat(parts, ignore_index=True)
-            .sort_values("heliostat_id", kind="mergesort").reset_index(drop=True))
+    return detect_field(rows, renovations, **options)
 
 
 #: Largest share of a heliostat's rows that detected episodes may hold for them to be left out
@@ -309,20 +291,86 @@ def coarse_fit_options(workdir: str | Path) -> dict:
     return {k: recorded.get(k, default) for k, default in FIT_OPTIONS.items()}
 
 
-def _fit_task(task) -> list[tuple]:
-    """Fits of one heliostat (scipy) or of one chunk of heliostats (batched): a picklable task
-    for :func:`~heliocal.pipeline.runtime.parallel.map_tasks`; a list of per-heliostat results."""
-    solver, hrows, rows, presets, kwargs = task
+#: What ``fit-coarse`` does about regimes (``run_fit_coarse(regimes=...)``): ``candidates`` (the
+#: default: detection, the refit without episodes, the regime-aware candidates), ``detect``
+#: (detection and the refit only) or ``off`` (the stage before issue 17; for benchmarks).
+REGIME_STEPS = ("candidates", "detect", "off")
+
+
+def _fit_chunk(solver: str, hrows: Sequence[dict], rows: Sequence[pd.DataFrame], presets,
+               kwargs: dict) -> list[tuple]:
+    """Every preset for the heliostats of one chunk (scipy: one by one); per heliostat (param
+    rows, prediction rows, summary)."""
     if solver == "scipy":
-        return [fit_one_heliostat(pd.Series(hrows[0]), rows[0], presets, **kwargs)]
+        return [fit_one_heliostat(pd.Series(h), r, presets, **kwargs) for h, r in zip(hrows, rows)]
     return fit_heliostat_chunk([pd.Series(h) for h in hrows], rows, presets, **kwargs)
 
 
-def _candidates_task(task) -> tuple:
-    """The regime-aware candidates of one heliostat (a picklable task for ``map_tasks``)."""
-    hid, hrow, rows, regimes, outputs, options = task
-    return regime_candidates(hid, HeliostatSpec.from_row(pd.Series(hrow)), rows, regimes,
-                             outputs, **options)
+def _fit_task(task) -> list[tuple]:
+    """One chunk of heliostats (batched: one type; scipy: one heliostat), a picklable task for
+    :func:`~heliocal.pipeline.runtime.parallel.map_tasks`. The presets' fits, then, unless
+    ``regime_steps`` is ``off``, what follows from the regimes of their residuals
+    (:func:`_follow_regimes`), in the task, so that a heliostat's rows and frames go to a worker
+    once. Per heliostat: (outputs, regimes rows, regime_params rows, episode flags or None,
+    refitted, log lines)."""
+    solver, hrows, rows, presets, kwargs, regime_steps = task
+    results = _fit_chunk(solver, hrows, rows, presets, kwargs)
+    if regime_steps == "off":
+        return [(res, None, [], None, False, []) for res in results]
+    return _follow_regimes(solver, hrows, rows, presets, kwargs, results, regime_steps)
+
+
+def _follow_regimes(solver, hrows, rows, presets, kwargs, results, regime_steps) -> list[tuple]:
+    """Regimes of each heliostat of a chunk on its first fit's residuals; heliostats with
+    episodes fitted again without the episodes' rows (kept by the sweep's margin); then the
+    regime-aware candidates of the heliostats with a break (``regime_steps == "candidates"``).
+    Returns :func:`_fit_task`'s per heliostat tuples."""
+    ids = [str(h["heliostat_id"]) for h in hrows]
+    regimes = detect_coarse_regimes(pd.concat(rows, ignore_index=True),
+                                    pd.concat([r[1] for r in results], ignore_index=True),
+                                    pd.DataFrame(list(hrows)))
+    rows, results = list(rows), list(results)
+    flags_of: list = [None] * len(ids)
+    notes: list[list[str]] = [[] for _ in ids]
+    refit = []
+    with_episode = set(regimes.loc[regimes["kind"] == "episode", "heliostat_id"])
+    for k, hid in enumerate(ids):
+        if hid not in with_episode:
+            continue
+        flags = regime_of_rows(regimes, hid, rows[k]["timestamp"])["episode"].to_numpy()
+        # episodes are short exceptions; when they hold a large share of the rows the heliostat
+        # is not "a healthy one with episodes" and its fit stays as it is
+        if flags.any() and flags.mean() <= MAX_EPISODE_SHARE:
+            rows[k] = rows[k].assign(episode=flags)
+            flags_of[k] = flags
+            refit.append(k)
+    if refit:
+        again = _fit_chunk(solver, [hrows[k] for k in refit], [rows[k] for k in refit], presets,
+                           kwargs)
+        for k, res in zip(refit, again):
+            # the refit is a candidate: kept only if it beats the first fit by the sweep's margin
+            # on the validation rows outside the episodes (the rows both fits are meant for)
+            ok = (rows[k]["split"].to_numpy() == "validation") & ~flags_of[k]
+            old, new = (_selected_error(r[1], ok) for r in (results[k], res))
+            if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old:
+                results[k] = res
+            else:
+                notes[k].append(f"{ids[k]}: the fit without its episodes is not 20 % better on "
+                                f"validation ({new:.3f} vs {old:.3f} mrad); the first fit is kept")
+    # regime-aware candidates (per-regime offsets, drift) of heliostats with a break: each
+    # replaces the fit above only if it beats it by the same margin on validation
+    breaks = set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]), "heliostat_id"])
+    of = dict(tuple(regimes.groupby("heliostat_id", sort=False)))
+    out = []
+    for k, hid in enumerate(ids):
+        regime_rows: list = []
+        if regime_steps == "candidates" and hid in breaks:
+            results[k], regime_rows = regime_candidates(
+                hid, HeliostatSpec.from_row(pd.Series(hrows[k])), rows[k], of[hid], results[k],
+                loss=kwargs["loss"], f_scale_mrad=kwargs["f_scale_mrad"],
+                margin=EPISODE_REFIT_MIN_IMPROVEMENT, max_episode_share=MAX_EPISODE_SHARE)
+        out.append((results[k], of.get(hid), regime_rows, flags_of[k], k in refit, notes[k]))
+    return out
 
 
 def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
@@ -347,7 +395,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    heliostats: Sequence[str] | None = None, progress=None,
                    workers: int | None = 1, scheduler: str = "local",
                    dask_address: str | None = None, solver: str = "batched",
-                   batch_size: int = 64) -> dict:
+                   batch_size: int = 64, regime_steps: str = "candidates") -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -363,11 +411,14 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         Levenberg-Marquardt program per chunk and preset, :mod:`heliocal.pipeline.physics.lm`) or
         ``scipy`` (one :func:`scipy.optimize.least_squares` per heliostat, the reference).
     batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
+    regime_steps : one of :data:`REGIME_STEPS` (default ``candidates``; the others measure what
+        the regimes cost, ``benchmarks/regimes_cost.py``).
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
     check_float(f_scale_mrad, "f_scale_mrad", "fit_coarse", 0.0, None, low_inclusive=False)
     check_choice(solver, "solver", "fit_coarse", SOLVERS)
+    check_choice(regime_steps, "regime_steps", "fit_coarse", REGIME_STEPS)
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
     workdir = Path(workdir)
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
@@ -385,61 +436,35 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     rows_of = {hid: groups[hid][groups[hid]["split"] != "excluded"] for hid in ids}
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
 
-    def fit(fit_ids):
-        if solver == "scipy":
-            chunks = [[hid] for hid in fit_ids]
-        else:
-            n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in fit_ids}
-            chunks = _chunks_by_type(helio, fit_ids, n_train, batch_size)
-        tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
-                  presets, kwargs) for chunk in chunks]
-        chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
-                                  dask_address=dask_address,
-                                  progress=(lambda done, total: progress(done, total, None))
-                                  if progress else None)
-        return {h: res for chunk, results in zip(chunks, chunk_results)
-                for h, res in zip(chunk, results)}
-
-    by_id = fit(ids)
-    # regimes on the first fit's residuals; heliostats with episodes are fitted again without
-    # the episodes' rows (they pulled the geometry off), the others keep their fit
-    regimes = detect_coarse_regimes(
-        measurements, pd.concat([by_id[h][1] for h in ids], ignore_index=True),
-        helio.reset_index(drop=True), workers=workers, scheduler=scheduler,
-        dask_address=dask_address)
-    refit = []
-    for hid in sorted(set(regimes.loc[regimes["kind"] == "episode", "heliostat_id"])):
-        flags = regime_of_rows(regimes, hid, rows_of[hid]["timestamp"])["episode"].to_numpy()
-        # episodes are short exceptions; when they hold a large share of the rows the heliostat
-        # is not "a healthy one with episodes" and its fit stays as it is
-        if flags.any() and flags.mean() <= MAX_EPISODE_SHARE:
-            rows_of[hid] = rows_of[hid].assign(episode=flags)
-            refit.append(hid)
-    for hid, res in fit(refit).items() if refit else ():
-        # the refit is a candidate: kept only if it beats the first fit by the sweep's margin on
-        # the validation rows outside the episodes (the rows both fits are meant for)
-        ok = (rows_of[hid]["split"].to_numpy() == "validation") & ~rows_of[hid]["episode"].to_numpy()
-        old, new = (_selected_error(r[1], ok) for r in (by_id[hid], res))
-        if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old:
-            by_id[hid] = res
-        else:
-            log.info("%s: the fit without its episodes is not 20 %% better on validation (%.3f "
-                     "vs %.3f mrad); the first fit is kept", hid, new, old)
-    # regime-aware candidates (per-regime offsets, drift) of heliostats with a break: each
-    # replaces the fit above only if it beats it by the same margin on validation
-    with_breaks = sorted(set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]),
-                                         "heliostat_id"]) & set(by_id))
-    regimes_of = dict(tuple(regimes.groupby("heliostat_id", sort=False))) if with_breaks else {}
-    tasks = [(hid, helio.loc[hid].to_dict(), rows_of[hid], regimes_of[hid], by_id[hid],
-              {"loss": loss, "f_scale_mrad": f_scale_mrad,
-               "margin": EPISODE_REFIT_MIN_IMPROVEMENT, "max_episode_share": MAX_EPISODE_SHARE})
-             for hid in with_breaks]
-    regime_rows = []
-    for hid, (outputs, rows) in zip(with_breaks, map_tasks(
-            _candidates_task, tasks, workers=workers, scheduler=scheduler,
-            dask_address=dask_address)):
-        by_id[hid] = outputs
-        regime_rows += rows
+    if solver == "scipy":
+        chunks = [[hid] for hid in ids]
+    else:
+        n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in ids}
+        chunks = _chunks_by_type(helio, ids, n_train, batch_size)
+    tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
+              presets, kwargs, regime_steps) for chunk in chunks]
+    chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
+                              dask_address=dask_address,
+                              progress=(lambda done, total: progress(done, total, None))
+                              if progress else None)
+    by_id, found, regime_rows, refit = {}, [], [], []
+    for chunk, results in zip(chunks, chunk_results):
+        for hid, (outputs, segments, rows, flags, refitted, notes) in zip(chunk, results):
+            by_id[hid] = outputs
+            if segments is not None:
+                found.append(segments)
+            regime_rows += rows
+            if flags is not None:   # the time split's fit leaves the episodes out too
+                rows_of[hid] = rows_of[hid].assign(episode=flags)
+            if refitted:
+                refit.append(hid)
+            for line in notes:
+                log.info("%s", line)
+    regimes = (pd.concat(found, ignore_index=True)
+               .sort_values("heliostat_id", kind="mergesort").reset_index(drop=True)
+               if found else detect_field(pd.DataFrame(columns=["heliostat_id", "timestamp",
+                                                                "measurement_id",
+                                                                *REGIME_COMPONENTS])))
     regime_params = pd.DataFrame(regime_rows, columns=REGIME_PARAMS.column_names())
     all_params, all_preds, summaries = [], [], []
     for params, preds, summary in (by_id[h] for h in ids):
@@ -455,7 +480,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         all_preds.append(preds)
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
-            "robust_start": robust_start, "solver": solver, "heliostats": list(heliostats) if heliostats else None}
+            "robust_start": robust_start, "solver": solver, "regime_steps": regime_steps,
+            "heliostats": list(heliostats) if heliostats else None}
     params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
     # forward in time: the selected preset fitted again on the time split's training rows (a
     # regime-aware selection: its base preset; the time split's regimes are not refitted)
