@@ -83,8 +83,9 @@ def test_batched_and_scipy_agree_on_the_sample_heliostats(tmp_path, sample):
     key = ["heliostat_id", "preset", "parameter_index"]
     pd.testing.assert_frame_equal(ref[key + ["selected", "free", "determined"]],
                                   new[key + ["selected", "free", "determined"]])
-    # the regime-aware candidates (scipy either way, models/regime_fit.py) start from the two
-    # solvers' plain fits: their errors agree to 1e-2 mrad (solved to a relative 1e-6)
+    # the regime-aware candidates (scipy per heliostat with the scipy solver, the chord
+    # Gauss-Newton of models/regime_batch.py with the batched one) start from the two solvers'
+    # plain fits: their errors agree to 1e-2 mrad
     regime = ref["preset"].str.contains("+", regex=False).to_numpy()
     c = ref[regime].groupby(["heliostat_id", "preset"]).first()
     d = new[regime].groupby(["heliostat_id", "preset"]).first()

@@ -115,7 +115,8 @@ class MeasurementBatch:
 
     @classmethod
     def from_frame(cls, df: pd.DataFrame) -> "MeasurementBatch":
-        t = lambda cols: torch.tensor(df[list(cols)].to_numpy(np.float64), dtype=torch.float64)
+        t = lambda cols: torch.from_numpy(np.column_stack(  # noqa: E731 (not df[cols]: a copy)
+            [df[c].to_numpy(np.float64) for c in cols]))
         return cls(
             measurement_id=df["measurement_id"].astype(str).to_numpy(),
             steps=t(("axis_1_steps", "axis_2_steps")),

@@ -67,6 +67,7 @@ __all__ = [
     "fit_regime_model",
     "predict_rows",
     "predict_parameters",
+    "predict_candidates",
     "table_row_parameters",
 ]
 
@@ -105,9 +106,15 @@ def base_preset(model: str) -> str:
 
 
 def _seconds(times) -> np.ndarray:
-    """UTC times (anything pandas reads) as float seconds since 1970; NaN for missing."""
-    t = pd.to_datetime(pd.Series(np.asarray(times)), utc=True)
-    return (t - pd.Timestamp(0, tz="UTC")).dt.total_seconds().to_numpy(np.float64)
+    """UTC times (anything pandas reads) as float seconds since 1970; NaN for missing (the
+    integer count of the times' unit divided by its count per second, as pandas'
+    ``total_seconds``)."""
+    from .regimes import utc_values
+
+    t = utc_values(times if isinstance(times, (pd.Series, np.ndarray))
+                   else pd.Series(np.asarray(times)))
+    per_second = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}[np.datetime_data(t.dtype)[0]]
+    return np.where(np.isnat(t), np.nan, t.view(np.int64) / per_second)
 
 
 @dataclass
@@ -341,6 +348,41 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
                      str(res.message), cond, time.perf_counter() - t0)
 
 
+def predict_candidates(specs: Sequence[HeliostatSpec], setups: "Sequence[CandidateSetup]",
+                       fits: Sequence[Sequence[RegimeFit]]) -> list[list[pd.DataFrame]]:
+    """coarse_predictions' rows of every row of every heliostat for each of its fits (each row
+    at its own regime's parameters; :func:`predict_rows`), with ``model``, ``heliostat_id``,
+    ``split`` and ``selected`` (False) set, in one forward pass for all: per heliostat a list of
+    frames in the order of its fits. The heliostats share one kinematic and actuator type."""
+    from ..physics.lm import stack_specs, take_spec
+
+    out: list[list[pd.DataFrame]] = [[] for _ in setups]
+    pairs = [(h, f) for h, fs in enumerate(fits) for f in fs]
+    if not pairs:
+        return out
+    sizes = [len(setups[h].data) for h, _ in pairs]
+    params = torch.cat([f.row_parameters(setups[h].regime, setups[h].times) for h, f in pairs])
+    owner = torch.as_tensor(np.repeat(np.arange(len(pairs)), sizes))
+    spec = take_spec(stack_specs([specs[h] for h, _ in pairs]), owner)
+    batches = [setups[h].data for h, _ in pairs]
+    flat = MeasurementBatch(np.concatenate([b.measurement_id for b in batches]),
+                            *(torch.cat([getattr(b, name) for b in batches])
+                              for name in ("steps", "sun", "focal_spot", "target_center",
+                                           "target_normal")))
+    with torch.no_grad():
+        normal, position = forward_kinematics(params, spec, flat.steps.unsqueeze(1))
+    # the label columns of all frames at once (a string column per frame costs more than the
+    # forward pass)
+    frame = metrics_frame(flat, normal[:, 0], position[:, 0]).assign(
+        model=np.repeat([f.name for _, f in pairs], sizes),
+        heliostat_id=np.repeat([setups[h].hid for h, _ in pairs], sizes),
+        split=np.concatenate([setups[h].labels for h, _ in pairs]), selected=False)
+    ends = np.cumsum(sizes)
+    for (h, _), a, b in zip(pairs, ends - sizes, ends):
+        out[h].append(frame.iloc[a:b].reset_index(drop=True))
+    return out
+
+
 def table_row_parameters(params: torch.Tensor, table: pd.DataFrame, regimes: pd.DataFrame,
                          timestamps) -> torch.Tensor:
     """Per-row parameters (N, 28) of a regime-aware model from the artifacts, as
@@ -397,10 +439,16 @@ def _mean(values: np.ndarray) -> float:
     return float(np.mean(values)) if len(values) else float("nan")
 
 
+def _days(times: np.ndarray) -> int:
+    """Distinct UTC days of datetime64 ``times`` (NaT not counted)."""
+    return len(np.unique(times[~np.isnat(times)].astype("datetime64[D]")))
+
+
 @dataclass
 class CandidateSetup:
     """What the candidates of one heliostat are fitted and judged on (:func:`candidate_setup`)."""
 
+    hid: str                  # the heliostat
     regime: np.ndarray        # (N,) regime number of each row
     labels: np.ndarray        # (N,) split label
     train: np.ndarray         # (N,) bool: training rows outside episodes (the fitted rows)
@@ -423,7 +471,7 @@ def candidate_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs
                     max_episode_share: float) -> CandidateSetup:
     """The rows, regimes and plain fit of one heliostat's candidates (arguments as
     :func:`regime_candidates`)."""
-    from .regimes import regime_of_rows
+    from .regimes import regime_of_rows, utc_values
 
     param_rows, pred, _ = outputs
     flags = regime_of_rows(regimes, hid, rows["timestamp"])
@@ -434,19 +482,20 @@ def candidate_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs
     val = (labels == "validation") & ~episode
     chosen_rows = [r for r in param_rows if r["selected"]]
     return CandidateSetup(
-        flags["regime"].to_numpy(), labels, (labels == "train") & ~episode, val,
+        hid, flags["regime"].to_numpy(), labels, (labels == "train") & ~episode, val,
         rows["timestamp"], MeasurementBatch.from_frame(rows), chosen_rows[0]["preset"],
         torch.tensor([r["fitted"] for r in chosen_rows], dtype=torch.float64),
         np.array([r["free"] for r in chosen_rows], bool),
-        _mean(pred.loc[pred["selected"], "error_mrad"].to_numpy()[val]),
-        int(pd.to_datetime(rows["timestamp"], utc=True).dt.normalize()[val].nunique()))
+        _mean(pred["error_mrad"].to_numpy()[pred["selected"].to_numpy(bool)][val]),
+        _days(utc_values(rows["timestamp"])[val]))
 
 
 def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes: pd.DataFrame,
                       outputs: tuple, *, loss: str, f_scale_mrad: float, margin: float,
                       max_episode_share: float, models: Sequence[str] = REGIME_MODELS,
                       fits: "Sequence[RegimeFit] | None" = None,
-                      setup: CandidateSetup | None = None):
+                      setup: CandidateSetup | None = None,
+                      frames: "Sequence[pd.DataFrame] | None" = None):
     """The regime-aware candidates of one heliostat beside its plain fit, and the selection.
 
     Parameters
@@ -461,15 +510,20 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
         validation rows on :data:`MIN_VALIDATION_DAYS` days no candidate is fitted.
     max_episode_share : episodes' rows are left out of the fits when they hold at most this
         share of the rows (``fit-coarse``'s rule for its episode refit).
-    fits : the candidates already fitted (``regime_batch.fit_candidates_batched``, one LM
-        program for many heliostats); None fits them here, one scipy solve per model.
+    fits : the candidates already fitted (:func:`heliocal.pipeline.models.regime_batch.
+        fit_candidates_batched`, one program for many heliostats); None fits them here, one
+        scipy solve per model.
     setup : :func:`candidate_setup` of these arguments, if already made.
+    frames : :func:`predict_candidates` of ``fits``, if already made (for many heliostats at
+        once).
 
     Returns
     -------
     (outputs with the candidates' rows added and the selection moved to the chosen one,
     regime_params.parquet rows of the candidates)
     """
+    from .regimes import utc_values
+
     param_rows, pred, summary = outputs
     chosen_rows = [r for r in param_rows if r["selected"]]
     c = setup or candidate_setup(hid, rows, regimes, outputs, max_episode_share)
@@ -485,16 +539,27 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
                 if fit is None:
                     break   # the same regimes for every model
                 fits.append(fit)
-    frames = [predict_rows(fit, spec, data, regime, times) for fit in fits]
+    if frames is None:
+        frames = predict_candidates([spec], [c], [fits])[0]
     vals = [_mean(f["error_mrad"].to_numpy()[val]) for f in frames]
     best = None
     for k, v in enumerate(vals):
         if np.isfinite(v) and np.isfinite(plain_val) and v < (1.0 - margin) * plain_val:
             if best is None or v < vals[best]:
                 best = k
-    seg = regimes[(regimes["heliostat_id"] == hid) & (regimes["kind"] == "regime")]
-    latest = int(seg.sort_values("start")["regime"].iloc[-1]) if len(seg) else int(regime.max())
-    t_end = pd.to_datetime(times, utc=True).max()
+    seg = regimes[(regimes["heliostat_id"].to_numpy() == hid)
+                  & (regimes["kind"].to_numpy() == "regime")]
+    seg_numbers = seg["regime"].to_numpy(np.int64)
+    latest = (int(seg_numbers[np.argsort(utc_values(seg["start"]), kind="stable")[-1]])
+              if len(seg) else int(regime.max()))
+    stamps = utc_values(times)
+    t_end = stamps[~np.isnat(stamps)].max(keepdims=True)   # the last row's time (datetime64)
+    # each regime's time span (its segments' first start and last end), looked up per row below
+    spans: dict = {}
+    for number, start, end in zip(seg_numbers, seg["start"], seg["end"]):
+        a, b = spans.get(int(number), (start, end))
+        spans[int(number)] = (min(a, start), max(b, end))
+    numbers = sorted(set(spans) | set(np.unique(regime).tolist()))
     new_params, new_preds, out_rows = [], [], []
     if best is not None:
         for r in param_rows:
@@ -505,7 +570,7 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
         err = frame["error_mrad"].to_numpy()
         errs = {sp: _mean(err[labels == sp]) for sp in ("train", "validation", "test")}
         summary["presets"][fit.name] = errs
-        latest_params = fit.row_parameters([latest], [t_end])[0]
+        latest_params = fit.row_parameters([latest], t_end)[0]
         for r in chosen_rows:
             i = r["parameter_index"]
             new_params.append({**r, "preset": fit.name, "selected": k == best,
@@ -515,22 +580,19 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
                                "n_train": int(fit.n_train.sum()), "train_error_mrad": errs["train"],
                                "val_error_mrad": errs["validation"],
                                "test_error_mrad": errs["test"]})
-        new_preds.append(frame.assign(model=fit.name, heliostat_id=hid, split=labels,
-                                      selected=k == best))
-        numbers = sorted(set(seg["regime"].astype(int)) | set(np.unique(regime).tolist()))
+        new_preds.append(frame.assign(selected=True) if k == best else frame)
         for number in numbers:
             s = int(fit.source([number])[0])
-            span = seg[seg["regime"] == number]
-            for c, name in enumerate(fit.moved):
+            start, end = spans.get(number, (pd.NaT, pd.NaT))
+            for j, name in enumerate(fit.moved):
                 d = fit.drifting.index(name) if name in fit.drifting else None
                 out_rows.append({
                     "heliostat_id": hid, "model": fit.name, "selected": k == best,
                     "regime": number, "fitted_regime": int(fit.fitted[s]),
-                    "start": span["start"].min() if len(span) else pd.NaT,
-                    "end": span["end"].max() if len(span) else pd.NaT,
+                    "start": start, "end": end,
                     "n_train": int(fit.n_train[s]), "parameter": name,
-                    "offset_rad": float(fit.offsets[s, c]),
-                    "value_rad": float(fit.base[PARAMETER_INDEX[name]]) + float(fit.offsets[s, c]),
+                    "offset_rad": float(fit.offsets[s, j]),
+                    "value_rad": float(fit.base[PARAMETER_INDEX[name]]) + float(fit.offsets[s, j]),
                     "drift_rad_per_year": float(fit.rates[s, d]) if d is not None else 0.0,
                     "drift_reference": _stamp(fit.reference_s[s], d),
                     "drift_from": _stamp(fit.span_s[s, 0], d), "drift_to": _stamp(fit.span_s[s, 1], d),

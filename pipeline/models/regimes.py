@@ -51,6 +51,7 @@ __all__ = [
     "detect_regimes",
     "regime_of_rows",
     "residual_components_mrad",
+    "utc_values",
     "robust_noise_mrad",
 ]
 
@@ -94,7 +95,13 @@ def robust_noise_mrad(values: np.ndarray, days=None) -> np.ndarray:
 
 
 def _clipped(z: np.ndarray, window: int, clip: float) -> np.ndarray:
-    med = pd.DataFrame(z).rolling(window, center=True, min_periods=1).median().to_numpy()
+    """z clipped to ``clip`` around its centred running median of ``window`` rows (fewer at the
+    ends: the median of the rows there, as pandas' ``rolling(center=True, min_periods=1)``)."""
+    half = window // 2
+    padded = np.full((len(z) + window - 1, z.shape[1]), np.nan)
+    padded[half:half + len(z)] = z
+    windows = np.lib.stride_tricks.sliding_window_view(padded, window, axis=0)
+    med = np.nanmedian(windows, axis=-1)
     return med + np.clip(z - med, -clip, clip)
 
 
@@ -114,8 +121,9 @@ def _pelt(z: np.ndarray, penalty: float, min_size: int) -> list[int]:
     return [int(b) for b in ends[:-1]]
 
 
-def _known_breaks(times: pd.Series, renovation: tuple | None) -> list[int]:
-    """Row indices where a renovation window starts and ends (strictly inside the series)."""
+def _known_breaks(times: np.ndarray, renovation: tuple | None) -> list[int]:
+    """Row indices (of sorted datetime64 ``times``, UTC) where a renovation window starts and
+    ends (strictly inside the series)."""
     if renovation is None:
         return []
     out = set()
@@ -124,7 +132,7 @@ def _known_breaks(times: pd.Series, renovation: tuple | None) -> list[int]:
             continue
         edge = pd.Timestamp(edge)
         edge = edge.tz_convert("UTC").tz_localize(None) if edge.tzinfo else edge
-        k = int(np.searchsorted(times.to_numpy(), edge.to_datetime64()))
+        k = int(np.searchsorted(times, edge.to_datetime64()))
         if 0 < k < len(times):
             out.add(k)
     return sorted(out)
@@ -148,27 +156,40 @@ def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
     -------
     DataFrame with the columns of ``regimes.parquet`` (empty if fewer than 3 usable rows).
     """
-    ok = rows["timestamp"].notna().to_numpy() & np.isfinite(rows[list(COMPONENTS)].to_numpy()).all(1)
-    rows = rows.loc[ok].sort_values(["timestamp", "measurement_id"], kind="mergesort")
-    rows = rows.reset_index(drop=True)
-    if len(rows) < 3:
-        return pd.DataFrame(columns=_columns())
+    return pd.DataFrame(_detect_records(rows, renovation, penalty_factor=penalty_factor,
+                                        min_size=min_size, window=window, clip=clip,
+                                        episode_max_days=episode_max_days,
+                                        outlier_z=outlier_z), columns=_columns())
+
+
+def _detect_records(rows: pd.DataFrame, renovation: tuple | None, *, penalty_factor: float,
+                    min_size: int, window: int, clip: float, episode_max_days: float,
+                    outlier_z: float) -> list[dict]:
+    """:func:`detect_regimes`' rows as records (numpy inside: it runs once per heliostat)."""
+    t_all = utc_values(rows["timestamp"])   # datetime64 in the column's unit
+    x_all = np.column_stack([rows[c].to_numpy(float) for c in COMPONENTS])
+    ok = np.flatnonzero(~np.isnat(t_all) & np.isfinite(x_all).all(1))
+    if len(ok) < 3:
+        return []
+    mid_all = rows["measurement_id"].to_numpy()
+    # time order, ties by measurement id (stable)
+    order = ok[np.lexsort((mid_all[ok].astype(str), t_all[ok]))]
+    times, x, mid = t_all[order], x_all[order], mid_all[order]
+    stamps = pd.DatetimeIndex(times).tz_localize("UTC")
     hid = str(rows["heliostat_id"].iloc[0])
-    x = rows[list(COMPONENTS)].to_numpy(float)
-    noise = robust_noise_mrad(x, _naive(rows["timestamp"]).dt.normalize().to_numpy())
+    noise = robust_noise_mrad(x, times.astype("datetime64[D]"))
     z = _clipped((x - np.median(x, axis=0)) / noise, window, clip)
     penalty = penalty_factor * (x.shape[1] + 1) * math.log(len(x))
-    times = _naive(rows["timestamp"])
     known = _known_breaks(times, renovation)
     bounds = [0, *known, len(x)]
     breaks: dict[int, str] = {k: "renovation" for k in known}
     for a, b in zip(bounds[:-1], bounds[1:]):
         for k in _pelt(z[a:b], penalty, min_size):
             breaks.setdefault(a + k, "detected")
-    stamps = rows["timestamp"]
-    segments = _merge_episodes(stamps, [0, *sorted(breaks)], [*sorted(breaks), len(x)],
+    segments = _merge_episodes(times, [0, *sorted(breaks)], [*sorted(breaks), len(x)],
                                episode_max_days, set(known))
     out, level, level_n, regime, last_kind = [], None, 0, 0, "regime"
+    noise_mrad = float(noise.mean())
     for k, (s, e, episode) in enumerate(segments):
         center = np.median(x[s:e], axis=0)
         # a short segment at the level of the regime before it is the heliostat back to normal
@@ -191,11 +212,11 @@ def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
             step = evidence = float("nan")
         out.append({
             "heliostat_id": hid, "kind": "episode" if episode else "regime", "regime": regime,
-            "start": stamps.iloc[s], "end": stamps.iloc[e - 1],
+            "start": stamps[s], "end": stamps[e - 1],
             "cause": "start" if k == 0 else breaks[s], "n_rows": int(e - s),
             "measurement_id": None,
             "center_horizontal_mrad": float(center[0]), "center_vertical_mrad": float(center[1]),
-            "step_mrad": step, "evidence": float(evidence), "noise_mrad": float(noise.mean())})
+            "step_mrad": step, "evidence": float(evidence), "noise_mrad": noise_mrad})
         if episode:  # an episode's rows are all off: flagged as the episode, not one by one
             continue
         dist = np.sqrt((((x[s:e] - center) / noise) ** 2).sum(axis=1))
@@ -203,26 +224,28 @@ def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
             i = s + int(j)
             out.append({
                 "heliostat_id": hid, "kind": "outlier", "regime": regime,
-                "start": stamps.iloc[i], "end": stamps.iloc[i], "cause": "outlier", "n_rows": 1,
-                "measurement_id": str(rows["measurement_id"].iloc[i]),
+                "start": stamps[i], "end": stamps[i], "cause": "outlier", "n_rows": 1,
+                "measurement_id": str(mid[i]),
                 "center_horizontal_mrad": float(x[i, 0]), "center_vertical_mrad": float(x[i, 1]),
                 "step_mrad": float(np.linalg.norm(x[i] - center)), "evidence": float(dist[j]),
-                "noise_mrad": float(noise.mean())})
-    return pd.DataFrame(out, columns=_columns())
+                "noise_mrad": noise_mrad})
+    return out
 
 
-def _merge_episodes(stamps: pd.Series, starts: list[int], ends: list[int], max_days: float,
+def _merge_episodes(times: np.ndarray, starts: list[int], ends: list[int], max_days: float,
                     known: set[int]) -> list[tuple[int, int, bool]]:
     """(start, end, is_episode) of the segments, consecutive short interior segments (at most
-    ``max_days`` from their first to their last row) merged into one episode: an episode's
-    residuals move with the sun, so PELT may cut it in pieces. A renovation break is kept."""
-    day = pd.Timedelta(days=1)
-    short = [0 < k < len(starts) - 1 and (stamps.iloc[e - 1] - stamps.iloc[s]) / day <= max_days
+    ``max_days`` from their first to their last row, ``times`` datetime64) merged into one
+    episode: an episode's residuals move with the sun, so PELT may cut it in pieces. A
+    renovation break is kept."""
+    day = np.timedelta64(1, "D")
+    days = lambda a, b: (times[b] - times[a]) / day  # noqa: E731
+    short = [0 < k < len(starts) - 1 and days(s, e - 1) <= max_days
              for k, (s, e) in enumerate(zip(starts, ends))]
     out: list[tuple[int, int, bool]] = []
     for s, e, is_short in zip(starts, ends, short):
         if (is_short and out and out[-1][2] and s not in known
-                and (stamps.iloc[e - 1] - stamps.iloc[out[-1][0]]) / day <= max_days):
+                and days(out[-1][0], e - 1) <= max_days):
             out[-1] = (out[-1][0], e, True)
         else:
             out.append((s, e, is_short))
@@ -248,12 +271,10 @@ def detect_field(residuals: pd.DataFrame, renovations: Mapping[str, tuple] | Non
     """:func:`detect_regimes` for every heliostat of ``residuals``; ``renovations`` maps a
     heliostat id to its (start, end) renovation window."""
     renovations = renovations or {}
-    parts = [detect_regimes(g, renovations.get(str(hid)), **options)
-             for hid, g in residuals.groupby("heliostat_id", sort=True)]
-    parts = [p for p in parts if len(p)]
-    if not parts:
-        return pd.DataFrame(columns=_columns())
-    return pd.concat(parts, ignore_index=True)
+    options = {**DEFAULTS, **options}
+    records = [r for hid, g in residuals.groupby("heliostat_id", sort=True)
+               for r in _detect_records(g, renovations.get(str(hid)), **options)]
+    return pd.DataFrame(records, columns=_columns())
 
 
 def _naive(times) -> pd.Series:
@@ -261,19 +282,34 @@ def _naive(times) -> pd.Series:
     return pd.to_datetime(pd.Series(times), utc=True).dt.tz_localize(None)
 
 
+def utc_values(times) -> np.ndarray:
+    """UTC times (anything pandas reads as times; naive ones are taken as UTC) as zone-less
+    datetime64 values, NaT where missing. A zone-aware column is read as it is (its values are
+    UTC already), which is a hundred times faster than converting it."""
+    if isinstance(times, pd.Series) and isinstance(times.dtype, pd.DatetimeTZDtype):
+        return times.array.tz_convert(None).to_numpy()
+    if isinstance(times, np.ndarray) and np.issubdtype(times.dtype, np.datetime64):
+        return times   # zone-less datetime64: UTC by this module's convention
+    return _naive(times).to_numpy()
+
+
 def regime_of_rows(regimes: pd.DataFrame, heliostat_id: str, timestamps: pd.Series) -> pd.DataFrame:
     """Per row (timestamps of one heliostat): ``regime`` (number) and ``episode`` (True inside a
     detected episode's time span) from regimes.parquet's rows of that heliostat. Rows before the
     first segment get regime 0; rows without a timestamp get the latest regime."""
-    seg = regimes[(regimes["heliostat_id"] == heliostat_id) & (regimes["kind"] != "outlier")]
-    seg = seg.sort_values("start", kind="mergesort")
-    t = _naive(timestamps)
+    kinds = regimes["kind"].to_numpy()
+    mine = (regimes["heliostat_id"].to_numpy() == heliostat_id) & (kinds != "outlier")
+    starts = utc_values(regimes["start"])[mine]
+    order = np.argsort(starts, kind="stable")
+    starts, kinds = starts[order], kinds[mine][order]
+    ends = utc_values(regimes["end"])[mine][order]
+    numbers = regimes["regime"].to_numpy(np.int64)[mine][order]
+    t = utc_values(timestamps)
     regime = np.zeros(len(t), dtype=np.int64)
     episode = np.zeros(len(t), dtype=bool)
-    if len(seg):
-        k = np.searchsorted(_naive(seg["start"]).to_numpy(), t.to_numpy(), side="right") - 1
-        k = np.where(t.isna().to_numpy(), len(seg) - 1, np.maximum(k, 0))
-        regime = seg["regime"].to_numpy(np.int64)[k]
-        inside = t.to_numpy() <= _naive(seg["end"]).to_numpy()[k]
-        episode = (seg["kind"].to_numpy()[k] == "episode") & inside
+    if len(starts):
+        k = np.searchsorted(starts, t, side="right") - 1
+        k = np.where(np.isnat(t), len(starts) - 1, np.maximum(k, 0))
+        regime = numbers[k]
+        episode = (kinds[k] == "episode") & (t <= ends[k])
     return pd.DataFrame({"regime": regime, "episode": episode}, index=timestamps.index)

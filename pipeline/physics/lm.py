@@ -48,7 +48,8 @@ from .parameters import HeliostatSpec
 from .metrics import measured_normal
 from ..vocabulary import CoarseLoss
 
-__all__ = ["BatchedProblem", "BatchedSolution", "stack_specs", "solve_batched", "robust_loss",
+__all__ = ["BatchedProblem", "BatchedSolution", "stack_specs", "take_spec", "solve_batched",
+           "robust_loss", "NAN_RESIDUAL_MRAD",
            "LOSSES", "SPEC_TENSORS"]
 
 LOSSES = CoarseLoss.values()
@@ -78,7 +79,9 @@ def stack_specs(specs: list[HeliostatSpec]) -> HeliostatSpec:
     return out
 
 
-def _take_spec(spec: HeliostatSpec, idx: torch.Tensor) -> HeliostatSpec:
+def take_spec(spec: HeliostatSpec, idx: torch.Tensor) -> HeliostatSpec:
+    """The heliostats ``idx`` of a batched spec (:func:`stack_specs`): batch shape ``idx.shape``
+    (an index may repeat, e.g. one entry per measurement row)."""
     out = copy.copy(spec)
     for name in SPEC_TENSORS:
         object.__setattr__(out, name, getattr(spec, name)[idx])
@@ -142,7 +145,7 @@ class BatchedProblem:
         Jacobian at the same point reuses."""
         p = self.base[idx].clone()
         p[:, self.free_idx] = x
-        spec = _take_spec(self.spec, idx)
+        spec = take_spec(self.spec, idx)
         state = forward_state(p, spec, self.steps[idx])
         meas = measured_normal(self.sun[idx], state[2], self.focal_spot[idx])
         r = torch.nan_to_num(1000.0 * (state[1] - meas), nan=NAN_RESIDUAL_MRAD)
@@ -273,7 +276,7 @@ def solve_batched(problem: BatchedProblem, x0: torch.Tensor, *, loss: str = "lin
             cost[acc] = cost_new[accept]
             p, spec, state = point_new
             sub = accept.nonzero().squeeze(-1)
-            jac[acc] = problem.jacobian(acc, (p[sub], _take_spec(spec, sub),
+            jac[acc] = problem.jacobian(acc, (p[sub], take_spec(spec, sub),
                                               tuple(t[sub] for t in state)))
             njev[acc] += 1
         done_f = small_f
