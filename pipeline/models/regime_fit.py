@@ -173,13 +173,14 @@ class RegimeFit:
 
 
 def _row_parameters(base, moved, drifting, offsets, rates, reference_s, span_s, k, seconds):
-    p = base.to(torch.float64).expand(len(k), len(PARAMETER_NAMES)).clone()
-    p[:, [PARAMETER_INDEX[n] for n in moved]] += torch.as_tensor(offsets[k])
+    # numpy: a few small index operations per heliostat, where torch's per-call cost dominated
+    p = np.repeat(base.to(torch.float64).numpy()[None], len(k), axis=0)
+    p[:, [PARAMETER_INDEX[n] for n in moved]] += offsets[k]
     if drifting:
         held = np.clip(seconds, span_s[k, 0], span_s[k, 1])
         years = np.nan_to_num((held - reference_s[k]) / _YEAR_S)
-        p[:, [PARAMETER_INDEX[n] for n in drifting]] += torch.as_tensor(rates[k] * years[:, None])
-    return p
+        p[:, [PARAMETER_INDEX[n] for n in drifting]] += rates[k] * years[:, None]
+    return torch.from_numpy(p)
 
 
 def predict_rows(fit: RegimeFit, spec: HeliostatSpec, data: MeasurementBatch, regime,
@@ -471,18 +472,17 @@ def candidate_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs
                     max_episode_share: float) -> CandidateSetup:
     """The rows, regimes and plain fit of one heliostat's candidates (arguments as
     :func:`regime_candidates`)."""
-    from .regimes import regime_of_rows, utc_values
+    from .regimes import regime_arrays, utc_values
 
     param_rows, pred, _ = outputs
-    flags = regime_of_rows(regimes, hid, rows["timestamp"])
-    episode = flags["episode"].to_numpy(bool)
+    regime, episode = regime_arrays(regimes, hid, rows["timestamp"])
     if episode.mean() > max_episode_share:
         episode = np.zeros_like(episode)
     labels = rows["split"].to_numpy()
     val = (labels == "validation") & ~episode
     chosen_rows = [r for r in param_rows if r["selected"]]
     return CandidateSetup(
-        hid, flags["regime"].to_numpy(), labels, (labels == "train") & ~episode, val,
+        hid, regime, labels, (labels == "train") & ~episode, val,
         rows["timestamp"], MeasurementBatch.from_frame(rows), chosen_rows[0]["preset"],
         torch.tensor([r["fitted"] for r in chosen_rows], dtype=torch.float64),
         np.array([r["free"] for r in chosen_rows], bool),

@@ -48,8 +48,10 @@ __all__ = [
     "COMPONENTS",
     "DEFAULTS",
     "detect_field",
+    "detect_records",
     "detect_regimes",
     "regime_of_rows",
+    "regime_arrays",
     "residual_components_mrad",
     "utc_values",
     "robust_noise_mrad",
@@ -98,10 +100,15 @@ def _clipped(z: np.ndarray, window: int, clip: float) -> np.ndarray:
     """z clipped to ``clip`` around its centred running median of ``window`` rows (fewer at the
     ends: the median of the rows there, as pandas' ``rolling(center=True, min_periods=1)``)."""
     half = window // 2
-    padded = np.full((len(z) + window - 1, z.shape[1]), np.nan)
-    padded[half:half + len(z)] = z
-    windows = np.lib.stride_tricks.sliding_window_view(padded, window, axis=0)
-    med = np.nanmedian(windows, axis=-1)
+    med = np.empty_like(z)
+    if len(z) >= window:   # full windows: a plain median of the stacked views
+        med[half:len(z) - half] = np.median(
+            np.lib.stride_tricks.sliding_window_view(z, window, axis=0), axis=-1)
+        ends = list(range(half)) + list(range(len(z) - half, len(z)))
+    else:
+        ends = range(len(z))
+    for i in ends:   # the first and last rows: the rows of the window that exist
+        med[i] = np.median(z[max(0, i - half):i + half + 1], axis=0)
     return med + np.clip(z - med, -clip, clip)
 
 
@@ -162,21 +169,35 @@ def detect_regimes(rows: pd.DataFrame, renovation: tuple | None = None, *,
                                         outlier_z=outlier_z), columns=_columns())
 
 
-def _detect_records(rows: pd.DataFrame, renovation: tuple | None, *, penalty_factor: float,
-                    min_size: int, window: int, clip: float, episode_max_days: float,
-                    outlier_z: float) -> list[dict]:
-    """:func:`detect_regimes`' rows as records (numpy inside: it runs once per heliostat)."""
-    t_all = utc_values(rows["timestamp"])   # datetime64 in the column's unit
-    x_all = np.column_stack([rows[c].to_numpy(float) for c in COMPONENTS])
+def _detect_records(rows: pd.DataFrame, renovation: tuple | None, **options) -> list[dict]:
+    """:func:`detect_regimes`' rows as records."""
+    return detect_records(str(rows["heliostat_id"].iloc[0]), utc_values(rows["timestamp"]),
+                          rows["measurement_id"].to_numpy(),
+                          np.column_stack([rows[c].to_numpy(float) for c in COMPONENTS]),
+                          renovation, **options)
+
+
+def detect_records(heliostat_id: str, times: np.ndarray, measurement_ids: np.ndarray,
+                   residuals_mrad: np.ndarray, renovation: tuple | None = None, *,
+                   penalty_factor: float = DEFAULTS["penalty_factor"],
+                   min_size: int = DEFAULTS["min_size"], window: int = DEFAULTS["window"],
+                   clip: float = DEFAULTS["clip"],
+                   episode_max_days: float = DEFAULTS["episode_max_days"],
+                   outlier_z: float = DEFAULTS["outlier_z"]) -> list[dict]:
+    """:func:`detect_regimes` on arrays, its rows as records (regimes.parquet's columns but
+    ``error_mrad``): ``times`` (N,) zone-less UTC datetime64 (NaT: ignored), ``measurement_ids``
+    (N,), ``residuals_mrad`` (N, 2) the :data:`COMPONENTS` (non-finite: ignored). What
+    ``fit-coarse`` calls per heliostat (a DataFrame per heliostat costs more than the
+    detection)."""
+    t_all, x_all, mid_all = times, np.asarray(residuals_mrad, float), measurement_ids
     ok = np.flatnonzero(~np.isnat(t_all) & np.isfinite(x_all).all(1))
     if len(ok) < 3:
         return []
-    mid_all = rows["measurement_id"].to_numpy()
     # time order, ties by measurement id (stable)
     order = ok[np.lexsort((mid_all[ok].astype(str), t_all[ok]))]
     times, x, mid = t_all[order], x_all[order], mid_all[order]
-    stamps = pd.DatetimeIndex(times).tz_localize("UTC")
-    hid = str(rows["heliostat_id"].iloc[0])
+    stamp = lambda i: pd.Timestamp(times[i], tz="UTC")  # noqa: E731 (a few per heliostat)
+    hid = str(heliostat_id)
     noise = robust_noise_mrad(x, times.astype("datetime64[D]"))
     z = _clipped((x - np.median(x, axis=0)) / noise, window, clip)
     penalty = penalty_factor * (x.shape[1] + 1) * math.log(len(x))
@@ -212,7 +233,7 @@ def _detect_records(rows: pd.DataFrame, renovation: tuple | None, *, penalty_fac
             step = evidence = float("nan")
         out.append({
             "heliostat_id": hid, "kind": "episode" if episode else "regime", "regime": regime,
-            "start": stamps[s], "end": stamps[e - 1],
+            "start": stamp(s), "end": stamp(e - 1),
             "cause": "start" if k == 0 else breaks[s], "n_rows": int(e - s),
             "measurement_id": None,
             "center_horizontal_mrad": float(center[0]), "center_vertical_mrad": float(center[1]),
@@ -224,7 +245,7 @@ def _detect_records(rows: pd.DataFrame, renovation: tuple | None, *, penalty_fac
             i = s + int(j)
             out.append({
                 "heliostat_id": hid, "kind": "outlier", "regime": regime,
-                "start": stamps[i], "end": stamps[i], "cause": "outlier", "n_rows": 1,
+                "start": stamp(i), "end": stamp(i), "cause": "outlier", "n_rows": 1,
                 "measurement_id": str(mid[i]),
                 "center_horizontal_mrad": float(x[i, 0]), "center_vertical_mrad": float(x[i, 1]),
                 "step_mrad": float(np.linalg.norm(x[i] - center)), "evidence": float(dist[j]),
@@ -297,6 +318,13 @@ def regime_of_rows(regimes: pd.DataFrame, heliostat_id: str, timestamps: pd.Seri
     """Per row (timestamps of one heliostat): ``regime`` (number) and ``episode`` (True inside a
     detected episode's time span) from regimes.parquet's rows of that heliostat. Rows before the
     first segment get regime 0; rows without a timestamp get the latest regime."""
+    regime, episode = regime_arrays(regimes, heliostat_id, timestamps)
+    return pd.DataFrame({"regime": regime, "episode": episode}, index=timestamps.index)
+
+
+def regime_arrays(regimes: pd.DataFrame, heliostat_id: str,
+                  timestamps) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`regime_of_rows` as two arrays (regime int64, episode bool), without the frame."""
     kinds = regimes["kind"].to_numpy()
     mine = (regimes["heliostat_id"].to_numpy() == heliostat_id) & (kinds != "outlier")
     starts = utc_values(regimes["start"])[mine]
@@ -312,4 +340,4 @@ def regime_of_rows(regimes: pd.DataFrame, heliostat_id: str, timestamps: pd.Seri
         k = np.where(np.isnat(t), len(starts) - 1, np.maximum(k, 0))
         regime = numbers[k]
         episode = (kinds[k] == "episode") & (t <= ends[k])
-    return pd.DataFrame({"regime": regime, "episode": episode}, index=timestamps.index)
+    return regime, episode

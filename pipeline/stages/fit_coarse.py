@@ -27,8 +27,8 @@ from ..models.regime_batch import fit_candidates_batched
 from ..models.regime_fit import (base_preset, candidate_setup, predict_candidates,
                                  regime_candidates, table_row_parameters)
 from ..models.regimes import COMPONENTS as REGIME_COMPONENTS
-from ..models.regimes import (detect_field, regime_of_rows, residual_components_mrad,
-                              utc_values)
+from ..models.regimes import (detect_field, detect_records, regime_of_rows,
+                              residual_components_mrad, utc_values)
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
@@ -241,6 +241,34 @@ def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
     return detect_field(rows, renovations, **options)
 
 
+def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
+                   results: Sequence[tuple]) -> pd.DataFrame:
+    """:func:`detect_coarse_regimes` of one chunk's heliostats, each from its own rows and
+    first fit's predictions (whose selected model's rows come in the order of its rows, as
+    :func:`_heliostat_outputs` writes them), without the frames and the merge of the field-level
+    function (they cost more than the detection)."""
+    records = []
+    for h, r, (_, pred, _) in zip(hrows, rows, results):
+        sel = pred["selected"].to_numpy(bool)
+        if not np.array_equal(pred["measurement_id"].to_numpy()[sel],
+                              r["measurement_id"].to_numpy()):   # not in row order: the slow way
+            records += detect_coarse_regimes(r, pred, pd.DataFrame([h])).to_dict("records")
+            continue
+        seen = np.isin(r["split"].to_numpy(), ("train", "validation"))
+        distance = np.linalg.norm(
+            np.column_stack([r[f"target_{a}_m"].to_numpy(float) for a in "enu"])
+            - np.column_stack([r[f"heliostat_{a}_m"].to_numpy(float) for a in "enu"]), axis=1)
+        comps = residual_components_mrad(pred["spot_offset_horizontal_m"].to_numpy(float)[sel],
+                                         pred["spot_offset_vertical_m"].to_numpy(float)[sel],
+                                         distance)
+        a, b = h.get("renovation_start"), h.get("renovation_end")
+        renovation = (a, b) if pd.notna(a) or pd.notna(b) else None
+        records += detect_records(str(h["heliostat_id"]), utc_values(r["timestamp"])[seen],
+                                  r["measurement_id"].to_numpy()[seen],
+                                  np.column_stack(comps)[seen], renovation)
+    return pd.DataFrame(records, columns=[c for c in REGIMES.column_names() if c != "error_mrad"])
+
+
 #: Largest share of a heliostat's rows that detected episodes may hold for them to be left out
 #: of its fit (issue 17: episodes of a few days among months of normal rows).
 MAX_EPISODE_SHARE = 0.25
@@ -331,9 +359,7 @@ def _follow_regimes(solver, hrows, rows, presets, kwargs, results, regime_steps)
     regime-aware candidates of the heliostats with a break (``regime_steps == "candidates"``).
     Returns :func:`_fit_task`'s (regimes, per heliostat tuples)."""
     ids = [str(h["heliostat_id"]) for h in hrows]
-    regimes = detect_coarse_regimes(pd.concat(rows, ignore_index=True),
-                                    pd.concat([r[1] for r in results], ignore_index=True),
-                                    pd.DataFrame(list(hrows)))
+    regimes = _chunk_regimes(hrows, rows, results)
     rows, results = list(rows), list(results)
     flags_of: list = [None] * len(ids)
     notes: list[list[str]] = [[] for _ in ids]
@@ -461,6 +487,9 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     else:
         n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in ids}
         chunks = _chunks_by_type(helio, ids, n_train, batch_size)
+    # the chunks with the most rows go first: the longest tasks are not the last ones, so the
+    # workers finish together (the results come back in task order)
+    chunks.sort(key=lambda chunk: -sum(len(rows_of[h]) for h in chunk))
     tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
               presets, kwargs, regime_steps) for chunk in chunks]
     chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
