@@ -49,6 +49,7 @@ def run(n: int, measurements: int, years: int, noise_mrad: float, seed: int, out
     from heliocal.pipeline.io.staged import IngestOptions
     from heliocal.pipeline.models.changes import Changes, score_detection
     from heliocal.pipeline.models.simulator import simulate_field
+    from heliocal.pipeline.models.regime_fit import base_preset
     from heliocal.pipeline.stages.fit_coarse import detect_coarse_regimes, run_fit_coarse
     from heliocal.pipeline.stages.ingest import run_ingest
     from heliocal.pipeline.stages.simulate import write_field
@@ -83,6 +84,11 @@ def run(n: int, measurements: int, years: int, noise_mrad: float, seed: int, out
         meas_all = read_artifact(work, MEASUREMENTS)
         preds = read_artifact(work, COARSE_PREDICTIONS)
         helio = read_artifact(work, HELIOSTATS)
+        # the residuals the detection read: the plain preset's (a selected regime-aware model
+        # follows the steps, its residuals show none), i.e. the base preset of the selection
+        chosen = preds.loc[preds["selected"]].groupby("heliostat_id")["model"].first()
+        plain = preds["heliostat_id"].map(chosen.map(base_preset))
+        preds = preds.assign(selected=(preds["model"] == plain).to_numpy())
         score["penalty_factors"] = {}
         for f in penalty_factors:
             t2 = time.perf_counter()
