@@ -30,9 +30,6 @@ DOCS = [ROOT / "README.md", ROOT / "sample_data" / "README.md", *sorted((ROOT / 
 #: Commands of ```sh blocks that are not run, with the reason.
 NOT_RUN = {
     "make test": "runs this test suite itself",
-    "make sample": "CI builds the same Make target (the sample's report) in .ci/run's `make "
-                   "regression` right after the suite, and compares its metrics with the "
-                   "baseline; running it here too took 47 s of the 10-minute suite",
     "dask scheduler --port 8786": "starts a Dask scheduler that serves until stopped (head node of "
                                   "a cluster)",
     "dask worker tcp://HEAD:8786 --nworkers 16 --nthreads 1":
