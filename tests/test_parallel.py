@@ -60,6 +60,31 @@ def test_workers_get_one_thread_env_and_the_caller_keeps_its_own(monkeypatch):
         assert ignores_sigint
 
 
+def test_warm_up_imports_the_stage_modules_once_in_the_fork_server(tmp_path):
+    """Workers forked after warm_up(modules) start with those modules imported (the fork server
+    imported them) and not others; without warm_up neither is. Fresh interpreters: a process
+    has one fork server, and this one's may already run."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "probe.py").write_text("import sys\n\n\ndef loaded(name):\n"
+                                       "    return name in sys.modules\n")
+    script = ("import sys\nfrom heliocal.pipeline.runtime.parallel import map_tasks, warm_up\n"
+              "from probe import loaded\n"
+              "names = ['heliocal.pipeline.models.regimes', 'heliocal.pipeline.models.simulator']\n"
+              "if sys.argv[1] == 'warm':\n    warm_up(names[:1], workers=2)\n"
+              "print(map_tasks(loaded, names * 2, workers=2))\n")
+    out = {}
+    for mode in ("warm", "cold"):
+        proc = subprocess.run([sys.executable, "-c", script, mode], cwd=tmp_path, timeout=120,
+                              env={**os.environ, "PYTHONPATH": str(tmp_path)},
+                              capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[mode] = proc.stdout.strip()
+    assert out == {"warm": "[True, False, True, False]", "cold": "[False, False, False, False]"}
+
+
 def _fail_on_3(x):
     if x == 3:
         raise ValueError("task 3 failed")

@@ -380,7 +380,7 @@ def predict_candidates(specs: Sequence[HeliostatSpec], setups: "Sequence[Candida
         split=np.concatenate([setups[h].labels for h, _ in pairs]), selected=False)
     ends = np.cumsum(sizes)
     for (h, _), a, b in zip(pairs, ends - sizes, ends):
-        out[h].append(frame.iloc[a:b].reset_index(drop=True))
+        out[h].append(frame.iloc[a:b])
     return out
 
 
@@ -469,9 +469,9 @@ class CandidateSetup:
 
 
 def candidate_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs: tuple,
-                    max_episode_share: float) -> CandidateSetup:
+                    max_episode_share: float, data: MeasurementBatch | None = None) -> CandidateSetup:
     """The rows, regimes and plain fit of one heliostat's candidates (arguments as
-    :func:`regime_candidates`)."""
+    :func:`regime_candidates`; ``data``: ``MeasurementBatch.from_frame(rows)`` if made)."""
     from .regimes import regime_arrays, utc_values
 
     param_rows, pred, _ = outputs
@@ -483,7 +483,8 @@ def candidate_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs
     chosen_rows = [r for r in param_rows if r["selected"]]
     return CandidateSetup(
         hid, regime, labels, (labels == "train") & ~episode, val,
-        rows["timestamp"], MeasurementBatch.from_frame(rows), chosen_rows[0]["preset"],
+        rows["timestamp"], MeasurementBatch.from_frame(rows) if data is None else data,
+        chosen_rows[0]["preset"],
         torch.tensor([r["fitted"] for r in chosen_rows], dtype=torch.float64),
         np.array([r["free"] for r in chosen_rows], bool),
         _mean(pred["error_mrad"].to_numpy()[pred["selected"].to_numpy(bool)][val]),
@@ -584,6 +585,8 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
         for number in numbers:
             s = int(fit.source([number])[0])
             start, end = spans.get(number, (pd.NaT, pd.NaT))
+            stamps = ((_stamp(fit.reference_s[s], 0), _stamp(fit.span_s[s, 0], 0),
+                       _stamp(fit.span_s[s, 1], 0)) if fit.drifting else (pd.NaT,) * 3)
             for j, name in enumerate(fit.moved):
                 d = fit.drifting.index(name) if name in fit.drifting else None
                 out_rows.append({
@@ -594,8 +597,9 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
                     "offset_rad": float(fit.offsets[s, j]),
                     "value_rad": float(fit.base[PARAMETER_INDEX[name]]) + float(fit.offsets[s, j]),
                     "drift_rad_per_year": float(fit.rates[s, d]) if d is not None else 0.0,
-                    "drift_reference": _stamp(fit.reference_s[s], d),
-                    "drift_from": _stamp(fit.span_s[s, 0], d), "drift_to": _stamp(fit.span_s[s, 1], d),
+                    "drift_reference": stamps[0] if d is not None else pd.NaT,
+                    "drift_from": stamps[1] if d is not None else pd.NaT,
+                    "drift_to": stamps[2] if d is not None else pd.NaT,
                     "latest": number == latest})
     summary["regime_candidates"] = {"plain_validation": plain_val, "validation_days": int(days),
                                     **{f.model: v for f, v in zip(fits, vals)},

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import fields
 from pathlib import Path
 from typing import Sequence
 
@@ -33,7 +34,7 @@ from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, Measureme
                              data_degeneracy, fit_presets, predict)
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
                                   nominal_parameters)
-from ..runtime.parallel import map_tasks, shared_pool
+from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import one_thread, restores_process_state
 from .forward import (TIME_COLUMN, attach_coarse_time, chunks_per_worker, fit_coarse_time_split,
                       load_time_labels)
@@ -254,7 +255,8 @@ def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
                               r["measurement_id"].to_numpy()):   # not in row order: the slow way
             records += detect_coarse_regimes(r, pred, pd.DataFrame([h])).to_dict("records")
             continue
-        seen = np.isin(r["split"].to_numpy(), ("train", "validation"))
+        split = r["split"].to_numpy()
+        seen = (split == "train") | (split == "validation")
         distance = np.linalg.norm(
             np.column_stack([r[f"target_{a}_m"].to_numpy(float) for a in "enu"])
             - np.column_stack([r[f"heliostat_{a}_m"].to_numpy(float) for a in "enu"]), axis=1)
@@ -330,6 +332,17 @@ def coarse_fit_options(workdir: str | Path) -> dict:
 REGIME_STEPS = ("candidates", "detect", "off")
 
 
+def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
+    """``MeasurementBatch.from_frame`` of each frame, converted in one pass over the columns (for
+    small frames the per-column overhead costs more than the rows); views of one set of tensors."""
+    if not frames:
+        return []
+    whole = MeasurementBatch.from_frame(pd.concat(list(frames), ignore_index=True))
+    ends = np.cumsum([len(f) for f in frames])
+    return [MeasurementBatch(*(getattr(whole, f.name)[e - len(df):e] for f in fields(whole)))
+            for e, df in zip(ends, frames)]
+
+
 def _fit_chunk(solver: str, hrows: Sequence[dict], rows: Sequence[pd.DataFrame], presets,
                kwargs: dict) -> list[tuple]:
     """Every preset for the heliostats of one chunk (scipy: one by one); per heliostat (param
@@ -395,8 +408,9 @@ def _follow_regimes(solver, hrows, rows, presets, kwargs, results, regime_steps)
     broken = ([k for k, hid in enumerate(ids) if hid in breaks]
               if regime_steps == "candidates" else [])
     specs = {k: HeliostatSpec.from_row(pd.Series(hrows[k])) for k in broken}
-    setups = {k: candidate_setup(ids[k], rows[k], of[ids[k]], results[k], MAX_EPISODE_SHARE)
-              for k in broken}
+    batches = dict(zip(broken, _batches([rows[k] for k in broken])))
+    setups = {k: candidate_setup(ids[k], rows[k], of[ids[k]], results[k], MAX_EPISODE_SHARE,
+                                 batches[k]) for k in broken}
     fits, frames = {}, {}
     if solver == "batched" and broken:   # the chunk is of one type: one program for all
         with one_thread(blas=True):
@@ -466,6 +480,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     check_choice(solver, "solver", "fit_coarse", SOLVERS)
     check_choice(regime_steps, "regime_steps", "fit_coarse", REGIME_STEPS)
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
+    warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
     helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)

@@ -96,7 +96,7 @@ from ..models.pretrained import PretrainConfig, fit_pretrained
 from ..models.training import (FineProblem, build_problem, predict_ensembles, predictions_frame,
                                stack_problems, take_rows, train_members)
 from ..physics.parameters import HeliostatSpec
-from ..runtime.parallel import map_tasks
+from ..runtime.parallel import map_tasks, warm_up
 from .fit_coarse import coarse_row_parameters, load_selected_parameters, load_split_labels
 from ..vocabulary import HYBRID_BATCH_SIZE
 from .forward import load_time_labels, load_time_parameters
@@ -264,6 +264,7 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     seed = check_int(seed, "seed", _FUNC, 0)
     config = (config or FineConfig()).validated()
     pretrain_config = pretrain_config or PretrainConfig()
+    warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
     check_fine_model_inputs(workdir)
     torch.use_deterministic_algorithms(True, warn_only=True)

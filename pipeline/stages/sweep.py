@@ -61,7 +61,7 @@ from ..models.training import (FineProblem, MemberResult, take_rows, build_probl
 from ..models.pretrained import PretrainConfig, fit_pretrained
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.metrics import error_mrad, measured_normal
-from ..runtime.parallel import map_tasks
+from ..runtime.parallel import map_tasks, warm_up
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, SELECTED_PREDICTIONS, SELECTION, SPLIT, SWEEP
 from ..artifacts.modelfiles import write_model
 from .split import restrict_training
@@ -489,11 +489,11 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     study, study_seed : the study's heliostats (:func:`study_heliostats`); 0 skips the study.
     path : how the weight-decay path is trained (:class:`PathConfig`).
     batch_size : heliostats per batched program of the production selection.
-    select_pretrained : the pre-trained network (``pretrain_config``, first seed) is a candidate
-        of the production selection too, for every heliostat, under the hybrids' margin rule.
+    select_pretrained : the pre-trained network (first seed) is a production candidate too.
     time_split : also train the selected hybrids forward in time (:mod:`.forward`; +50 % time).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
+    warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
     seeds = [check_int(s, "seeds", "sweep", 0) for s in seeds]
     if not seeds:
