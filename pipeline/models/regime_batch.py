@@ -46,9 +46,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..physics.jacobian import forward_state, residual_and_jacobian
-from ..physics.lm import NAN_RESIDUAL_MRAD, stack_specs, take_spec
-from ..physics.metrics import measured_normal
+from ..physics.jacobian import residual_and_jacobian
+from ..physics.lm import NAN_RESIDUAL_MRAD, normal_residuals_mrad, stack_specs, take_spec
 from ..physics.parameters import PARAMETER_INDEX, HeliostatSpec
 from .coarse import MeasurementBatch
 from .regime_fit import (REGIME_MODELS, CandidateSetup, RegimeFit, prior_rows,
@@ -186,9 +185,8 @@ class _Rows:
         """Residuals (len(idx), 3) [mrad] of rows idx at parameters (len(idx), 28)."""
         i = torch.as_tensor(idx)
         with torch.no_grad():
-            state = forward_state(torch.from_numpy(params), take_spec(self.spec, i), self.steps[i])
-            meas = measured_normal(self.sun[i], state[2], self.focal[i])
-            r = torch.nan_to_num(1000.0 * (state[1] - meas), nan=NAN_RESIDUAL_MRAD)
+            r, _ = normal_residuals_mrad(torch.from_numpy(params), take_spec(self.spec, i),
+                                         self.steps[i], self.sun[i], self.focal[i])
         return r.reshape(len(idx), 3).numpy()
 
     def jacobian(self, idx: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -49,7 +49,7 @@ from .metrics import measured_normal
 from ..vocabulary import CoarseLoss
 
 __all__ = ["BatchedProblem", "BatchedSolution", "stack_specs", "take_spec", "solve_batched",
-           "robust_loss", "NAN_RESIDUAL_MRAD",
+           "robust_loss", "normal_residuals_mrad", "NAN_RESIDUAL_MRAD",
            "LOSSES", "SPEC_TENSORS"]
 
 LOSSES = CoarseLoss.values()
@@ -77,6 +77,16 @@ def stack_specs(specs: list[HeliostatSpec]) -> HeliostatSpec:
         object.__setattr__(out, name, torch.stack([getattr(s, name) for s in specs]))
     object.__setattr__(out, "heliostat_id", tuple(s.heliostat_id for s in specs))
     return out
+
+
+def normal_residuals_mrad(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor,
+                          sun: torch.Tensor, focal_spot: torch.Tensor):
+    """The coarse fit's residuals ``1000 (n_pred - n_meas)`` [mrad], (..., N, 3), a non-finite
+    one as :data:`NAN_RESIDUAL_MRAD`, and the forward state at ``params`` (what
+    :func:`~heliocal.pipeline.physics.jacobian.residual_and_jacobian` reuses)."""
+    state = forward_state(params, spec, steps)
+    meas = measured_normal(sun, state[2], focal_spot)
+    return torch.nan_to_num(1000.0 * (state[1] - meas), nan=NAN_RESIDUAL_MRAD), state
 
 
 def take_spec(spec: HeliostatSpec, idx: torch.Tensor) -> HeliostatSpec:
@@ -146,9 +156,8 @@ class BatchedProblem:
         p = self.base[idx].clone()
         p[:, self.free_idx] = x
         spec = take_spec(self.spec, idx)
-        state = forward_state(p, spec, self.steps[idx])
-        meas = measured_normal(self.sun[idx], state[2], self.focal_spot[idx])
-        r = torch.nan_to_num(1000.0 * (state[1] - meas), nan=NAN_RESIDUAL_MRAD)
+        r, state = normal_residuals_mrad(p, spec, self.steps[idx], self.sun[idx],
+                                         self.focal_spot[idx])
         r = (r * self.row_mask[idx].unsqueeze(-1)).flatten(-2)
         if self.prior_scale is not None:
             r = torch.cat([r, (x - self.prior_mean[idx]) * self.prior_scale[idx]], dim=-1)

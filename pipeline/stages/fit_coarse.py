@@ -10,7 +10,7 @@ import logging
 import math
 from dataclasses import fields
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -229,17 +229,24 @@ def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
     geo = ["timestamp", *[f"{w}_{a}_m" for w in ("target", "heliostat") for a in "enu"]]
     rows = pred.merge(measurements[["heliostat_id", "measurement_id", *geo]],
                       on=["heliostat_id", "measurement_id"], how="left")
-    distance = np.linalg.norm(rows[[f"target_{a}_m" for a in "enu"]].to_numpy(float)
-                              - rows[[f"heliostat_{a}_m" for a in "enu"]].to_numpy(float), axis=1)
     rows["residual_horizontal_mrad"], rows["residual_vertical_mrad"] = residual_components_mrad(
-        rows["spot_offset_horizontal_m"], rows["spot_offset_vertical_m"], distance)
-    renovations = {}
-    if "renovation_start" in heliostats.columns:
-        for hid, a, b in zip(heliostats["heliostat_id"], heliostats["renovation_start"],
-                             heliostats["renovation_end"]):
-            if pd.notna(a) or pd.notna(b):
-                renovations[str(hid)] = (a, b)
+        rows["spot_offset_horizontal_m"], rows["spot_offset_vertical_m"], _target_distance_m(rows))
+    renovations = {str(h["heliostat_id"]): window for h in heliostats.to_dict("records")
+                   if (window := _renovation(h)) is not None}
     return detect_field(rows, renovations, **options)
+
+
+def _target_distance_m(rows: pd.DataFrame) -> np.ndarray:
+    """Distance [m] from each row's heliostat to its target (ENU)."""
+    return np.linalg.norm(
+        np.column_stack([rows[f"target_{a}_m"].to_numpy(float) for a in "enu"])
+        - np.column_stack([rows[f"heliostat_{a}_m"].to_numpy(float) for a in "enu"]), axis=1)
+
+
+def _renovation(hrow: Mapping) -> tuple | None:
+    """A heliostat's (start, end) renovation window, None without one."""
+    a, b = hrow.get("renovation_start"), hrow.get("renovation_end")
+    return (a, b) if pd.notna(a) or pd.notna(b) else None
 
 
 def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
@@ -257,17 +264,12 @@ def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
             continue
         split = r["split"].to_numpy()
         seen = (split == "train") | (split == "validation")
-        distance = np.linalg.norm(
-            np.column_stack([r[f"target_{a}_m"].to_numpy(float) for a in "enu"])
-            - np.column_stack([r[f"heliostat_{a}_m"].to_numpy(float) for a in "enu"]), axis=1)
         comps = residual_components_mrad(pred["spot_offset_horizontal_m"].to_numpy(float)[sel],
                                          pred["spot_offset_vertical_m"].to_numpy(float)[sel],
-                                         distance)
-        a, b = h.get("renovation_start"), h.get("renovation_end")
-        renovation = (a, b) if pd.notna(a) or pd.notna(b) else None
+                                         _target_distance_m(r))
         records += detect_records(str(h["heliostat_id"]), utc_values(r["timestamp"])[seen],
                                   r["measurement_id"].to_numpy()[seen],
-                                  np.column_stack(comps)[seen], renovation)
+                                  np.column_stack(comps)[seen], _renovation(h))
     return pd.DataFrame(records, columns=[c for c in REGIMES.column_names() if c != "error_mrad"])
 
 
