@@ -211,6 +211,42 @@ def test_a_false_break_on_a_static_heliostat_is_not_taken(stepped):
                                   selected_before.reset_index(drop=True))
 
 
+def test_fit_coarse_hands_the_batched_candidates_their_start(stepped):
+    """The batched candidates start from the Jacobian fit-coarse computed at the plain fit on
+    the plain fit's training rows (for its degeneracy check), not from an evaluation of their
+    own: regime_batch._given_start picks the candidates' rows (training rows outside episodes,
+    here every third training row left out) out of it. Reference: those rows evaluated at the
+    plain fit the way the batch does without a start (_Rows.jacobian): residuals and Jacobian
+    agree to 1e-9 (the same computation; a start one row off differs by more than 1e-3). A
+    candidate row the plain fit did not use gives no start (the batch evaluates it)."""
+    from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.models.regime_batch import _given_start, _Rows
+    from heliocal.pipeline.physics.parameters import HeliostatSpec
+    from heliocal.pipeline.stages.fit_coarse import _fit_chunk
+
+    hid, work = "SI13", stepped["work"]
+    rows = read_artifact(work, MEASUREMENTS, heliostats=[hid]).merge(
+        stepped["split"][["measurement_id", "split"]], on="measurement_id")
+    hrow = read_artifact(work, HELIOSTATS, heliostats=[hid]).iloc[0]
+    results, starts = _fit_chunk("batched", [hrow.to_dict()], [rows], ("static-6",),
+                                 {"loss": "soft_l1", "f_scale_mrad": 1.0, "robust_start": "auto"})
+    r, jac, mask = starts[0]
+    assert np.array_equal(mask, rows["split"].to_numpy() == "train") and len(r) == mask.sum()
+    use = mask.copy()
+    use[np.flatnonzero(mask)[::3]] = False
+    params = np.array([p["fitted"] for p in results[0][0] if p["selected"]])
+    batch = _Rows([HeliostatSpec.from_row(hrow)], [MeasurementBatch.from_frame(rows).subset(use)])
+    want_r, want_j = batch.jacobian(np.arange(use.sum()), np.repeat(params[None], use.sum(), 0))
+    got_r, got_j = _given_start(starts[0], use)
+    np.testing.assert_allclose(got_r, want_r.reshape(-1), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got_j, want_j, rtol=0, atol=1e-9)
+    assert np.abs(got_j[1:] - want_j[:-1]).max() > 1e-3
+    outside = use.copy()
+    outside[np.flatnonzero(~mask)[0]] = True
+    assert _given_start(starts[0], outside) is None
+
+
 def test_aim_uses_the_latest_regime(stepped):
     """aim's steps put the beam of the heliostat's true latest geometry (after both steps) on
     the aim point to within 0.25 mrad (the latest regime's parameters rest on about 100 rows

@@ -528,11 +528,11 @@ IDENTIFIABILITY_PRESET = "static-6"
 
 
 def data_degeneracy(spec: HeliostatSpec, params: torch.Tensor, nominal: torch.Tensor,
-                    train: MeasurementBatch) -> str:
+                    train: MeasurementBatch, jacobian: tuple | None = None) -> str:
     """Why ``train`` cannot determine the parameters of :data:`IDENTIFIABILITY_PRESET` (``""`` if
-    it can), judged with the data-only Jacobian at ``params`` and the same 'determined' rule as
-    the fit's (a parameter is determined when 1 mrad noise leaves it less than half its prior
-    sigma uncertain, :func:`_fit_diagnostics`)."""
+    it can), judged with the data-only Jacobian at ``params`` (``jacobian``: residual_and_jacobian
+    there, if computed) and the same 'determined' rule as the fit's (a parameter is determined
+    when 1 mrad noise leaves it less than half its prior sigma uncertain, :func:`_fit_diagnostics`)."""
     n = len(train)
     if n == 0:
         return "no training rows"
@@ -545,8 +545,8 @@ def data_degeneracy(spec: HeliostatSpec, params: torch.Tensor, nominal: torch.Te
     free = preset_mask(IDENTIFIABILITY_PRESET, spec.actuator_type, spec.kinematic_type).numpy()
     free_idx = np.flatnonzero(free)
     with torch.no_grad():
-        r, jac = residual_and_jacobian(params.to(torch.float64), spec, train.steps, train.sun,
-                                       train.focal_spot)
+        r, jac = jacobian or residual_and_jacobian(params.to(torch.float64), spec, train.steps,
+                                                   train.sun, train.focal_spot)
     J = torch.nan_to_num(jac[:, :, torch.as_tensor(free_idx)].reshape(-1, len(free_idx)),
                          nan=0.0, posinf=0.0, neginf=0.0).numpy()
     r = torch.nan_to_num(r.reshape(-1), nan=0.0).numpy()

@@ -8,9 +8,10 @@ priors, loss and ``f_scale``; :mod:`~heliocal.pipeline.models.regime_fit`'s docs
 minimised for all candidates of a chunk of heliostats of one type at once by a *chord*
 Gauss-Newton method:
 
-* The Jacobian of the residuals with respect to the 28 parameters is evaluated at the plain fit
-  (where every row of a heliostat has the same parameters, so it is one batched call for all
-  heliostats), and the ``offsets`` candidate's design matrix is built from it: the
+* The Jacobian of the residuals with respect to the 28 parameters at the plain fit (where every
+  row of a heliostat has the same parameters) is the one ``fit-coarse`` computed on the plain
+  fit's training rows (for its degeneracy check; else one batched call for all heliostats),
+  and the ``offsets`` candidate's design matrix is built from it: the
   shared free parameters' columns as they are, each regime's offset columns as the moved
   parameters' columns on that regime's rows, each rate column as a zero point's column times the
   row's years from its regime's reference time. A row's parameters are linear in the candidate's
@@ -262,11 +263,24 @@ def _check(cands: list[_Candidate], evaluated: list, *, loss: str, f_scale: floa
     return left
 
 
+def _given_start(start, use: np.ndarray):
+    """(residuals (3 n,), Jacobian (n, 3, 28)) of the ``use`` rows from a heliostat's given start
+    (``fit_candidates_batched``'s ``starts``), as :meth:`_Rows.jacobian` gives them; None
+    without one or when a ``use`` row is not among its rows."""
+    if start is None or (use & ~start[2]).any():
+        return None
+    r, j, mask = start
+    idx = (np.cumsum(mask) - 1)[use]
+    r = torch.nan_to_num(r, nan=NAN_RESIDUAL_MRAD).numpy()[idx]
+    return r.reshape(-1), torch.nan_to_num(j, nan=0.0, posinf=0.0, neginf=0.0).numpy()[idx]
+
+
 def fit_candidates_batched(specs: Sequence[HeliostatSpec], setups: Sequence[CandidateSetup], *,
                            loss: str = "soft_l1", f_scale_mrad: float = 1.0,
                            models: Sequence[str] = REGIME_MODELS, tolerance: float = 1e-6,
                            max_iterations: int = 10, max_refreshes: int = 10,
-                           prior_weight: float = 1.0) -> list[list[RegimeFit]]:
+                           prior_weight: float = 1.0,
+                           starts: Sequence | None = None) -> list[list[RegimeFit]]:
     """The regime-aware candidates of heliostats of one kinematic and actuator type (module
     docstring).
 
@@ -281,6 +295,9 @@ def fit_candidates_batched(specs: Sequence[HeliostatSpec], setups: Sequence[Cand
         their step or cost decrease relative to the point or cost, scipy's xtol and ftol).
     max_iterations : residual evaluations per design matrix (halved steps included).
     max_refreshes : evaluations of the Jacobian after the start's, at most.
+    starts : per heliostat, the plain fit's (residuals (n, 3), Jacobian (n, 3, 28), mask (N,)
+        of its n training rows) as ``fit-coarse`` computed them (torch), or None: the
+        candidates' start where they fit a subset of those rows (else it is evaluated here).
 
     Returns
     -------
@@ -295,7 +312,7 @@ def fit_candidates_batched(specs: Sequence[HeliostatSpec], setups: Sequence[Cand
         return out
     data = [setups[h].data.subset(layouts[h].use) for h in take]
     rows = _Rows([specs[h] for h in take], data)
-    starts = np.cumsum([0] + [len(d) for d in data])
+    first_row = np.cumsum([0] + [len(d) for d in data])
     cands: list[_Candidate] = []
     for j, h in enumerate(take):
         s, lay = setups[h], layouts[h]
@@ -305,12 +322,16 @@ def fit_candidates_batched(specs: Sequence[HeliostatSpec], setups: Sequence[Cand
             drift = [PARAMETER_INDEX[n] for n in lay.drifting] if model == "drift" else []
             mean, scale = prior_rows(s.params.to(torch.float64), lay.free_idx, n_f, len(moved),
                                      len(drift), prior_weight)
-            cands.append(_Candidate(h, model, lay, np.arange(starts[j], starts[j + 1]), base,
+            cands.append(_Candidate(h, model, lay, np.arange(first_row[j], first_row[j + 1]), base,
                                     lay.free_idx, moved, drift, mean, scale, mean.copy()))
     # the Jacobian at the plain fit, once per heliostat: every candidate starts there (offsets
-    # and rates 0, so all rows of a heliostat have the plain fit's parameters)
-    heads = [next(c for c in cands if c.h == h) for h in take]
-    start_of = dict(zip(take, _evaluate(rows, heads, [c.x for c in heads], True)))
+    # and rates 0, so all rows of a heliostat have the plain fit's parameters); fit-coarse has
+    # it on the plain fit's training rows, which hold the candidates' rows unless episodes moved
+    start_of = {h: _given_start(starts[h], layouts[h].use) for h in take} if starts else {}
+    heads = [next(c for c in cands if c.h == h) for h in take if start_of.get(h) is None]
+    if heads:
+        start_of.update(zip((c.h for c in heads), _evaluate(rows, heads, [c.x for c in heads],
+                                                            True)))
     options = dict(loss=loss, f_scale=f_scale_mrad, tolerance=tolerance)
 
     def converge(group: list[_Candidate], evaluated: list, reused: bool = False) -> None:

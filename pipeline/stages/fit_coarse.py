@@ -32,6 +32,7 @@ from ..models.regimes import (detect_field, detect_records, regime_of_rows,
                               residual_components_mrad, utc_values)
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
+from ..physics.jacobian import residual_and_jacobian
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
@@ -99,7 +100,7 @@ def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str
     fits = fit_presets([spec], [nominal], [train], presets, solver="scipy", loss=loss,
                        f_scale_mrad=f_scale_mrad, robust_start=robust_start)[0]
     return _heliostat_outputs(str(hrow["heliostat_id"]), spec, nominal, data, labels, train,
-                              episode, fits)
+                              episode, fits)[:3]
 
 
 def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: Sequence[str], *,
@@ -107,10 +108,16 @@ def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: 
     """Every preset for several heliostats of one kinematic and actuator type, each preset one
     batched LM solve (:func:`fit_heliostats_batched`); per heliostat the same (param rows,
     prediction rows, summary) as :func:`fit_one_heliostat`."""
+    return [out[:3] for out in _chunk_outputs(hrows, rows, presets, loss=loss,
+                                              f_scale_mrad=f_scale_mrad,
+                                              robust_start=robust_start)]
+
+
+def _chunk_outputs(hrows, rows, presets, **kwargs) -> list[tuple]:
+    """:func:`fit_heliostat_chunk`'s tuples with :func:`_heliostat_outputs`' fourth item."""
     inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
     fits = fit_presets([i[0] for i in inputs], [i[1] for i in inputs], [i[4] for i in inputs],
-                       presets, solver="batched", loss=loss, f_scale_mrad=f_scale_mrad,
-                       robust_start=robust_start)
+                       presets, solver="batched", **kwargs)
     return [_heliostat_outputs(str(h["heliostat_id"]), *inp, fits[k])
             for k, (h, inp) in enumerate(zip(hrows, inputs))]
 
@@ -118,7 +125,9 @@ def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: 
 def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
                        data: MeasurementBatch, labels: np.ndarray, train: MeasurementBatch,
                        episode: np.ndarray, fits: Sequence[CoarseFit]):
-    """Predictions, the validation selection, param rows and summary of one heliostat's fits."""
+    """Predictions, the validation selection, param rows and summary of one heliostat's fits,
+    and the selected fit's (residuals (n, 3), Jacobian (n, 3, 28)) on its training rows with the
+    mask (N,) of those rows (the regime candidates start there; None without training rows)."""
     preds, summaries = [], []
     nominal_pred = predict(nominal, spec, data).assign(model="nominal")
     preds.append(nominal_pred)
@@ -138,7 +147,11 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
         chosen = len(fits) - 1
     else:
         chosen = int(np.nanargmin(vals))
-    degenerate = data_degeneracy(spec, fits[chosen].params, nominal, train)
+    mask = (labels == "train") & ~episode
+    with torch.no_grad():
+        start = (residual_and_jacobian(fits[chosen].params.to(torch.float64), spec, train.steps,
+                                       train.sun, train.focal_spot) if len(train) else None)
+    degenerate = data_degeneracy(spec, fits[chosen].params, nominal, train, jacobian=start)
     param_rows = []
     for k, (fit, s) in enumerate(zip(fits, summaries)):
         for i, name in enumerate(PARAMETER_NAMES):
@@ -167,7 +180,7 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
         "episode_rows": int(episode.sum()),
         "wall_time_s": float(sum(f.wall_time_s for f in fits)),
     }
-    return param_rows, pred, summary
+    return param_rows, pred, summary, (None if start is None else (*start, mask))
 
 
 def load_selected_parameters(workdir: str | Path, heliostats: Sequence[str] | None = None) -> dict:
@@ -346,12 +359,15 @@ def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
 
 
 def _fit_chunk(solver: str, hrows: Sequence[dict], rows: Sequence[pd.DataFrame], presets,
-               kwargs: dict) -> list[tuple]:
+               kwargs: dict) -> tuple[list[tuple], list]:
     """Every preset for the heliostats of one chunk (scipy: one by one); per heliostat (param
-    rows, prediction rows, summary)."""
+    rows, prediction rows, summary), and per heliostat the batched candidates' start
+    (:func:`_heliostat_outputs`' fourth item; None with scipy, whose candidates start alone)."""
     if solver == "scipy":
-        return [fit_one_heliostat(pd.Series(h), r, presets, **kwargs) for h, r in zip(hrows, rows)]
-    return fit_heliostat_chunk([pd.Series(h) for h in hrows], rows, presets, **kwargs)
+        return ([fit_one_heliostat(pd.Series(h), r, presets, **kwargs)
+                 for h, r in zip(hrows, rows)], [None] * len(hrows))
+    out = _chunk_outputs([pd.Series(h) for h in hrows], rows, presets, **kwargs)
+    return [o[:3] for o in out], [o[3] for o in out]
 
 
 def _fit_task(task) -> tuple:
@@ -362,20 +378,21 @@ def _fit_task(task) -> tuple:
     once. Returns (the chunk's regimes.parquet rows or None, per heliostat (outputs,
     regime_params rows, episode flags or None, refitted, log lines))."""
     solver, hrows, rows, presets, kwargs, regime_steps = task
-    results = _fit_chunk(solver, hrows, rows, presets, kwargs)
+    results, starts = _fit_chunk(solver, hrows, rows, presets, kwargs)
     if regime_steps == "off":
         return None, [(res, [], None, False, []) for res in results]
-    return _follow_regimes(solver, hrows, rows, presets, kwargs, results, regime_steps)
+    return _follow_regimes(solver, hrows, rows, presets, kwargs, results, starts, regime_steps)
 
 
-def _follow_regimes(solver, hrows, rows, presets, kwargs, results, regime_steps) -> tuple:
+def _follow_regimes(solver, hrows, rows, presets, kwargs, results, starts,
+                    regime_steps) -> tuple:
     """Regimes of each heliostat of a chunk on its first fit's residuals; heliostats with
     episodes fitted again without the episodes' rows (kept by the sweep's margin); then the
     regime-aware candidates of the heliostats with a break (``regime_steps == "candidates"``).
     Returns :func:`_fit_task`'s (regimes, per heliostat tuples)."""
     ids = [str(h["heliostat_id"]) for h in hrows]
     regimes = _chunk_regimes(hrows, rows, results)
-    rows, results = list(rows), list(results)
+    rows, results, starts = list(rows), list(results), list(starts)
     flags_of: list = [None] * len(ids)
     notes: list[list[str]] = [[] for _ in ids]
     refit = []
@@ -391,15 +408,15 @@ def _follow_regimes(solver, hrows, rows, presets, kwargs, results, regime_steps)
             flags_of[k] = flags
             refit.append(k)
     if refit:
-        again = _fit_chunk(solver, [hrows[k] for k in refit], [rows[k] for k in refit], presets,
-                           kwargs)
-        for k, res in zip(refit, again):
+        again, again_starts = _fit_chunk(solver, [hrows[k] for k in refit],
+                                         [rows[k] for k in refit], presets, kwargs)
+        for k, res, start in zip(refit, again, again_starts):
             # the refit is a candidate: kept only if it beats the first fit by the sweep's margin
             # on the validation rows outside the episodes (the rows both fits are meant for)
             ok = (rows[k]["split"].to_numpy() == "validation") & ~flags_of[k]
             old, new = (_selected_error(r[1], ok) for r in (results[k], res))
             if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old:
-                results[k] = res
+                results[k], starts[k] = res, start
             else:
                 notes[k].append(f"{ids[k]}: the fit without its episodes is not 20 % better on "
                                 f"validation ({new:.3f} vs {old:.3f} mrad); the first fit is kept")
@@ -418,7 +435,8 @@ def _follow_regimes(solver, hrows, rows, presets, kwargs, results, regime_steps)
         with one_thread(blas=True):
             fitted = fit_candidates_batched([specs[k] for k in broken],
                                             [setups[k] for k in broken], loss=kwargs["loss"],
-                                            f_scale_mrad=kwargs["f_scale_mrad"])
+                                            f_scale_mrad=kwargs["f_scale_mrad"],
+                                            starts=[starts[k] for k in broken])
             predicted = predict_candidates([specs[k] for k in broken],
                                            [setups[k] for k in broken], fitted)
         fits, frames = dict(zip(broken, fitted)), dict(zip(broken, predicted))
