@@ -548,24 +548,22 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
         if np.isfinite(v) and np.isfinite(plain_val) and v < (1.0 - margin) * plain_val:
             if best is None or v < vals[best]:
                 best = k
-    seg = regimes[(regimes["heliostat_id"].to_numpy() == hid)
-                  & (regimes["kind"].to_numpy() == "regime")]
-    seg_numbers = seg["regime"].to_numpy(np.int64)
-    latest = (int(seg_numbers[np.argsort(utc_values(seg["start"]), kind="stable")[-1]])
-              if len(seg) else int(regime.max()))
+    mine = (regimes["heliostat_id"].to_numpy() == hid) & (regimes["kind"].to_numpy() == "regime")
+    seg_numbers, seg_start, seg_end = (regimes[c].array[mine] for c in ("regime", "start", "end"))
+    latest = (int(seg_numbers[np.argsort(utc_values(regimes["start"])[mine], kind="stable")[-1]])
+              if mine.any() else int(regime.max()))
     stamps = utc_values(times)
     t_end = stamps[~np.isnat(stamps)].max(keepdims=True)   # the last row's time (datetime64)
     # each regime's time span (its segments' first start and last end), looked up per row below
     spans: dict = {}
-    for number, start, end in zip(seg_numbers, seg["start"], seg["end"]):
+    for number, start, end in zip(seg_numbers, seg_start, seg_end):
         a, b = spans.get(int(number), (start, end))
         spans[int(number)] = (min(a, start), max(b, end))
     numbers = sorted(set(spans) | set(np.unique(regime).tolist()))
-    new_params, new_preds, out_rows = [], [], []
+    new_params, out_rows = [], []
     if best is not None:
         for r in param_rows:
             r["selected"] = False
-        pred["selected"] = False
         summary["selected"] = fits[best].name
     for k, (fit, frame) in enumerate(zip(fits, frames)):
         err = frame["error_mrad"].to_numpy()
@@ -581,7 +579,6 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
                                "n_train": int(fit.n_train.sum()), "train_error_mrad": errs["train"],
                                "val_error_mrad": errs["validation"],
                                "test_error_mrad": errs["test"]})
-        new_preds.append(frame.assign(selected=True) if k == best else frame)
         for number in numbers:
             s = int(fit.source([number])[0])
             start, end = spans.get(number, (pd.NaT, pd.NaT))
@@ -604,6 +601,10 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
     summary["regime_candidates"] = {"plain_validation": plain_val, "validation_days": int(days),
                                     **{f.model: v for f, v in zip(fits, vals)},
                                     "selected": fits[best].model if best is not None else None}
-    if new_preds:
-        pred = pd.concat([pred, *new_preds], ignore_index=True)
+    if frames:   # the frames as they are, then the selection (setting a column on any of them
+        n_plain = len(pred)   # first made pandas' concat several times slower)
+        pred = pd.concat([pred, *frames], ignore_index=True)
+        if best is not None:
+            pred["selected"] = np.repeat([False, *(k == best for k in range(len(frames)))],
+                                         [n_plain, *map(len, frames)])
     return (param_rows + new_params, pred, summary), out_rows
