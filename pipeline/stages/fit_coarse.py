@@ -314,10 +314,10 @@ def _segment_errors(regimes: pd.DataFrame, ids: Sequence[str], rows: Sequence[pd
     by_h = {}
     for hid, r, (_, pred, _) in zip(ids, rows, results):
         sel = pred["selected"].to_numpy(bool)
-        mids = pred["measurement_id"].to_numpy()[sel]
-        at = pd.Index(r["measurement_id"].to_numpy()).get_indexer(mids)
-        by_h[hid] = (utc_values(r["timestamp"])[at], pred["error_mrad"].to_numpy(np.float64)[sel],
-                     mids)
+        mids, own = pred["measurement_id"].to_numpy()[sel], r["measurement_id"].to_numpy()
+        t = utc_values(r["timestamp"])   # (the selected rows come in row order; else by id)
+        t = t if np.array_equal(mids, own) else t[pd.Index(own).get_indexer(mids)]
+        by_h[hid] = (t, pred["error_mrad"].to_numpy(np.float64)[sel], mids)
     starts, ends = utc_values(regimes["start"]), utc_values(regimes["end"])
     errors = np.full(len(regimes), np.nan)
     for i, (hid, kind, mid) in enumerate(zip(regimes["heliostat_id"].to_numpy(),
