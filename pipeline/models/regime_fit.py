@@ -426,9 +426,9 @@ def predict_parameters(params: torch.Tensor, spec: HeliostatSpec,
     return metrics_frame(data, normal[:, 0], position[:, 0])
 
 
-def _stamp(seconds: float, drifting) -> pd.Timestamp:
-    """A drift time as a UTC timestamp (whole seconds); missing where nothing drifts."""
-    if drifting is None or not np.isfinite(seconds):
+def _stamp(seconds: float) -> pd.Timestamp:
+    """A drift time as a UTC timestamp (whole seconds); missing if not finite."""
+    if not np.isfinite(seconds):
         return pd.NaT
     return pd.Timestamp(round(float(seconds)), unit="s", tz="UTC")
 
@@ -582,8 +582,8 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
         for number in numbers:
             s = int(fit.source([number])[0])
             start, end = spans.get(number, (pd.NaT, pd.NaT))
-            stamps = ((_stamp(fit.reference_s[s], 0), _stamp(fit.span_s[s, 0], 0),
-                       _stamp(fit.span_s[s, 1], 0)) if fit.drifting else (pd.NaT,) * 3)
+            drift_stamps = ((_stamp(fit.reference_s[s]), _stamp(fit.span_s[s, 0]),
+                             _stamp(fit.span_s[s, 1])) if fit.drifting else (pd.NaT,) * 3)
             for j, name in enumerate(fit.moved):
                 d = fit.drifting.index(name) if name in fit.drifting else None
                 out_rows.append({
@@ -594,9 +594,9 @@ def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes
                     "offset_rad": float(fit.offsets[s, j]),
                     "value_rad": float(fit.base[PARAMETER_INDEX[name]]) + float(fit.offsets[s, j]),
                     "drift_rad_per_year": float(fit.rates[s, d]) if d is not None else 0.0,
-                    "drift_reference": stamps[0] if d is not None else pd.NaT,
-                    "drift_from": stamps[1] if d is not None else pd.NaT,
-                    "drift_to": stamps[2] if d is not None else pd.NaT,
+                    "drift_reference": drift_stamps[0] if d is not None else pd.NaT,
+                    "drift_from": drift_stamps[1] if d is not None else pd.NaT,
+                    "drift_to": drift_stamps[2] if d is not None else pd.NaT,
                     "latest": number == latest})
     summary["regime_candidates"] = {"plain_validation": plain_val, "validation_days": int(days),
                                     **{f.model: v for f, v in zip(fits, vals)},
