@@ -119,13 +119,15 @@ class _Candidate:
         n_f, p, n_off, n_rate = len(lay.fitted), self.n_free, self.n_off, len(self.drift_idx)
         d = np.zeros((n, 3, len(self.x)))
         d[:, :, :p] = j28[:, :, self.free_idx]
+        # each row's offset (rate) columns are those of its regime: one indexed assignment per
+        # kind, rows by columns (the indexed axes come first: (rows, columns, 3))
         later = np.flatnonzero(lay.k >= 1)
-        for c, i in enumerate(self.moved_idx):
-            d[later, :, p + (lay.k[later] - 1) * n_off + c] = j28[later, :, i]
-        first_rate = p + (n_f - 1) * n_off
-        for c, i in enumerate(self.drift_idx):
-            d[np.arange(n), :, first_rate + lay.k * n_rate + c] = (
-                j28[:, :, i] * lay.years[:, None])
+        cols = p + (lay.k[later, None] - 1) * n_off + np.arange(n_off)
+        d[later[:, None], :, cols] = j28[later][:, :, self.moved_idx].transpose(0, 2, 1)
+        if n_rate:
+            cols = p + (n_f - 1) * n_off + lay.k[:, None] * n_rate + np.arange(n_rate)
+            d[np.arange(n)[:, None], :, cols] = (j28[:, :, self.drift_idx]
+                                                 * lay.years[:, None, None]).transpose(0, 2, 1)
         self.design = d.reshape(3 * n, -1)
 
 
@@ -154,11 +156,14 @@ _EPS = float(np.finfo(float).eps)
 
 
 def _cost_and_step(c: _Candidate, residual: np.ndarray, x: np.ndarray, loss: str,
-                   f_scale: float) -> tuple[float, np.ndarray, float]:
+                   f_scale: float, step: bool = True) -> tuple[float, np.ndarray, float]:
     """Half the robust cost at x (data and prior rows), the Gauss-Newton step of it and the
-    decrease of the cost the step's quadratic model predicts (``-g.step / 2``)."""
+    decrease of the cost the step's quadratic model predicts (``-g.step / 2``); ``step=False``:
+    the cost alone (step None, decrease NaN; the normal equations are most of the time)."""
     prior = (x - c.mean) / c.scale
     rho0, w, h = _rho(np.concatenate([residual, prior]), loss, f_scale)
+    if not step:
+        return 0.5 * float(rho0.sum()), None, float("nan")
     h = np.maximum(h, _EPS)
     n = len(residual)
     hess = c.design.T @ (h[:n, None] * c.design)
@@ -232,13 +237,16 @@ def _iterate(rows: _Rows, cands: list[_Candidate], *, loss: str, f_scale: float,
         trials = [c.x + c.alpha * c.step for c in active]
         for c, x, (r, _) in zip(active, trials, _evaluate(rows, active, trials, False)):
             c.evaluations += 1
-            cost, step, _ = _cost_and_step(c, r, x, loss, f_scale)
+            cost = _cost_and_step(c, r, x, loss, f_scale, step=False)[0]
             if np.isfinite(cost) and cost <= c.cost:
                 small_step = (np.linalg.norm((x - c.x) / c.scale)
                               <= tolerance * (tolerance + np.linalg.norm(x / c.scale)))
                 small_gain = c.cost - cost <= tolerance * c.cost
-                c.x, c.residual, c.cost, c.step, c.alpha = x, r, cost, step, 1.0
+                c.x, c.residual, c.cost, c.alpha = x, r, cost, 1.0
                 c.done = small_step or small_gain
+                # the next step only where one follows (a candidate done here, or a rejected
+                # trial, goes on from _check's step or its own halved one)
+                c.step = None if c.done else _cost_and_step(c, r, x, loss, f_scale)[1]
             else:
                 c.alpha *= 0.5
                 c.done = c.alpha < 1.0 / 64
