@@ -32,6 +32,7 @@ costs about a second of CPU). Leaving the block by an exception stops the pool's
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import os
 import pickle
@@ -118,6 +119,10 @@ def _init_local_worker(parent_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _watch_parent(parent_pid)
     _init_worker()
+    # what the worker starts with (the modules imported in the fork server) lives as long as
+    # the worker: out of the collector's sight, its full collections pass over the tasks'
+    # objects only (gc.freeze, the documented use for forked workers)
+    gc.freeze()
 
 
 def _init_worker() -> None:
