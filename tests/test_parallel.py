@@ -208,3 +208,37 @@ def test_worker_results_with_thousands_of_tensors_come_back_whole():
     out = map_tasks(_many_tensors, [20000, 20000], workers=2, chunks_per_worker=1)
     assert len(out) == 2 and all(len(o) == 20000 for o in out)
     assert float(out[1][19999][0]) == 19999.0
+
+
+class _SeesCollector:
+    """Unpickles to an object that records whether the collector ran while it was built."""
+
+    def __reduce__(self):
+        return (_collector_state, ())
+
+
+def _collector_state():
+    import gc
+
+    return gc.isenabled()
+
+
+def test_results_are_unpickled_with_the_collector_paused_and_restored():
+    """parallel._loads builds a chunk's results with the garbage collector paused (they are many
+    new objects without cycles) and leaves it as it found it, also when unpickling fails."""
+    import gc
+    import pickle
+
+    from heliocal.pipeline.runtime.parallel import _loads
+
+    assert gc.isenabled()
+    assert _loads(pickle.dumps([_SeesCollector(), 1])) == [False, 1]
+    assert gc.isenabled()
+    with pytest.raises(pickle.UnpicklingError):
+        _loads(b"not a pickle")
+    assert gc.isenabled()
+    gc.disable()
+    try:   # a caller that had it off keeps it off
+        assert _loads(pickle.dumps(_SeesCollector())) is False and not gc.isenabled()
+    finally:
+        gc.enable()

@@ -282,7 +282,7 @@ def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
                 i = pending.pop(fut)
-                results[i] = pickle.loads(fut.result())
+                results[i] = _loads(fut.result())
                 done += len(chunks[i])
                 if progress:
                     progress(done, len(tasks))
@@ -294,6 +294,21 @@ def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
     if not shared:
         pool.shutdown(wait=True)
     return [r for chunk in results for r in chunk]
+
+
+def _loads(data: bytes):
+    """``pickle.loads`` of a chunk's results with the collector paused: they are many new
+    container objects (row dicts, frames) without cycles, and the collections their allocation
+    triggers would walk the caller's whole heap again and again (fit-coarse's 180 MB of results
+    at 2,000 heliostats: 1.33 s to unpickle beside a loaded heap, 0.42 s paused; the stage's own
+    CPU during its map_tasks 2.27 -> 1.84 s)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return pickle.loads(data)
+    finally:
+        if enabled:
+            gc.enable()
 
 
 def _stop_pool(pool: ProcessPoolExecutor, grace_seconds: float = 2.0) -> None:
