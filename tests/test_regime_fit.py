@@ -183,8 +183,9 @@ def test_a_false_break_on_a_static_heliostat_is_not_taken(stepped):
     from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
     from heliocal.pipeline.artifacts.store import read_artifact
     from heliocal.pipeline.physics.parameters import HeliostatSpec
-    from heliocal.pipeline.stages.fit_coarse import (EPISODE_REFIT_MIN_IMPROVEMENT,
-                                                     MAX_EPISODE_SHARE, fit_one_heliostat)
+    from heliocal.pipeline.stages.coarse_regimes import (EPISODE_REFIT_MIN_IMPROVEMENT,
+                                                         MAX_EPISODE_SHARE)
+    from heliocal.pipeline.stages.fit_coarse import fit_one_heliostat
 
     hid, work = "SK13", stepped["work"]
     rows = read_artifact(work, MEASUREMENTS, heliostats=[hid]).merge(

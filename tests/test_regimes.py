@@ -201,7 +201,7 @@ def test_static_heliostats_keep_their_fit_and_episode_refits_need_the_margin(cha
     assert with_episodes  # seed 2 has episodes with rows
     for hid in with_episodes:
         # a refit without the episodes replaces the first fit only if it is 20 % better on the
-        # validation rows outside the episodes (fit_coarse.EPISODE_REFIT_MIN_IMPROVEMENT); with
+        # validation rows outside the episodes (coarse_regimes.EPISODE_REFIT_MIN_IMPROVEMENT); with
         # the robust loss these episodes barely pull the fit, so here the first fits stay
         means = []
         for e in (changing_field["errors_before"], changing_field["errors_after"]):

@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import fields
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 import pandas as pd
@@ -24,19 +23,17 @@ from ..artifacts.store import (artifact_present, check_fresh, merge_with_previou
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import FitError, check_choice, check_float, check_int
-from ..models.regime_batch import fit_candidates_batched
-from ..models.regime_fit import (base_preset, candidate_setup, predict_candidates,
-                                 regime_candidates, table_row_parameters)
+from ..models.regime_fit import base_preset, table_row_parameters
 from ..models.regimes import COMPONENTS as REGIME_COMPONENTS
-from ..models.regimes import (detect_field, detect_records, regime_of_rows,
-                              residual_components_mrad, utc_values)
+from ..models.regimes import detect_field
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
 from ..physics.jacobian import residual_and_jacobian
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
-from ..runtime.process_state import one_thread, restores_process_state
+from ..runtime.process_state import restores_process_state
+from .coarse_regimes import REGIME_STEPS, detect_coarse_regimes, follow_regimes
 from .forward import (TIME_COLUMN, attach_coarse_time, chunks_per_worker, fit_coarse_time_split,
                       load_time_labels)
 
@@ -228,108 +225,6 @@ def coarse_row_parameters(selected: dict, timestamps) -> torch.Tensor:
                                 selected["regimes"], timestamps)
 
 
-def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
-                          heliostats: pd.DataFrame, **options) -> pd.DataFrame:
-    """regimes.parquet's rows: :func:`heliocal.pipeline.models.regimes.detect_field` on the
-    selected coarse model's residuals of the training and validation rows (test rows stay
-    unseen), with each heliostat's renovation window as a known break; ``options`` go to
-    :func:`~heliocal.pipeline.models.regimes.detect_regimes`. Each heliostat's detection is its
-    own: the stage runs this on each chunk of heliostats in that chunk's task."""
-    pred = predictions[predictions["selected"]
-                       & predictions["split"].isin(["train", "validation"])]
-    pred = pred[["heliostat_id", "measurement_id", "spot_offset_horizontal_m",
-                 "spot_offset_vertical_m"]]
-    geo = ["timestamp", *[f"{w}_{a}_m" for w in ("target", "heliostat") for a in "enu"]]
-    rows = pred.merge(measurements[["heliostat_id", "measurement_id", *geo]],
-                      on=["heliostat_id", "measurement_id"], how="left")
-    rows["residual_horizontal_mrad"], rows["residual_vertical_mrad"] = residual_components_mrad(
-        rows["spot_offset_horizontal_m"], rows["spot_offset_vertical_m"], _target_distance_m(rows))
-    renovations = {str(h["heliostat_id"]): window for h in heliostats.to_dict("records")
-                   if (window := _renovation(h)) is not None}
-    return detect_field(rows, renovations, **options)
-
-
-def _target_distance_m(rows: pd.DataFrame) -> np.ndarray:
-    """Distance [m] from each row's heliostat to its target (ENU)."""
-    return np.linalg.norm(
-        np.column_stack([rows[f"target_{a}_m"].to_numpy(float) for a in "enu"])
-        - np.column_stack([rows[f"heliostat_{a}_m"].to_numpy(float) for a in "enu"]), axis=1)
-
-
-def _renovation(hrow: Mapping) -> tuple | None:
-    """A heliostat's (start, end) renovation window, None without one."""
-    a, b = hrow.get("renovation_start"), hrow.get("renovation_end")
-    return (a, b) if pd.notna(a) or pd.notna(b) else None
-
-
-def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
-                   results: Sequence[tuple]) -> pd.DataFrame:
-    """:func:`detect_coarse_regimes` of one chunk's heliostats, each from its own rows and
-    first fit's predictions (whose selected model's rows come in the order of its rows, as
-    :func:`_heliostat_outputs` writes them), without the frames and the merge of the field-level
-    function (they cost more than the detection)."""
-    records = []
-    for h, r, (_, pred, _) in zip(hrows, rows, results):
-        sel = pred["selected"].to_numpy(bool)
-        if not np.array_equal(pred["measurement_id"].to_numpy()[sel],
-                              r["measurement_id"].to_numpy()):   # not in row order: the slow way
-            records += detect_coarse_regimes(r, pred, pd.DataFrame([h])).to_dict("records")
-            continue
-        split = r["split"].to_numpy()
-        seen = (split == "train") | (split == "validation")
-        comps = residual_components_mrad(pred["spot_offset_horizontal_m"].to_numpy(float)[sel],
-                                         pred["spot_offset_vertical_m"].to_numpy(float)[sel],
-                                         _target_distance_m(r))
-        records += detect_records(str(h["heliostat_id"]), utc_values(r["timestamp"])[seen],
-                                  r["measurement_id"].to_numpy()[seen],
-                                  np.column_stack(comps)[seen], _renovation(h))
-    return pd.DataFrame(records, columns=[c for c in REGIMES.column_names() if c != "error_mrad"])
-
-
-#: Largest share of a heliostat's rows that detected episodes may hold for them to be left out
-#: of its fit (issue 17: episodes of a few days among months of normal rows).
-MAX_EPISODE_SHARE = 0.25
-
-#: Relative validation improvement (outside episodes) the fit without a heliostat's episodes
-#: needs to replace its first fit: the sweep's margin rule (stages.sweep.MIN_IMPROVEMENT). With
-#: the default robust loss episodes pull a fit little, and a refit without them that is only a
-#: few per cent better on 20 validation rows was as often worse on test (sample_data's BH35:
-#: validation -7 %, test +11 %), so a small gain is not taken.
-EPISODE_REFIT_MIN_IMPROVEMENT = 0.20
-
-
-def _selected_error(predictions: pd.DataFrame, mask: np.ndarray) -> float:
-    """Mean error of the selected model on the rows ``mask`` (in the heliostat's row order);
-    NaN (never better) without such rows."""
-    err = predictions.loc[predictions["selected"], "error_mrad"].to_numpy()
-    return _mean(err[mask]) if mask.any() else float("nan")
-
-
-def _segment_errors(regimes: pd.DataFrame, ids: Sequence[str], rows: Sequence[pd.DataFrame],
-                    results: Sequence[tuple]) -> pd.DataFrame:
-    """One chunk's regimes with ``error_mrad``: the final selected model's mean error (per
-    heliostat its rows and outputs) on the rows of every split between the segment's start and
-    end (an outlier: its own row). In the chunk's task: in the stage's process a merge of the
-    field's predictions with the measurements' times took 0.8 s at 2,000 heliostats."""
-    by_h = {}
-    for hid, r, (_, pred, _) in zip(ids, rows, results):
-        sel = pred["selected"].to_numpy(bool)
-        mids, own = pred["measurement_id"].to_numpy()[sel], r["measurement_id"].to_numpy()
-        t = utc_values(r["timestamp"])   # (the selected rows come in row order; else by id)
-        t = t if np.array_equal(mids, own) else t[pd.Index(own).get_indexer(mids)]
-        by_h[hid] = (t, pred["error_mrad"].to_numpy(np.float64)[sel], mids)
-    starts, ends = utc_values(regimes["start"]), utc_values(regimes["end"])
-    errors = np.full(len(regimes), np.nan)
-    for i, (hid, kind, mid) in enumerate(zip(regimes["heliostat_id"].to_numpy(),
-                                             regimes["kind"].to_numpy(),
-                                             regimes["measurement_id"].to_numpy())):
-        if hid in by_h:
-            t, err, mids = by_h[hid]
-            rows = (mids == mid) if kind == "outlier" else (t >= starts[i]) & (t <= ends[i])
-            errors[i] = _mean(err[rows])
-    return regimes.assign(error_mrad=errors)
-
-
 #: Options of ``fit-coarse`` that decide a fit (its provenance records them; the defaults of
 #: :func:`run_fit_coarse` stand in for a file written before an option existed).
 FIT_OPTIONS = {"solver": "batched", "loss": "soft_l1", "f_scale_mrad": 1.0, "robust_start": "auto"}
@@ -342,23 +237,6 @@ def coarse_fit_options(workdir: str | Path) -> dict:
 
     recorded = read_provenance(artifact_path(workdir, COARSE_PARAMS)).get("options") or {}
     return {k: recorded.get(k, default) for k, default in FIT_OPTIONS.items()}
-
-
-#: What ``fit-coarse`` does about regimes (``run_fit_coarse(regimes=...)``): ``candidates`` (the
-#: default: detection, the refit without episodes, the regime-aware candidates), ``detect``
-#: (detection and the refit only) or ``off`` (the stage before issue 17; for benchmarks).
-REGIME_STEPS = ("candidates", "detect", "off")
-
-
-def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
-    """``MeasurementBatch.from_frame`` of each frame, converted in one pass over the columns (for
-    small frames the per-column overhead costs more than the rows); views of one set of tensors."""
-    if not frames:
-        return []
-    whole = MeasurementBatch.from_frame(pd.concat(list(frames), ignore_index=True))
-    ends = np.cumsum([len(f) for f in frames])
-    return [MeasurementBatch(*(getattr(whole, f.name)[e - len(df):e] for f in fields(whole)))
-            for e, df in zip(ends, frames)]
 
 
 def _fit_chunk(solver: str, hrows: Sequence[dict], rows: Sequence[pd.DataFrame], presets,
@@ -377,83 +255,15 @@ def _fit_task(task) -> tuple:
     """One chunk of heliostats (batched: one type; scipy: one heliostat), a picklable task for
     :func:`~heliocal.pipeline.runtime.parallel.map_tasks`. The presets' fits, then, unless
     ``regime_steps`` is ``off``, what follows from the regimes of their residuals
-    (:func:`_follow_regimes`), in the task, so that a heliostat's rows and frames go to a worker
-    once. Returns (the chunk's regimes.parquet rows or None, per heliostat (outputs,
+    (:func:`.coarse_regimes.follow_regimes`), in the task, so that a heliostat's rows and frames
+    go to a worker once. Returns (the chunk's regimes.parquet rows or None, per heliostat (outputs,
     regime_params rows, episode flags or None, refitted, log lines))."""
     solver, hrows, rows, presets, kwargs, regime_steps = task
     results, starts = _fit_chunk(solver, hrows, rows, presets, kwargs)
     if regime_steps == "off":
         return None, [(res, [], None, False, []) for res in results]
-    return _follow_regimes(solver, hrows, rows, presets, kwargs, results, starts, regime_steps)
-
-
-def _follow_regimes(solver, hrows, rows, presets, kwargs, results, starts,
-                    regime_steps) -> tuple:
-    """Regimes of each heliostat of a chunk on its first fit's residuals; heliostats with
-    episodes fitted again without the episodes' rows (kept by the sweep's margin); then the
-    regime-aware candidates of the heliostats with a break (``regime_steps == "candidates"``).
-    Returns :func:`_fit_task`'s (regimes, per heliostat tuples)."""
-    ids = [str(h["heliostat_id"]) for h in hrows]
-    regimes = _chunk_regimes(hrows, rows, results)
-    rows, results, starts = list(rows), list(results), list(starts)
-    flags_of: list = [None] * len(ids)
-    notes: list[list[str]] = [[] for _ in ids]
-    refit = []
-    with_episode = set(regimes.loc[regimes["kind"] == "episode", "heliostat_id"])
-    for k, hid in enumerate(ids):
-        if hid not in with_episode:
-            continue
-        flags = regime_of_rows(regimes, hid, rows[k]["timestamp"])["episode"].to_numpy()
-        # episodes are short exceptions; when they hold a large share of the rows the heliostat
-        # is not "a healthy one with episodes" and its fit stays as it is
-        if flags.any() and flags.mean() <= MAX_EPISODE_SHARE:
-            rows[k] = rows[k].assign(episode=flags)
-            flags_of[k] = flags
-            refit.append(k)
-    if refit:
-        again, again_starts = _fit_chunk(solver, [hrows[k] for k in refit],
-                                         [rows[k] for k in refit], presets, kwargs)
-        for k, res, start in zip(refit, again, again_starts):
-            # the refit is a candidate: kept only if it beats the first fit by the sweep's margin
-            # on the validation rows outside the episodes (the rows both fits are meant for)
-            ok = (rows[k]["split"].to_numpy() == "validation") & ~flags_of[k]
-            old, new = (_selected_error(r[1], ok) for r in (results[k], res))
-            if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old:
-                results[k], starts[k] = res, start
-            else:
-                notes[k].append(f"{ids[k]}: the fit without its episodes is not 20 % better on "
-                                f"validation ({new:.3f} vs {old:.3f} mrad); the first fit is kept")
-    # regime-aware candidates (per-regime offsets, drift) of heliostats with a break: each
-    # replaces the fit above only if it beats it by the same margin on validation
-    breaks = set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]), "heliostat_id"])
-    of = dict(tuple(regimes.groupby("heliostat_id", sort=False)))
-    broken = ([k for k, hid in enumerate(ids) if hid in breaks]
-              if regime_steps == "candidates" else [])
-    specs = {k: HeliostatSpec.from_row(pd.Series(hrows[k])) for k in broken}
-    batches = dict(zip(broken, _batches([rows[k] for k in broken])))
-    setups = {k: candidate_setup(ids[k], rows[k], of[ids[k]], results[k], MAX_EPISODE_SHARE,
-                                 batches[k]) for k in broken}
-    fits, frames = {}, {}
-    if solver == "batched" and broken:   # the chunk is of one type: one program for all
-        with one_thread(blas=True):
-            fitted = fit_candidates_batched([specs[k] for k in broken],
-                                            [setups[k] for k in broken], loss=kwargs["loss"],
-                                            f_scale_mrad=kwargs["f_scale_mrad"],
-                                            starts=[starts[k] for k in broken])
-            predicted = predict_candidates([specs[k] for k in broken],
-                                           [setups[k] for k in broken], fitted)
-        fits, frames = dict(zip(broken, fitted)), dict(zip(broken, predicted))
-    out = []
-    for k, hid in enumerate(ids):
-        regime_rows: list = []
-        if k in setups:
-            results[k], regime_rows = regime_candidates(
-                hid, specs[k], rows[k], of[hid], results[k], loss=kwargs["loss"],
-                f_scale_mrad=kwargs["f_scale_mrad"], margin=EPISODE_REFIT_MIN_IMPROVEMENT,
-                max_episode_share=MAX_EPISODE_SHARE, setup=setups[k], fits=fits.get(k),
-                frames=frames.get(k))
-        out.append((results[k], regime_rows, flags_of[k], k in refit, notes[k]))
-    return _segment_errors(regimes, ids, rows, results), out
+    return follow_regimes(_fit_chunk, solver, hrows, rows, presets, kwargs, results, starts,
+                          regime_steps)
 
 
 def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
