@@ -51,7 +51,7 @@ def run_one(work: Path, sources, properties, method: str, before: bool) -> tuple
     from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, REGIMES
     from heliocal.pipeline.artifacts.store import read_artifact
     from heliocal.pipeline.io.staged import IngestOptions
-    from heliocal.pipeline.stages import fit_coarse
+    from heliocal.pipeline.stages import coarse_regimes, fit_coarse
     from heliocal.pipeline.stages.ingest import run_ingest
     from heliocal.pipeline.stages.split import run_split
 
@@ -59,8 +59,8 @@ def run_one(work: Path, sources, properties, method: str, before: bool) -> tuple
         run_ingest(sources, work, IngestOptions(properties=properties) if properties else IngestOptions())
         run_split(work, method=method)
     if before:
-        with mock.patch.object(fit_coarse, "regime_of_rows", _no_episodes), \
-                mock.patch.object(fit_coarse, "regime_candidates", _plain_only):
+        with mock.patch.object(coarse_regimes, "regime_of_rows", _no_episodes), \
+                mock.patch.object(coarse_regimes, "regime_candidates", _plain_only):
             fit_coarse.run_fit_coarse(work)
     else:
         fit_coarse.run_fit_coarse(work)

@@ -138,7 +138,7 @@ def changing_field(tmp_path_factory):
     from heliocal.pipeline.io.staged import IngestOptions
     from heliocal.pipeline.models.changes import Changes
     from heliocal.pipeline.models.simulator import simulate_field
-    from heliocal.pipeline.stages import fit_coarse
+    from heliocal.pipeline.stages import coarse_regimes, fit_coarse
     from heliocal.pipeline.stages.ingest import run_ingest
     from heliocal.pipeline.stages.simulate import write_field
     from heliocal.pipeline.stages.split import run_split
@@ -163,7 +163,7 @@ def changing_field(tmp_path_factory):
 
     no_episodes = lambda regimes, hid, t: pd.DataFrame(  # noqa: E731 - the fit before issue 17
         {"regime": 0, "episode": False}, index=t.index)
-    with mock.patch.object(fit_coarse, "regime_of_rows", no_episodes):
+    with mock.patch.object(coarse_regimes, "regime_of_rows", no_episodes):
         fit_coarse.run_fit_coarse(work)
     before, errors_before = params(), errors()
     fit_coarse.run_fit_coarse(work)

@@ -151,12 +151,12 @@ def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
             for e, df in zip(ends, frames)]
 
 
-def follow_regimes(refit, solver, hrows, rows, presets, kwargs, results, starts,
+def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, starts,
                    regime_steps) -> tuple:
     """Regimes of each heliostat of a chunk on its first fit's residuals; heliostats with
     episodes fitted again without the episodes' rows (kept by the sweep's margin); then the
     regime-aware candidates of the heliostats with a break (``regime_steps == "candidates"``).
-    ``refit`` is fit_coarse's ``_fit_chunk`` (the presets' fits of some of the chunk's
+    ``fit_again`` is fit_coarse's ``_fit_chunk`` (the presets' fits of some of the chunk's
     heliostats). Returns fit_coarse's ``_fit_task``'s (regimes, per heliostat tuples)."""
     ids = [str(h["heliostat_id"]) for h in hrows]
     regimes = _chunk_regimes(hrows, rows, results)
@@ -176,8 +176,8 @@ def follow_regimes(refit, solver, hrows, rows, presets, kwargs, results, starts,
             flags_of[k] = flags
             refit.append(k)
     if refit:
-        again, again_starts = refit(solver, [hrows[k] for k in refit],
-                                         [rows[k] for k in refit], presets, kwargs)
+        again, again_starts = fit_again(solver, [hrows[k] for k in refit],
+                                        [rows[k] for k in refit], presets, kwargs)
         for k, res, start in zip(refit, again, again_starts):
             # the refit is a candidate: kept only if it beats the first fit by the sweep's margin
             # on the validation rows outside the episodes (the rows both fits are meant for)
