@@ -49,6 +49,7 @@ from scipy.optimize import least_squares
 from ..errors import check_choice
 from ..physics.jacobian import forward_state, residual_and_jacobian
 from ..physics.kinematics import forward_kinematics
+from ..physics.metrics import mean_or_nan as _mean
 from ..physics.metrics import measured_normal
 from ..physics.parameters import PARAMETER_INDEX, PARAMETER_NAMES, HeliostatSpec
 from ..runtime.process_state import one_thread
@@ -436,10 +437,6 @@ def _stamp(seconds: float) -> pd.Timestamp:
 # ------------------------------------------------------------------------------------------------
 # fit-coarse's candidates of one heliostat
 # ------------------------------------------------------------------------------------------------
-def _mean(values: np.ndarray) -> float:
-    return float(np.mean(values)) if len(values) else float("nan")
-
-
 def _days(times: np.ndarray) -> int:
     """Distinct UTC days of datetime64 ``times`` (NaT not counted)."""
     return len(np.unique(times[~np.isnat(times)].astype("datetime64[D]")))

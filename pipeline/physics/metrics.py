@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 
+import numpy as np
 import torch
 
 from .actuators import real_tensor
@@ -31,6 +32,7 @@ __all__ = [
     "error_mrad",
     "beam_error_mrad",
     "spot_offset_m",
+    "mean_or_nan",
 ]
 
 
@@ -190,3 +192,9 @@ def spot_offset_m(sun_vector, predicted_normal, concentrator_position, focal_spo
     horizontal = _dot(diff, horizontal_axis)
     vertical = _dot(diff, vertical_axis)
     return horizontal, vertical, torch.sqrt(horizontal**2 + vertical**2)
+
+
+def mean_or_nan(values) -> float:
+    """Mean of an array of errors (e.g. ``error_mrad`` of a split's rows); NaN, without numpy's
+    empty-slice warning, when there are none (a heliostat without validation rows)."""
+    return float(np.mean(values)) if len(values) else float("nan")

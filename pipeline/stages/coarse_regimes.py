@@ -20,15 +20,12 @@ from ..models.regime_batch import fit_candidates_batched
 from ..models.regime_fit import candidate_setup, predict_candidates, regime_candidates
 from ..models.regimes import (detect_field, detect_records, regime_of_rows,
                               residual_components_mrad, utc_values)
+from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import HeliostatSpec
 from ..runtime.process_state import one_thread
 
 __all__ = ["detect_coarse_regimes", "follow_regimes", "REGIME_STEPS", "MAX_EPISODE_SHARE",
            "EPISODE_REFIT_MIN_IMPROVEMENT"]
-
-
-def _mean(values: np.ndarray) -> float:
-    return float(np.mean(values)) if len(values) else float("nan")
 
 
 def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,

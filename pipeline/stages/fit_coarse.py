@@ -29,6 +29,7 @@ from ..models.regimes import detect_field
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
                              data_degeneracy, fit_presets, predict)
 from ..physics.jacobian import residual_and_jacobian
+from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
@@ -50,10 +51,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("heliocal.coarse")
-
-def _mean(values: np.ndarray) -> float:
-    return float(np.mean(values)) if len(values) else float("nan")
-
 
 # ------------------------------------------------------------------------------------------------
 # the stage

@@ -44,6 +44,7 @@ from ..models.config import ensemble_seeds
 from ..models.pretrained import fit_pretrained
 from ..models.training import build_problem, ensemble_errors_mrad, stack_problems, take_rows
 from ..physics.metrics import error_mrad, measured_normal
+from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec, nominal_parameters
 from ..runtime.parallel import map_tasks
 
@@ -152,10 +153,6 @@ def chunks_per_worker(solver: str) -> int:
     one at a time up to 16 per worker (groups of four left one worker idle for seconds at the
     end of a 2,000-heliostat field); scipy's tasks are single heliostats, grouped by four."""
     return 16 if solver == "batched" else 4
-
-
-def _mean(values: np.ndarray) -> float:
-    return float(np.mean(values)) if len(values) else float("nan")
 
 
 def attach_coarse_time(params: pd.DataFrame, preds: pd.DataFrame, fits: dict,
