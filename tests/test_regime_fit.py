@@ -248,6 +248,36 @@ def test_fit_coarse_hands_the_batched_candidates_their_start(stepped):
     assert _given_start(starts[0], outside) is None
 
 
+def test_detection_and_segment_errors_do_not_depend_on_the_prediction_rows_order(stepped):
+    """fit-coarse's chunk task reads the selected model's predictions in the order of the
+    heliostat's rows (coarse_regimes._selected_rows); predictions in another order take the
+    slower paths (the field-level detection, the segment errors by measurement id). Reference:
+    the in-order run itself: the same regimes and segment errors, compared exactly (the same
+    rows, only their order differs), and the heliostat has breaks to compare."""
+    from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.stages.coarse_regimes import (_chunk_regimes, _segment_errors,
+                                                         _selected_rows)
+    from heliocal.pipeline.stages.fit_coarse import _fit_chunk
+
+    hid, work = "SI13", stepped["work"]
+    rows = read_artifact(work, MEASUREMENTS, heliostats=[hid]).merge(
+        stepped["split"][["measurement_id", "split"]], on="measurement_id")
+    h = read_artifact(work, HELIOSTATS, heliostats=[hid]).iloc[0].to_dict()
+    results, _ = _fit_chunk("batched", [h], [rows], ("static-6",),
+                            {"loss": "soft_l1", "f_scale_mrad": 1.0, "robust_start": "auto"})
+    params, pred, summary = results[0]
+    shuffled = pred.iloc[np.random.default_rng(0).permutation(len(pred))].reset_index(drop=True)
+    assert _selected_rows(pred, rows)[2] and not _selected_rows(shuffled, rows)[2]
+    in_order = _chunk_regimes([h], [rows], results)
+    other = _chunk_regimes([h], [rows], [(params, shuffled, summary)])
+    assert (in_order["cause"] == "detected").sum() >= 2
+    pd.testing.assert_frame_equal(other, in_order)
+    pd.testing.assert_frame_equal(
+        _segment_errors(in_order, [hid], [rows], [(params, shuffled, summary)]),
+        _segment_errors(in_order, [hid], [rows], results))
+
+
 def test_aim_uses_the_latest_regime(stepped):
     """aim's steps put the beam of the heliostat's true latest geometry (after both steps) on
     the aim point to within 0.25 mrad (the latest regime's parameters rest on about 100 rows

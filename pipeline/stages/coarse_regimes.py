@@ -62,6 +62,16 @@ def _renovation(hrow: Mapping) -> tuple | None:
     return (a, b) if pd.notna(a) or pd.notna(b) else None
 
 
+def _selected_rows(pred: pd.DataFrame, rows: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The selected model's rows in a heliostat's predictions ``pred``: their mask, their
+    measurement ids, and whether they come in the order of its ``rows`` (as fit_coarse's
+    ``_heliostat_outputs`` and ``regime_candidates`` write them; the detection and the segment
+    errors take the rows' columns as they are then)."""
+    sel = pred["selected"].to_numpy(bool)
+    mids = pred["measurement_id"].to_numpy()[sel]
+    return sel, mids, np.array_equal(mids, rows["measurement_id"].to_numpy())
+
+
 def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
                    results: Sequence[tuple]) -> pd.DataFrame:
     """:func:`detect_coarse_regimes` of one chunk's heliostats, each from its own rows and
@@ -70,9 +80,8 @@ def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
     field-level function (they cost more than the detection)."""
     records = []
     for h, r, (_, pred, _) in zip(hrows, rows, results):
-        sel = pred["selected"].to_numpy(bool)
-        if not np.array_equal(pred["measurement_id"].to_numpy()[sel],
-                              r["measurement_id"].to_numpy()):   # not in row order: the slow way
+        sel, _, in_order = _selected_rows(pred, r)
+        if not in_order:   # the slow way
             records += detect_coarse_regimes(r, pred, pd.DataFrame([h])).to_dict("records")
             continue
         split = r["split"].to_numpy()
@@ -113,10 +122,9 @@ def _segment_errors(regimes: pd.DataFrame, ids: Sequence[str], rows: Sequence[pd
     field's predictions with the measurements' times took 0.8 s at 2,000 heliostats."""
     by_h = {}
     for hid, r, (_, pred, _) in zip(ids, rows, results):
-        sel = pred["selected"].to_numpy(bool)
-        mids, own = pred["measurement_id"].to_numpy()[sel], r["measurement_id"].to_numpy()
-        t = utc_values(r["timestamp"])   # (the selected rows come in row order; else by id)
-        t = t if np.array_equal(mids, own) else t[pd.Index(own).get_indexer(mids)]
+        sel, mids, in_order = _selected_rows(pred, r)
+        t = utc_values(r["timestamp"])   # (in row order, else by id)
+        t = t if in_order else t[pd.Index(r["measurement_id"].to_numpy()).get_indexer(mids)]
         by_h[hid] = (t, pred["error_mrad"].to_numpy(np.float64)[sel], mids)
     starts, ends = utc_values(regimes["start"]), utc_values(regimes["end"])
     errors = np.full(len(regimes), np.nan)
