@@ -78,6 +78,28 @@ def test_growth_within_tolerance_and_improvements_pass():
     assert compare_metrics(cur, BASE, None) == []
 
 
+def test_quantile_tolerance_widens_when_few_rows_lie_beyond_it():
+    # p95 of 20 test rows: k = 20 * 0.05 = 1 row beyond it, so the base tolerance
+    # max(10 % of 2.0, 0.1) = 0.2 mrad is widened by sqrt(5 / 1): 0.4472 mrad
+    tol = Tolerances()
+    assert tol.allowed("p95_error_mrad", 2.0, 20) == pytest.approx(0.2 * 5 ** 0.5)
+    # from 100 rows on (k = 5) the base tolerance holds; the median reaches it at 10 rows
+    assert tol.allowed("p95_error_mrad", 2.0, 100) == pytest.approx(0.2)
+    assert tol.allowed("p95_error_mrad", 2.0, 400) == pytest.approx(0.2)
+    assert tol.allowed("median_error_mrad", 2.0, 10) == pytest.approx(0.2)
+    assert tol.allowed("median_error_mrad", 2.0, 4) == pytest.approx(0.2 * (5 / 2) ** 0.5)
+    # the mean's tolerance does not depend on n
+    assert tol.allowed("mean_error_mrad", 2.0, 4) == pytest.approx(0.1)
+    within = _with("heliostats/H1/models/static-20/splits/test/p95_error_mrad", 2.44)
+    assert compare_metrics(within, BASE, None) == []
+    beyond = _with("heliostats/H1/models/static-20/splits/test/p95_error_mrad", 2.46)
+    assert compare_metrics(beyond, BASE, None) == [
+        "H1 / static-20 / test: p95_error_mrad 2.0000 -> 2.4600 (+0.4600 mrad, +23.0 %; "
+        "allowed +0.4472)",
+        "H1 / selected (static-20) / test: p95_error_mrad 2.0000 -> 2.4600 (+0.4600 mrad, "
+        "+23.0 %; allowed +0.4472)"]
+
+
 def test_training_error_is_not_checked():
     cur = _with("heliostats/H1/models/static-20/splits/train/mean_error_mrad", 5.0)
     assert compare_metrics(cur, BASE, None) == []
@@ -89,7 +111,9 @@ def test_selected_model_is_compared_by_accuracy_not_name():
     # static-6 is worse on validation (1.1 vs 0.8) and test (1.3 vs 1.0)
     assert ("H1 / selected (static-20 -> static-6) / test: mean_error_mrad 1.0000 -> 1.3000 "
             "(+0.3000 mrad, +30.0 %; allowed +0.0500)") in diffs
-    assert len(diffs) == 6  # mean, median, p95 on validation and test
+    # mean, median, p95 on validation and test, but the validation p95 (10 rows: half a row
+    # beyond it, tolerance max(10 % of 1.6, 0.1) * sqrt(5 / 0.5) = 0.506 mrad) grew by 0.4 only
+    assert len(diffs) == 5
     # a different winner with the same accuracy is fine
     cur["heliostats"]["H1"]["models"]["static-6"] = copy.deepcopy(
         BASE["heliostats"]["H1"]["models"]["static-20"])

@@ -9,7 +9,8 @@ each; an empty list means the run is within tolerance. What is checked (see docs
 * **errors may not grow beyond tolerance** on the checked splits (validation and test): the mean
   error_mrad by more than ``max(mean_rel * baseline, mean_abs_mrad)`` (default 5 % or 0.05 mrad),
   the median and 95th percentile by more than ``max(quantile_rel * baseline, quantile_abs_mrad)``
-  (default 10 % or 0.10 mrad); this holds per heliostat for every model and for the *selected*
+  (default 10 % or 0.10 mrad), a quantile's widened by ``sqrt(5 / k)`` when only k < 5 rows of
+  the split lie beyond it (:meth:`Tolerances.allowed`); this holds per heliostat for every model and for the *selected*
   model (whose name may change: a different preset or hybrid winning is not by itself a
   regression, its accuracy is what is compared). Lower errors always pass.
 
@@ -46,16 +47,30 @@ class Tolerances:
     mean_abs_mrad: float = 0.05  #: absolute growth always allowed for the mean error [mrad]
     quantile_rel: float = 0.10  #: relative growth allowed for median and p95 [1]
     quantile_abs_mrad: float = 0.10  #: absolute growth always allowed for median and p95 [mrad]
+    #: rows beyond a quantile from which on its tolerance is ``quantile_rel``/``quantile_abs_mrad``
+    tail_rows: float = 5.0
     splits: tuple[str, ...] = ("validation", "test")  #: splits whose errors are checked
 
-    def allowed(self, stat: str, baseline: float) -> float:
+    def allowed(self, stat: str, baseline: float, n: int | None = None) -> float:
+        """Growth of ``stat`` allowed over ``baseline`` [mrad] on a split of ``n`` rows.
+
+        A quantile rests on the k = n (1 - q) rows beyond it, and its sampling error grows as
+        1 / sqrt(k): from :attr:`tail_rows` rows on the quantile tolerance holds as it is (the
+        median from 10 rows, p95 from 100); below, it is widened by sqrt(tail_rows / k). The
+        p95 of 20 validation rows is one row's error (k = 1, 2.24x the base tolerance): a
+        network trained on another CPU, whose rounding moves its trajectory as another seed
+        does (docs/hybrid.md, "Training precision"), moved that one row of sample_data's BH35
+        by 11 % while its mean moved by 1.5 %."""
         if stat == "mean_error_mrad":
             return max(self.mean_rel * abs(baseline), self.mean_abs_mrad)
-        return max(self.quantile_rel * abs(baseline), self.quantile_abs_mrad)
+        base = max(self.quantile_rel * abs(baseline), self.quantile_abs_mrad)
+        beyond = None if not n else n * (1.0 - _QUANTILES[stat])
+        return base if beyond is None else base * max(1.0, math.sqrt(self.tail_rows / beyond))
 
 
 DEFAULT_TOLERANCES = Tolerances()
 _STATS = ("mean_error_mrad", "median_error_mrad", "p95_error_mrad")
+_QUANTILES = {"median_error_mrad": 0.5, "p95_error_mrad": 0.95}
 
 
 def _exact(label: str, cur, base, out: list[str]) -> None:
@@ -80,7 +95,7 @@ def _errors(label: str, cur: Mapping, base: Mapping, tol: Tolerances, out: list[
         if c is None or (isinstance(c, float) and math.isnan(c)):
             out.append(f"{label}: {stat} {b:.4f} -> missing")
             continue
-        allowed = tol.allowed(stat, b)
+        allowed = tol.allowed(stat, b, base.get("n"))
         if c - b > allowed + 1e-12:
             rel = f", {100 * (c - b) / b:+.1f} %" if b else ""
             out.append(f"{label}: {stat} {b:.4f} -> {c:.4f} ({c - b:+.4f} mrad{rel}; "
@@ -175,7 +190,9 @@ def format_report(diffs: list[str], current: str, baseline: str) -> str:
     lines.append(f"tolerances: mean error may grow by max({DEFAULT_TOLERANCES.mean_rel:.0%}, "
                  f"{DEFAULT_TOLERANCES.mean_abs_mrad} mrad), median and p95 by "
                  f"max({DEFAULT_TOLERANCES.quantile_rel:.0%}, "
-                 f"{DEFAULT_TOLERANCES.quantile_abs_mrad} mrad) on "
+                 f"{DEFAULT_TOLERANCES.quantile_abs_mrad} mrad), widened by sqrt("
+                 f"{DEFAULT_TOLERANCES.tail_rows:g} / k) where k < {DEFAULT_TOLERANCES.tail_rows:g} "
+                 "rows lie beyond the quantile, on "
                  f"{' and '.join(DEFAULT_TOLERANCES.splits)}; counts must match exactly. If the "
                  "change is intended, regenerate the baseline (docs/report.md).")
     return "\n".join(lines)
