@@ -372,11 +372,19 @@ def test_case_6_fit_hybrid_and_sweep_for_one_heliostat_keep_the_others(wd, runne
         pd.testing.assert_frame_equal(old, kept.reset_index(drop=True), obj=s.name)
 
 
-def test_split_knn_has_no_partial_run(runner):
+def test_split_knn_has_no_partial_run(runner, tmp_path):
     """split-knn splits every heliostat at once (it has no --heliostat option), so it has nothing
-    to merge."""
+    to merge: its help lists its options (docs/split.md) but not --heliostat, and --heliostat is
+    refused as a usage error (click's exit code 2) before anything is written."""
     result = _run(runner, "split-knn", "--help")
+    assert result.exit_code == 0, (result.exit_code, result.stdout, result.stderr)
+    for option in ("--workdir", "--method", "--n-test", "--n-val", "--n-train", "--seed"):
+        assert option in result.stdout, option
     assert "--heliostat" not in result.stdout
+    refused = _run(runner, "split-knn", "--workdir", tmp_path, "--heliostat", "BE36")
+    assert refused.exit_code == 2, (refused.exit_code, refused.stdout, refused.stderr)
+    assert "No such option: --heliostat" in refused.stderr
+    assert os.listdir(tmp_path) == []
 
 
 # ------------------------------------------------------------------------------------------------
