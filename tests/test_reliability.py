@@ -40,6 +40,7 @@ from heliocal.pipeline.artifacts.store import (SCHEMA_VERSION, check_fresh, read
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
 from heliocal.pipeline.artifacts.schemas import SPLIT
 from heliocal.pipeline.artifacts.workdir_lock import LOCK_FILENAME, lock_holder
+from conftest import copy_of
 from workdir_tools import recommit
 
 #: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
@@ -82,23 +83,11 @@ def _set_schema_version(path: Path, version: int) -> None:
     recommit(path.parent, path.name)
 
 
-@pytest.fixture(scope="module")
-def split_workdir(tmp_path_factory) -> Path:
-    """ingest sample_data/juelich/paint + split-knn (defaults, seed 0); tests work on copies."""
-    from typer.testing import CliRunner
-
-    workdir = tmp_path_factory.mktemp("split")
-    runner = CliRunner()
-    for args in (["ingest", PAINT, "--workdir", workdir], ["split-knn", "--workdir", workdir]):
-        result = _run(runner, *args)
-        assert result.exit_code == 0, result.stderr
-    return workdir
-
-
 @pytest.fixture
-def workdir(split_workdir, tmp_path) -> Path:
-    """A private copy of the ingested and split work directory."""
-    return Path(shutil.copytree(split_workdir, tmp_path / "run"))
+def workdir(sample_split, tmp_path) -> Path:
+    """A private copy of sample_data/juelich/paint ingested and split (defaults, seed 0; the
+    session's shared ``sample_split``, tests/conftest.py)."""
+    return copy_of(sample_split, tmp_path / "run")
 
 
 # ------------------------------------------------------------------------------------------------

@@ -52,6 +52,7 @@ from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECT
 from heliocal.pipeline.artifacts.schemas import SPLIT
 from heliocal.pipeline.artifacts.manifests import load_manifest
 from heliocal.pipeline.artifacts.transaction import transaction
+from conftest import copy_of
 from workdir_tools import fingerprint, recommit, sha256
 
 #: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
@@ -87,14 +88,13 @@ def _one_line_error(result) -> str:
 
 
 @pytest.fixture(scope="module")
-def fitted(tmp_path_factory) -> Path:
-    """ingest (3 heliostats), split-knn, fit-coarse static-6 and fit-hybrid (BE36)."""
+def fitted(sample_split, tmp_path_factory) -> Path:
+    """ingest (3 heliostats) and split-knn (the session's ``sample_split``, copied), fit-coarse
+    static-6 and fit-hybrid (BE36)."""
     from typer.testing import CliRunner
 
     runner = CliRunner()
-    wd = tmp_path_factory.mktemp("txn") / "wd"
-    _ok(runner, "ingest", PAINT, "--workdir", wd)
-    _ok(runner, "split-knn", "--workdir", wd)
+    wd = copy_of(sample_split, tmp_path_factory.mktemp("txn") / "wd")
     _ok(runner, "fit-coarse", "--workdir", wd, *COARSE)
     _ok(runner, "fit-hybrid", "--workdir", wd, "--heliostat", "BE36", *HYBRID)
     return wd
