@@ -42,15 +42,25 @@ SAMPLE_PAINT = REPO / "sample_data" / "juelich" / "paint"
 # ------------------------------------------------------------------------------------------------
 # scheduling under pytest-xdist
 # ------------------------------------------------------------------------------------------------
+def _group(item) -> str:
+    mark = item.get_closest_marker("xdist_group")
+    return str(mark.args[0] if mark.args else mark.kwargs.get("name", "default"))
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     """Every test without an ``xdist_group`` mark joins the group of its module, so that
     ``--dist loadgroup`` sends a module to one worker (its module-scoped fixtures are then built
     once, not once per worker); a test may name another group to share a worker across modules.
-    Without xdist the mark means nothing."""
+    In a worker process the groups that hold slow tests come first (in file order), so that the
+    long ones start early and the short ones fill in at the end (``--no-loadscope-reorder`` keeps
+    this order). Without xdist the mark means nothing and the order is pytest's."""
     for item in items:
         if item.get_closest_marker("xdist_group") is None:
             item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        slow = {_group(item) for item in items if item.get_closest_marker("slow")}
+        items.sort(key=lambda item: _group(item) not in slow)  # stable: file order within
 
 
 # ------------------------------------------------------------------------------------------------

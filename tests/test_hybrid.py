@@ -327,6 +327,7 @@ def test_batched_training_equals_single_member_trainings():
         assert float((err_s[0] - err_b[m]).abs().max()) < 1e-9
 
 
+@pytest.mark.slow
 def test_dynamic_monthly_tilt_is_learned(workdir):
     """Issue: with a dynamic disturbance the hybrid's test error is at most 0.7 x the coarse."""
     _, summary = workdir
@@ -364,6 +365,7 @@ def test_static_heliostat_hybrid_stays_at_coarse(training_dtype):
     assert hyb[test].mean() <= 1.03 * coarse[test].mean()
 
 
+@pytest.mark.slow
 def test_reproducible_with_seed(workdir):
     wd, _ = workdir
     cfg, layers = load_model(wd, "hybrid", HID)
@@ -376,6 +378,7 @@ def test_reproducible_with_seed(workdir):
 # --------------------------------------------------------------------------------------------
 # stage, artifacts, CLI
 # --------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_predictions_artifact_has_coarse_columns_and_modes(workdir, runner):
     wd, _ = workdir
     assert HYBRID_PREDICTIONS.column_names() == COARSE_PREDICTIONS.column_names()
@@ -393,6 +396,7 @@ def test_predictions_artifact_has_coarse_columns_and_modes(workdir, runner):
     assert cfg["sizes"][1:-1] == [2] * 14 and cfg["mode"] == "nn-only"
 
 
+@pytest.mark.slow
 def test_cli_table_and_missing_coarse_error(workdir, runner, tmp_path):
     wd, _ = workdir
     res = runner.invoke(app, ["fit-hybrid", "-w", str(wd), "--max-epochs", "5", "--fourier-bands",
@@ -407,6 +411,7 @@ def test_cli_table_and_missing_coarse_error(workdir, runner, tmp_path):
     run_fit_hybrid(wd, mode="hybrid", seed=0, config=FAST)
 
 
+@pytest.mark.slow
 def test_aim_round_trip(workdir, runner):
     """The forward model at the returned steps puts the beam on the aim point (0.01 mrad)."""
     wd, _ = workdir
@@ -444,6 +449,7 @@ def test_aim_round_trip(workdir, runner):
     assert abs(c["axis_1_steps"] - out["axis_1_steps"]) + abs(c["axis_2_steps"] - out["axis_2_steps"]) > 1
 
 
+@pytest.mark.slow
 def test_aim_errors_are_one_line(workdir, runner):
     wd, _ = workdir
     res = runner.invoke(app, ["aim", "-w", str(wd), "--heliostat", HID, "--sun-azimuth", "10",

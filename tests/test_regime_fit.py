@@ -135,6 +135,7 @@ def _selected_test_error(predictions, hid):
     return float(p.loc[p["split"] == "test", "error_mrad"].mean()), str(p["model"].iloc[0])
 
 
+@pytest.mark.slow
 def test_two_steps_within_the_noise_floor(stepped):
     """Issue 17, item 5: on the heliostat with two steps the regime-aware fit's test error is
     within 1.2x the noise floor and the plain fit's is not. The floor is the mean error_mrad of
@@ -160,6 +161,7 @@ def test_two_steps_within_the_noise_floor(stepped):
     assert aware <= 1.2 * floor < plain, (aware, floor, plain)
 
 
+@pytest.mark.slow
 def test_static_heliostats_keep_their_selection_and_errors(stepped):
     """Heliostats without changes have no break (detection), so no candidate is fitted: their
     coarse_params and coarse_predictions are those of the fit without candidates."""
@@ -176,6 +178,7 @@ def test_static_heliostats_keep_their_selection_and_errors(stepped):
     assert stepped["summary"]["regimes"]["regime_models_selected"] == ["SI13"]
 
 
+@pytest.mark.slow
 def test_a_false_break_on_a_static_heliostat_is_not_taken(stepped):
     """The margin guards a heliostat without changes that gets a break anyway (a false alarm,
     a renovation that changed nothing): the candidates are fitted on the two 'regimes' but are
@@ -212,6 +215,7 @@ def test_a_false_break_on_a_static_heliostat_is_not_taken(stepped):
                                   selected_before.reset_index(drop=True))
 
 
+@pytest.mark.slow
 def test_fit_coarse_hands_the_batched_candidates_their_start(stepped):
     """The batched candidates start from the Jacobian fit-coarse computed at the plain fit on
     the plain fit's training rows (for its degeneracy check), not from an evaluation of their
@@ -248,6 +252,7 @@ def test_fit_coarse_hands_the_batched_candidates_their_start(stepped):
     assert _given_start(starts[0], outside) is None
 
 
+@pytest.mark.slow
 def test_detection_and_segment_errors_do_not_depend_on_the_prediction_rows_order(stepped):
     """fit-coarse's chunk task reads the selected model's predictions in the order of the
     heliostat's rows (coarse_regimes._selected_rows); predictions in another order take the
@@ -278,6 +283,7 @@ def test_detection_and_segment_errors_do_not_depend_on_the_prediction_rows_order
         _segment_errors(in_order, [hid], [rows], results))
 
 
+@pytest.mark.slow
 def test_aim_uses_the_latest_regime(stepped):
     """aim's steps put the beam of the heliostat's true latest geometry (after both steps) on
     the aim point to within 0.25 mrad (the latest regime's parameters rest on about 100 rows
@@ -316,6 +322,7 @@ def test_aim_uses_the_latest_regime(stepped):
     assert reg["fitted_regime"] == reg["regime"] >= 2   # its own rows, after both steps
 
 
+@pytest.mark.slow
 def test_fine_models_train_on_each_rows_regime(stepped):
     """The fine model builds on the selected regime-aware coarse model row by row: the per-row
     parameters rebuilt from the artifacts (coarse_row_parameters: regime_params.parquet,
