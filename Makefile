@@ -85,10 +85,10 @@ report: $(WORKDIR)/report/index.html
 
 ## test: install and run the test suite (all tests, as CI does): in TEST_WORKERS processes (default
 ##       2), then the tests marked alone (time windows) by themselves; about 5 minutes on 2 cores
-# A module goes to one worker (tests/conftest.py: its xdist_group), the groups with slow tests
-# first; each pass runs even if the other fails, and the target fails if either did.
+# A module (or a class) goes to one worker, those with slow tests first (tests/conftest.py); each
+# pass runs even if the other fails, and the target fails if either did.
 test: $(VENV)/.installed
-	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --no-loadscope-reorder \
+	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder \
 	  -m "not alone"; parallel=$$?; \
 	$(VENV)/bin/python -m pytest -q -m alone; alone=$$?; \
 	test $$parallel = 0 && test $$alone = 0

@@ -3,10 +3,11 @@ work directories that several test modules start from, built once per test sessi
 
 How the suite runs (``make test``; docs/experiments/test-durations.md has the measurements):
 
-* a parallel pass, ``pytest -n 2 --dist loadgroup -m "not alone"`` (pytest-xdist): the tests of one
-  module go to the same worker process, in file order, so a module-scoped fixture is built once
-  (``pytest_collection_modifyitems`` below gives every test its module's ``xdist_group`` unless it
-  names another group);
+* a parallel pass, ``pytest -n 2 --dist loadscope -m "not alone"`` (pytest-xdist): the tests of one
+  module (or of one class) go to the same worker process, in file order, so a module-scoped
+  fixture is built once; modules with slow tests start first (``pytest_collection_modifyitems``);
+  a module whose slow tests are independent chains can put each in a class of its own
+  (test_docs_commands.py does);
 * a serial pass, ``pytest -m alone``: tests that need the machine to themselves (time windows,
   watchdogs, a worker pool they count) run there, with nothing beside them.
 
@@ -42,25 +43,19 @@ SAMPLE_PAINT = REPO / "sample_data" / "juelich" / "paint"
 # ------------------------------------------------------------------------------------------------
 # scheduling under pytest-xdist
 # ------------------------------------------------------------------------------------------------
-def _group(item) -> str:
-    mark = item.get_closest_marker("xdist_group")
-    return str(mark.args[0] if mark.args else mark.kwargs.get("name", "default"))
+def _scope(item) -> str:
+    """The unit of work of ``--dist loadscope``: the test's module, or its class."""
+    return item.nodeid.rsplit("::", 1)[0]
 
 
-@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Every test without an ``xdist_group`` mark joins the group of its module, so that
-    ``--dist loadgroup`` sends a module to one worker (its module-scoped fixtures are then built
-    once, not once per worker); a test may name another group to share a worker across modules.
-    In a worker process the groups that hold slow tests come first (in file order), so that the
-    long ones start early and the short ones fill in at the end (``--no-loadscope-reorder`` keeps
-    this order). Without xdist the mark means nothing and the order is pytest's."""
-    for item in items:
-        if item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
+    """In a worker process of xdist the units of work (modules, classes) that hold slow tests
+    come first, in file order, so that the long ones start early and the short ones fill in at
+    the end (``--no-loadscope-reorder`` keeps this order; xdist's own would put the units with
+    the most tests first). Without xdist the order is pytest's."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        slow = {_group(item) for item in items if item.get_closest_marker("slow")}
-        items.sort(key=lambda item: _group(item) not in slow)  # stable: file order within
+        slow = {_scope(item) for item in items if item.get_closest_marker("slow")}
+        items.sort(key=lambda item: _scope(item) not in slow)  # stable: file order within
 
 
 # ------------------------------------------------------------------------------------------------

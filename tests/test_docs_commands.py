@@ -10,8 +10,8 @@ are listed in NOT_RUN with the reason; a test keeps that list short and current.
 
 The commands form *chains*, one per work directory (:func:`chain_of`): `make sample` and every
 later command on ``runs/sample``, the README's typical run on ``runs/juelich``, ... Each chain runs
-in order in a sandbox of its own, and chains are xdist groups of their own, so that under
-``pytest -n 2`` the typical run and ``make sample`` run side by side, each in order.
+in order in a sandbox of its own, as a test class of its own (a unit of work of ``pytest -n 2
+--dist loadscope``), so that the typical run and ``make sample`` run side by side, each in order.
 
 A second, quick test checks the command lines that are not run (NOT_RUN, usage synopses in
 plain ``` blocks, commands quoted inline in the text): every ``--option`` they name exists on
@@ -169,20 +169,34 @@ def _sandbox(tmp_path_factory) -> dict:
     return {"dir": box, "env": env, "seconds": {}}
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("source,line,command,chain", [
-    pytest.param(s, n, c, chain, id=f"{s}:{n}", marks=pytest.mark.xdist_group(f"docs {chain}"))
-    for (s, n, c), chain in zip(COMMANDS, CHAINS)])
-def test_documented_command_runs(sandboxes, source, line, command, chain):
-    if _strip_comment(command) in NOT_RUN:
-        pytest.skip(f"not run: {NOT_RUN[_strip_comment(command)]}")
-    sandbox = sandboxes(chain)
-    t0 = time.monotonic()
-    proc = subprocess.run(["bash", "-c", command], cwd=sandbox["dir"], env=sandbox["env"],
-                          capture_output=True, text=True, timeout=900)
-    sandbox["seconds"][f"{source}:{line}"] = time.monotonic() - t0
-    assert proc.returncode == 0, (f"{source}:{line}: `{command}` exited with {proc.returncode}\n"
-                                  f"stdout: {proc.stdout[-2000:]}\nstderr: {proc.stderr[-3000:]}")
+def _chain_class(chain: str) -> type:
+    """A test class running the commands of ``chain`` in order (a class is its own unit of work
+    for ``pytest -n 2 --dist loadscope``, so two chains can run on two workers)."""
+
+    @pytest.mark.slow
+    @pytest.mark.parametrize("source,line,command", [
+        pytest.param(s, n, c, id=f"{s}:{n}") for (s, n, c), ch in zip(COMMANDS, CHAINS)
+        if ch == chain])
+    def test_documented_command_runs(self, sandboxes, source, line, command):
+        if _strip_comment(command) in NOT_RUN:
+            pytest.skip(f"not run: {NOT_RUN[_strip_comment(command)]}")
+        sandbox = sandboxes(chain)
+        t0 = time.monotonic()
+        proc = subprocess.run(["bash", "-c", command], cwd=sandbox["dir"], env=sandbox["env"],
+                              capture_output=True, text=True, timeout=900)
+        sandbox["seconds"][f"{source}:{line}"] = time.monotonic() - t0
+        assert proc.returncode == 0, (
+            f"{source}:{line}: `{command}` exited with {proc.returncode}\n"
+            f"stdout: {proc.stdout[-2000:]}\nstderr: {proc.stderr[-3000:]}")
+
+    name = "TestChain_" + re.sub(r"\W", "_", chain)
+    return type(name, (), {"__doc__": f"The documented commands on {chain}, in order.",
+                           "test_documented_command_runs": test_documented_command_runs})
+
+
+for _chain in dict.fromkeys(CHAINS):
+    _cls = _chain_class(_chain)
+    globals()[_cls.__name__] = _cls
 
 
 # ------------------------------------------------------------------------------------------------

@@ -306,6 +306,7 @@ def test_float32_training_stays_float32_and_returns_float64_weights():
     assert res.best_val_mrad.dtype == torch.float64
 
 
+@pytest.mark.slow
 def test_batched_training_equals_single_member_trainings():
     rows = synthetic_measurements(60)
     problem = _problem(rows)
@@ -336,6 +337,7 @@ def test_dynamic_monthly_tilt_is_learned(workdir):
     assert h["hybrid"]["validation"] <= h["coarse"]["validation"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("training_dtype", ["float32", "float64"])
 def test_static_heliostat_hybrid_stays_at_coarse(training_dtype):
     """Without a dynamic disturbance early stopping keeps the hybrid (an ensemble of 4 networks,
@@ -461,6 +463,7 @@ def test_aim_errors_are_one_line(workdir, runner):
     assert res.exit_code == 1 and "unknown target" in res.stderr
 
 
+@pytest.mark.slow
 def test_members_that_stop_leave_the_program_without_changing_the_others():
     """Stopped members are dropped from the running program (their Adam moments are sliced
     away, the rest continue). Expected values: each member trained alone; they stop at

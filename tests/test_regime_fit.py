@@ -45,6 +45,7 @@ def _noiseless(seed, changes):
     return h, rows, data, plain
 
 
+@pytest.mark.slow
 def test_noiseless_steps_and_drift_are_recovered():
     """A noiseless heliostat (true deviations: static-6's parameters): the plain static-6 fit
     cannot follow two steps of zero points or tilts; the offsets model recovers each regime's
@@ -384,6 +385,7 @@ def _setup(h, rows, data, plain, regime, train):
                           np.asarray(plain.free, bool), float("nan"), 10)
 
 
+@pytest.mark.slow
 def test_batched_candidates_recover_noiseless_steps_as_scipy_does():
     """The chord Gauss-Newton solver of many heliostats at once, on the two noiseless cases of
     test_noiseless_steps_and_drift_are_recovered put in one batch (priors off): it recovers
@@ -434,6 +436,7 @@ def test_batched_candidates_recover_noiseless_steps_as_scipy_does():
         assert all(f.status.startswith("chord Gauss-Newton:") for f in fs)
 
 
+@pytest.mark.slow
 def test_batched_candidates_agree_with_scipy_on_noisy_heliostats():
     """Three noisy heliostats with two steps each (seeded), their candidates fitted in one
     batch and one by one by scipy (the reference, fit_regime_model) from the same plain fit,
