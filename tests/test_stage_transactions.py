@@ -4,8 +4,8 @@ partial runs keep the rest, and every reader validates what it reads.
 The issue's numbered cases, one test (or a few) each:
 
 1-3. kills between a stage's writes: in test_crash_consistency.py (the harness kills every stage
-     after each of its write points; ``test_case_1_...`` to ``test_case_3_...`` there check the
-     moments the issue names);
+     after each of its write points; ``test_case_1_...`` and ``test_case_2_...`` there check the
+     moments the issue names, and case 3 is checked after every kill of the sweep);
 4.   inputs re-ingested while fit-coarse runs: ``test_case_4_*``;
 5.   two fit-hybrid runs at once: ``test_case_5_*`` (the second commit is refused; the workdir lock
      of issue 21 will make the second run fail at its start);
