@@ -84,7 +84,7 @@ sample: $(WORKDIR)/report/index.html
 report: $(WORKDIR)/report/index.html
 
 ## test: install and run the test suite (all tests, as CI does): in TEST_WORKERS processes (default
-##       2), then the tests marked alone (time windows) by themselves; about 5 minutes on 2 cores
+##       2), then the tests marked alone (time windows) by themselves; about 6 minutes on 2 cores
 # A module (or a class) goes to one worker, those with slow tests first (tests/conftest.py); each
 # pass runs even if the other fails, and the target fails if either did.
 test: $(VENV)/.installed
