@@ -41,7 +41,9 @@ from heliocal.pipeline.stages.sweep import run_sweep
 from heliocal.pipeline.artifacts.transaction import staging_in_use
 from heliocal.pipeline.artifacts.workdir_lock import LOCK_FILENAME, lock_holder, workdir_lock
 
-pytestmark = [pytest.mark.slow,
+#: slow (a minute of sweeps) and alone: the 5-s window for the processes to go, and the workers'
+#: watchdog of a second, must not be stretched by other tests' work beside them
+pytestmark = [pytest.mark.slow, pytest.mark.alone,
               pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="needs /proc")]
 
 HELIOCAL = Path(sys.executable).with_name("heliocal")
