@@ -34,13 +34,6 @@ from .metrics import measured_normal
 
 __all__ = ["residual_and_jacobian", "forward_state"]
 
-_E = torch.eye(3, dtype=torch.float64)
-
-
-def _unit(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-
-
 def forward_state(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor):
     """Joint angles (N, 2), mirror normals (N, 3) and centres (N, 3): the forward pass that
     :func:`residual_and_jacobian` builds on (pass it back as ``state`` to avoid recomputing)."""
