@@ -9,8 +9,8 @@ import typer
 from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
-                              SchedulerChoice, Workdir, Workers, command, emit, progress_bar,
-                              stdout)
+                              SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
+                              progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig
 from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS,
@@ -27,10 +27,6 @@ def _ints(text: Optional[str], name: str):
                              f"Got {text!r} instead.") from exc
 
 
-def _fmt(x) -> str:
-    return "-" if x is None or x != x else f"{x:.3f}"
-
-
 def _human(summary: dict) -> None:
     table = Table(title=f"sweep -> {summary['workdir']} (selection at the full training size)",
                   show_edge=False)
@@ -40,8 +36,8 @@ def _human(summary: dict) -> None:
     for s in summary["selection"]:
         table.add_row(s["heliostat_id"], s["model"], s["preset"],
                       "-" if s["weight_decay"] != s["weight_decay"] else f"{s['weight_decay']:g}",
-                      _fmt(s["val_error_mrad"]), _fmt(s["test_error_mrad"]),
-                      _fmt(s["coarse_val_error_mrad"]), _fmt(s["coarse_test_error_mrad"]))
+                      fmt_number(s["val_error_mrad"]), fmt_number(s["test_error_mrad"]),
+                      fmt_number(s["coarse_val_error_mrad"]), fmt_number(s["coarse_test_error_mrad"]))
     stdout.print(table)
     stdout.print("mean error_mrad; coarse = fit-coarse's selected fit (the same numbers), always a "
                  "candidate, so the selection is never worse than it on validation.")
