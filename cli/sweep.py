@@ -13,8 +13,8 @@ from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag,
                               progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig
-from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS,
-                                         PretrainVariant, TrainingDtype)
+from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT,
+                                         OCTAVE_BANDS, PretrainVariant, TrainingDtype)
 
 
 def _ints(text: Optional[str], name: str):
@@ -78,8 +78,8 @@ def sweep_cmd(
     select_pretrained: Annotated[bool, typer.Option(
         "--select-pretrained/--no-select-pretrained",
         help="Also fit the pre-trained network (pretrained-nn, --pretrain-variant) on every "
-             "heliostat as a candidate of the selection, under the hybrids' 20 % margin "
-             "rule.")] = False,
+             "heliostat as a candidate of the selection, under the hybrids' "
+             f"{100 * MIN_IMPROVEMENT:g} % margin rule.")] = False,
     time_split: Annotated[bool, typer.Option(
         "--time-split/--no-time-split",
         help="Also evaluate the selected hybrids forward in time: train each again on the "

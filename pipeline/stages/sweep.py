@@ -16,7 +16,7 @@ from strong to weak (:func:`train_path`, :class:`PathConfig`). The selection
 (``selection.parquet``) is the candidate ensemble with the lowest mean validation error, where
 the coarse model is always a candidate, so the selected model is never worse than
 ``fit-coarse``'s on validation. A hybrid must beat the coarse model's validation error by
-:data:`MIN_IMPROVEMENT` (20 %, relative) to be chosen; why 20 % is in docs/hybrid.md
+:data:`MIN_IMPROVEMENT` (relative) to be chosen; why that margin is in docs/hybrid.md
 ("Selection"). The selected ensemble's weights are written to ``DIR/hybrid/selected/<HID>.pt``
 (+ JSON), in the layout of ``fit-hybrid``, for ``aim`` and ``report``.
 
@@ -68,7 +68,7 @@ from .split import restrict_training
 from ..artifacts.manifests import current_transaction
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
-from ..vocabulary import DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS
+from ..vocabulary import DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCTAVE_BANDS
 from ..models.config import PathConfig
 from ..runtime.process_state import restores_process_state
 from .forward import add_sweep_time_split
@@ -77,14 +77,6 @@ __all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants"
            "train_path", "study_heliostats"]
 
 log = logging.getLogger("heliocal.sweep")
-
-
-#: Relative validation improvement a hybrid needs to be selected over the coarse model. The
-#: validation rows lie between the training rows in sun position while the kNN test rows lie at
-#: the edge; a network that interpolates the coarse fit's residual structure improves validation
-#: by up to about 15 % on static heliostats without improving (or while worsening) the test rows,
-#: whereas the dynamic disturbances the fine model is for improve it by 25-45 % (docs/hybrid.md).
-MIN_IMPROVEMENT = 0.20
 
 LADDER = (5, 10, 20, 40, 60, 100, 150, 200, 300, 400)
 
