@@ -14,7 +14,8 @@ from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag,
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig
 from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT,
-                                         OCTAVE_BANDS, PretrainVariant, TrainingDtype)
+                                         OCTAVE_BANDS, NeuralBaseline, PretrainVariant,
+                                         TrainingDtype)
 
 
 def _ints(text: Optional[str], name: str):
@@ -73,8 +74,9 @@ def sweep_cmd(
     ensemble: Annotated[int, typer.Option(
         min=1, help="Networks averaged per member (weight decay, seed).")] = FineConfig.ensemble,
     baselines: Annotated[str, typer.Option(
-        help="Neural baselines of the study: nn-only, pretrained-nn (comma-separated, or "
-             "none).")] = "nn-only",
+        help="Neural baselines of the study: "
+             f"{', '.join(NeuralBaseline.values())} (comma-separated, or none).")
+    ] = NeuralBaseline.nn_only.value,
     select_pretrained: Annotated[bool, typer.Option(
         "--select-pretrained/--no-select-pretrained",
         help="Also fit the pre-trained network (pretrained-nn, --pretrain-variant) on every "
@@ -122,10 +124,6 @@ def sweep_cmd(
                         training_dtype=training_dtype.value,
                         env=tuple(e.strip() for e in env.split(",") if e.strip()) if env else ())
     base = [] if baselines.strip() in ("", "none") else [b.strip() for b in baselines.split(",")]
-    for b in base:
-        if b not in ("nn-only", "pretrained-nn"):
-            raise ParameterError(f"The 'baselines' parameter of sweep must list nn-only and/or "
-                                 f"pretrained-nn. Got {b!r} instead.")
     path = PathConfig(warm_start=warm_start, stage_epochs=stage_epochs,
                       stage_patience=stage_patience)
     with progress_bar("sweep", quiet) as advance:

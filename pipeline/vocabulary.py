@@ -12,7 +12,7 @@ from __future__ import annotations
 import enum
 
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
-           "PretrainVariant", "AimModel", "CoarseLoss", "CoarseSolver", "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
+           "PretrainVariant", "NeuralBaseline", "AimModel", "CoarseLoss", "CoarseSolver", "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
            "DEFAULT_TIME_MIN", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
            "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "MIN_IMPROVEMENT"]
 
@@ -96,6 +96,14 @@ class PretrainVariant(Choice):
 
     residual = "residual"
     paper = "paper"
+
+
+class NeuralBaseline(Choice):
+    """``sweep --baselines``: the neural baselines of the training-size study (comma-separated on
+    the command line, or ``none``)."""
+
+    nn_only = "nn-only"
+    pretrained_nn = "pretrained-nn"
 
 
 class AimModel(Choice):
