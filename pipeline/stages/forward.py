@@ -175,8 +175,7 @@ def attach_coarse_time(params: pd.DataFrame, preds: pd.DataFrame, fits: dict,
     tf, tv, tt = (params[c].to_numpy(float).copy() for c in
                   ("time_fitted", "time_val_error_mrad", "time_test_error_mrad"))
     te = preds["time_error_mrad"].to_numpy(float).copy()
-    # the whole columns once (converting them per heliostat made this quadratic in the field:
-    # 88 s of fit-coarse's 168 s at 2,000 heliostats)
+    # the whole columns once: converted per heliostat, they would make this quadratic in the field
     p_index = params["parameter_index"].to_numpy()
     e_mid = preds["measurement_id"].astype(str).to_numpy()
     for hid, (theta, err) in fits.items():
