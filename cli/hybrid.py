@@ -75,8 +75,9 @@ def fit_hybrid_cmd(
     env: Annotated[str, typer.Option(
         "--env", help="Comma-separated env_* columns (without the prefix) to use as inputs, "
                       "e.g. temperature,wind_speed.")] = "",
-    depth: Annotated[int, typer.Option("--depth", min=0, help="Hidden layers.")] = 14,
-    width: Annotated[int, typer.Option("--width", min=1, help="Neurons per hidden layer.")] = 2,
+    depth: Annotated[int, typer.Option("--depth", min=0, help="Hidden layers.")] = FineConfig.depth,
+    width: Annotated[int, typer.Option(
+        "--width", min=1, help="Neurons per hidden layer.")] = FineConfig.width,
     fourier_bands: Annotated[str, typer.Option(
         "--fourier-bands", help="Frequency bands of the Fourier features of the steps "
                                 "[1 / max steps], comma-separated (default: every integer 1..32)."

@@ -12,8 +12,10 @@ from __future__ import annotations
 import enum
 
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
-           "PretrainVariant", "NeuralBaseline", "AimModel", "CoarseLoss", "CoarseSolver", "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
-           "DEFAULT_TIME_MIN", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
+           "PretrainVariant", "NeuralBaseline", "AimModel", "CoarseLoss", "CoarseSolver", "TrainingDtype",
+           "Scheduler", "DisturbanceKind", "SimulatedType", "FocalSpotDetector", "AzimuthConvention",
+           "DEFAULT_BATCH_ROWS", "DEFAULT_TIME_MIN", "DEFAULT_TIME_MAX_MARGIN_DAYS",
+           "DEFAULT_MAX_SPOT_DISTANCE_M", "DEFAULT_SUN_TOLERANCE_DEG", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
            "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "MIN_IMPROVEMENT"]
 
 
@@ -154,6 +156,23 @@ class SimulatedType(Choice):
     az_el = "az-el"
 
 
+class FocalSpotDetector(Choice):
+    """``ingest --focal-spot``: the PAINT detector whose focal-spot centroid a row takes (a row
+    without it falls back to the other; ``focal_spot_source`` records which)."""
+
+    utis = "utis"
+    helios = "helios"
+
+
+class AzimuthConvention(Choice):
+    """``ingest --azimuth-convention``: how a log writes the sun azimuth: ``south`` (0 = south,
+    positive toward east, heliocal's own) or ``north-clockwise`` (0 = north, positive toward
+    east)."""
+
+    south = "south"
+    north_clockwise = "north-clockwise"
+
+
 #: Rows per batch read from a log (``ingest --batch-rows``): peak memory grows with it, not with
 #: the log; the artifacts do not depend on it.
 DEFAULT_BATCH_ROWS = 25_000
@@ -161,6 +180,16 @@ DEFAULT_BATCH_ROWS = 25_000
 #: today's heliostat fields start decades later; a year like 1700 or 1970 is a logger or export
 #: fault.
 DEFAULT_TIME_MIN = "1990-01-01T00:00:00Z"
+#: The latest plausible measurement time is now plus this many days (``ingest --time-max``
+#: overrides it): a calibration cannot have been measured in the future; the margin covers clocks
+#: and time zones set wrong.
+DEFAULT_TIME_MAX_MARGIN_DAYS = 1
+#: ``ingest --max-spot-distance``: a focal spot farther than this from its target's centre is
+#: rejected [m] (a spot on another target, or a detector fault).
+DEFAULT_MAX_SPOT_DISTANCE_M = 25.0
+#: ``ingest --sun-tolerance``: a logged sun position farther than this from NREL SPA's is flagged
+#: [deg].
+DEFAULT_SUN_TOLERANCE_DEG = 0.1
 #: Heliostats per batched training program of ``fit-hybrid`` and ``sweep`` (one task for the
 #: workers).
 HYBRID_BATCH_SIZE = 32

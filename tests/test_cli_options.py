@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from heliocal.cli.app import fmt_number
 from heliocal.cli.main import app
-from heliocal.pipeline.errors import ParameterError
+from heliocal.pipeline.errors import HeliocalError, ParameterError
 
 
 def test_fmt_number_rounds_to_the_given_decimals_and_marks_missing_values():
@@ -44,3 +44,45 @@ def test_sweep_baselines_are_checked_once_by_the_library_before_anything_runs(tm
         run_sweep(tmp_path / "wd2", baselines=("nn-only", "foo"))
     assert str(err.value) == BASELINES_ERROR
     assert not (tmp_path / "wd").exists() and not (tmp_path / "wd2").exists()
+
+
+def test_cli_defaults_are_the_library_defaults(tmp_path, monkeypatch):
+    """What `ingest` and `fit-hybrid` pass to the library when no option is given equals the
+    library's own defaults (IngestOptions(), FineConfig()): both read them from one place, the
+    vocabulary and FineConfig, instead of repeating literals. The stages are replaced by
+    recorders; nothing runs."""
+    import dataclasses
+
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.models.config import FineConfig
+    from heliocal.pipeline.stages import fit_hybrid, ingest
+
+    seen = {}
+
+    def recorder(name, value):
+        seen[name] = value
+        raise HeliocalError("recorded")   # stop here: the command prints it as its one line
+
+    monkeypatch.setattr(ingest, "run_ingest",
+                        lambda sources, workdir, opts, **kw: recorder("ingest", opts))
+    monkeypatch.setattr(fit_hybrid, "run_fit_hybrid",
+                        lambda workdir, **kw: recorder("hybrid", kw["config"]))
+    runner = CliRunner()
+    for args in (["ingest", str(tmp_path)], ["fit-hybrid"]):
+        result = runner.invoke(app, [*args, "--workdir", str(tmp_path / "w"), "--quiet"])
+        assert (result.exit_code, result.stderr) == (1, "Error: recorded\n")
+    assert dataclasses.asdict(seen["ingest"]) == dataclasses.asdict(IngestOptions())
+    assert seen["hybrid"] == FineConfig()
+
+
+def test_ingest_lists_its_detector_and_azimuth_choices_from_the_vocabulary():
+    """--focal-spot and --azimuth-convention are vocabulary choices (FocalSpotDetector,
+    AzimuthConvention): --help lists exactly their spellings, and the library refuses any other
+    with its one line (tests/test_ingest.py checks that line)."""
+    from heliocal.pipeline.vocabulary import AzimuthConvention, FocalSpotDetector
+
+    assert FocalSpotDetector.values() == ("utis", "helios")
+    assert AzimuthConvention.values() == ("south", "north-clockwise")
+    text = " ".join(CliRunner().invoke(app, ["ingest", "--help"]).stdout.split())
+    assert "--focal-spot <utis|helios>" in text
+    assert "--azimuth-convention <south|north-clockwise>" in text
