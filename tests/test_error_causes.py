@@ -1,0 +1,76 @@
+"""Errors name their real cause (issue 31): a full disk or an exhausted memory while ingest
+spills a Parquet log is not "not a readable Parquet file"; a local time that does not exist in
+its time zone is not "not a UTC time"; a malformed ground_truth.json is said, not skipped
+silently; standard errors from a pseudo-inverse are flagged."""
+
+from __future__ import annotations
+
+import errno
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from heliocal.cli.main import app
+from heliocal.pipeline.io.spill import SortedSpill
+
+ROOT = Path(__file__).resolve().parents[1]
+SYNTHETIC_LOG = ROOT / "sample_data" / "synthetic" / "calibration_log.csv"
+
+
+@pytest.fixture
+def parquet_log(tmp_path) -> Path:
+    """The synthetic sample's calibration log (600 rows) as a Parquet file."""
+    log = tmp_path / "calibration_log.parquet"
+    pd.read_csv(SYNTHETIC_LOG).to_parquet(log, index=False)
+    return log
+
+
+def _ingest(log: Path, workdir: Path, *args: str):
+    return CliRunner().invoke(app, ["ingest", str(log), "--workdir", str(workdir), "--quiet",
+                                    *args])
+
+
+def test_a_full_disk_while_spilling_a_parquet_log_is_reported_as_a_full_disk(parquet_log,
+                                                                               tmp_path,
+                                                                               monkeypatch):
+    """The log is read in batches of 100 rows and spilled, sorted, to the work directory; the
+    disk fills on the first spill. Expected: the resource line of pipeline/errors.py for ENOSPC
+    (what to do: free space or another --workdir), not the Parquet reader's 'export the log
+    again', which sends the user after a file that is fine."""
+    def full_disk(self, table):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "wd" / "run.parquet"))
+
+    monkeypatch.setattr(SortedSpill, "add", full_disk)
+    result = _ingest(parquet_log, tmp_path / "wd", "--batch-rows", "100")
+    assert result.exit_code == 1
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        f"Error: {tmp_path / 'wd' / 'run.parquet'}: no space left on the device (ENOSPC); free "
+        "space on that disk or use another --workdir"), lines
+    assert "Parquet" not in lines[0]
+
+
+def test_running_out_of_memory_while_reading_a_parquet_log_says_so(parquet_log, tmp_path,
+                                                                   monkeypatch):
+    """A MemoryError while a batch is spilled is neither an unreadable file nor a bug in
+    heliocal: one line naming the log, the batch size and the fix (a smaller --batch-rows)."""
+    def no_memory(self, table):
+        raise MemoryError()
+
+    monkeypatch.setattr(SortedSpill, "add", no_memory)
+    result = _ingest(parquet_log, tmp_path / "wd", "--batch-rows", "100")
+    assert result.exit_code == 1
+    assert result.stderr.splitlines() == [
+        f"Error: {parquet_log}: out of memory while reading the log in batches of 100 rows; "
+        "give a smaller --batch-rows or free memory, then rerun the command"]
+
+
+def test_a_damaged_parquet_log_is_still_reported_as_unreadable(tmp_path):
+    """The reader's own errors keep their message (the file, 'not a readable Parquet file')."""
+    log = tmp_path / "calibration_log.parquet"
+    log.write_bytes(b"PAR1" + b"\0" * 64)
+    result = _ingest(log, tmp_path / "wd")
+    assert result.exit_code == 1
+    assert result.stderr.startswith(f"Error: {log}: not a readable Parquet file (")
