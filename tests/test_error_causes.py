@@ -74,3 +74,47 @@ def test_a_damaged_parquet_log_is_still_reported_as_unreadable(tmp_path):
     result = _ingest(log, tmp_path / "wd")
     assert result.exit_code == 1
     assert result.stderr.startswith(f"Error: {log}: not a readable Parquet file (")
+
+
+def test_a_local_time_that_does_not_exist_or_occurs_twice_says_so(tmp_path):
+    """The synthetic log with naive local times and --timezone Europe/Berlin: 2023-03-26 02:30
+    does not exist there (the clocks jump from 02:00 to 03:00 CET -> CEST) and 2023-10-29 02:30
+    occurs twice (03:00 CEST -> 02:00 CET). Each is rejected as unparsable_timestamp with that
+    reason, not 'is not a UTC time' (it is a local time, and the user asked for one); every other
+    row is the same instant as in the UTC log and is kept."""
+    log = pd.read_csv(SYNTHETIC_LOG)
+    local = pd.to_datetime(log["timestamp"]).dt.tz_convert("Europe/Berlin")
+    log["timestamp"] = local.dt.strftime("%Y-%m-%d %H:%M:%S")
+    log.loc[0, "timestamp"] = "2023-03-26 02:30:00"
+    log.loc[1, "timestamp"] = "2023-10-29 02:30:00"
+    path = tmp_path / "local_log.csv"
+    log.to_csv(path, index=False)
+    result = _ingest(path, tmp_path / "wd", "--timezone", "Europe/Berlin", "--tower",
+                     str(SYNTHETIC_LOG.parent / "tower-measurements.json"))
+    assert result.exit_code == 0, result.stderr
+    rejected = pd.read_parquet(tmp_path / "wd" / "rejected.parquet")
+    by_id = rejected.set_index("measurement_id")
+    ids = log["sample_id"].astype(str)
+    assert by_id.loc[ids[0], "reason"] == "unparsable_timestamp"
+    assert by_id.loc[ids[0], "detail"] == (
+        "timestamp '2023-03-26 02:30:00' does not exist in time zone Europe/Berlin (a clock "
+        "change skips it); write it with its UTC offset, e.g. 2024-06-01T12:00:00+02:00")
+    assert by_id.loc[ids[1], "reason"] == "unparsable_timestamp"
+    assert by_id.loc[ids[1], "detail"] == (
+        "timestamp '2023-10-29 02:30:00' occurs twice in time zone Europe/Berlin (a clock "
+        "change repeats it); write it with its UTC offset, e.g. 2024-06-01T12:00:00+02:00")
+    assert not rejected["detail"].str.contains("not a UTC time").any()
+    kept = pd.read_parquet(tmp_path / "wd" / "measurements.parquet").set_index("measurement_id")
+    assert len(kept) + len(rejected) == len(log)
+    utc = pd.to_datetime(pd.read_csv(SYNTHETIC_LOG)["timestamp"]).set_axis(ids)
+    assert (kept["timestamp"] == utc.loc[kept.index]).all()
+
+
+def test_an_unknown_time_zone_is_an_option_error(tmp_path):
+    """A --timezone that is no IANA zone is one line about the option, not every row rejected as
+    an unreadable time."""
+    result = _ingest(SYNTHETIC_LOG, tmp_path / "wd", "--timezone", "Europe/Atlantis")
+    assert result.exit_code == 1
+    assert result.stderr.splitlines() == [
+        "Error: The 'timezone' parameter of ingest must be an IANA time zone such as "
+        "Europe/Berlin or UTC. Got 'Europe/Atlantis' instead."]

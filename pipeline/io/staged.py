@@ -64,6 +64,15 @@ def time_bounds(opts: "IngestOptions") -> tuple[pd.Timestamp, pd.Timestamp]:
     return lo, hi
 
 
+def _is_time_zone(name: str) -> bool:
+    """Whether pandas knows ``name`` as a time zone (what localising a naive timestamp needs)."""
+    try:
+        pd.Timestamp("2000-01-01").tz_localize(name)
+    except Exception:  # noqa: BLE001 - zoneinfo, pytz and dateutil raise different types
+        return False
+    return True
+
+
 @dataclass
 class IngestOptions:
     """Resolved options of ``ingest`` (see the CLI's help for each)."""
@@ -91,6 +100,9 @@ class IngestOptions:
             raise ParameterError(f"The 'date_format' parameter of ingest must be a strptime "
                                  f"format such as '%d.%m.%Y %H:%M:%S%z'. Got {self.date_format!r} "
                                  "instead.")
+        if self.timezone is not None and not _is_time_zone(self.timezone):
+            raise ParameterError(f"The 'timezone' parameter of ingest must be an IANA time zone "
+                                 f"such as Europe/Berlin or UTC. Got {self.timezone!r} instead.")
         check_choice(self.focal_spot, "focal_spot", "ingest", FocalSpotDetector.values())
         check_choice(self.azimuth_convention, "azimuth_convention", "ingest",
                      AzimuthConvention.values())

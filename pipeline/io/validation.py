@@ -8,6 +8,7 @@ import datetime
 import logging
 import math
 import re
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -138,13 +139,17 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
     # timestamps
     ts = pd.Series(pd.NaT, index=df.index, dtype="datetime64[us, UTC]")
     if "timestamp" in df:
-        ts, bad_ts, naive, ambiguous, implausible = _parse_timestamps(
-            df["timestamp"], opts.timezone, opts.date_format, time_bounds(opts))
+        parsed = _parse_timestamps(df["timestamp"], opts.timezone, opts.date_format,
+                                   time_bounds(opts))
+        ts, bad_ts, naive, ambiguous, implausible = (
+            parsed.utc, parsed.unparsable, parsed.naive, parsed.ambiguous, parsed.implausible)
         checks.add_timestamps(df, ts_given, naive, ambiguous)  # all naive/ambiguous: refused
         reject(bad_ts & ts_given, "unparsable_timestamp",
                df["timestamp"].map(lambda v: f"timestamp {v!r} does not match --date-format "
                                              f"{opts.date_format!r}" if opts.date_format else
                                    f"timestamp {v!r} is not a UTC time"))
+        reject(parsed.local_problem.notna() & ts_given, "unparsable_timestamp",
+               parsed.local_problem)
         reject(ambiguous & ts_given, "ambiguous_timestamp",
                df["timestamp"].map(lambda v: f"timestamp {v!r} has day and month as numbers, "
                                              "which heliocal cannot tell apart: give "
@@ -287,10 +292,32 @@ def _parse_one(t: str, date_format: str | None):
     return None if stamp is pd.NaT else stamp
 
 
+@dataclass
+class _ParsedTimes:
+    """Timestamps parsed to UTC, and per row why one could not be (masks, or reasons: ``None``
+    for a good or missing time)."""
+
+    utc: pd.Series              # datetime64[us, UTC]; NaT where missing or refused
+    unparsable: pd.Series       # text that is no time (or does not match --date-format)
+    naive: pd.Series            # a time without zone and no --timezone
+    ambiguous: pd.Series        # day and month as numbers in an order that cannot be told
+    local_problem: pd.Series    # a local time --timezone skips or repeats: the reason
+    implausible: pd.Series      # outside --time-min / --time-max: the reason
+
+
+def _local_time_problem(text: str, stamp: pd.Timestamp, timezone: str) -> str:
+    """Why the naive ``stamp`` is no single instant in ``timezone`` (a clock change skips or
+    repeats it; tz_localize refused it)."""
+    skipped = stamp.tz_localize(timezone, nonexistent="NaT", ambiguous=True) is pd.NaT
+    what = ("does not exist in time zone {} (a clock change skips it)" if skipped
+            else "occurs twice in time zone {} (a clock change repeats it)").format(timezone)
+    return (f"timestamp {text!r} {what}; write it with its UTC offset, e.g. "
+            "2024-06-01T12:00:00+02:00")
+
+
 def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str | None = None,
-                      bounds: tuple[pd.Timestamp, pd.Timestamp] | None = None):
-    """Parse to UTC; returns (timestamps, unparsable, no-zone, ambiguous, implausible) where the
-    last is a Series of reasons (``None`` for a plausible or missing time).
+                      bounds: tuple[pd.Timestamp, pd.Timestamp] | None = None) -> _ParsedTimes:
+    """Parse to UTC (:class:`_ParsedTimes`).
 
     A time outside ``bounds`` is reported as implausible and left missing; each time is converted
     to microseconds on its own, so a year outside pandas' nanosecond range never fails the whole
@@ -301,6 +328,7 @@ def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str 
     naive = np.zeros(len(text), bool)
     ambiguous = np.zeros(len(text), bool)
     implausible = [None] * len(text)
+    local_problem = [None] * len(text)
     for i, t in enumerate(text):
         if not t or t.lower() in ("nan", "nat", "none"):
             continue
@@ -317,8 +345,8 @@ def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str 
                 continue
             try:
                 stamp = stamp.tz_localize(timezone)
-            except Exception:  # noqa: BLE001 - invalid/ambiguous local time
-                bad[i] = True
+            except ValueError:  # pandas: a nonexistent or ambiguous local time
+                local_problem[i] = _local_time_problem(t, stamp, timezone)
                 continue
         stamp = stamp.tz_convert("UTC")
         if bounds is not None and not bounds[0] <= stamp <= bounds[1]:
@@ -330,10 +358,12 @@ def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str 
         stamps[i] = stamp.to_datetime64().astype("datetime64[us]")
     micro = np.array([np.datetime64("NaT", "us") if s is None else s for s in stamps],
                      dtype="datetime64[us]")
-    ts = pd.Series(pd.DatetimeIndex(micro).tz_localize("UTC"), index=values.index)
-    return (ts, pd.Series(bad, index=values.index), pd.Series(naive, index=values.index),
-            pd.Series(ambiguous, index=values.index), pd.Series(implausible, index=values.index,
-                                                                dtype=object))
+    index = values.index
+    return _ParsedTimes(pd.Series(pd.DatetimeIndex(micro).tz_localize("UTC"), index=index),
+                        pd.Series(bad, index=index), pd.Series(naive, index=index),
+                        pd.Series(ambiguous, index=index),
+                        pd.Series(local_problem, index=index, dtype=object),
+                        pd.Series(implausible, index=index, dtype=object))
 
 
 def _resolve_targets(df: pd.DataFrame, targets: dict[str, Target]) -> pd.Series:
