@@ -118,3 +118,39 @@ def test_an_unknown_time_zone_is_an_option_error(tmp_path):
     assert result.stderr.splitlines() == [
         "Error: The 'timezone' parameter of ingest must be an IANA time zone such as "
         "Europe/Berlin or UTC. Got 'Europe/Atlantis' instead."]
+
+
+@pytest.mark.parametrize("content, problem", [
+    ("{not json", "not valid JSON (Expecting property name enclosed in double quotes, line 1 "
+                  "column 2)"),
+    ('{"heliostats": [0.1, 0.2]}', "'heliostats' is not an object of heliostats"),
+])
+def test_a_malformed_ground_truth_is_said_once_and_recorded(tmp_path, caplog, content, problem):
+    """A simulated field's ground_truth.json beside the ingested sources gives the report its
+    measurement floor. A malformed one was skipped silently (the report then said 'unknown'
+    as if there were no file). Now: one warning line naming the file and the problem, the same
+    words in the report's notes and on its overview, and still no floor."""
+    import json
+    import logging
+
+    from heliocal.pipeline.stages import report as report_stage
+    from test_report import make_workdir
+
+    wd = make_workdir(tmp_path, "coarse")
+    field = tmp_path / "field"
+    field.mkdir()
+    truth = field / "ground_truth.json"
+    truth.write_text(content)
+    manifest = wd / "ingest.manifest.json"
+    m = json.loads(manifest.read_text())
+    m.setdefault("options", {})["sources"] = [str(field / "calibration_log.csv")]
+    manifest.write_text(json.dumps(m))
+    caplog.set_level(logging.WARNING, logger="heliocal")
+    summary = report_stage.run_report(wd, workers=1)
+    said = f"{truth}: {problem}; the report has no measurement floor from it (give --floor-mrad)"
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warnings.count(said) == 1 and not [w for w in warnings if "ground_truth" in w
+                                              and w != said]
+    assert said in summary["notes"]
+    index = (wd / "report" / "index.html").read_text()
+    assert "Measurement floor: unknown" in index and str(truth) in index
