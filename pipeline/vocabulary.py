@@ -16,7 +16,8 @@ __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric"
            "Scheduler", "DisturbanceKind", "SimulatedType", "FocalSpotDetector", "AzimuthConvention",
            "DEFAULT_BATCH_ROWS", "DEFAULT_TIME_MIN", "DEFAULT_TIME_MAX_MARGIN_DAYS",
            "DEFAULT_MAX_SPOT_DISTANCE_M", "DEFAULT_SUN_TOLERANCE_DEG", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
-           "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "MIN_IMPROVEMENT"]
+           "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "MIN_IMPROVEMENT",
+           "STD_ERROR_PSEUDO_INVERSE"]
 
 
 class Choice(str, enum.Enum):
@@ -214,3 +215,9 @@ DEFAULT_ALERT_MRAD = 2.0
 DEFAULT_FOURIER_BANDS = tuple(float(b) for b in range(1, 33))
 #: Fourier bands of the ``hybrid-octaves`` candidate: Tancik et al.'s octaves 1, 2, 4, ..., 32.
 OCTAVE_BANDS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+
+#: Appended to a coarse fit's ``fit_status`` (coarse_params.parquet) when ``J^T J`` at the solution
+#: could not be inverted and its standard errors come from the pseudo-inverse; the report shows it
+#: beside the parameters. One spelling, read by models and report.
+STD_ERROR_PSEUDO_INVERSE = ("standard errors from a pseudo-inverse of a singular J^T J: not "
+                            "trustworthy")

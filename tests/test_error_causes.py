@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 from typer.testing import CliRunner
@@ -154,3 +155,88 @@ def test_a_malformed_ground_truth_is_said_once_and_recorded(tmp_path, caplog, co
     assert said in summary["notes"]
     index = (wd / "report" / "index.html").read_text()
     assert "Measurement floor: unknown" in index and str(truth) in index
+
+
+def test_fit_diagnostics_flags_standard_errors_from_a_pseudo_inverse():
+    """A Jacobian whose second column is zero (a free parameter nothing moves, no prior row):
+    J^T J is exactly singular, np.linalg.inv refuses it, and the standard errors come from the
+    pseudo-inverse: flagged. Reference values by hand: J = [[2, 0], [0, 0], [0, 0], [1, 0]],
+    unit prior sigmas, residuals r = (1, 1, 1, 1) on 4 data rows and 2 free parameters, so
+    s^2 = 4 / 2 = 2; pinv(J^T J) = diag(1/5, 0): std = (sqrt(2/5), 0). A regular Jacobian
+    (identity on 2 rows, residuals 0) gives no flag."""
+    from heliocal.pipeline.models.fit_diagnostics import fit_diagnostics
+
+    sigma = np.ones(28)
+    free = np.array([0, 1])
+    J = np.array([[2.0, 0.0], [0.0, 0.0], [0.0, 0.0], [1.0, 0.0]])
+    d = fit_diagnostics(J, np.ones(4), 4, free, sigma)
+    assert d.pseudo_inverse
+    np.testing.assert_allclose(d.std_error[:2], [np.sqrt(2 / 5), 0.0], rtol=1e-12)
+    assert not d.determined[1]
+    assert d.flag_status("batched LM: converged") == (
+        "batched LM: converged; standard errors from a pseudo-inverse of a singular J^T J: not "
+        "trustworthy")
+    regular = fit_diagnostics(np.eye(2), np.zeros(2), 2, free, sigma)
+    assert not regular.pseudo_inverse and regular.flag_status("ok") == "ok"
+
+
+@pytest.mark.parametrize("solver", ["scipy", "batched"])
+def test_a_coarse_fit_whose_normal_matrix_cannot_be_inverted_says_so_in_its_status(solver,
+                                                                                  monkeypatch):
+    """Both solvers' fits carry the flag into their status (coarse_params.parquet fit_status)
+    when the inverse of J^T J fails. A real fit's J^T J has the prior rows in it and is not
+    exactly singular, so the inverse is made to fail here; the same fit without that has a plain
+    status and the same fitted parameters (the flag changes no number)."""
+    import torch
+
+    from heliocal.pipeline.models import fit_diagnostics as diagnostics
+    from heliocal.pipeline.models.coarse import (MeasurementBatch, fit_heliostat,
+                                                 fit_heliostats_batched)
+    from heliocal.pipeline.physics.parameters import HeliostatSpec, nominal_parameters
+    from heliocal.pipeline.stages.ingest import ingest
+
+    measurements, helio, _, _ = ingest([ROOT / "sample_data" / "juelich" / "paint"])
+    row = helio.iloc[0]
+    rows = measurements[measurements["heliostat_id"] == row["heliostat_id"]]
+    spec, nominal = HeliostatSpec.from_row(row), nominal_parameters(row)
+    data = MeasurementBatch.from_frame(rows)
+
+    def fit():
+        if solver == "scipy":
+            return fit_heliostat(spec, nominal, data, "static-6", loss="soft_l1")
+        return fit_heliostats_batched([spec], [nominal], [data], "static-6", loss="soft_l1")[0]
+
+    plain = fit()
+    real_inv = np.linalg.inv
+
+    def singular(a, *args, **kw):
+        if np.shape(a) == (6, 6):   # static-6's J^T J
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real_inv(a, *args, **kw)
+
+    monkeypatch.setattr(diagnostics.np.linalg, "inv", singular)
+    flagged = fit()
+    assert "pseudo-inverse" not in plain.status
+    assert flagged.status == f"{plain.status}; standard errors from a pseudo-inverse of a " \
+                             "singular J^T J: not trustworthy"
+    assert torch.equal(flagged.params, plain.params)
+
+
+def test_the_report_flags_standard_errors_from_a_pseudo_inverse(tmp_path):
+    """A selected fit whose fit_status carries the pseudo-inverse flag gets a note beside its
+    parameters, addressed to its heliostat (so its own page shows it too); the others none."""
+    from heliocal.pipeline.report.inputs import load_inputs
+    from heliocal.pipeline.report.metrics import compute_metrics
+    from heliocal.pipeline.report.pages import build_report
+    from heliocal.pipeline.vocabulary import STD_ERROR_PSEUDO_INVERSE
+    from test_report import make_workdir
+
+    inp = load_inputs(make_workdir(tmp_path, "coarse"))
+    cp = inp.coarse_params
+    hid = sorted(cp["heliostat_id"].unique())[0]
+    cp["fit_status"] = cp["fit_status"].astype(str)
+    cp.loc[cp["heliostat_id"] == hid, "fit_status"] += f"; {STD_ERROR_PSEUDO_INVERSE}"
+    notes = [b for b in build_report(inp, compute_metrics(inp))
+             if b[0] == "note" and STD_ERROR_PSEUDO_INVERSE in b[1]]
+    assert notes == [("note", f"{hid}: {STD_ERROR_PSEUDO_INVERSE} (the data and the prior leave "
+                              "a direction of the parameters free).", hid)]
