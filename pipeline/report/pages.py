@@ -18,7 +18,8 @@ from ..artifacts.schemas import REJECTION_REASONS
 from ..vocabulary import STD_ERROR_PSEUDO_INVERSE
 from .inputs import ReportInputs
 from .metrics import final_models, split_sort_key
-from .render import FigureTask, ReportFigure, heliostat_figure_plan
+from .render import (FigureTask, ReportFigure, heliostat_figure_plan, sweep_choices,
+                     sweep_weight_decays)
 
 __all__ = [
     "build_report",
@@ -194,16 +195,7 @@ def _selection_blocks(inp: ReportInputs, helios: dict) -> list[tuple]:
                "coarse test [mrad]", "test forward in time [mrad]",
                "coarse test forward in time [mrad]"]
     rows = []
-    # the sweep's choice (hybrid, hybrid-octaves or coarse) behind the "selected" rows
-    choice = {}
-    if inp.selection is not None and {"heliostat_id", "model"} <= set(inp.selection.columns):
-        choice = dict(zip(inp.selection["heliostat_id"].astype(str),
-                          inp.selection["model"].astype(str)))
-    # the selected weight decay unrounded (metrics.json keeps 4 decimals: 1e-5 would show 0)
-    wd_of = {}
-    if inp.selection is not None and "weight_decay" in inp.selection.columns:
-        wd_of = dict(zip(inp.selection["heliostat_id"].astype(str),
-                         inp.selection["weight_decay"].astype(float)))
+    choice, wd_of = sweep_choices(inp), sweep_weight_decays(inp)
     for hid, h in helios.items():
         s = dict(h["selection"])
         model = h["models"].get(s["model"] or "", {}).get("splits", {})
