@@ -129,8 +129,8 @@ def test_an_unknown_time_zone_is_an_option_error(tmp_path):
 def test_a_malformed_ground_truth_is_said_once_and_recorded(tmp_path, caplog, content, problem):
     """A simulated field's ground_truth.json beside the ingested sources gives the report its
     measurement floor. A malformed one was skipped silently (the report then said 'unknown'
-    as if there were no file). Now: one warning line naming the file and the problem, the same
-    words in the report's notes and on its overview, and still no floor."""
+    as if there were no file). Now: one warning line naming the file and the problem, recorded
+    in the summary (--json) and on the overview page, and still no floor."""
     import json
     import logging
 
@@ -152,7 +152,8 @@ def test_a_malformed_ground_truth_is_said_once_and_recorded(tmp_path, caplog, co
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert warnings.count(said) == 1 and not [w for w in warnings if "ground_truth" in w
                                               and w != said]
-    assert said in summary["notes"]
+    assert summary["measurement_floor"] == {"value_mrad": None, "source": "", "problems": [said]}
+    assert said not in summary["notes"]   # printed once: the warning
     index = (wd / "report" / "index.html").read_text()
     assert "Measurement floor: unknown" in index and str(truth) in index
 

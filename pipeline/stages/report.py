@@ -231,7 +231,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
         txn.write_bytes(f"figures/{safe_name(f.filename)}", f.png)
 
     title = f"heliocal report: {workdir}"
-    notes = [b[1] for b in blocks if b[0] == "note"] + measured_floor.problems
+    notes = [b[1] for b in blocks if b[0] == "note"]
     floor_text = (f"Measurement floor: {floor:.3f} mrad ({floor_source})." if floor is not None
                   else "Measurement floor: unknown (give `heliocal report --floor-mrad F`).")
     subtitle = (f"heliocal {metrics['heliocal_version']}, git {metrics['git_revision']}; "
@@ -267,6 +267,8 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
             "markdown": str(out / "report.md"), "metrics": str(out / "metrics.json"),
             "details": str(out / "details.html"), "field": str(out / "field.html"),
             "figures": [str(fig_dir / f.filename) for f in figs], "notes": notes,
+            "measurement_floor": {"value_mrad": floor, "source": floor_source,
+                                  "problems": measured_floor.problems},
             "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats}
 
 
