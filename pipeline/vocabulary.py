@@ -12,11 +12,12 @@ from __future__ import annotations
 import enum
 
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
-           "PretrainVariant", "NeuralBaseline", "AimModel", "CoarseLoss", "CoarseSolver", "TrainingDtype",
-           "Scheduler", "DisturbanceKind", "SimulatedType", "FocalSpotDetector", "AzimuthConvention",
-           "DEFAULT_BATCH_ROWS", "DEFAULT_TIME_MIN", "DEFAULT_TIME_MAX_MARGIN_DAYS",
-           "DEFAULT_MAX_SPOT_DISTANCE_M", "DEFAULT_SUN_TOLERANCE_DEG", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
-           "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "MIN_IMPROVEMENT",
+           "PretrainVariant", "NeuralBaseline", "AimModel", "CoarseLoss", "CoarseSolver",
+           "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "FocalSpotDetector",
+           "AzimuthConvention", "DEFAULT_BATCH_ROWS", "DEFAULT_TIME_MIN",
+           "DEFAULT_TIME_MAX_MARGIN_DAYS", "DEFAULT_MAX_SPOT_DISTANCE_M",
+           "DEFAULT_SUN_TOLERANCE_DEG", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY",
+           "DEFAULT_FOURIER_BANDS", "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "MIN_IMPROVEMENT",
            "STD_ERROR_PSEUDO_INVERSE"]
 
 
