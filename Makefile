@@ -7,7 +7,13 @@ LOCK ?= requirements.lock
 LOCK_VENV ?= .venv-lock
 LATEST_VENV ?= /tmp/heliocal-latest-venv
 UV_VERSION ?= 0.13.9
+# Where pip finds the locked CPU build of torch: a folder holding the wheel (TORCH_WHEELS) when it
+# has it, else PyTorch's own CPU wheel index (TORCH_INDEX); the lock's SHA-256 checks it either way.
 TORCH_WHEELS ?= /opt/wheels
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+TORCH_PIN := $(shell sed -n 's/^torch==\([^ ]*\).*/\1/p' $(LOCK) 2>/dev/null)
+TORCH_LOCAL = $(wildcard $(TORCH_WHEELS)/torch-$(TORCH_PIN)-*.whl)
+TORCH_SOURCE = $(if $(TORCH_LOCAL),--find-links $(TORCH_WHEELS),--extra-index-url $(TORCH_INDEX))
 HELIOCAL = $(VENV)/bin/heliocal
 WORKDIR ?= runs/sample
 SOURCES ?= sample_data/juelich/paint
@@ -33,11 +39,14 @@ install: $(VENV)/.installed
 # The lock is the one source of installed versions: every package pinned with its SHA-256, resolved
 # for this Python (3.11) on x86_64 Linux. pyproject.toml keeps the ranges for people who install
 # heliocal into their own environment. The venv is made anew whenever the lock changes, so nothing
-# from an earlier resolution survives, and `check-lock` proves it.
+# from an earlier resolution survives, and `check-lock` proves it. The lock's own --find-links
+# line (the folder it was resolved with) is left out: TORCH_SOURCE says where torch is here.
 $(VENV)/.installed: $(LOCK) pyproject.toml
+	$(if $(TORCH_LOCAL),,$(PYTHON) .ci/torch_index.py $(TORCH_INDEX) $(TORCH_PIN) $(TORCH_WHEELS))
 	rm -rf $(VENV)
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --quiet --require-hashes --no-deps -r $(LOCK)
+	grep -v '^--find-links' $(LOCK) > $(VENV)/requirements.lock
+	$(VENV)/bin/pip install --quiet --require-hashes --no-deps $(TORCH_SOURCE) -r $(VENV)/requirements.lock
 	$(VENV)/bin/pip install --quiet --no-deps --no-build-isolation -e .
 	$(VENV)/bin/python .ci/check_lock.py $(LOCK)
 	touch $@

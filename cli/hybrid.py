@@ -14,8 +14,8 @@ from rich import box
 from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
-                              SchedulerChoice, Seed, Workdir, Workers, command, emit, progress_bar,
-                              stdout)
+                              SchedulerChoice, Seed, Workdir, Workers, command, emit, fmt_number,
+                              progress_bar, stdout)
 from heliocal.pipeline.errors import InputError, ParameterError
 from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.vocabulary import (HYBRID_BATCH_SIZE, AimModel, FineMode, PretrainVariant,
@@ -26,10 +26,6 @@ __all__ = ["fit_hybrid_cmd", "aim_cmd"]
 # str Enums (heliocal.pipeline.vocabulary): typer lists the choices in --help and rejects others
 # as a usage error (exit 2). The library (torch) is imported when a command runs.
 Mode = FineMode
-
-
-def _fmt(x) -> str:
-    return "-" if x is None or x != x else f"{x:.3f}"
 
 
 def _human(summary: dict) -> None:
@@ -43,9 +39,9 @@ def _human(summary: dict) -> None:
         table.add_column(col, justify="right", no_wrap=True)
     for h in summary["heliostats"]:
         c, f = h["coarse"], h[mode]
-        table.add_row(h["heliostat_id"], h["coarse_preset"], _fmt(c["train"]),
-                      _fmt(c["validation"]), _fmt(c["test"]), _fmt(f["train"]),
-                      _fmt(f["validation"]), _fmt(f["test"]))
+        table.add_row(h["heliostat_id"], h["coarse_preset"], fmt_number(c["train"]),
+                      fmt_number(c["validation"]), fmt_number(c["test"]), fmt_number(f["train"]),
+                      fmt_number(f["validation"]), fmt_number(f["test"]))
     stdout.print(table)
     stdout.print("mean error_mrad per split: the selected coarse preset (first three columns) vs "
                  f"{mode} (last three); wrote hybrid/{mode}/ and hybrid_predictions.parquet", markup=False)
@@ -79,8 +75,9 @@ def fit_hybrid_cmd(
     env: Annotated[str, typer.Option(
         "--env", help="Comma-separated env_* columns (without the prefix) to use as inputs, "
                       "e.g. temperature,wind_speed.")] = "",
-    depth: Annotated[int, typer.Option("--depth", min=0, help="Hidden layers.")] = 14,
-    width: Annotated[int, typer.Option("--width", min=1, help="Neurons per hidden layer.")] = 2,
+    depth: Annotated[int, typer.Option("--depth", min=0, help="Hidden layers.")] = FineConfig.depth,
+    width: Annotated[int, typer.Option(
+        "--width", min=1, help="Neurons per hidden layer.")] = FineConfig.width,
     fourier_bands: Annotated[str, typer.Option(
         "--fourier-bands", help="Frequency bands of the Fourier features of the steps "
                                 "[1 / max steps], comma-separated (default: every integer 1..32)."

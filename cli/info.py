@@ -42,17 +42,6 @@ __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 
 _SOURCE_PREFIX = "source:"  # ingest records each source as "source:<path as given>"
 
-#: Status of one artifact, best first: fresh, then the reasons it may not be.
-STATUSES = {
-    "fresh": "committed by its stage's last run, and every recorded input equals the current one",
-    "stale": "an input changed after the artifact was written: rerun its stage",
-    "unknown": "an input cannot be found to compare (moved source, or none recorded)",
-    "incompatible": "written with another schema version: rerun its stage",
-    "modified": "its bytes differ from what its run committed (changed by hand?): rerun its stage",
-    "uncommitted": "no complete run of its stage lists it (made by hand, by an older heliocal, or "
-                   "by an interrupted run): rerun its stage",
-}
-
 
 # ------------------------------------------------------------------------------------------------
 # gathering (plain data)

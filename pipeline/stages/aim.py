@@ -21,6 +21,7 @@ from ..models.training import FineProblem, grouped_components
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
+from ..physics.vectors import unit_vector as _unit
 from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
 from .fit_coarse import load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
@@ -35,10 +36,6 @@ __all__ = [
 # ------------------------------------------------------------------------------------------------
 # pretrained-nn (paper 002)
 # ------------------------------------------------------------------------------------------------
-def _unit(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-
-
 # ------------------------------------------------------------------------------------------------
 # loading a fitted model and aiming
 # ------------------------------------------------------------------------------------------------
