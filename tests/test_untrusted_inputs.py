@@ -156,3 +156,20 @@ def test_ingest_rejects_device_names_and_keeps_the_rest(runner, tmp_path):
     kept = set(pq.read_table(tmp_path / "wd" / "measurements.parquet")["heliostat_id"].to_pylist())
     assert kept == {"BE36"}
 
+
+
+def test_simulate_overwrite_never_removes_through_a_planted_link(tmp_path):
+    """`simulate --overwrite` removes the previous simulation's files: through a link `paint/`
+    to a real PAINT download it removed that download's calibration files. Refused, one line."""
+    from heliocal.pipeline.errors import UnsafePathError
+    from heliocal.pipeline.models.simulator import simulate_field
+    from heliocal.pipeline.stages.simulate import write_field
+
+    download = Path(shutil.copytree(PAINT_SMALL, tmp_path / "download"))
+    out = tmp_path / "sim"
+    out.mkdir()
+    (out / "paint").symlink_to(download)
+    field = simulate_field(1, seed=3, measurements=(20, 20), dynamic_fraction=0.0)
+    with pytest.raises(UnsafePathError, match=r"sim/paint is a symbolic link to .*download"):
+        write_field(field, out, overwrite=True)
+    assert len(list((download / "BE36" / "calibration").iterdir())) == 3

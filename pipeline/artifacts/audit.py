@@ -14,10 +14,11 @@ import os
 import stat
 from pathlib import Path
 
+from ..errors import UnsafePathError
 from .manifests import invalid_manifests
 from .paths import is_real_dir, kind_of
 
-__all__ = ["hostile_entries"]
+__all__ = ["hostile_entries", "refuse_links"]
 
 
 def _links_and_special_files(root: Path) -> list[dict]:
@@ -59,3 +60,14 @@ def hostile_entries(root: str | os.PathLike) -> list[dict]:
                                                         f"stage replaces it: rerun `heliocal "
                                                         f"{exc.stage}`"})
     return [found[k] for k in sorted(found)]
+
+
+def refuse_links(root: str | os.PathLike) -> None:
+    """Raise :class:`~heliocal.pipeline.errors.UnsafePathError` naming the first link, FIFO,
+    socket or device in ``root`` (walked without following links): for a writer whose folder
+    holds only files it writes itself (``simulate``'s output folder), which would otherwise write
+    or remove through a planted link."""
+    found = _links_and_special_files(Path(root))
+    if found:
+        first = found[0]
+        raise UnsafePathError(f"{first['path']} is {first['problem']}, then rerun the command")

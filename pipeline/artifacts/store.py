@@ -32,9 +32,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .. import __version__
-from ..errors import SchemaError, StageInputError
+from ..errors import SchemaError, StageInputError, UnsafePathError
 from .manifests import CommittedWorkdir, committed_entry, current_transaction, read_committed
-from .paths import artifact_path, file_sha256
+from .paths import artifact_path, file_sha256, open_regular
 from .provenance import Fingerprint, command_line, git_revision, jsonable, table_fingerprint
 from .table import ArtifactSchema, to_table
 from .transaction import transaction
@@ -243,8 +243,11 @@ def artifact_writer(workdir: str | os.PathLike, schema: ArtifactSchema, *, stage
 def read_provenance(path: str | os.PathLike) -> dict:
     """The provenance dictionary stored in a heliocal Parquet artifact."""
     path = Path(path)
-    try:
-        meta = pq.read_schema(path).metadata or {}
+    try:  # the footer only, of a regular file opened without following a link
+        with open(open_regular(path), "rb", closefd=True) as fh:
+            meta = pq.read_schema(fh).metadata or {}
+    except UnsafePathError as exc:
+        raise SchemaError(f"{exc}") from None
     except (pa.ArrowInvalid, OSError) as exc:
         raise SchemaError(f"{path} is not a readable Parquet file ({exc}); rerun the stage "
                           "that writes it") from exc

@@ -269,8 +269,8 @@ class StageTransaction:
 
     # -- lifecycle ------------------------------------------------------------------------------
     def begin(self) -> "StageTransaction":
-        self.root.mkdir(parents=True, exist_ok=True)
         self._check_root()
+        self.root.mkdir(parents=True, exist_ok=True)
         self.recovered = recover(self.root, leftover_files=holds_workdir_lock(self.root))
         if self.recovered:
             log.warning("%s: %s", self.root, "; ".join(self.recovered))
