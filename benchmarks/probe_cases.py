@@ -155,7 +155,7 @@ def f3b(p: Probe):
 def f3c(p: Probe):
     paint = paint_copy(p)
     r = p.run("ingest", paint, "--workdir", paint / "run", "--quiet")
-    return one_line_error(r) and "inside" in r.line, f"exit {r.code}: {r.line}"
+    return one_line_error(r) and "inside the source folder" in r.line, f"exit {r.code}: {r.line}"
 
 
 def _log_with_ids(p: Probe, ids: list[str]) -> Path:

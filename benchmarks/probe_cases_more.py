@@ -287,7 +287,7 @@ def e21(p: Probe):
 def e22(p: Probe):
     wd = p.workdir()
     cmd = [HELIOCAL, "split-knn", "--workdir", str(wd), "--quiet"]
-    first = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     time.sleep(0.3)
     second = p.run("split-knn", "--workdir", wd, "--quiet")
     err = first.communicate(timeout=120)[1]
@@ -378,7 +378,7 @@ def e32(p: Probe):
     import pyarrow.parquet as pq
 
     h = pq.read_table(p.base / "heliostats.parquet").to_pandas().set_index("heliostat_id").loc["BE36"]
-    point = ",".join(f"{h[f'heliostat_{a}_m']!r}" for a in "enu")
+    point = ",".join(repr(float(h[f"heliostat_{a}_m"])) for a in "enu")
     r = p.run(*aim_args(p.base, target=point))
     return one_line_error(r) and "NaN" not in r.out, f"exit {r.code}: {r.line if r.code else r.out[:80]}"
 
@@ -505,7 +505,7 @@ def e44(p: Probe):
 def e45(p: Probe):
     paint = paint_copy(p)
     r = p.run("ingest", paint, "--workdir", paint, "--quiet")
-    return one_line_error(r) and "inside" in r.line, f"exit {r.code}: {r.line}"
+    return one_line_error(r) and "inside the source folder" in r.line, f"exit {r.code}: {r.line}"
 
 
 @case("E46", "ingest DIR/paint --workdir DIR (the source folder inside the work directory)",

@@ -12,7 +12,8 @@ and writes the wall time of each to ``DIR/../<name of DIR>.times.json``.
 ``compare A B`` reads every Parquet artifact of both work directories with pandas and compares
 the frames with ``DataFrame.equals`` (exact: same values, dtypes and order), except the columns
 the schema declares volatile (wall-clock times); it also compares the ``metrics.json`` of the two
-reports without ``git_revision`` and prints both runs' stage times side by side.
+reports without ``git_revision``, and aim's answers (keys that B adds are listed, not counted as
+differences), and prints both runs' stage times side by side.
 
 Usage::
 
@@ -83,6 +84,20 @@ def _frames(workdir: Path) -> dict:
     return out
 
 
+def _common(before, after, path="", new=None):
+    """``after`` without the keys ``before`` lacks (recursively), and the dotted names of those
+    keys in ``new``: a key the change adds is listed, not counted as a difference."""
+    if isinstance(before, dict) and isinstance(after, dict):
+        out = {}
+        for k, v in after.items():
+            if k in before:
+                out[k] = _common(before[k], v, f"{path}{k}.", new)
+            elif new is not None:
+                new.append(f"{path}{k} = {json.dumps(v)[:60]}")
+        return out
+    return after
+
+
 def compare(a: Path, b: Path) -> int:
     fa, fb = _frames(a), _frames(b)
     bad = 0
@@ -94,12 +109,16 @@ def compare(a: Path, b: Path) -> int:
     ma, mb = (json.loads((d / "report" / "metrics.json").read_text()) for d in (a, b))
     for m in (ma, mb):
         m.pop("git_revision", None)
-    same = ma == mb
-    print(f"{'report/metrics.json':34s} {'':11s} {'equal' if same else 'DIFFERENT'}")
+    added: list[str] = []
+    same = ma == _common(ma, mb, new=added)
+    print(f"{'report/metrics.json':34s} {'':11s} {'equal' if same else 'DIFFERENT'}"
+          + (f" (keys added: {'; '.join(added)})" if added else ""))
     bad += not same
     aims = [json.loads((d.parent / f"{d.name}.aim.json").read_text()) for d in (a, b)]
-    same = aims[0] == aims[1]
-    print(f"{'aim --heliostat BE36 (JSON)':34s} {'':11s} {'equal' if same else 'DIFFERENT'}")
+    added = []
+    same = aims[0] == _common(aims[0], aims[1], new=added)
+    print(f"{'aim --heliostat BE36 (JSON)':34s} {'':11s} {'equal' if same else 'DIFFERENT'}"
+          + (f" (keys added: {'; '.join(added)})" if added else ""))
     bad += not same
     ta, tb = (json.loads((d.parent / f"{d.name}.times.json").read_text()) for d in (a, b))
     print(f"\n{'stage':12s} {a.name:>12s} {b.name:>12s}  ratio")
