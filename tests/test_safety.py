@@ -421,7 +421,7 @@ NOT_DATA = {
     ("artifacts/manifests.py", "Path(root) / f'{stage}{_MANIFEST_SUFFIX}'"):
         "stage is one of heliocal's stage names (ingest ... report), or a name listed from the "
         "folder that matches the stage pattern (lower-case letters, digits, '-')",
-    ("artifacts/transaction.py", "dst.parent / f\".{dst.name}.{staging_name('copy', run_id)}\""):
+    ("artifacts/transaction.py", "dst.parent / f'.{dst.name}.tmp-{run_id}'"):
         "dst is a destination already confined to the work directory; the name adds a fixed "
         "prefix and the run id, which the manifest check matched against RUN_ID_RE",
     ("artifacts/transaction.py", "self.staging / f'.{target.name}.tmp'"):

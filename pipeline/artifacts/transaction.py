@@ -118,7 +118,7 @@ def _move_into_place(src: Path, dst: Path, run_id: str) -> None:
     except OSError as exc:
         if exc.errno != errno.EXDEV:
             raise
-    tmp = dst.parent / f".{dst.name}.{staging_name('copy', run_id)}"
+    tmp = dst.parent / f".{dst.name}.tmp-{run_id}"
     with contextlib.suppress(FileNotFoundError):
         os.unlink(tmp)  # a copy of this same run that was killed
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
