@@ -347,7 +347,7 @@ def f6g(p: Probe):
         doc = json.loads(r.out)
     except ValueError:
         return False, f"exit {r.code}: {r.line}"
-    warned = "arning" in r.err
+    warned = "warning" in r.err.lower()
     field = doc.get("warnings")
     return r.code == 0 and warned and bool(field), \
         f"exit {r.code}; stderr warning: {warned}; JSON warnings: {field and field[0][:80]}"
