@@ -12,7 +12,8 @@ and writes the wall time of each to ``DIR/../<name of DIR>.times.json``.
 ``compare A B`` reads every Parquet artifact of both work directories with pandas and compares
 the frames with ``DataFrame.equals`` (exact: same values, dtypes and order), except the columns
 the schema declares volatile (wall-clock times); it also compares the ``metrics.json`` of the two
-reports without ``git_revision``, and aim's answers (keys that B adds are listed, not counted as
+reports without ``git_revision`` and ``inputs`` (the SHA-256 of the input files' bytes, whose
+Parquet footers record the revision), and aim's answers (keys that B adds are listed, not counted as
 differences), and prints both runs' stage times side by side.
 
 Usage::
@@ -107,8 +108,9 @@ def compare(a: Path, b: Path) -> int:
         print(f"{name:34s} rows {rows!s:>6}  {'equal' if same else 'DIFFERENT'}")
         bad += not same
     ma, mb = (json.loads((d / "report" / "metrics.json").read_text()) for d in (a, b))
-    for m in (ma, mb):
-        m.pop("git_revision", None)
+    for m in (ma, mb):  # the code's revision, and the SHA-256 of the input files' bytes, whose
+        m.pop("git_revision", None)  # Parquet footers hold the revision in their provenance
+        m.pop("inputs", None)
     added: list[str] = []
     same = ma == _common(ma, mb, new=added)
     print(f"{'report/metrics.json':34s} {'':11s} {'equal' if same else 'DIFFERENT'}"
