@@ -7,14 +7,12 @@ import json
 import os
 import shutil
 import subprocess
-import time
 from pathlib import Path
 
-from probe_workdir import (HELIOCAL, PAINT, ROOT, RUN_ID, Probe, add_manifest_file, aim_args, calibration_dir,
+from probe_workdir import (HELIOCAL, ROOT, Probe, add_manifest_file, aim_args, calibration_dir,
                            case, flagged, info_json, intact, manifest, one_line_error, paint_copy,
                            sha, usage_or_error, victim, write_manifest)
 
-_ = RUN_ID
 
 
 def _snapshot(folder: Path) -> dict:
@@ -412,5 +410,3 @@ def f8(p: Probe):
     same = (before.st_ino, before.st_mtime_ns) == (after.st_ino, after.st_mtime_ns)
     return same and r.code == 0, f"index {'untouched' if same else 'REWRITTEN (git took index.lock)'}; exit {r.code}"
 
-
-_ = (PAINT, time)

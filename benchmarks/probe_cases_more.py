@@ -8,9 +8,7 @@ import os
 import re
 import shutil
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 from probe_workdir import (HELIOCAL, RUN_ID, Probe, add_manifest_file, aim_args, calibration_dir,
                            case, flagged, info_json, intact, manifest, one_line_error, paint_copy,
@@ -604,5 +602,3 @@ def e52(p: Probe):
     ok = proc.returncode == 1 and "permission" in line.lower() and "internal" not in line
     return ok, f"exit {proc.returncode}: {line[:140]}"
 
-
-_ = (sys, victim)
