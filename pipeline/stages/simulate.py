@@ -17,6 +17,7 @@ import pandas as pd
 import torch
 
 from .. import __version__
+from ..artifacts.audit import refuse_links
 from ..artifacts.paths import atomic_write_text, safe_child
 from ..artifacts.workdir_lock import LOCK_FILENAME, locks_workdir
 from ..errors import InputError
@@ -280,6 +281,8 @@ def write_field(field_: SimulatedField, out_dir: str | os.PathLike, *, overwrite
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder; give a folder for the simulation")
+    if out.is_dir():
+        refuse_links(out)  # a planted link would have files written or removed outside
     if out.is_dir() and any(p.name != LOCK_FILENAME for p in out.iterdir()):
         if not overwrite:
             raise InputError(f"{out}: the folder is not empty; choose an empty or new folder, or "
