@@ -7,7 +7,9 @@ files, then runs ``ingest``, ``split-knn``, ``fit-coarse --preset static-20``, `
 network's cost per heliostat, default variant), ``sweep --study 0`` (the production selection of
 every heliostat with the default weight decays, band sets and ensembles; no training-size study)
 and ``report`` (every page and figure; the size of ``report/index.html`` and of the report folder
-are printed too) as separate ``heliocal`` processes, once with ``--workers 1`` and once with
+are printed too), and on request ``fit-coarse-no-rolling`` (fit-coarse without its rolling-origin
+evaluation, for the next-day error's cost) and ``aim`` (``aim --date 2024-03-01 --every 10min``:
+every heliostat's aims of a day) as separate ``heliocal`` processes, once with ``--workers 1`` and once with
 ``--workers 2``, and prints per stage the wall
 time, heliostats per second and the peak memory of the stage's whole process tree (summed RSS,
 sampled every 0.1 s), so the scaling ratio is measured in one run. Usage::
@@ -181,6 +183,14 @@ def main() -> None:
             "sweep": ["sweep", "--workdir", str(wd), "--study", "0",
                       "--workers", str(workers), *args.sweep_args.split()],
             "report": ["report", "--workdir", str(wd), "--workers", str(workers)],
+            # fit-coarse without its rolling-origin evaluation: beside fit-coarse, the cost of
+            # the next-day error (run it after fit-coarse; it replaces the fit's artifacts)
+            "fit-coarse-no-rolling": ["fit-coarse", "--workdir", str(wd), "--preset",
+                                      "static-20", "--workers", str(workers), "--solver",
+                                      args.solver, "--rolling-origins", "0"],
+            # a day of the whole field: an aim every 10 minutes while the sun is up (one process)
+            "aim": ["aim", "--workdir", str(wd), "--date", "2024-03-01", "--every", "10min",
+                    "--out", str(wd / "aims-2024-03-01.parquet"), "--json"],
         }
         for stage in stages:
             wall, peak = run_stage(commands[stage])
@@ -188,6 +198,10 @@ def main() -> None:
             print(f"  workers={workers} {stage:11s} {wall:8.1f} s  "
                   f"{info['heliostats'] / wall:8.1f} heliostats/s  peak {peak / 2**30:5.2f} GiB",
                   flush=True)
+            if stage == "aim":
+                aims = pd.read_parquet(wd / "aims-2024-03-01.parquet")
+                print(f"  workers={workers} aim: {len(aims)} aims ({(aims['status'] == 'ok').sum()}"
+                      f" ok), {len(aims) / wall:.0f} aims/s", flush=True)
             if stage == "report":
                 rep = wd / "report"
                 files = [f for f in rep.rglob("*") if f.is_file()]

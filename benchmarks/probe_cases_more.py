@@ -388,7 +388,7 @@ def e32(p: Probe):
         return one_line_error(r), f"exit {r.code}: {r.line}"
     doc = _aim_json(r)
     finite = doc is not None and "NaN" not in r.out and "Infinity" not in r.out
-    return finite, f"exit 0: steps {doc and round(doc['axis_1_steps'], 1)}, {doc and round(doc['axis_2_steps'], 1)}; aim error {doc and doc['aim_error_mrad']:.2g} mrad"
+    return finite, f"exit 0: steps {doc and round(doc['axis_1_steps'], 1)}, {doc and round(doc['axis_2_steps'], 1)}; aim error {doc and doc['inverse_residual_mrad']:.2g} mrad"
 
 
 @case("E33", "aim --sun-azimuth nan --sun-elevation 30", "one line: not finite")

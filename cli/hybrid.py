@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
@@ -180,9 +181,11 @@ def _sun(azimuth: float | None, elevation: float | None):
 
 @command("aim")
 def aim_cmd(
-    heliostat: Annotated[str, typer.Option("--heliostat", help="Heliostat id.")],
-    target: Annotated[str, typer.Option(
-        "--target", help="Aim point: a target name of the measurements or E,N,U [m].")],
+    heliostat: Annotated[Optional[list[str]], typer.Option(
+        "--heliostat", help="Heliostat id (with --date: repeat, or leave out for all).")] = None,
+    target: Annotated[Optional[str], typer.Option(
+        "--target", help="Aim point: a target name of the measurements or E,N,U [m] (with "
+                         "--date: a target name; default each heliostat's usual one).")] = None,
     workdir: Workdir = DEFAULT_WORKDIR,
     time: Annotated[Optional[str], typer.Option(
         "--time", help="UTC time, e.g. 2024-06-01T12:00Z (sun from NREL SPA; the date is an "
@@ -195,13 +198,38 @@ def aim_cmd(
         "--env", help="NAME=VALUE of an env input of the model (repeat).")] = None,
     model: Annotated[AimModel, typer.Option(
         "--model", help="auto: hybrid where fitted, else coarse.")] = AimModel.auto,
+    max_expected_error: Annotated[Optional[float], typer.Option(
+        "--max-expected-error", metavar="MRAD",
+        help="Refuse an aim expected to be off by more [mrad] (batch: that row is rejected).")] = None,
+    schedule: Annotated[Optional[Path], typer.Option(
+        "--schedule", help="Many aims: a CSV or Parquet table with heliostat_id, time_utc, target "
+                           "(or aim_e_m, aim_n_m, aim_u_m) and optional env_<name> columns.")] = None,
+    date: Annotated[Optional[str], typer.Option(
+        "--date", help="Many aims: a whole UTC day of the field, one aim every --every while "
+                       "the sun is up.")] = None,
+    every: Annotated[str, typer.Option("--every", help="Time step of --date, e.g. 10min.")] = "10min",
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="Many aims: write the table here (.parquet or .csv); default CSV on "
+                      "stdout.")] = None,
+    as_json: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
-    """Motor steps that put the reflected beam on an aim point (printed as JSON; warnings, such
-    as an aim far from the heliostat's data, also on stderr)."""
+    """Motor steps that put the reflected beam on an aim point, with the error the aim is
+    expected to show (one aim: JSON; warnings, such as an aim far from the heliostat's data,
+    also on stderr). --schedule or --date aim many at once into a table."""
     import numpy as np
 
     from heliocal.pipeline.stages.aim import aim_steps, utc_time
+
+    if schedule is not None or date is not None:
+        from heliocal.cli.aim_field import aim_many
+
+        return aim_many(workdir, schedule=schedule, date=date, every=every, heliostats=heliostat,
+                        target=target, out=out, model=model.value,
+                        max_expected_error=max_expected_error, as_json=as_json)
+    if not heliostat or len(heliostat) != 1 or target is None:
+        raise ParameterError("one aim needs one --heliostat and a --target (or --schedule FILE "
+                             "/ --date DAY for many)")
 
     sun = _sun(sun_azimuth, sun_elevation)
     if time is None and sun is None:
@@ -213,8 +241,9 @@ def aim_cmd(
                                  param_hint="'--time'") from None
     values = _env(env or [])
     point, name = _target(target)
-    result = aim_steps(workdir, heliostat, aim_point_enu=None if point is None else np.asarray(point),
+    result = aim_steps(workdir, heliostat[0],
+                       aim_point_enu=None if point is None else np.asarray(point),
                        target=name, sun_vector_enu=sun, time_utc=when, env=values,
-                       model=model.value)
+                       model=model.value, max_expected_error_mrad=max_expected_error)
     result["target"] = name or target
     sys.stdout.write(json.dumps(result, indent=2) + "\n")

@@ -455,6 +455,7 @@ def _aim_table(models: list) -> Table:
         table.add_column(col, justify="right" if col in numbers else "left", no_wrap=True)
     for m in models:
         name = (f"coarse {m['preset']}" if m["model"] == "coarse"
+                else f"nominal ({m['preset']} worse)" if m["model"] == "nominal"
                 else f"{m['variant']} on {m['preset']}")
         wd = "-" if m["weight_decay"] is None else f"{m['weight_decay']:g}"
         table.add_row(Text(m["heliostat_id"]), Text(name), Text(wd), Text(m["source"]),

@@ -480,7 +480,7 @@ def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygotes, b
         assert len(layers) == (15 if moment[0] == "staged" else 4)
         out = aim_steps(wd, "BE36", aim_point_enu=[0.0, 0.0, 50.0], model="hybrid",
                         time_utc="2023-06-21T10:00:00Z")
-        assert out["model"] == "hybrid" and out["aim_error_mrad"] < 1e-6
+        assert out["model"] == "hybrid" and out["inverse_residual_mrad"] < 1e-6
 
 
 def _check_one_sweep_run(workdir: Path, n_train: list[int]) -> None:

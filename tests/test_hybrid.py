@@ -441,14 +441,23 @@ def test_aim_round_trip(workdir, runner):
     sun = torch.tensor(sun_vector_enu(az, el))
     beam = reflect(-sun, normal)
     miss = float(error_mrad(beam, torch.tensor(aim) - position)[0])
-    assert miss < 0.01 and out["aim_error_mrad"] < 0.01
+    assert miss < 0.01 and out["inverse_residual_mrad"] < 0.01
     # the fine model moved the answer away from the coarse one
     coarse = runner.invoke(app, ["aim", "-w", str(wd), "--heliostat", HID, "--time",
                                  "2024-05-03T11:00Z", "--target", ",".join(map(str, aim)),
                                  "--model", "coarse"])
     c = json.loads(coarse.stdout)
-    assert c["model"] == "coarse" and c["aim_error_mrad"] < 0.01
+    assert c["model"] == "coarse" and c["inverse_residual_mrad"] < 0.01
     assert abs(c["axis_1_steps"] - out["axis_1_steps"]) + abs(c["axis_2_steps"] - out["axis_2_steps"]) > 1
+    # the batch aim takes the same fixed point for a hybrid row (aim_field solves it per row)
+    from heliocal.pipeline.stages.aim_field import aim_schedule
+
+    batch = aim_schedule(wd, pd.DataFrame({
+        "heliostat_id": [HID], "time_utc": ["2024-05-03T11:00Z"], "aim_e_m": [aim[0]],
+        "aim_n_m": [aim[1]], "aim_u_m": [aim[2]]}))
+    assert batch["model"].tolist() == ["hybrid"] and batch["status"].tolist() == ["ok"]
+    assert batch["axis_1_steps"].iloc[0] == pytest.approx(out["axis_1_steps"], abs=1e-6)
+    assert batch["axis_2_steps"].iloc[0] == pytest.approx(out["axis_2_steps"], abs=1e-6)
 
 
 @pytest.mark.slow

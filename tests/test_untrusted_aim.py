@@ -149,7 +149,7 @@ def test_the_hybrids_fixed_point_converges_or_says_it_did_not(fitted):
     """Before: the loop stopped after max_iterations without a word and returned its last steps."""
     aim = dict(target=TARGET, time_utc="2023-06-21T12:00:00Z", model="hybrid")
     out = aim_steps(fitted, "BE36", **aim)
-    assert 1 <= out["iterations"] < 50 and out["aim_error_mrad"] < 1e-6
+    assert 1 <= out["iterations"] < 50 and out["inverse_residual_mrad"] < 1e-6
     with pytest.raises(FitError, match=r"the hybrid model of BE36 did not converge to the aim "
                                        r"steps: after 1 fixed-point iterations the steps still "
                                        r"changed by [0-9.e+-]+ steps \(tolerance 1e-12\)"):

@@ -105,6 +105,8 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
         big = implausible.get(hid)
         if isinstance(big, str) and big:
             alerts.append(f"large corrections of the nominal geometry ({big})")
+        if c and c.get("fallback"):
+            alerts.append(c["fallback"])
         alerts += list((extra_alerts or {}).get(hid, []))
         e, n = (float(pos.loc[hid, "heliostat_e_m"]), float(pos.loc[hid, "heliostat_n_m"])) \
             if hid in pos.index else (float("nan"), float("nan"))
@@ -158,6 +160,7 @@ def field_summary(table: pd.DataFrame, *, alert_mrad: float = ALERT_MRAD) -> dic
         "n_coarse": int((table["model"] == "coarse").sum()),
         "n_hybrid": int((table["model"] == "hybrid").sum()),
         "n_pretrained": int((table["model"] == "pretrained-nn").sum()),
+        "n_nominal": int((table["model"] == "nominal").sum()),
         "presets": {str(k): int(v) for k, v in table["preset"].dropna().value_counts()
                     .sort_index().items()},
         "n_with_test_error": int(ok.sum()),

@@ -62,12 +62,14 @@ def nav_html(prefix: str = "") -> str:
 
 
 def model_label(row) -> str:
-    """``hybrid-octaves on static-20``, ``pretrained-nn on static-20``, ``coarse static-6`` or
-    ``no model``."""
+    """``hybrid-octaves on static-20``, ``pretrained-nn on static-20``, ``coarse static-6``,
+    ``nominal geometry (...)`` (the fallback) or ``no model``."""
     if row["model"] in ("hybrid", "pretrained-nn"):
         return f"{row['variant'] or row['model']} on {row['preset']}"
     if row["model"] == "coarse":
         return f"coarse {row['preset']}"
+    if row["model"] == "nominal":
+        return f"nominal geometry (the fitted {row['preset']} is worse)"
     return "no model"
 
 
@@ -124,7 +126,8 @@ def index_html(title: str, subtitle: str, summary: dict, table: pd.DataFrame, wo
     kpis = [("heliostats", s["n_heliostats"]),
             ("calibrated", s["n_calibrated"]),
             ("hybrid / coarse", f"{s['n_hybrid']} / {s['n_coarse']}"
-             + (f" (+ {s['n_pretrained']} pretrained-nn)" if s.get("n_pretrained") else "")),
+             + (f" (+ {s['n_pretrained']} pretrained-nn)" if s.get("n_pretrained") else "")
+             + (f" (+ {s['n_nominal']} on the nominal geometry)" if s.get("n_nominal") else "")),
             ("median test error", f"{_num(s['median_test_error_mrad'])} mrad"
              + (f" ({s['n_degenerate']} degenerate left out)" if s.get("n_degenerate") else "")),
             ("p95 test error", f"{_num(s['p95_test_error_mrad'])} mrad"),
@@ -182,6 +185,10 @@ def why_text(row, h: dict, best_hybrid_val: float | None) -> str:
     if row["model"] is None:
         return ("No model yet: fit-coarse has not fitted this heliostat, so aim cannot point it "
                 "(run `heliocal fit-coarse`).")
+    if row["model"] == "nominal":
+        alert = [a for a in row.get("alerts", []) if "nominal geometry" in a]
+        return (alert[0][0].upper() + alert[0][1:] + "." if alert else
+                "aim uses the nominal geometry: the fitted model is worse on held-out rows.")
     if row["source"] == "sweep" and row["model"] in ("hybrid", "pretrained-nn"):
         change = (f" ({100 * (row['val_error_mrad'] / cval - 1):+.0f} %)"
                   if cval and math.isfinite(row["val_error_mrad"]) else "")

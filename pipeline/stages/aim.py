@@ -164,6 +164,7 @@ class _Heliostat:
     row: pd.Series
     spec: HeliostatSpec
     coarse: torch.Tensor
+    selected: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
 
 
@@ -178,7 +179,7 @@ def _read_heliostat(wd: CommittedWorkdir, heliostat_id: str) -> _Heliostat:
         raise StageInputError(f"heliostat {heliostat_id!r} has no coarse fit: run `heliocal "
                               f"fit-coarse --workdir {wd}` first")
     return _Heliostat(heliostat_id, row, HeliostatSpec.from_row(row),
-                      selected[heliostat_id]["params"])
+                      selected[heliostat_id]["params"], selected[heliostat_id])
 
 
 def _target_point(wd: CommittedWorkdir, name: str) -> np.ndarray:
@@ -222,6 +223,8 @@ def _choose_model(wd: CommittedWorkdir, h: _Heliostat, model: str) -> tuple[str,
     chosen, fitted, rerun = model, None, None
     if model == "auto":
         choice = aim_models(wd, [h.id], strict=True).get(h.id, {})
+        if choice.get("model") == "nominal":
+            return use_nominal(h, choice["fallback"]), None
         if choice.get("model") in ("hybrid", "pretrained-nn"):
             fitted = load_model(wd, choice["model_dir"], h.id)
             if choice["source"] == "sweep":
@@ -239,6 +242,15 @@ def _choose_model(wd: CommittedWorkdir, h: _Heliostat, model: str) -> tuple[str,
             raise StageInputError(f"the {chosen} model of {h.id} is stale (its inputs "
                                   f"changed): rerun {rerun} first")
     return chosen, fitted
+
+
+def use_nominal(h: _Heliostat, reason: str) -> str:
+    """Aim ``h`` with its nominal geometry (its fit is worse than that on held-out rows:
+    :func:`heliocal.pipeline.stages.aim_choice.nominal_fallback`) and say so in its warnings."""
+    h.coarse = nominal_parameters(h.row)
+    h.warnings.append(f"{h.id}: {reason}")
+    log.warning("%s", h.warnings[-1])
+    return "nominal"
 
 
 def _check_env(wd: CommittedWorkdir, env: Mapping[str, float]) -> dict[str, float]:
@@ -326,7 +338,7 @@ def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iter
     steps = inverse_kinematics(h.coarse, h.spec, sun, aim)
     if not bool(torch.isfinite(steps).all()):
         raise _unreachable(h.id)
-    if chosen == "coarse":
+    if chosen in ("coarse", "nominal"):
         return steps, h.coarse, 0
     if chosen == "pretrained-nn":
         cfg, layers = fitted
@@ -339,10 +351,22 @@ def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iter
                         tolerance_steps)
 
 
+def _expected_error(wd: CommittedWorkdir, h: _Heliostat, chosen: str, steps, sun, aim) -> dict:
+    """``expected_error_mrad``, ``level_source`` and ``sun_distance_deg`` of one aim."""
+    from .aim_budget import error_budgets, expected_error_mrad, sun_distance_deg
+
+    models = {h.id: {"model": "nominal" if chosen == "nominal" else "coarse"}}
+    budget = error_budgets(wd, {h.id: h.spec}, {h.id: h.selected}, models)[h.id]
+    expected = expected_error_mrad(budget, h.spec, h.coarse, steps, sun, aim)
+    return {"expected_error_mrad": float(expected[0]), "level_source": budget.level_source,
+            "sun_distance_deg": float(sun_distance_deg(budget, sun.numpy())[0])}
+
+
 def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | None = None,
               sun_vector_enu=None, time_utc=None, env: Mapping[str, float] | None = None,
               model: str = "auto", max_iterations: int = 50,
-              tolerance_steps: float = 1e-6) -> dict:
+              tolerance_steps: float = 1e-6,
+              max_expected_error_mrad: float | None = None) -> dict:
     """Motor steps that reflect the sun onto ``aim_point_enu`` with the best fitted model.
 
     Parameters
@@ -360,12 +384,19 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
     max_iterations, tolerance_steps : the hybrid's fixed-point iteration stops when the steps
         change by less than ``tolerance_steps`` [steps]; without that in ``max_iterations`` it
         raises :class:`FitError`.
+    max_expected_error_mrad : refuse (:class:`FitError`, one line) an aim whose
+        ``expected_error_mrad`` is larger.
 
     Returns
     -------
-    dict with ``axis_1_steps``, ``axis_2_steps``, ``model``, ``iterations``, ``aim_error_mrad``
-    (angle between the forward model's reflected beam at those steps and the direction to the aim
-    point), ``sun_azimuth_deg``, ``sun_elevation_deg``, ``regime``, ``days_after_last_measurement``
+    dict with ``axis_1_steps``, ``axis_2_steps``, ``model`` (``nominal`` when the fit is worse
+    than the nominal geometry on held-out rows; a warning says so), ``iterations``,
+    ``expected_error_mrad`` (the error a measurement of this aim is expected to show:
+    :mod:`heliocal.pipeline.stages.aim_budget`), its ``level_source``, ``sun_distance_deg``
+    (the aim's sun to the nearest training row's), ``inverse_residual_mrad`` (the angle between
+    the forward model's reflected beam at the returned steps and the direction to the aim
+    point: how exactly the steps solve the model, not how well the heliostat will point),
+    ``sun_azimuth_deg``, ``sun_elevation_deg``, ``regime``, ``days_after_last_measurement``
     (None without a time) and ``warnings`` (texts, also logged: an aim far from the data).
     """
     from ..physics.sun import sun_angles_from_vector
@@ -387,16 +418,23 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
                                        max_iterations, tolerance_steps)
     with torch.no_grad():
         normal, position = forward_kinematics(params, h.spec, steps)
-        aim_err = float(error_mrad(reflect(-sun, normal), aim - position)[0])
-    if not math.isfinite(aim_err):
+        inverse_residual = float(error_mrad(reflect(-sun, normal), aim - position)[0])
+    if not math.isfinite(inverse_residual):
         raise _unreachable(h.id)
+    expected = _expected_error(wd, h, chosen, steps, sun, aim)
+    if max_expected_error_mrad is not None and not expected["expected_error_mrad"] <= max_expected_error_mrad:
+        raise FitError(f"the aim of {h.id} is expected to be off by "
+                       f"{expected['expected_error_mrad']:.3g} mrad, more than "
+                       f"--max-expected-error {max_expected_error_mrad:g} mrad; recalibrate it or "
+                       "raise the limit")
     az, el = sun_angles_from_vector(sun.numpy())
     out = {"heliostat_id": heliostat_id, "model": chosen,
            "time_utc": None if time_utc is None else str(time_utc),
            "sun_azimuth_deg": float(az[0]), "sun_elevation_deg": float(el[0]),
            "aim_point_enu_m": aim[0].tolist(), "axis_1_steps": float(steps[0, 0]),
            "axis_2_steps": float(steps[0, 1]), "iterations": iterations,
-           "aim_error_mrad": aim_err, "regime": latest_regime(wd, heliostat_id),
+           **expected, "inverse_residual_mrad": inverse_residual,
+           "regime": latest_regime(wd, heliostat_id),
            "days_after_last_measurement": days, "warnings": h.warnings}
     if target is not None:
         out["target"] = target

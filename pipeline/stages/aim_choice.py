@@ -17,6 +17,7 @@ from ..runtime.process_state import restores_process_state
 
 __all__ = [
     "aim_models",
+    "nominal_fallback",
 ]
 
 
@@ -44,7 +45,9 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
 
     Returns
     -------
-    dict heliostat_id -> {``model`` (``coarse``, ``hybrid`` or ``pretrained-nn``), ``variant``
+    dict heliostat_id -> {``model`` (``coarse``, ``hybrid``, ``pretrained-nn``, or ``nominal``
+    where the fitted model is worse than the nominal geometry on held-out rows:
+    :func:`nominal_fallback`, whose sentence is in ``fallback``, else None), ``variant``
     (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
     ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
     ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
@@ -60,7 +63,8 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
         return {}
     params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
                            columns=["heliostat_id", "preset", "selected", "val_error_mrad",
-                                    "test_error_mrad", "time_test_error_mrad"])
+                                    "test_error_mrad", "time_val_error_mrad",
+                                    "time_test_error_mrad"])
     coarse = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
     selection = None
     if artifact_present(workdir, SELECTION):
@@ -71,6 +75,7 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
         selection = selection.drop_duplicates("heliostat_id").set_index("heliostat_id")
     fit_hybrid_errors = None
     next_day = _next_day_errors(workdir, heliostats)
+    nominal = _nominal_errors(workdir, heliostats)
     out = {}
     for hid in sorted(coarse.index):
         c = coarse.loc[hid]
@@ -79,7 +84,8 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
                  "val_error_mrad": float(c["val_error_mrad"]),
                  "test_error_mrad": float(c["test_error_mrad"]),
                  "forward_error_mrad": float(c["time_test_error_mrad"]),
-                 "next_day_error_mrad": next_day.get(hid, float("nan")), "model_dir": None}
+                 "next_day_error_mrad": next_day.get(hid, float("nan")), "model_dir": None,
+                 "fallback": None}
         choice = (str(selection.loc[hid, "model"])
                   if selection is not None and hid in selection.index else None)
         if choice == "coarse":
@@ -113,8 +119,61 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
                          weight_decay=_number(cfg.get("weight_decay")),
                          val_error_mrad=val, test_error_mrad=test,
                          forward_error_mrad=float("nan"), model_dir="hybrid")
-        out[hid] = entry
+        out[hid] = nominal_fallback(entry, float(c["time_val_error_mrad"]), nominal.get(hid))
     return out
+
+
+def nominal_fallback(entry: dict, time_val_error_mrad: float, nominal: dict | None) -> dict:
+    """``entry`` (an :func:`aim_models` value), or the nominal geometry in its place when the
+    fitted model is worse than the nominal geometry on rows it had not seen: its validation mean
+    above the nominal geometry's on the same rows, or the coarse model fitted on the time split's
+    training rows above the nominal geometry on the time split's validation rows. Validation
+    rows decide (the test rows stay a measurement); ``fallback`` says why in one sentence."""
+    if not nominal:
+        return entry
+    worse = []
+    if entry["val_error_mrad"] > nominal["val_error_mrad"]:
+        worse.append(f"validation {entry['val_error_mrad']:.3g} vs {nominal['val_error_mrad']:.3g} mrad")
+    if time_val_error_mrad > nominal["time_val_error_mrad"]:
+        worse.append(f"forward in time {time_val_error_mrad:.3g} vs "
+                     f"{nominal['time_val_error_mrad']:.3g} mrad")
+    if not worse:
+        return entry
+    model = entry["variant"] or entry["preset"]
+    return {**entry, "model": "nominal", "variant": None, "weight_decay": None, "model_dir": None,
+            "val_error_mrad": nominal["val_error_mrad"],
+            "test_error_mrad": nominal["test_error_mrad"],
+            "forward_error_mrad": nominal["time_test_error_mrad"],
+            "next_day_error_mrad": float("nan"),
+            "fallback": (f"the fitted {model} is worse than the nominal geometry on held-out "
+                         f"rows ({'; '.join(worse)}): aim uses the nominal geometry; add "
+                         "calibration rows and refit")}
+
+
+def _nominal_errors(workdir: CommittedWorkdir, heliostats) -> dict:
+    """heliostat -> the nominal geometry's mean error on its validation and test rows of the
+    kNN split and of the time split (NaN without such rows)."""
+    from ..artifacts.schemas import COARSE_PREDICTIONS, SPLIT
+
+    if not artifact_present(workdir, COARSE_PREDICTIONS):
+        return {}
+    p = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats,
+                      columns=["heliostat_id", "measurement_id", "split", "model", "error_mrad"])
+    p = p[p["model"] == "nominal"]
+    if artifact_present(workdir, SPLIT):
+        t = read_artifact(workdir, SPLIT, heliostats=heliostats,
+                          columns=["heliostat_id", "measurement_id", "time_split"])
+        p = p.merge(t, on=["heliostat_id", "measurement_id"], how="left")
+    else:
+        p = p.assign(time_split=None)
+    nan = float("nan")
+    knn = p.groupby(["heliostat_id", "split"])["error_mrad"].mean()
+    fwd = p.groupby(["heliostat_id", "time_split"])["error_mrad"].mean()
+    return {str(h): {"val_error_mrad": float(knn.get((h, "validation"), nan)),
+                     "test_error_mrad": float(knn.get((h, "test"), nan)),
+                     "time_val_error_mrad": float(fwd.get((h, "validation"), nan)),
+                     "time_test_error_mrad": float(fwd.get((h, "test"), nan))}
+            for h in p["heliostat_id"].unique()}
 
 
 def _next_day_errors(workdir: CommittedWorkdir, heliostats) -> dict:

@@ -66,7 +66,7 @@ follow from it as for the other models.
 best fitted model (``hybrid`` where fitted, else the coarse model). Through the fine model the
 parameters depend on the steps, so the inverse is a fixed point ``s_{k+1} = IK(p(s_k))`` started
 at the coarse solution (the deviations change by far less than a step per step, so it contracts
-fast); the reported ``aim_error_mrad`` is the angle between the beam reflected by the forward
+fast); the reported ``inverse_residual_mrad`` is the angle between the beam reflected by the forward
 model at the returned steps and the direction to the aim point.
 """
 

@@ -1,0 +1,340 @@
+"""How far off an aim is expected to be: each heliostat's error budget.
+
+An aim's ``expected_error_mrad`` is the root mean square error [mrad] that a camera-target
+measurement of that aim would show (the angle between the mirror normal the model set and the
+one the spot reveals, as ``error_mrad`` everywhere in heliocal). Two parts add in quadrature:
+
+* **the parameters' uncertainty at this sun position**: the coarse fit's posterior covariance
+  ``C`` on the training rows its parameters rest on, through the aim's Jacobian ``J_a``:
+  ``trace(J_a C J_a^T)`` (:mod:`heliocal.pipeline.models.uncertainty`). It grows where the sun
+  is far from the training rows' sun positions and with few rows.
+* **the level**: the root mean square error of rows the model had not seen
+  (:func:`error_level_mrad`), measured as a plant would meet them, the first source with at least :data:`MIN_LEVEL_ROWS` rows of
+  :data:`LEVEL_SOURCES`: fit-coarse's rolling-origin (next-day) rows, the time split's
+  validation rows of the same model fitted on the time split's training rows, the kNN
+  validation rows; else the training rows' noise (:func:`robust_noise_mrad` times ``sqrt(2)``:
+  two components of a normal's error carry the noise). It holds what the covariance cannot see:
+  the measurement noise, drift and steps between calibration days, model error.
+
+The level is at least the noise term, so an aim never expects less than its measurements'
+scatter. The nominal geometry (the fallback when a fit is worse than it, :mod:`.aim_choice`)
+has no covariance; its level comes from its own validation rows.
+
+Flags beside the number: ``sun_distance_deg``, the angle between the aim's sun and the
+nearest training row's sun, and ``days_since_last_row``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import torch
+
+from ..artifacts.manifests import CommittedWorkdir
+from ..artifacts.schemas import COARSE_PREDICTIONS, MEASUREMENTS, REGIMES, ROLLING_ORIGIN, SPLIT
+from ..artifacts.store import artifact_present, read_artifact
+from ..models.coarse import MeasurementBatch, normal_errors_mrad, prior_sigma
+from ..models.uncertainty import (ParameterCovariance, aim_jacobian, aim_variance_mrad2,
+                                  coarse_covariance)
+from ..physics.parameters import HeliostatSpec
+
+__all__ = [
+    "ErrorBudget",
+    "LEVEL_SOURCES",
+    "MIN_LEVEL_ROWS",
+    "error_level_mrad",
+    "error_budgets",
+    "expected_error_mrad",
+    "sun_distance_deg",
+    "calibration_rows",
+    "calibration_summary",
+]
+
+#: Where a heliostat's error level comes from, in order of preference (module docstring).
+LEVEL_SOURCES = ("next-day", "time-split validation", "validation", "training noise")
+
+#: Held-out rows a level source needs to be used.
+MIN_LEVEL_ROWS = 3
+
+_BATCH_COLUMNS = ["heliostat_id", "measurement_id", "timestamp", "axis_1_steps", "axis_2_steps",
+                  "sun_e", "sun_n", "sun_u", "focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m",
+                  "target_e_m", "target_n_m", "target_u_m", "target_normal_e", "target_normal_n",
+                  "target_normal_u"]
+
+
+@dataclass(frozen=True)
+class ErrorBudget:
+    """What a heliostat's aims are expected to miss by (module docstring).
+
+    Attributes
+    ----------
+    covariance : the free parameters' posterior covariance of the parameters aim uses; None for
+        the nominal geometry.
+    level_mrad : the held-out error level [mrad].
+    level_source : one of :data:`LEVEL_SOURCES`, or ``nominal validation``.
+    train_sun_enu : (N, 3) unit sun vectors of the training rows.
+    last_row_utc : time of the heliostat's last measurement (None without one).
+    """
+
+    covariance: ParameterCovariance | None
+    level_mrad: float
+    level_source: str
+    train_sun_enu: np.ndarray
+    last_row_utc: pd.Timestamp | None
+
+
+def error_level_mrad(held_out_mrad, noise_mrad: float) -> float:
+    """The level [mrad]: the root mean square of the held-out errors, at least ``sqrt(2)`` times
+    the training residuals' scale per component ``noise_mrad`` (NaN counts as zero).
+
+    The root mean square, not a robust scale: the rows beyond the core (a spot detection gone
+    wrong, an episode, a season the training rows did not cover) are aims a plant meets too.
+    The median actual / expected of ``benchmarks/expected_error.py`` says how much smaller the
+    typical aim's error is on heavy-tailed heliostats."""
+    e = np.asarray(held_out_mrad, float)
+    e = e[np.isfinite(e)]
+    rms = float(np.sqrt(np.mean(e ** 2))) if len(e) else 0.0
+    return float(max(rms, np.sqrt(2.0) * float(np.nan_to_num(noise_mrad))))
+
+
+def robust_noise_mrad(spec: HeliostatSpec, params: torch.Tensor, train: MeasurementBatch,
+                      n_free: int) -> float:
+    """The training residuals' scale per normal component [mrad], robust to outlying rows: a
+    row's error angle is Rayleigh distributed with median ``sigma sqrt(2 ln 2)`` for two
+    Gaussian components of scale ``sigma``; the factor ``sqrt(2N / (2N - P))`` gives back the
+    degrees of freedom the fit's ``P`` free parameters took (as
+    :func:`heliocal.pipeline.models.uncertainty.coarse_covariance` does for its root mean
+    square). The coarse fit's own loss (soft L1) weighs outlying rows down likewise."""
+    with torch.no_grad():
+        e = normal_errors_mrad(params, spec, train).numpy()
+    e = e[np.isfinite(e)]
+    if not len(e):
+        return float("nan")
+    dof = max(2 * len(e) - n_free, 1)
+    return float(np.median(e) / np.sqrt(2.0 * np.log(2.0)) * np.sqrt(2 * len(e) / dof))
+
+
+def _level(sources: dict[str, np.ndarray], noise_mrad: float,
+           order: tuple = LEVEL_SOURCES) -> tuple[float, str]:
+    """(level, source): the first source of ``order`` with enough rows (the training noise
+    when none has)."""
+    for name in order:
+        e = np.asarray(sources.get(name, ()), float)
+        if np.isfinite(e).sum() >= MIN_LEVEL_ROWS:
+            return error_level_mrad(e, noise_mrad), name
+    return error_level_mrad((), noise_mrad), LEVEL_SOURCES[-1]
+
+
+def _held_out(wd: CommittedWorkdir, ids) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(the coarse predictions of every model with each row's kNN and time split label, the
+    rolling-origin rows' errors) of the heliostats ``ids``."""
+    pred = read_artifact(wd, COARSE_PREDICTIONS, heliostats=ids,
+                         columns=["heliostat_id", "measurement_id", "split", "model", "selected",
+                                  "error_mrad", "time_error_mrad"])
+    if artifact_present(wd, SPLIT):
+        split = read_artifact(wd, SPLIT, heliostats=ids,
+                              columns=["heliostat_id", "measurement_id", "time_split"])
+        pred = pred.merge(split, on=["heliostat_id", "measurement_id"], how="left")
+    else:
+        pred["time_split"] = None
+    rolling = (read_artifact(wd, ROLLING_ORIGIN, heliostats=ids,
+                             columns=["heliostat_id", "error_mrad"])
+               if artifact_present(wd, ROLLING_ORIGIN)
+               else pd.DataFrame(columns=["heliostat_id", "error_mrad"]))
+    return pred, rolling
+
+
+def _level_sources(pred: pd.DataFrame, rolling: pd.DataFrame, nominal: bool) -> dict:
+    """A heliostat's held-out errors per level source: its selected model's (or, ``nominal``,
+    the nominal geometry's validation rows)."""
+    if nominal:
+        p = pred[pred["model"] == "nominal"]
+        return {"validation": p.loc[p["split"] == "validation", "error_mrad"].to_numpy()}
+    p = pred[pred["selected"]]
+    return {"next-day": rolling["error_mrad"].to_numpy(float),
+            "time-split validation":
+                p.loc[p["time_split"] == "validation", "time_error_mrad"].to_numpy(float),
+            "validation": p.loc[p["split"] == "validation", "error_mrad"].to_numpy(float)}
+
+
+def _fitted_rows(rows: pd.DataFrame, regimes: pd.DataFrame | None, selected: dict,
+                 fitted_regime: int | None) -> pd.DataFrame:
+    """The training rows the parameters aim uses rest on: all of them, or for a regime-aware
+    model those of the regime its latest parameters were fitted on."""
+    if selected.get("regime_table") is None or regimes is None or fitted_regime is None:
+        return rows
+    seg = regimes[(regimes["kind"] == "regime") & (regimes["regime"] == fitted_regime)]
+    if seg.empty:
+        return rows
+    t = pd.to_datetime(rows["timestamp"], utc=True)
+    inside = np.zeros(len(rows), bool)
+    for start, end in zip(pd.to_datetime(seg["start"], utc=True), pd.to_datetime(seg["end"], utc=True)):
+        inside |= ((t >= start) & (t <= end)).to_numpy()
+    return rows[inside] if inside.any() else rows
+
+
+def _fitted_regime(regime_params: pd.DataFrame | None, hid: str) -> int | None:
+    if regime_params is None:
+        return None
+    p = regime_params[(regime_params["heliostat_id"] == hid) & regime_params["selected"]
+                      & regime_params["latest"]]
+    return int(p["fitted_regime"].iloc[0]) if len(p) else None
+
+
+def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
+                  models: dict, *, split_column: str = "split",
+                  level_sources: tuple = LEVEL_SOURCES) -> dict[str, ErrorBudget]:
+    """Each heliostat's :class:`ErrorBudget`.
+
+    Parameters
+    ----------
+    workdir : the work directory or its :class:`CommittedWorkdir`.
+    specs : heliostat_id -> its kinematic spec.
+    selected : :func:`heliocal.pipeline.stages.fit_coarse.load_selected_parameters` of them.
+    models : :func:`heliocal.pipeline.stages.aim_choice.aim_models` of them (``nominal`` where
+        aim falls back to the nominal geometry).
+    split_column, level_sources : the training rows' label column of split.parquet and the
+        level's sources in order; ``time_split`` with the time split's fit in ``selected`` and
+        ``("time-split validation",)`` give the budget of the model fitted on the time split
+        (how ``benchmarks/expected_error.py`` checks the budget forward in time).
+    """
+    from ..artifacts.schemas import REGIME_PARAMS
+
+    wd = CommittedWorkdir.of(workdir)
+    ids = sorted(set(specs) & set(selected))
+    if not ids:
+        return {}
+    rows = read_artifact(wd, MEASUREMENTS, heliostats=ids, columns=_BATCH_COLUMNS)
+    split = (read_artifact(wd, SPLIT, heliostats=ids,
+                           columns=["heliostat_id", "measurement_id", split_column])
+             .rename(columns={split_column: "split"}) if artifact_present(wd, SPLIT)
+             else rows[["heliostat_id", "measurement_id"]].assign(split="train"))
+    rows = rows.merge(split, on=["heliostat_id", "measurement_id"], how="left")
+    pred, rolling = _held_out(wd, ids)
+    regimes = read_artifact(wd, REGIMES, heliostats=ids) if artifact_present(wd, REGIMES) else None
+    regime_params = (read_artifact(wd, REGIME_PARAMS, heliostats=ids)
+                     if artifact_present(wd, REGIME_PARAMS) else None)
+    by_rows, by_pred = dict(tuple(rows.groupby("heliostat_id"))), dict(tuple(pred.groupby("heliostat_id")))
+    by_roll = dict(tuple(rolling.groupby("heliostat_id")))
+    by_regime = dict(tuple(regimes.groupby("heliostat_id"))) if regimes is not None else {}
+    empty_pred, empty_roll = pred.iloc[:0], rolling.iloc[:0]
+    out = {}
+    for hid in ids:
+        h_rows = by_rows.get(hid, rows.iloc[:0])
+        train = h_rows[h_rows["split"] == "train"]
+        nominal = models.get(hid, {}).get("model") == "nominal"
+        covariance = None
+        if not nominal and len(train):
+            sel = selected[hid]
+            fitted = MeasurementBatch.from_frame(
+                _fitted_rows(train, by_regime.get(hid), sel, _fitted_regime(regime_params, hid)))
+            free = sel["free"].numpy()
+            covariance = coarse_covariance(
+                specs[hid], sel["params"], free, fitted, prior_sigma(sel["nominal"])[free],
+                noise_mrad=robust_noise_mrad(specs[hid], sel["params"], fitted, int(free.sum())))
+        noise = covariance.noise_mrad if covariance is not None else float("nan")
+        level, source = _level(_level_sources(by_pred.get(hid, empty_pred),
+                                              by_roll.get(hid, empty_roll), nominal), noise,
+                               level_sources)
+        if nominal:
+            source = "nominal validation" if source == "validation" else source
+        times = pd.to_datetime(h_rows["timestamp"], utc=True).dropna()
+        out[hid] = ErrorBudget(covariance, level, source,
+                               train[["sun_e", "sun_n", "sun_u"]].to_numpy(float),
+                               times.max() if len(times) else None)
+    return out
+
+
+def expected_error_mrad(budget: ErrorBudget, spec: HeliostatSpec, params: torch.Tensor,
+                        steps: torch.Tensor, sun: torch.Tensor, aim_point_enu: torch.Tensor
+                        ) -> np.ndarray:
+    """(M,) expected error [mrad] of aims at ``steps`` (M, 2) for unit sun vectors ``sun`` (M, 3)
+    and aim points (M, 3) [m ENU] with parameters ``params`` (28,): ``sqrt(trace(J_a C J_a^T)
+    + level^2)`` (module docstring); NaN where the chain is not finite."""
+    variance = np.zeros(len(steps))
+    if budget.covariance is not None:
+        jac = aim_jacobian(spec, params, budget.covariance.free_idx, steps, sun, aim_point_enu)
+        variance = aim_variance_mrad2(jac, budget.covariance)
+    return np.sqrt(variance + budget.level_mrad ** 2)
+
+
+def sun_distance_deg(budget: ErrorBudget, sun_enu: np.ndarray) -> np.ndarray:
+    """(M,) angle [deg] between each sun vector (M, 3) and the nearest training row's sun (NaN
+    without training rows)."""
+    sun_enu = np.asarray(sun_enu, float).reshape(-1, 3)
+    if not len(budget.train_sun_enu):
+        return np.full(len(sun_enu), np.nan)
+    unit = lambda v: v / np.linalg.norm(v, axis=1, keepdims=True)  # noqa: E731
+    cos = unit(sun_enu) @ unit(budget.train_sun_enu).T
+    return np.degrees(np.arccos(np.clip(cos.max(axis=1), -1.0, 1.0)))
+
+
+# ------------------------------------------------------------------------------------------------
+# the budget checked on held-out rows
+# ------------------------------------------------------------------------------------------------
+def _time_selected(workdir, selected: dict) -> dict:
+    """``selected`` with each heliostat's parameters of its time-split fit (``time_fitted``;
+    unchanged where it has none) and no regime table: the time split's refit ends in its
+    training period's latest regime."""
+    from ..artifacts.schemas import COARSE_PARAMS
+
+    p = read_artifact(workdir, COARSE_PARAMS)
+    p = p[p["selected"]].sort_values(["heliostat_id", "parameter_index"])
+    out = {}
+    for hid, sel in selected.items():
+        g = p[p["heliostat_id"] == hid]
+        t = g["time_fitted"].to_numpy(float) if "time_fitted" in g else np.array([np.nan])
+        params = torch.tensor(t) if len(t) == 28 and np.isfinite(t).all() else sel["params"]
+        out[hid] = {**sel, "params": params, "regime_table": None}
+    return out
+
+
+def calibration_rows(workdir, setting: str) -> pd.DataFrame:
+    """Per held-out row of ``setting`` (``forward`` or ``knn``): heliostat, actual and expected
+    error [mrad], the level source."""
+    from ..artifacts.schemas import HELIOSTATS
+    from .fit_coarse import load_selected_parameters
+
+    helio = read_artifact(workdir, HELIOSTATS).set_index("heliostat_id")
+    selected = load_selected_parameters(workdir)
+    specs = {h: HeliostatSpec.from_row(helio.loc[h]) for h in selected}
+    models = {h: {"model": "coarse"} for h in selected}
+    label, actual = ("time_split", "time_error_mrad") if setting == "forward" else ("split", "error_mrad")
+    if setting == "forward":
+        selected = _time_selected(workdir, selected)
+        budgets = error_budgets(workdir, specs, selected, models, split_column="time_split",
+                                level_sources=("time-split validation",))
+    else:
+        budgets = error_budgets(workdir, specs, selected, models,
+                                level_sources=("validation",))
+    split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", label])
+    pred = read_artifact(workdir, COARSE_PREDICTIONS,
+                         columns=["heliostat_id", "measurement_id", "selected", actual])
+    pred = pred[pred["selected"]].merge(split, on=["heliostat_id", "measurement_id"])
+    pred = pred[pred[label] == "test"]
+    rows = read_artifact(workdir, MEASUREMENTS).merge(
+        pred[["heliostat_id", "measurement_id", actual]], on=["heliostat_id", "measurement_id"])
+    out = []
+    for hid, g in rows.groupby("heliostat_id"):
+        if hid not in budgets or not np.isfinite(g[actual]).any():
+            continue
+        b = MeasurementBatch.from_frame(g)
+        expected = expected_error_mrad(budgets[hid], specs[hid], selected[hid]["params"],
+                                       b.steps, b.sun, b.focal_spot)
+        out.append(pd.DataFrame({"heliostat_id": hid, "actual_mrad": g[actual].to_numpy(float),
+                                 "expected_mrad": expected,
+                                 "level_source": budgets[hid].level_source}))
+    return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
+
+
+def calibration_summary(rows: pd.DataFrame) -> dict:
+    """rows, ``within_2x`` (share with actual <= 2 x expected), ``median_ratio`` (actual /
+    expected) and the mean actual and expected error of :func:`calibration_rows`."""
+    ok = rows.dropna(subset=["actual_mrad", "expected_mrad"])
+    ratio = ok["actual_mrad"] / ok["expected_mrad"]
+    return {"rows": len(ok), "within_2x": float((ratio <= 2.0).mean()) if len(ok) else np.nan,
+            "median_ratio": float(ratio.median()) if len(ok) else np.nan,
+            "mean_actual": float(ok["actual_mrad"].mean()) if len(ok) else np.nan,
+            "mean_expected": float(ok["expected_mrad"].mean()) if len(ok) else np.nan}

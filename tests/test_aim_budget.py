@@ -1,0 +1,128 @@
+"""Tests of aim's expected error (heliocal.pipeline.stages.aim_budget) and of the nominal
+fallback (heliocal.pipeline.stages.aim_choice.nominal_fallback).
+
+Expected values: the level's closed form (a root mean square, a floor of sqrt(2) noise
+scales); the Rayleigh law of a normal error of two Gaussian components (median
+``sigma sqrt(2 ln 2)``, mean ``sigma sqrt(pi / 2)``) against the simulator's noise floor (the
+true model's mean error on its noisy spots); and on simulated static heliostats (ground truth:
+the true geometry does not change, so the budget's level is the held-out rows' error) the
+calibration target of issue 33: actual <= 2x expected for >= 90 % of held-out rows.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from heliocal.pipeline.stages.aim_budget import (ErrorBudget, error_level_mrad,
+                                                 expected_error_mrad, sun_distance_deg)
+from heliocal.pipeline.stages.aim_choice import nominal_fallback
+
+
+def test_the_level_is_the_root_mean_square_with_the_noise_as_floor():
+    # sqrt((3^2 + 4^2) / 2) = 3.5355; a NaN row is not a row
+    assert error_level_mrad([3.0, 4.0, float("nan")], 0.1) == pytest.approx(math.sqrt(12.5))
+    # below the floor: sqrt(2) x 2.0 per component
+    assert error_level_mrad([0.5, 0.5], 2.0) == pytest.approx(2.0 * math.sqrt(2.0))
+    assert error_level_mrad([], float("nan")) == 0.0
+
+
+def test_without_a_covariance_the_expected_error_is_the_level():
+    budget = ErrorBudget(None, 1.7, "nominal validation", np.zeros((0, 3)), None)
+    got = expected_error_mrad(budget, None, None, np.zeros((4, 2)), None, None)
+    assert got.tolist() == [1.7] * 4
+
+
+def test_the_sun_distance_is_the_angle_to_the_nearest_training_sun():
+    train = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    budget = ErrorBudget(None, 1.0, "validation", train, None)
+    el = np.radians(30.0)   # 30 deg above the eastern horizon: 30 deg from east, 60 from zenith
+    got = sun_distance_deg(budget, np.array([[np.cos(el), 0.0, np.sin(el)], [0.0, 0.0, 2.0]]))
+    assert got == pytest.approx([30.0, 0.0], abs=1e-9)
+
+
+def _entry(val, model="static-6"):
+    return {"model": "coarse", "variant": None, "preset": model, "weight_decay": None,
+            "val_error_mrad": val, "test_error_mrad": 9.0, "forward_error_mrad": 9.0,
+            "next_day_error_mrad": 1.0, "model_dir": None, "fallback": None}
+
+
+def test_a_fit_worse_than_the_nominal_geometry_on_held_out_rows_falls_back():
+    nominal = {"val_error_mrad": 2.0, "test_error_mrad": 2.1, "time_val_error_mrad": 3.0,
+               "time_test_error_mrad": 3.3}
+    # better on both held-out sets: kept as it is
+    assert nominal_fallback(_entry(1.0), 2.9, nominal) == _entry(1.0)
+    # worse on the kNN validation rows
+    got = nominal_fallback(_entry(2.5), 2.9, nominal)
+    assert got["model"] == "nominal" and got["val_error_mrad"] == 2.0
+    assert got["forward_error_mrad"] == 3.3 and "validation 2.5 vs 2 mrad" in got["fallback"]
+    # worse forward in time only (the time split's validation rows)
+    got = nominal_fallback(_entry(1.0), 3.5, nominal)
+    assert got["model"] == "nominal" and "forward in time 3.5 vs 3 mrad" in got["fallback"]
+    # without the nominal geometry's errors (or with NaN ones) nothing to compare
+    assert nominal_fallback(_entry(2.5), 3.5, None)["model"] == "coarse"
+    nan = {k: float("nan") for k in nominal}
+    assert nominal_fallback(_entry(2.5), 3.5, nan)["model"] == "coarse"
+
+
+# --------------------------------------------------------------------------------------------
+# simulated heliostats, end to end
+# --------------------------------------------------------------------------------------------
+def _fitted(root, **kwargs):
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.models.simulator import simulate_field
+    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
+    from heliocal.pipeline.stages.ingest import run_ingest
+    from heliocal.pipeline.stages.simulate import write_field
+    from heliocal.pipeline.stages.split import run_split
+
+    field = simulate_field(**kwargs)
+    write_field(field, root / "field")
+    work = root / "work"
+    run_ingest([root / "field" / "paint"], work, IngestOptions())
+    run_split(work)
+    run_fit_coarse(work, rolling_origins=4)
+    return field, work
+
+
+@pytest.fixture(scope="module")
+def static_field(tmp_path_factory):
+    return _fitted(tmp_path_factory.mktemp("budget"), n_heliostats=3, seed=11,
+                   measurements=(150, 150), dynamic_fraction=0.0, noise_mrad=0.4,
+                   deviations="static-20")
+
+
+@pytest.mark.slow
+def test_the_robust_noise_scale_is_the_rayleigh_scale_of_the_true_model(static_field):
+    """At the true parameters the errors are the noise: their median-based scale (the budget's)
+    and the simulator's noise floor (their mean) agree through the Rayleigh law, within the
+    spread of 150 rows (the median's relative standard error ~ 0.06 here; 15 % allowed)."""
+    from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.models.coarse import MeasurementBatch
+    from heliocal.pipeline.stages.aim_budget import robust_noise_mrad
+
+    field, work = static_field
+    rows = read_artifact(work, MEASUREMENTS)
+    for hid, h in field.heliostats.items():
+        batch = MeasurementBatch.from_frame(rows[rows["heliostat_id"] == hid])
+        got = robust_noise_mrad(h.spec, h.true, batch, 0)
+        sigma_from_mean = h.noise_floor_mrad / math.sqrt(math.pi / 2.0)
+        assert got == pytest.approx(sigma_from_mean, rel=0.15), hid
+
+
+@pytest.mark.slow
+def test_the_expected_error_holds_on_held_out_rows_of_static_heliostats(static_field):
+    from heliocal.pipeline.stages.aim_budget import calibration_rows, calibration_summary
+
+    _, work = static_field
+    for setting in ("knn", "forward"):
+        s = calibration_summary(calibration_rows(work, setting))
+        assert s["rows"] >= 60, setting
+        # issue 33's target: actual <= 2 x expected for >= 90 % of the aims ...
+        assert s["within_2x"] >= 0.9, (setting, s)
+        # ... and not inflated: a Gaussian normal error puts the median at 0.83 of the root
+        # mean square; 0.5 would mean the expected error is twice what the rows show
+        assert 0.5 <= s["median_ratio"] <= 1.2, (setting, s)
