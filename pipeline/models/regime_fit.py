@@ -15,10 +15,12 @@ the plain fit of the selected preset, two candidates on the regimes of ``regimes
     Linear is the lowest-order smooth motion: two parameters per regime, enough for the slow
     creep of an actuator (the simulator's drift is linear; the Jülich log's drifting heliostats
     move by a few mrad over months), where a spline or a polynomial would follow noise. A
-    re-homing starts a new regime and so resets it. The line is trusted only over the time its
+    re-homing starts a new regime and so resets it. The line is trusted a while past the time its
     training rows span: a row before the first or after the last training row of its regime
     (a later regime without rows of its own, the latest parameters ``aim`` uses) gets the
-    zero point at that end, since a rate fitted on a short span extrapolates badly.
+    zero point the line reaches :data:`DRIFT_EXTRAPOLATION_DAYS` past that end (or at its own
+    time, when nearer): a rate fitted on a few months extrapolates badly far out, and held at
+    once it gives up the part of the drift that does go on (measured forward in time).
 
 Both are fitted by :func:`scipy.optimize.least_squares` with the plain fit's objective
 (:mod:`heliocal.pipeline.models.coarse`: residuals ``1000 (n_pred - n_meas)`` [mrad] of every
@@ -96,7 +98,24 @@ OFFSET_PRIOR_SIGMA_RAD = 0.01
 #: Prior sigma of a drift rate [rad/year]: 10 mrad/year, above the drifts seen (1-3 mrad/year).
 DRIFT_PRIOR_SIGMA_RAD_PER_YEAR = 0.01
 
+#: How far [days] a regime's drift line continues past its first and last training row before it
+#: is held: the line of a few months' rows is trusted a while, never without bound. Chosen by
+#: ``benchmarks/drift_extrapolation.py`` forward in time (the time split's test rows, 16
+#: heliostats with a drift candidate on a simulated field with steps and drift and the Jülich
+#: logs): mean test error hold 0.915, 30 days 0.892, 90 days 0.868, unbounded 0.877 mrad
+#: (docs/regimes.md, "Past the last row").
+DRIFT_EXTRAPOLATION_DAYS = 90.0
+
 _YEAR_S = 365.25 * 86400.0
+_DAY_S = 86400.0
+
+
+def drift_time_s(seconds, first_s, last_s):
+    """The time [s since 1970, UTC] a drift line is evaluated at for rows at ``seconds``: their
+    own within :data:`DRIFT_EXTRAPOLATION_DAYS` of the regime's training rows (``first_s`` ..
+    ``last_s``), else that bound."""
+    bound = DRIFT_EXTRAPOLATION_DAYS * _DAY_S
+    return np.clip(seconds, np.asarray(first_s) - bound, np.asarray(last_s) + bound)
 
 
 def base_preset(model: str) -> str:
@@ -130,8 +149,8 @@ class RegimeFit:
     offsets : (F, len(moved)) [rad] (row 0 is zero: the reference).
     rates : (F, len(drifting)) [rad/year].
     reference_s : (F,) drift reference time per fitted regime [s since 1970, UTC].
-    span_s : (F, 2) first and last training row's time per fitted regime [s]: the drift is
-        held constant outside.
+    span_s : (F, 2) first and last training row's time per fitted regime [s]: the drift line
+        continues :data:`DRIFT_EXTRAPOLATION_DAYS` beyond and is held after that.
     n_train : (F,) training rows of each fitted regime.
     condition_number : of the data Jacobian at the solution, columns scaled by the prior sigmas.
     """
@@ -176,7 +195,7 @@ def _row_parameters(base, moved, drifting, offsets, rates, reference_s, span_s, 
     p = np.repeat(base.to(torch.float64).numpy()[None], len(k), axis=0)
     p[:, [PARAMETER_INDEX[n] for n in moved]] += offsets[k]
     if drifting:
-        held = np.clip(seconds, span_s[k, 0], span_s[k, 1])
+        held = drift_time_s(seconds, span_s[k, 0], span_s[k, 1])
         years = np.nan_to_num((held - reference_s[k]) / _YEAR_S)
         p[:, [PARAMETER_INDEX[n] for n in drifting]] += rates[k] * years[:, None]
     return torch.from_numpy(p)
@@ -374,7 +393,7 @@ def table_row_parameters(params: torch.Tensor, table: pd.DataFrame, regimes: pd.
         g = g.drop_duplicates("regime").set_index("regime")
         row = g.loc[np.where(np.isin(regime, g.index), regime, latest)]
         rate = row["drift_rad_per_year"].to_numpy(np.float64)
-        held = np.clip(seconds, seconds_utc(row["drift_from"]), seconds_utc(row["drift_to"]))
+        held = drift_time_s(seconds, seconds_utc(row["drift_from"]), seconds_utc(row["drift_to"]))
         years = np.nan_to_num((held - seconds_utc(row["drift_reference"])) / _YEAR_S)
         out[:, PARAMETER_INDEX[name]] = torch.as_tensor(row["value_rad"].to_numpy(np.float64)
                                                         + rate * years)

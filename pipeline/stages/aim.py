@@ -32,7 +32,7 @@ from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.vectors import unit_vector as _unit
 from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
-from .fit_coarse import load_selected_parameters
+from .fit_coarse import coarse_row_parameters, load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
 
 __all__ = [
@@ -413,6 +413,8 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
     sun = _sun(h, sun_vector_enu, time_utc)
     aim = torch.tensor(point, dtype=torch.float64).reshape(1, 3)
     chosen, fitted = _choose_model(wd, h, model)
+    if chosen != "nominal" and time_utc is not None and h.selected.get("regime_table") is not None:
+        h.coarse = coarse_row_parameters(h.selected, [time_utc])[0]   # its regime, its drift
     days = _time_warnings(wd, h, time_utc)
     steps, params, iterations = _solve(h, chosen, fitted, sun, aim, time_utc, env,
                                        max_iterations, tolerance_steps)

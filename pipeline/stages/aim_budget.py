@@ -252,11 +252,13 @@ def expected_error_mrad(budget: ErrorBudget, spec: HeliostatSpec, params: torch.
                         ) -> np.ndarray:
     """(M,) expected error [mrad] of aims at ``steps`` (M, 2) for unit sun vectors ``sun`` (M, 3)
     and aim points (M, 3) [m ENU] with parameters ``params`` (28,): ``sqrt(trace(J_a C J_a^T)
-    + level^2)`` (module docstring); NaN where the chain is not finite."""
+    + level^2)`` (module docstring); NaN where the chain is not finite. With each aim's own
+    parameters (``params`` (M, 28)) the aims come as batches of one: ``steps`` (M, 1, 2),
+    ``sun`` and ``aim_point_enu`` (M, 1, 3)."""
     variance = np.zeros(len(steps))
     if budget.covariance is not None:
         jac = aim_jacobian(spec, params, budget.covariance.free_idx, steps, sun, aim_point_enu)
-        variance = aim_variance_mrad2(jac, budget.covariance)
+        variance = aim_variance_mrad2(jac.reshape(-1, *jac.shape[-2:]), budget.covariance)
     return np.sqrt(variance + budget.level_mrad ** 2)
 
 

@@ -36,6 +36,7 @@ from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.sun import spa_sun_position, sun_vector_enu
 from ..runtime.process_state import one_thread, restores_process_state
 from .aim_budget import ErrorBudget, error_budgets, expected_error_mrad, sun_distance_deg
+from .fit_coarse import coarse_row_parameters
 
 __all__ = [
     "AIM_COLUMNS",
@@ -239,8 +240,30 @@ def _sun(field: _Field, hid: str, out: pd.DataFrame) -> np.ndarray:
     return sun_vector_enu(az, el)
 
 
-def _coarse_steps(params: torch.Tensor, spec: HeliostatSpec, sun, aim) -> np.ndarray:
-    return inverse_kinematics(params, spec, sun, aim).numpy()
+def _row_parameters(field: _Field, hid: str, chosen: str, times: pd.Series) -> torch.Tensor:
+    """The coarse parameters of each row: (28,) for one geometry, (M, 28) for a regime-aware
+    model (its regime and drift at each row's time, as one aim takes them)."""
+    if chosen == "nominal":
+        return nominal_parameters(field.helio.loc[hid])
+    sel = field.selected[hid]
+    if sel.get("regime_table") is None:
+        return sel["params"]
+    t = times.where(times.notna(), pd.Timestamp("1970-01-01", tz="UTC"))
+    return coarse_row_parameters(sel, t.to_numpy())
+
+
+def _coarse_aims(params: torch.Tensor, spec: HeliostatSpec, sun, aim, budget: ErrorBudget
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(steps (M, 2), expected error (M,)) of the coarse model: one geometry for all rows
+    (``params`` (28,)), or each row its own (``params`` (M, 28), rows as a batch of one)."""
+    if params.dim() == 1:
+        steps = inverse_kinematics(params, spec, sun, aim)
+        safe = torch.nan_to_num(steps)
+        return steps.numpy(), expected_error_mrad(budget, spec, params, safe, sun, aim)
+    steps = inverse_kinematics(params, spec, sun[:, None], aim[:, None])
+    safe = torch.nan_to_num(steps)
+    expected = expected_error_mrad(budget, spec, params, safe, sun[:, None], aim[:, None])
+    return steps[:, 0].numpy(), expected.reshape(-1)
 
 
 def _fine_steps(field: _Field, hid: str, model: str, out: pd.DataFrame, sun, aim) -> np.ndarray:
@@ -278,17 +301,15 @@ def _aim_heliostat(field: _Field, hid: str, rows: pd.DataFrame,
     ok = (out["status"] == "ok").to_numpy()
     chosen = field.models.get(hid, {}).get("model", "coarse")
     requested = "auto" if field.auto else chosen
-    params = (nominal_parameters(field.helio.loc[hid]) if chosen == "nominal"
-              else field.selected[hid]["params"])
+    params = _row_parameters(field, hid, chosen, out["time_utc"])
     sun = torch.tensor(np.where(ok[:, None], sun_np, [0.0, 0.0, 1.0]), dtype=torch.float64)
     aim = torch.tensor(np.nan_to_num(out[_POINT].to_numpy(float)), dtype=torch.float64)
-    steps = (_coarse_steps(params, field.specs[hid], sun, aim) if chosen in ("coarse", "nominal")
-             else _fine_steps(field, hid, requested, out, sun, aim))
+    budget = field.budgets[hid]
+    steps, expected = _coarse_aims(params, field.specs[hid], sun, aim, budget)
+    if chosen not in ("coarse", "nominal"):   # the expected error stays the coarse model's
+        steps = _fine_steps(field, hid, requested, out, sun, aim)
     steps[~ok] = np.nan
     _reject(out, ~np.isfinite(steps).all(axis=1), "the aim point is out of the actuators' reach")
-    budget = field.budgets[hid]
-    expected = expected_error_mrad(budget, field.specs[hid], params,
-                                   torch.from_numpy(np.nan_to_num(steps)), sun, aim)
     out["axis_1_steps"], out["axis_2_steps"] = steps[:, 0], steps[:, 1]
     out["model"] = chosen
     out["regime"] = field.regimes.get(hid)
