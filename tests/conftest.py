@@ -95,6 +95,25 @@ def check_unchanged(folder: Path) -> None:
         f"a test changed the shared folder {folder}; tests must work on a copy (copy_of)")
 
 
+def fitted_simulation(root: Path, *, rolling_origins: int = 3, **simulate) -> tuple:
+    """(the simulated field, its work directory under ``root`` after ingest, split-knn and
+    fit-coarse): ``simulate`` are :func:`simulate_field`'s arguments."""
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.models.simulator import simulate_field
+    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
+    from heliocal.pipeline.stages.ingest import run_ingest
+    from heliocal.pipeline.stages.simulate import write_field
+    from heliocal.pipeline.stages.split import run_split
+
+    field = simulate_field(**simulate)
+    write_field(field, root / "field")
+    work = root / "work"
+    run_ingest([root / "field" / "paint"], work, IngestOptions())
+    run_split(work)
+    run_fit_coarse(work, rolling_origins=rolling_origins)
+    return field, work
+
+
 def copy_of(folder: Path, dest: Path) -> Path:
     """A private copy of ``folder`` at ``dest`` (modification times kept, as Make needs)."""
     return Path(shutil.copytree(folder, dest, symlinks=True))

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import fitted_simulation
 
 from heliocal.pipeline.stages.aim_budget import (ErrorBudget, error_level_mrad,
                                                  expected_error_mrad, sun_distance_deg)
@@ -70,28 +71,11 @@ def test_a_fit_worse_than_the_nominal_geometry_on_held_out_rows_falls_back():
 # --------------------------------------------------------------------------------------------
 # simulated heliostats, end to end
 # --------------------------------------------------------------------------------------------
-def _fitted(root, **kwargs):
-    from heliocal.pipeline.io.staged import IngestOptions
-    from heliocal.pipeline.models.simulator import simulate_field
-    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
-    from heliocal.pipeline.stages.ingest import run_ingest
-    from heliocal.pipeline.stages.simulate import write_field
-    from heliocal.pipeline.stages.split import run_split
-
-    field = simulate_field(**kwargs)
-    write_field(field, root / "field")
-    work = root / "work"
-    run_ingest([root / "field" / "paint"], work, IngestOptions())
-    run_split(work)
-    run_fit_coarse(work, rolling_origins=4)
-    return field, work
-
-
 @pytest.fixture(scope="module")
 def static_field(tmp_path_factory):
-    return _fitted(tmp_path_factory.mktemp("budget"), n_heliostats=3, seed=11,
-                   measurements=(150, 150), dynamic_fraction=0.0, noise_mrad=0.4,
-                   deviations="static-20")
+    return fitted_simulation(tmp_path_factory.mktemp("budget"), rolling_origins=4,
+                             n_heliostats=3, seed=11, measurements=(150, 150),
+                             dynamic_fraction=0.0, noise_mrad=0.4, deviations="static-20")
 
 
 @pytest.mark.slow

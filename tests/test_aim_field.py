@@ -15,32 +15,16 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import fitted_simulation
 
 from heliocal.cli.main import app
 
 
-def _fitted(root, **kwargs):
-    from heliocal.pipeline.io.staged import IngestOptions
-    from heliocal.pipeline.models.simulator import simulate_field
-    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
-    from heliocal.pipeline.stages.ingest import run_ingest
-    from heliocal.pipeline.stages.simulate import write_field
-    from heliocal.pipeline.stages.split import run_split
-
-    field = simulate_field(**kwargs)
-    write_field(field, root / "field")
-    work = root / "work"
-    run_ingest([root / "field" / "paint"], work, IngestOptions())
-    run_split(work)
-    run_fit_coarse(work, rolling_origins=3)
-    return field, work
-
-
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
-    return _fitted(tmp_path_factory.mktemp("aimfield"), n_heliostats=3, seed=21,
-                   measurements=(120, 120), dynamic_fraction=0.0, noise_mrad=0.3,
-                   deviations="static-20")
+    return fitted_simulation(tmp_path_factory.mktemp("aimfield"), n_heliostats=3, seed=21,
+                             measurements=(120, 120), dynamic_fraction=0.0, noise_mrad=0.3,
+                             deviations="static-20")
 
 
 def _target(work) -> str:
@@ -153,7 +137,7 @@ def test_a_fit_worse_than_the_nominal_geometry_never_reaches_aim(tmp_path):
     from heliocal.pipeline.stages.aim_choice import aim_models
     from heliocal.pipeline.stages.aim_field import aim_schedule
 
-    field, work = _fitted(tmp_path, n_heliostats=2, seed=5, measurements=(60, 60),
+    field, work = fitted_simulation(tmp_path, n_heliostats=2, seed=5, measurements=(60, 60),
                           dynamic_fraction=0.0, noise_mrad=0.5, deviations="none")
     models = aim_models(work)
     fell_back = sorted(h for h, m in models.items() if m["model"] == "nominal")
