@@ -138,7 +138,7 @@ def test_a_fit_worse_than_the_nominal_geometry_never_reaches_aim(tmp_path):
     from heliocal.pipeline.stages.aim_field import aim_schedule
 
     field, work = fitted_simulation(tmp_path, n_heliostats=2, seed=5, measurements=(60, 60),
-                          dynamic_fraction=0.0, noise_mrad=0.5, deviations="none")
+                                    dynamic_fraction=0.0, noise_mrad=0.5, deviations="none")
     models = aim_models(work)
     fell_back = sorted(h for h, m in models.items() if m["model"] == "nominal")
     assert fell_back, {h: (m["val_error_mrad"], m["fallback"]) for h, m in models.items()}
