@@ -496,13 +496,13 @@ def test_the_time_split_refits_the_selected_candidate_with_its_regimes(stepped):
     assert np.isfinite(chosen["time_val_error_mrad"]).all()
 
 
-def test_a_drift_line_continues_90_days_past_its_training_rows_then_holds():
-    """Closed form of the rule (regime_fit.DRIFT_EXTRAPOLATION_DAYS = 90): a regime whose
-    training rows span days 0..100 is evaluated at its own time from day -90 to day 190 and
-    held at those bounds outside."""
+def test_a_drift_line_is_held_past_its_training_rows():
+    """Closed form of the rule (regime_fit.DRIFT_EXTRAPOLATION_DAYS = 0, chosen by
+    benchmarks/drift_extrapolation.py): a regime whose training rows span days 0..100 is
+    evaluated at its own time inside and at those ends outside."""
     from heliocal.pipeline.models.regime_fit import DRIFT_EXTRAPOLATION_DAYS, drift_time_s
 
     day = 86400.0
-    assert DRIFT_EXTRAPOLATION_DAYS == 90.0
+    assert DRIFT_EXTRAPOLATION_DAYS == 0.0
     got = drift_time_s(np.array([-200.0, -50.0, 50.0, 150.0, 300.0]) * day, 0.0, 100.0 * day)
-    assert (got / day).tolist() == [-90.0, -50.0, 50.0, 150.0, 190.0]
+    assert (got / day).tolist() == [0.0, 0.0, 50.0, 100.0, 100.0]

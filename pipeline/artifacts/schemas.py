@@ -424,11 +424,10 @@ REGIME_PARAMS = ArtifactSchema(
         C("drift_reference", "timestamp", "UTC", "Time at which the drift adds nothing (mean "
           "time of the regime's training rows); missing where it does not drift.", nullable=True),
         C("drift_from", "timestamp", "UTC", "First training row of the regime whose rows fitted "
-          "the drift: the line continues 90 days before it (regime_fit.DRIFT_EXTRAPOLATION_DAYS) and "
-          "is held there; missing where it does not drift.", nullable=True),
-        C("drift_to", "timestamp", "UTC", "Last training row of that regime: the drift line "
-          "continues 90 days after it and is held from there; missing where it does not drift.",
-          nullable=True),
+          "the drift: before it the drift is held at its value there "
+          "(regime_fit.DRIFT_EXTRAPOLATION_DAYS); missing where it does not drift.", nullable=True),
+        C("drift_to", "timestamp", "UTC", "Last training row of that regime: after it the drift "
+          "is held (no extrapolation); missing where it does not drift.", nullable=True),
         C("latest", "bool", "", "True for the heliostat's latest regime (the one `aim` uses)."),
     ),
 )
