@@ -1,0 +1,240 @@
+"""Which model a heliostat keeps: the coarse model or one of its fine candidates (issue 35).
+
+The sweep trains many fine candidates per heliostat (weight decays x band sets of the hybrid
+networks, the Gaussian-process correction, optionally the pre-trained network) and judges them
+on 20 validation rows. Two things made that judgement fail on real heliostats:
+
+1. **The validation rows are nearer the training rows than the test rows.** The kNN split puts
+   the most isolated rows in test (about 11 deg from training on the Jülich heliostats) and the
+   next ones in validation (about 6 deg): a candidate that interpolates well and extrapolates
+   badly looks best on validation. :func:`validation_weights` weights every validation row by
+   how many test rows lie about as far from training as it does (each test row spreads one unit
+   of weight over the ``k`` validation rows whose distances are nearest its own), so the
+   weighted validation mean looks at the distances the test rows have. Only the rows' sun
+   positions (split.parquet's ``nearest_train_distance_deg``) are used, never a test error.
+2. **The best of many candidates on 20 rows is optimistic.** :func:`select` asks the winner's
+   per-row gain over the coarse model to be significant: with the weighted mean gain ``D``, its
+   standard error ``s`` (from the weighted spread of the paired per-row gains and the weights'
+   effective number of rows) and ``m`` candidates, the gain must exceed ``z s`` with
+   ``z = Phi^-1(1 - alpha / m)`` (a one-sided Bonferroni bound: the chance that noise alone makes
+   any of the ``m`` pass is at most ``alpha``), and be at least ``min_improvement`` of the coarse
+   model's weighted validation error. Of the candidates that pass, the simplest whose weighted
+   mean is within one standard error of the best is kept (the one-standard-error rule): near-ties
+   go to the simpler, more regularised model, so a choice does not flip with the last bits of a
+   training (docs/hybrid.md, "Training precision").
+
+Simplicity (:attr:`Candidate.complexity`, smaller is simpler) orders the coarse model < the GP
+without time < with time < the hybrid networks by decreasing weight decay (octave bands before
+integer bands at the same weight decay); a shorter fade (closer to the coarse model) before a
+longer one.
+
+Everything here is plain numpy on per-row errors; the sweep (``stages/sweep.py``) computes them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from statistics import NormalDist
+from typing import Sequence
+
+import numpy as np
+
+from ..errors import ParameterError, check_float, check_int
+
+__all__ = [
+    "SelectionRule",
+    "Candidate",
+    "Judgement",
+    "validation_weights",
+    "row_validation_weights",
+    "paired_gain",
+    "choose_fade",
+    "select",
+]
+
+_FUNC = "select"
+
+
+@dataclass(frozen=True)
+class SelectionRule:
+    """The selection's settings (module docstring).
+
+    Attributes
+    ----------
+    min_improvement : least relative gain over the coarse model's weighted validation error.
+    alpha : chance that noise alone lets one of the candidates pass (family-wise, one-sided);
+        1 switches the significance test off.
+    match_k : validation rows each test row spreads its weight over (0: unweighted validation).
+    one_se : keep the simplest candidate within one standard error of the best.
+    """
+
+    min_improvement: float = 0.10
+    alpha: float = 0.05
+    match_k: int = 3
+    one_se: bool = True
+
+    def validated(self) -> "SelectionRule":
+        check_float(self.min_improvement, "min_improvement", _FUNC, -math.inf, 1.0)
+        check_float(self.alpha, "alpha", _FUNC, 0.0, 1.0, low_inclusive=False)
+        check_int(self.match_k, "match_k", _FUNC, 0)
+        return self
+
+    def z(self, n_candidates: int) -> float:
+        """The one-sided Bonferroni quantile for ``n_candidates`` (``-inf`` with ``alpha`` 1)."""
+        if self.alpha >= 1.0:
+            return -math.inf
+        return NormalDist().inv_cdf(1.0 - self.alpha / max(int(n_candidates), 1))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class Candidate:
+    """A fine candidate of one heliostat, as the selection sees it.
+
+    Attributes
+    ----------
+    model : ``gp``, ``hybrid``, ``hybrid-octaves``, ``pretrained-nn``, ...
+    val_errors : (n_val,) its error_mrad on the validation rows (in the rows' order).
+    complexity : sort key, smaller is simpler (module docstring).
+    info : anything the caller needs back (weight decay, seed, fade length, its state).
+    """
+
+    model: str
+    val_errors: np.ndarray
+    complexity: tuple
+    info: dict = field(default_factory=dict)
+
+
+@dataclass
+class Judgement:
+    """One candidate's figures under the rule (all on the weighted validation rows).
+
+    Attributes
+    ----------
+    mean_mrad : weighted mean error; gain_mrad : the coarse model's minus it (D); se_mrad : the
+    standard error of D; relative_gain : D / the coarse model's weighted mean; passed : both
+    margins met.
+    """
+
+    mean_mrad: float
+    gain_mrad: float
+    se_mrad: float
+    relative_gain: float
+    passed: bool
+
+
+def validation_weights(val_distance_deg, test_distance_deg, k: int = 3) -> np.ndarray:
+    """Weights (n_val,) summing to 1 that make the validation rows look like the test rows in
+    their distance to training (module docstring, 1): each test row adds ``1 / k`` to each of the
+    ``k`` validation rows whose distance is nearest its own (ties: the farther row, then the
+    earlier). ``k`` 0, or no test distances: equal weights."""
+    val = np.asarray(val_distance_deg, np.float64).reshape(-1)
+    test = np.asarray(test_distance_deg, np.float64).reshape(-1)
+    test = test[np.isfinite(test)]
+    n = len(val)
+    if n == 0:
+        return np.zeros(0)
+    if k <= 0 or not len(test) or not np.isfinite(val).all():
+        return np.full(n, 1.0 / n)
+    k = min(int(k), n)
+    w = np.zeros(n)
+    order = np.lexsort((np.arange(n), -val))   # farther first, then row order: the tie-break
+    for d in test:
+        gap = np.abs(val[order] - d)
+        nearest = order[np.argsort(gap, kind="stable")[:k]]
+        w[nearest] += 1.0 / k
+    return w / w.sum()
+
+
+def row_validation_weights(rows, labels, k: int = 3) -> np.ndarray:
+    """:func:`validation_weights` of a heliostat's ``validation`` rows (in the rows' order) from
+    the sun positions of ``rows`` (measurements.parquet columns) and their split ``labels``: each
+    validation and test row's distance to the nearest ``train`` row, Euclidean in the (azimuth,
+    elevation) plane [deg] (:func:`heliocal.pipeline.models.fade.sun_distance_deg`; so any split
+    can be weighted, also the time split, which split.parquet has no distances for)."""
+    from .fade import sun_distance_deg
+
+    labels = np.asarray(labels, dtype=object)
+    az = rows["sun_azimuth_deg"].to_numpy(np.float64)
+    el = rows["sun_elevation_deg"].to_numpy(np.float64)
+    train = np.column_stack([az, el])[labels == "train"]
+    dist = lambda m: sun_distance_deg(az[m], el[m], train)  # noqa: E731
+    return validation_weights(dist(labels == "validation"), dist(labels == "test"), k)
+
+
+def paired_gain(coarse_errors, errors, weights) -> tuple[float, float, float]:
+    """(D, s, coarse weighted mean): the weighted mean of the per-row gains ``coarse - errors``
+    [mrad], its standard error and the coarse model's weighted mean error. ``s`` uses the
+    weights' effective number of rows ``n_eff = 1 / sum(w^2)``: ``s^2 = n_eff / (n_eff - 1)
+    sum(w^2 (g - D)^2)`` (the usual ``sd / sqrt(n)`` for equal weights)."""
+    c = np.asarray(coarse_errors, np.float64)
+    e = np.asarray(errors, np.float64)
+    w = np.asarray(weights, np.float64)
+    ok = np.isfinite(c) & np.isfinite(e) & (w > 0)
+    if not ok.any():
+        return float("nan"), float("nan"), float("nan")
+    c, e, w = c[ok], e[ok], w[ok] / w[ok].sum()
+    g = c - e
+    d = float((w * g).sum())
+    n_eff = 1.0 / float((w ** 2).sum())
+    if n_eff <= 1.0:
+        return d, float("inf"), float((w * c).sum())
+    se = math.sqrt(n_eff / (n_eff - 1.0) * float((w ** 2 * (g - d) ** 2).sum()))
+    return d, se, float((w * c).sum())
+
+
+def choose_fade(errors_by_length: Sequence[np.ndarray], weights) -> int:
+    """Index of the fade length whose errors (one (n_val,) array per length, longest first) have
+    the lowest weighted mean; a tie goes to the shorter fade (later in the list)."""
+    w = np.asarray(weights, np.float64)
+    means = [float(np.nansum(w * np.asarray(e, np.float64))) for e in errors_by_length]
+    best = min(means)
+    return max(i for i, m in enumerate(means) if m <= best + 1e-12)
+
+
+def judge(coarse_errors, candidate: Candidate, weights, rule: SelectionRule,
+          n_candidates: int) -> Judgement:
+    """One candidate's :class:`Judgement` against the coarse model."""
+    d, se, base = paired_gain(coarse_errors, candidate.val_errors, weights)
+    if not math.isfinite(d) or not base > 0:
+        return Judgement(float("nan"), d, se, float("nan"), False)
+    rel = d / base
+    passed = rel >= rule.min_improvement and d > rule.z(n_candidates) * se
+    return Judgement(base - d, d, se, rel, bool(passed))
+
+
+def select(coarse_errors, candidates: Sequence[Candidate], weights,
+           rule: SelectionRule = SelectionRule(), n_candidates: int | None = None
+           ) -> tuple[int | None, list[Judgement]]:
+    """The index of the kept candidate (None: the coarse model stays) and every candidate's
+    :class:`Judgement`.
+
+    Parameters
+    ----------
+    coarse_errors : (n_val,) the coarse model's error_mrad on the validation rows.
+    candidates : the fine candidates (their errors on the same rows).
+    weights : (n_val,) :func:`validation_weights`.
+    rule : :class:`SelectionRule`.
+    n_candidates : how many candidates were compared (the Bonferroni ``m``; default
+        ``len(candidates)``; a candidate whose fade length was chosen among L lengths counts L).
+    """
+    rule = rule.validated()
+    m = len(candidates) if n_candidates is None else int(n_candidates)
+    if len(np.asarray(weights)) != len(np.asarray(coarse_errors)):
+        raise ParameterError(f"The 'weights' parameter of {_FUNC} must have one weight per "
+                             f"validation row ({len(np.asarray(coarse_errors))}). Got "
+                             f"{len(np.asarray(weights))} instead.")
+    judged = [judge(coarse_errors, c, weights, rule, m) for c in candidates]
+    passed = [i for i, j in enumerate(judged) if j.passed]
+    if not passed:
+        return None, judged
+    best = min(passed, key=lambda i: (judged[i].mean_mrad, candidates[i].complexity))
+    if not rule.one_se:
+        return best, judged
+    limit = judged[best].mean_mrad + judged[best].se_mrad
+    near = [i for i in passed if judged[i].mean_mrad <= limit]
+    return min(near, key=lambda i: (candidates[i].complexity, judged[i].mean_mrad)), judged
