@@ -21,6 +21,10 @@ from ..models.training import FineProblem, grouped_components
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
+from ..models.fade import epoch_seconds, fade_weights
+from ..models.gp import GPCorrection
+from ..models.gp_heliostat import gp_aim_steps
+from ..physics.sun import sun_angles_from_vector
 from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
 from .fit_coarse import load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
@@ -58,7 +62,7 @@ def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict,
     if found is None:
         return None
     cfg, state = found
-    return cfg, state_to_layers(state)
+    return cfg, state if cfg.get("mode") == "gp" else state_to_layers(state)
 
 
 def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Tensor) -> FineProblem:
@@ -102,6 +106,17 @@ def latest_regime(workdir: str | Path, heliostat_id: str) -> dict | None:
     return out
 
 
+def _env_values(names, env: Mapping[str, float] | None, chosen: str, heliostat_id: str):
+    """The values of a model's env inputs from ``--env`` (None without env inputs)."""
+    if not names:
+        return None
+    missing = [e for e in names if e not in (env or {})]
+    if missing:
+        raise ParameterError(f"the {chosen} model of {heliostat_id} uses env inputs {missing}: "
+                             "give them with --env NAME=VALUE")
+    return [float(env[e]) for e in names]
+
+
 def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vector_enu=None,
               time_utc=None, env: Mapping[str, float] | None = None, model: str = "auto",
               max_iterations: int = 50, tolerance_steps: float = 1e-6) -> dict:
@@ -123,7 +138,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     (angle between the forward model's reflected beam at those steps and the direction to the aim
     point), ``sun_azimuth_deg``, ``sun_elevation_deg``.
     """
-    from ..physics.sun import spa_sun_position, sun_angles_from_vector
+    from ..physics.sun import spa_sun_position
     from ..physics.sun import sun_vector_enu as _sunvec
 
     check_choice(model, "model", "aim", ("auto", "coarse") + MODES)
@@ -158,7 +173,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     rerun = None
     if model == "auto":
         choice = aim_models(workdir, [heliostat_id], strict=True).get(heliostat_id, {})
-        if choice.get("model") in ("hybrid", "pretrained-nn"):
+        if choice.get("model") in ("hybrid", "pretrained-nn", "gp"):
             fitted = load_model(workdir, choice["model_dir"], heliostat_id)
             if choice["source"] == "sweep":
                 rerun = f"`heliocal sweep --workdir {workdir}`"
@@ -180,8 +195,23 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
     if not bool(torch.isfinite(steps).all()):
         raise FitError(f"the aim point is not reachable by {heliostat_id} within its actuator "
                        "limits for this sun position")
+    corrected = None
     if chosen == "coarse":
         params = coarse
+    elif chosen == "gp":
+        params = coarse
+        if time_utc is None and "time" in fitted[0]["gp"]["structure"]:
+            raise ParameterError(f"the gp model of {heliostat_id} uses the date as input: give "
+                                 "--time")
+        fit = gp_aim_steps(GPCorrection.from_model(*fitted), coarse, spec, sun, aim,
+                           None if time_utc is None else epoch_seconds([time_utc])[0],
+                           _env_values(fitted[0]["gp"]["inputs"].get("env", ()), env, chosen,
+                                       heliostat_id), max_iterations=max_iterations,
+                           tolerance_steps=tolerance_steps)
+        if not bool(torch.isfinite(fit.steps).all()):
+            raise FitError(f"the aim point is not reachable by {heliostat_id} within its "
+                           "actuator limits for this sun position")
+        steps, iterations, corrected = fit.steps, fit.iterations, fit.normal
     elif chosen == "pretrained-nn":
         cfg, layers = fitted
         pm = PretrainedModel.from_dict(cfg, layers)
@@ -206,10 +236,13 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
                                  "give --time")
         context = enc.context([time_utc], np.array([[float((env or {})[e]) for e in enc.env]])
                               if enc.env else None)
+        az, el = sun_angles_from_vector(sun.numpy())
+        fade = fade_weights(cfg, az, el, [time_utc])     # the fine model's fade (models.fade)
 
         def params_at(s):
             with torch.no_grad():
-                return grouped_components(problem, layers, enc.encode(s, context), None).stacked()[0, 0]
+                return grouped_components(problem, layers, enc.encode(s, context), None,
+                                          fade).stacked()[0, 0]
 
         for iterations in range(1, max_iterations + 1):
             params = params_at(steps)
@@ -224,6 +257,7 @@ def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vect
         params = params_at(steps)
     with torch.no_grad():
         normal, position = forward_kinematics(params, spec, steps)
+        normal = normal if corrected is None else corrected
         beam = reflect(-sun, normal)
         aim_err = float(error_mrad(beam, aim - position)[0])
     az, el = sun_angles_from_vector(sun.numpy())

@@ -45,8 +45,8 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
 
     Returns
     -------
-    dict heliostat_id -> {``model`` (``coarse``, ``hybrid`` or ``pretrained-nn``), ``variant``
-    (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
+    dict heliostat_id -> {``model`` (``coarse``, ``hybrid``, ``pretrained-nn`` or ``gp``),
+    ``variant`` (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``, ``gp``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
     ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
     ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
     such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
@@ -82,12 +82,13 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
             row = selection.loc[hid]
             entry.update(source="sweep", val_error_mrad=float(row["coarse_val_error_mrad"]),
                          test_error_mrad=float(row["coarse_test_error_mrad"]))
-        elif choice is not None and (choice.startswith("hybrid") or choice == "pretrained-nn"):
+        elif choice is not None and (choice.startswith("hybrid")
+                                     or choice in ("pretrained-nn", "gp")):
             if _model_committed(workdir, "selected", hid):
                 row = selection.loc[hid]
-                entry.update(model="pretrained-nn" if choice == "pretrained-nn" else "hybrid",
+                entry.update(model=choice if choice in ("pretrained-nn", "gp") else "hybrid",
                              variant=choice, source="sweep",
-                             weight_decay=(None if choice == "pretrained-nn"
+                             weight_decay=(None if choice in ("pretrained-nn", "gp")
                                            else float(row["weight_decay"])),
                              val_error_mrad=float(row["val_error_mrad"]),
                              test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
