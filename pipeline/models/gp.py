@@ -54,6 +54,10 @@ import numpy as np
 import pandas as pd
 import torch
 
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import (RBF, ConstantKernel, Hyperparameter, Kernel, Matern,
+                                              WhiteKernel)
+
 from ..errors import ParameterError, check_int
 from .fade import NO_FADE, Fade, epoch_seconds
 
@@ -66,7 +70,9 @@ __all__ = [
     "pointing_frame",
     "pointing_residuals_mrad",
     "correct_normals",
+    "fit_gp_corrections",
     "fit_gp_correction",
+    "best_structure",
     "gp_correction",
 ]
 
@@ -91,6 +97,7 @@ class GPConfig:
     seed : seed of the restarts and of the subsample.
     max_train_rows : a heliostat with more training rows uses a seeded subsample of this many
         (the fit costs O(n^3) per step).
+    time_nu : smoothness of the time kernel's Matern form (0.5: Ornstein-Uhlenbeck; 1.5).
     """
 
     structures: tuple[str, ...] = ("sun", "sun+time")
@@ -98,6 +105,7 @@ class GPConfig:
     restarts: int = 1
     seed: int = 0
     max_train_rows: int = 600
+    time_nu: float = 0.5
 
     def validated(self) -> "GPConfig":
         if not self.structures:
@@ -110,6 +118,9 @@ class GPConfig:
         check_int(self.restarts, "restarts", _FUNC, 0)
         check_int(self.seed, "seed", _FUNC, 0)
         check_int(self.max_train_rows, "max_train_rows", _FUNC, 10)
+        if self.time_nu not in (0.5, 1.5, 2.5):
+            raise ParameterError(f"The 'time_nu' parameter of {_FUNC} must be one of 0.5, 1.5, "
+                                 f"2.5. Got {self.time_nu!r} instead.")
         return self
 
     def to_dict(self) -> dict:
@@ -229,71 +240,64 @@ class GPInputs:
 # ------------------------------------------------------------------------------------------------
 # kernels
 # ------------------------------------------------------------------------------------------------
-def _projected():
-    """scikit-learn's kernels act on every input column; this wrapper applies one to some."""
-    from sklearn.gaussian_process.kernels import Hyperparameter, Kernel
+class OnColumns(Kernel):
+    """scikit-learn's kernels act on every input column; this one applies ``kernel`` to the
+    columns ``columns`` only (the sun angles, the time, the env columns)."""
 
-    class OnColumns(Kernel):
-        """``kernel`` applied to the input columns ``columns`` only."""
+    def __init__(self, kernel, columns):
+        self.kernel = kernel
+        self.columns = columns
 
-        def __init__(self, kernel, columns):
-            self.kernel = kernel
-            self.columns = columns
+    def get_params(self, deep=True):
+        params = dict(kernel=self.kernel, columns=self.columns)
+        if deep:
+            params.update(("kernel__" + k, v) for k, v in self.kernel.get_params().items())
+        return params
 
-        def get_params(self, deep=True):
-            params = dict(kernel=self.kernel, columns=self.columns)
-            if deep:
-                params.update(("kernel__" + k, v) for k, v in self.kernel.get_params().items())
-            return params
+    @property
+    def hyperparameters(self):
+        return [Hyperparameter("kernel__" + h.name, h.value_type, h.bounds, h.n_elements)
+                for h in self.kernel.hyperparameters]
 
-        @property
-        def hyperparameters(self):
-            return [Hyperparameter("kernel__" + h.name, h.value_type, h.bounds, h.n_elements)
-                    for h in self.kernel.hyperparameters]
+    @property
+    def theta(self):
+        return self.kernel.theta
 
-        @property
-        def theta(self):
-            return self.kernel.theta
+    @theta.setter
+    def theta(self, theta):
+        self.kernel.theta = theta
 
-        @theta.setter
-        def theta(self, theta):
-            self.kernel.theta = theta
+    @property
+    def bounds(self):
+        return self.kernel.bounds
 
-        @property
-        def bounds(self):
-            return self.kernel.bounds
+    def __eq__(self, other):
+        return (type(self) is type(other) and self.kernel == other.kernel
+                and tuple(self.columns) == tuple(other.columns))
 
-        def __eq__(self, other):
-            return (type(self) is type(other) and self.kernel == other.kernel
-                    and tuple(self.columns) == tuple(other.columns))
+    def _take(self, x):
+        return None if x is None else np.asarray(x)[:, list(self.columns)]
 
-        def _take(self, x):
-            return None if x is None else np.asarray(x)[:, list(self.columns)]
+    def __call__(self, X, Y=None, eval_gradient=False):
+        return self.kernel(self._take(X), self._take(Y), eval_gradient=eval_gradient)
 
-        def __call__(self, X, Y=None, eval_gradient=False):
-            return self.kernel(self._take(X), self._take(Y), eval_gradient=eval_gradient)
+    def diag(self, X):
+        return self.kernel.diag(self._take(X))
 
-        def diag(self, X):
-            return self.kernel.diag(self._take(X))
+    def is_stationary(self):
+        return self.kernel.is_stationary()
 
-        def is_stationary(self):
-            return self.kernel.is_stationary()
-
-        def __repr__(self):
-            return f"{self.kernel!r} on {list(self.columns)}"
-
-    return OnColumns
+    def __repr__(self):
+        return f"{self.kernel!r} on {list(self.columns)}"
 
 
-def _kernel(structure: str, n_env: int):
+def _kernel(structure: str, n_env: int, time_nu: float = 0.5):
     """The kernel of ``structure`` (module docstring) with its bounds and starting values; the
     last term is the noise."""
-    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Matern, WhiteKernel
-
-    on = _projected()
+    on = OnColumns
     var = lambda: ConstantKernel(0.5, (1e-4, 1e2))  # noqa: E731
     sun = lambda: on(Matern([20.0, 20.0], (2.0, 1e3), nu=2.5), (0, 1))  # noqa: E731
-    time = lambda: on(Matern(30.0, (0.5, 1e4), nu=0.5), (2,))  # noqa: E731
+    time = lambda: on(Matern(30.0, (0.5, 1e4), nu=time_nu), (2,))  # noqa: E731
     if structure == "sun":
         k = var() * sun()
     elif structure == "sun+time":
@@ -309,8 +313,6 @@ def _kernel(structure: str, n_env: int):
 
 
 def _regressor(kernel, restarts: int, seed: int, optimize: bool = True):
-    from sklearn.gaussian_process import GaussianProcessRegressor
-
     return GaussianProcessRegressor(kernel, optimizer="fmin_l_bfgs_b" if optimize else None,
                                     n_restarts_optimizer=restarts if optimize else 0,
                                     normalize_y=False, random_state=seed, copy_X_train=False)
@@ -363,6 +365,7 @@ class GPCorrection:
     log_marginal_likelihood: float
     kernel: str
     fade: Fade = NO_FADE
+    time_nu: float = 0.5
 
     def __post_init__(self):
         self._gp = None
@@ -375,7 +378,7 @@ class GPCorrection:
         """scikit-learn's regressor at the stored hyperparameters (no optimisation: the same
         posterior as the fit's, from the stored training rows)."""
         if self._gp is None:
-            kernel = _kernel(self.structure, len(self.inputs.env)).clone_with_theta(
+            kernel = _kernel(self.structure, len(self.inputs.env), self.time_nu).clone_with_theta(
                 np.asarray(self.theta, np.float64))
             self._gp = _regressor(kernel, 0, 0, optimize=False).fit(
                 self.x_train, self.y_train_mrad / self.y_scale_mrad)
@@ -419,7 +422,7 @@ class GPCorrection:
         return {"structure": self.structure, "theta": [float(t) for t in self.theta],
                 "inputs": self.inputs.to_dict(), "y_scale_mrad": float(self.y_scale_mrad),
                 "log_marginal_likelihood": float(self.log_marginal_likelihood),
-                "kernel": self.kernel, "fade": self.fade.to_dict()}
+                "kernel": self.kernel, "fade": self.fade.to_dict(), "time_nu": self.time_nu}
 
     @classmethod
     def from_model(cls, config: Mapping, state: Mapping) -> "GPCorrection":
@@ -430,12 +433,14 @@ class GPCorrection:
                    state["gp.x_train"].to(torch.float64).numpy(),
                    state["gp.y_train_mrad"].to(torch.float64).numpy(),
                    float(g["y_scale_mrad"]), float(g["log_marginal_likelihood"]),
-                   str(g.get("kernel", "")), Fade.from_dict(g.get("fade") or {}))
+                   str(g.get("kernel", "")), Fade.from_dict(g.get("fade") or {}),
+                   float(g.get("time_nu", 0.5)))
 
 
-def fit_gp_correction(rows: pd.DataFrame, residuals_mrad: np.ndarray,
-                      config: GPConfig = GPConfig()) -> GPCorrection:
-    """Fit the GP correction of one heliostat on its training rows.
+def fit_gp_corrections(rows: pd.DataFrame, residuals_mrad: np.ndarray,
+                       config: GPConfig = GPConfig()) -> dict[str, GPCorrection]:
+    """Fit the GP correction of one heliostat on its training rows, every structure of
+    ``config.structures``.
 
     Parameters
     ----------
@@ -445,8 +450,8 @@ def fit_gp_correction(rows: pd.DataFrame, residuals_mrad: np.ndarray,
 
     Returns
     -------
-    :class:`GPCorrection` of the structure with the highest log marginal likelihood; its fade has
-    no length yet (``inf``) and the rows' sun positions and times (the caller chooses lengths).
+    structure -> :class:`GPCorrection`, in the order of ``config.structures``; each fade has no
+    length yet (``inf``) and the rows' sun positions and times (the caller chooses lengths).
     """
     config = config.validated()
     y = np.asarray(residuals_mrad, np.float64).reshape(-1, 2)
@@ -462,21 +467,31 @@ def fit_gp_correction(rows: pd.DataFrame, residuals_mrad: np.ndarray,
     inputs = GPInputs.fit(rows, config.env)
     x = inputs.encode_rows(rows)
     scale = float(np.sqrt(np.mean(y ** 2))) or 1.0
-    best = None
-    for structure in config.structures:
-        gp = _regressor(_kernel(structure, len(config.env)), config.restarts, config.seed)
+    out = {}
+    for structure in dict.fromkeys(config.structures):
+        gp = _regressor(_kernel(structure, len(config.env), config.time_nu), config.restarts,
+                        config.seed)
         with warnings.catch_warnings():
             # a length at its upper bound is a finding (that input does not matter), not a fault
             warnings.simplefilter("ignore")
             gp.fit(x, y / scale)
-        lml = float(gp.log_marginal_likelihood_value_)
-        if best is None or lml > best[1]:
-            best = (structure, lml, gp)
-    structure, lml, gp = best
-    model = GPCorrection(structure, np.asarray(gp.kernel_.theta, np.float64), inputs, x, y, scale,
-                         lml, str(gp.kernel_), Fade.of_rows(rows))
-    model._gp = gp
-    return model
+        model = GPCorrection(structure, np.asarray(gp.kernel_.theta, np.float64), inputs, x, y,
+                             scale, float(gp.log_marginal_likelihood_value_), str(gp.kernel_),
+                             Fade.of_rows(rows), config.time_nu)
+        model._gp = gp
+        out[structure] = model
+    return out
+
+
+def best_structure(models: Mapping[str, GPCorrection]) -> GPCorrection:
+    """The model of the highest log marginal likelihood (ties: the first, the simpler)."""
+    return max(models.values(), key=lambda m: m.log_marginal_likelihood)
+
+
+def fit_gp_correction(rows: pd.DataFrame, residuals_mrad: np.ndarray,
+                      config: GPConfig = GPConfig()) -> GPCorrection:
+    """:func:`fit_gp_corrections` and the structure of the highest log marginal likelihood."""
+    return best_structure(fit_gp_corrections(rows, residuals_mrad, config))
 
 
 def gp_correction(model: GPCorrection | tuple[Mapping, Mapping], rows: pd.DataFrame) -> GPPrediction:

@@ -18,14 +18,15 @@ from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, measured_normal, reflect
 from ..physics.sun import sun_angles_from_vector
 from .fade import FADE_LENGTHS_DEG
-from .gp import (GPConfig, GPCorrection, GPPrediction, correct_normals, fit_gp_correction,
-                 pointing_frame, pointing_residuals_mrad)
+from .gp import (GPConfig, GPCorrection, GPPrediction, best_structure, correct_normals,
+                 fit_gp_corrections, pointing_frame, pointing_residuals_mrad)
 from .selection import choose_fade
 
 __all__ = [
     "HeliostatGP",
     "GPAim",
     "coarse_normals",
+    "fit_heliostat_gps",
     "fit_heliostat_gp",
     "gp_aim_steps",
 ]
@@ -36,7 +37,7 @@ __all__ = [
 # ------------------------------------------------------------------------------------------------
 @dataclass
 class HeliostatGP:
-    """The GP correction of one heliostat with every row's errors.
+    """The GP correction of one heliostat (one kernel structure) with every row's errors.
 
     Attributes
     ----------
@@ -44,10 +45,7 @@ class HeliostatGP:
     errors_by_length : (L, N) error_mrad of every row with each sun fade length of ``lengths``.
     lengths : the sun fade lengths tried [deg] (longest first); ``chosen`` the index kept.
     normal, position : (N, 3) the corrected normals at the chosen fade and the mirror centres.
-    static_errors : (N,) error_mrad of the correction without its time component (the sun
-        part of an additive ``sun+time`` model at the chosen fade; the model itself for one
-        without time): the static alternative issue 33's forward-in-time check falls back to.
-    wall_time_s : seconds of the fit and the predictions.
+    wall_time_s : seconds of its fit and predictions.
     """
 
     model: GPCorrection
@@ -56,12 +54,15 @@ class HeliostatGP:
     chosen: int
     normal: torch.Tensor
     position: torch.Tensor
-    static_errors: np.ndarray
     wall_time_s: float
 
     @property
     def errors(self) -> np.ndarray:
         return self.errors_by_length[self.chosen]
+
+    @property
+    def fade_length_deg(self) -> float:
+        return float(self.lengths[self.chosen])
 
 
 def coarse_normals(params_rows: torch.Tensor, spec, data) -> tuple[torch.Tensor, torch.Tensor,
@@ -75,23 +76,13 @@ def coarse_normals(params_rows: torch.Tensor, spec, data) -> tuple[torch.Tensor,
         return n, pos, measured_normal(data.sun, pos, data.focal_spot)
 
 
-def _static_part(model: GPCorrection, x: np.ndarray) -> np.ndarray:
-    """(N, 2) posterior mean of the sun part alone of an additive ``sun+time`` model [mrad] (the
-    additive GP's mean splits into one term per kernel: ``K_sun(x, X) alpha``)."""
-    gp = model._fitted()
-    sun_term = gp.kernel_.k1.k1           # (C sun + C time) + noise -> C sun
-    if model.inputs.env:
-        sun_term = gp.kernel_.k1.k1.k1
-    return sun_term(x, model.x_train) @ gp.alpha_ * model.y_scale_mrad
-
-
-def fit_heliostat_gp(rows: pd.DataFrame, labels: np.ndarray, spec, data, params_rows: torch.Tensor,
-                     config: GPConfig, val_weights: np.ndarray, *,
-                     lengths: Sequence[float] | None = None,
-                     time_length_days: float = math.inf) -> HeliostatGP:
-    """The GP correction of one heliostat: fitted on its ``train`` rows, the sun fade length
-    chosen on its ``validation`` rows (weighted by ``val_weights``, in the rows' order;
-    :func:`heliocal.pipeline.models.selection.choose_fade`).
+def fit_heliostat_gps(rows: pd.DataFrame, labels: np.ndarray, spec, data,
+                      params_rows: torch.Tensor, config: GPConfig, val_weights: np.ndarray, *,
+                      lengths: Sequence[float] | None = None,
+                      time_length_days: float = math.inf) -> dict[str, HeliostatGP]:
+    """The GP corrections of one heliostat, one per structure of ``config``: fitted on its
+    ``train`` rows, each structure's sun fade length chosen on its ``validation`` rows weighted
+    by ``val_weights`` (in the rows' order; :func:`heliocal.pipeline.models.selection.choose_fade`).
 
     Parameters
     ----------
@@ -108,28 +99,30 @@ def fit_heliostat_gp(rows: pd.DataFrame, labels: np.ndarray, spec, data, params_
     labels = np.asarray(labels, dtype=object)
     train, val = labels == "train", labels == "validation"
     n, pos, meas = coarse_normals(params_rows, spec, data)
-    residuals = pointing_residuals_mrad(n, meas)
-    model = fit_gp_correction(rows[train], residuals[train], config)
-    x = model.inputs.encode_rows(rows)
-    days = time_length_days if model.uses_time else math.inf
-    fades = [model.fade.with_lengths(L, days) for L in lengths]
-    with torch.no_grad():
-        raw = model.predict(x)
-        errs = np.stack([error_mrad(correct_normals(n, f.weights_of_rows(rows)[:, None]
-                                                    * raw.mean_mrad), meas).numpy()
-                         for f in fades])
-    chosen = choose_fade([e[val] for e in errs], val_weights) if val.any() else 0
-    model = model.with_fade(fades[chosen])
-    w = fades[chosen].weights_of_rows(rows)[:, None]
-    with torch.no_grad():
-        normal = correct_normals(n, w * raw.mean_mrad)
-        static = errs[chosen]
-        if model.uses_time and model.structure == "sun+time":
-            sun_only = fades[chosen].with_lengths(lengths[chosen], math.inf).weights_of_rows(rows)
-            static = error_mrad(correct_normals(n, sun_only[:, None] * _static_part(model, x)),
-                                meas).numpy()
-    return HeliostatGP(model, errs, lengths, chosen, normal, pos, static,
-                       _time.perf_counter() - t0)
+    models = fit_gp_corrections(rows[train], pointing_residuals_mrad(n, meas)[train], config)
+    shared = (_time.perf_counter() - t0) / len(models)
+    out = {}
+    for structure, model in models.items():
+        t1 = _time.perf_counter()
+        days = time_length_days if model.uses_time else math.inf
+        fades = [model.fade.with_lengths(length, days) for length in lengths]
+        with torch.no_grad():
+            mean = model.predict(model.inputs.encode_rows(rows)).mean_mrad
+            normals = [correct_normals(n, f.weights_of_rows(rows)[:, None] * mean) for f in fades]
+            errs = np.stack([error_mrad(c, meas).numpy() for c in normals])
+        chosen = choose_fade([e[val] for e in errs], val_weights) if val.any() else 0
+        out[structure] = HeliostatGP(model.with_fade(fades[chosen]), errs, lengths, chosen,
+                                     normals[chosen], pos, shared + _time.perf_counter() - t1)
+    return out
+
+
+def fit_heliostat_gp(rows: pd.DataFrame, labels: np.ndarray, spec, data,
+                     params_rows: torch.Tensor, config: GPConfig, val_weights: np.ndarray,
+                     **kwargs) -> HeliostatGP:
+    """:func:`fit_heliostat_gps`' structure of the highest log marginal likelihood."""
+    fits = fit_heliostat_gps(rows, labels, spec, data, params_rows, config, val_weights, **kwargs)
+    best = best_structure({k: f.model for k, f in fits.items()})
+    return fits[best.structure]
 
 
 # ------------------------------------------------------------------------------------------------
