@@ -11,7 +11,8 @@ import pandas as pd
 import pytest
 
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.models.selection import (Candidate, SelectionRule, choose_fade, paired_gain,
+from heliocal.pipeline.models.selection import (Candidate, SelectionRule, choose_fade,
+                                                max_t_threshold, paired_gain,
                                                 row_validation_weights, select,
                                                 validation_weights)
 
@@ -89,10 +90,28 @@ def test_many_candidates_raise_the_margin():
     g = 0.05 + 0.1 * (g - g.mean()) / g.std(ddof=1)
     coarse = np.full(20, 0.4)
     c = _candidate("gp", coarse - g, (1,))
-    rule = SelectionRule(min_improvement=0.0)
+    rule = SelectionRule(min_improvement=0.0, multiplicity="bonferroni")
     w = np.full(20, 0.05)
     assert select(coarse, [c], w, rule)[0] == 0
     assert select(coarse, [c], w, rule, n_candidates=100)[0] is None
+
+
+def test_max_t_counts_correlated_candidates_once_and_independent_ones_in_full():
+    # one candidate: the sign-flip quantile of a studentised mean of 20 rows, about Student's
+    # t_0.95 with 19 degrees of freedom (1.73); twenty copies of it (perfectly correlated, like
+    # the weight-decay path's neighbours) give exactly the same margin, twenty independent ones
+    # a larger one (a Bonferroni bound would put 20 copies at Phi^-1(1 - 0.05/20) = 2.81)
+    rng = np.random.default_rng(3)
+    coarse, w = np.full(20, 1.0), np.full(20, 0.05)
+    one = [coarse - rng.normal(0.0, 0.1, 20)]
+    single = max_t_threshold(coarse, one, w, 0.05)
+    assert 1.4 < single < 2.0
+    assert max_t_threshold(coarse, one * 20, w, 0.05) == pytest.approx(single, rel=1e-12)
+    independent = [coarse - rng.normal(0.0, 0.1, 20) for _ in range(20)]
+    assert max_t_threshold(coarse, independent, w, 0.05) > single + 0.5
+    # seeded: the same margin again
+    assert max_t_threshold(coarse, independent, w, 0.05) == \
+        max_t_threshold(coarse, independent, w, 0.05)
 
 
 def test_choose_fade_takes_the_lowest_weighted_mean_and_ties_go_shorter():

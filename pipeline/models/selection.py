@@ -50,6 +50,7 @@ __all__ = [
     "validation_weights",
     "row_validation_weights",
     "paired_gain",
+    "max_t_threshold",
     "choose_fade",
     "select",
 ]
@@ -68,17 +69,30 @@ class SelectionRule:
         1 switches the significance test off.
     match_k : validation rows each test row spreads its weight over (0: unweighted validation).
     one_se : keep the simplest candidate within one standard error of the best.
+    multiplicity : how the margin accounts for the many candidates: ``maxt`` (the (1 - alpha)
+        quantile of the largest studentised gain of all variants compared when the rows' gains
+        are given random signs, Westfall and Young's max-T: exact for correlated candidates)
+        or ``bonferroni`` (``Phi^-1(1 - alpha / m)``, conservative when they are correlated).
+    draws : random sign patterns of ``maxt`` (seeded with ``seed``).
     """
 
     min_improvement: float = 0.10
     alpha: float = 0.05
     match_k: int = 3
     one_se: bool = True
+    multiplicity: str = "maxt"
+    draws: int = 2000
+    seed: int = 0
 
     def validated(self) -> "SelectionRule":
         check_float(self.min_improvement, "min_improvement", _FUNC, -math.inf, 1.0)
         check_float(self.alpha, "alpha", _FUNC, 0.0, 1.0, low_inclusive=False)
         check_int(self.match_k, "match_k", _FUNC, 0)
+        check_int(self.draws, "draws", _FUNC, 10)
+        check_int(self.seed, "seed", _FUNC, 0)
+        if self.multiplicity not in ("maxt", "bonferroni"):
+            raise ParameterError(f"The 'multiplicity' parameter of {_FUNC} must be one of maxt, "
+                                 f"bonferroni. Got {self.multiplicity!r} instead.")
         return self
 
     def z(self, n_candidates: int) -> float:
@@ -196,20 +210,52 @@ def choose_fade(errors_by_length: Sequence[np.ndarray], weights) -> int:
     return max(i for i, m in enumerate(means) if m <= best + 1e-12)
 
 
+def _studentised(gains: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """D / s of :func:`paired_gain` along the last axis of per-row ``gains`` (..., n)."""
+    d = (gains * w).sum(-1)
+    n_eff = 1.0 / float((w ** 2).sum())
+    if n_eff <= 1.0:
+        return np.zeros_like(d)
+    se = np.sqrt(n_eff / (n_eff - 1.0) * (w ** 2 * (gains - d[..., None]) ** 2).sum(-1))
+    return np.where(se > 0, d / np.where(se > 0, se, 1.0), np.where(d > 0, np.inf, 0.0))
+
+
+def max_t_threshold(coarse_errors, variant_errors: Sequence[np.ndarray], weights, alpha: float,
+                    draws: int = 2000, seed: int = 0) -> float:
+    """Westfall and Young's max-T margin: the (1 - ``alpha``) quantile of the largest studentised
+    gain (:func:`paired_gain`'s D / s) among all ``variant_errors`` ((n_val,) each: every
+    candidate at every fade length it was chosen from) when each validation row's gains over the
+    coarse model get one random sign, shared by all variants. If no variant were better than the
+    coarse model, a row's gain would be as likely negative as positive, so this is the largest
+    studentised gain noise alone makes, with the variants' correlation (one weight-decay path,
+    nested fades) kept. Seeded (``seed``, ``draws`` patterns)."""
+    c = np.asarray(coarse_errors, np.float64)
+    w = np.asarray(weights, np.float64)
+    e = np.stack([np.asarray(v, np.float64) for v in variant_errors])          # (V, n)
+    ok = np.isfinite(c) & np.isfinite(e).all(0) & (w > 0)
+    if not ok.any() or not len(e):
+        return math.inf
+    gains, w = c[ok] - e[:, ok], w[ok] / w[ok].sum()
+    signs = np.random.default_rng(seed).choice((-1.0, 1.0), size=(int(draws), 1, len(w)))
+    t = _studentised(signs * gains[None], w)                                    # (draws, V)
+    return float(np.quantile(t.max(axis=1), 1.0 - alpha, method="higher"))
+
+
 def judge(coarse_errors, candidate: Candidate, weights, rule: SelectionRule,
-          n_candidates: int) -> Judgement:
-    """One candidate's :class:`Judgement` against the coarse model."""
+          margin: float) -> Judgement:
+    """One candidate's :class:`Judgement` against the coarse model: passed when its relative
+    gain reaches ``rule.min_improvement`` and its studentised gain exceeds ``margin``."""
     d, se, base = paired_gain(coarse_errors, candidate.val_errors, weights)
     if not math.isfinite(d) or not base > 0:
         return Judgement(float("nan"), d, se, float("nan"), False)
     rel = d / base
-    passed = rel >= rule.min_improvement and d > rule.z(n_candidates) * se
+    passed = rel >= rule.min_improvement and d > margin * se
     return Judgement(base - d, d, se, rel, bool(passed))
 
 
 def select(coarse_errors, candidates: Sequence[Candidate], weights,
-           rule: SelectionRule = SelectionRule(), n_candidates: int | None = None
-           ) -> tuple[int | None, list[Judgement]]:
+           rule: SelectionRule = SelectionRule(), n_candidates: int | None = None,
+           variants: Sequence[np.ndarray] | None = None) -> tuple[int | None, list[Judgement]]:
     """The index of the kept candidate (None: the coarse model stays) and every candidate's
     :class:`Judgement`.
 
@@ -221,6 +267,8 @@ def select(coarse_errors, candidates: Sequence[Candidate], weights,
     rule : :class:`SelectionRule`.
     n_candidates : how many candidates were compared (the Bonferroni ``m``; default
         ``len(candidates)``; a candidate whose fade length was chosen among L lengths counts L).
+    variants : with ``maxt``, the validation errors of every variant compared (each candidate
+        at each fade length it was chosen from; default: the candidates' own).
     """
     rule = rule.validated()
     m = len(candidates) if n_candidates is None else int(n_candidates)
@@ -228,7 +276,15 @@ def select(coarse_errors, candidates: Sequence[Candidate], weights,
         raise ParameterError(f"The 'weights' parameter of {_FUNC} must have one weight per "
                              f"validation row ({len(np.asarray(coarse_errors))}). Got "
                              f"{len(np.asarray(weights))} instead.")
-    judged = [judge(coarse_errors, c, weights, rule, m) for c in candidates]
+    if rule.alpha >= 1.0 or not candidates:
+        margin = -math.inf
+    elif rule.multiplicity == "maxt":
+        margin = max_t_threshold(coarse_errors, variants if variants is not None else
+                                 [c.val_errors for c in candidates], weights, rule.alpha,
+                                 rule.draws, rule.seed)
+    else:
+        margin = rule.z(m)
+    judged = [judge(coarse_errors, c, weights, rule, margin) for c in candidates]
     passed = [i for i, j in enumerate(judged) if j.passed]
     if not passed:
         return None, judged
