@@ -26,6 +26,9 @@ def test_weights_put_the_validation_rows_where_the_test_rows_are():
     # k 0 or no test distances: equal weights
     assert validation_weights([1, 2, 3, 10], [9, 11], k=0).tolist() == [0.25] * 4
     assert validation_weights([1, 2], [], k=3).tolist() == [0.5, 0.5]
+    # half matched, half equal: 0.5 * (0, 0, 0.5, 0.5) + 0.5 / 4
+    assert validation_weights([1, 2, 3, 10], [9, 11], k=2, share=0.5).tolist() == \
+        [0.125, 0.125, 0.375, 0.375]
 
 
 def test_row_weights_measure_distances_from_the_rows_sun_positions():
@@ -49,8 +52,8 @@ def test_paired_gain_and_its_standard_error():
 
 def test_the_bonferroni_quantile():
     # Phi^-1(0.95) = 1.6449, Phi^-1(1 - 0.05 / 10) = Phi^-1(0.995) = 2.5758 (normal tables)
-    assert SelectionRule().z(1) == pytest.approx(1.644854, abs=1e-6)
-    assert SelectionRule().z(10) == pytest.approx(2.575829, abs=1e-6)
+    assert SelectionRule(alpha=0.05).z(1) == pytest.approx(1.644854, abs=1e-6)
+    assert SelectionRule(alpha=0.05).z(10) == pytest.approx(2.575829, abs=1e-6)
     assert SelectionRule(alpha=1.0).z(10) == -math.inf
 
 
@@ -67,7 +70,8 @@ def test_select_keeps_the_simplest_candidate_within_one_standard_error():
     complex_ = _candidate("hybrid", 0.69 + noise, (3,))      # 0.01 mrad better still
     small = _candidate("hybrid", 0.95 + noise, (2,))         # 5 %: below the 10 % margin
     noisy = _candidate("hybrid", 0.70 + rng.normal(0, 1.5, 20), (2,))   # not significant
-    kept, judged = select(coarse, [complex_, small, noisy, simple], w)
+    rule = SelectionRule(min_improvement=0.1, alpha=0.05, multiplicity="bonferroni")
+    kept, judged = select(coarse, [complex_, small, noisy, simple], w, rule)
     assert [j.passed for j in judged] == [True, False, False, True]
     # the gains' se is the noise's sd / sqrt(20), about 0.0045 mrad: `simple` is 0.01 mrad
     # (more than one se) worse than the best, `complex_`, which is kept
@@ -76,10 +80,20 @@ def test_select_keeps_the_simplest_candidate_within_one_standard_error():
     assert se < 0.01 and kept == 0
     # with the two 0.003 mrad apart (within one se) the simpler one is kept
     close = _candidate("hybrid", 0.697 + noise, (3,))
-    kept, _ = select(coarse, [close, simple], w)
+    kept, _ = select(coarse, [close, simple], w, rule)
     assert kept == 1
     # nothing passes: the coarse model stays
-    assert select(coarse, [small, noisy], w)[0] is None
+    assert select(coarse, [small, noisy], w, rule)[0] is None
+
+
+def test_the_relative_margin_grows_with_the_candidates_flexibility():
+    # 15 % better on every row: enough for the GP (10 %), not for a network (20 %)
+    coarse, w = np.full(20, 1.0), np.full(20, 0.05)
+    errors = 0.85 + np.random.default_rng(5).normal(0, 0.01, 20)
+    rule = SelectionRule(alpha=1.0)
+    assert select(coarse, [_candidate("gp", errors, (1,))], w, rule)[0] == 0
+    assert select(coarse, [_candidate("hybrid", errors, (2,))], w, rule)[0] is None
+    assert select(coarse, [_candidate("gp-sun", errors, (1,))], w, rule)[0] == 0
 
 
 def test_many_candidates_raise_the_margin():

@@ -2,33 +2,39 @@
 
 The sweep trains many fine candidates per heliostat (weight decays x band sets of the hybrid
 networks, the Gaussian-process correction, optionally the pre-trained network) and judges them
-on 20 validation rows. Two things made that judgement fail on real heliostats:
+on 20 validation rows. Two things make that judgement optimistic:
 
 1. **The validation rows are nearer the training rows than the test rows.** The kNN split puts
    the most isolated rows in test (about 11 deg from training on the Jülich heliostats) and the
    next ones in validation (about 6 deg): a candidate that interpolates well and extrapolates
-   badly looks best on validation. :func:`validation_weights` weights every validation row by
-   how many test rows lie about as far from training as it does (each test row spreads one unit
-   of weight over the ``k`` validation rows whose distances are nearest its own), so the
-   weighted validation mean looks at the distances the test rows have. Only the rows' sun
-   positions (split.parquet's ``nearest_train_distance_deg``) are used, never a test error.
-2. **The best of many candidates on 20 rows is optimistic.** :func:`select` asks the winner's
-   per-row gain over the coarse model to be significant: with the weighted mean gain ``D``, its
-   standard error ``s`` (from the weighted spread of the paired per-row gains and the weights'
-   effective number of rows) and ``m`` candidates, the gain must exceed ``z s`` with
-   ``z = Phi^-1(1 - alpha / m)`` (a one-sided Bonferroni bound: the chance that noise alone makes
-   any of the ``m`` pass is at most ``alpha``), and be at least ``min_improvement`` of the coarse
-   model's weighted validation error. Of the candidates that pass, the simplest whose weighted
-   mean is within one standard error of the best is kept (the one-standard-error rule): near-ties
-   go to the simpler, more regularised model, so a choice does not flip with the last bits of a
-   training (docs/hybrid.md, "Training precision").
+   badly looks best on validation. :func:`validation_weights` gives every validation row half an
+   equal share and half a share of the test rows' distances: each test row spreads one unit of
+   weight over the ``k`` validation rows whose distances to training are nearest its own. The
+   weighted validation mean leans toward the distances the test rows have while keeping about
+   twice the effective rows a full matching leaves (6-7 of 20 on the Jülich heliostats, too few
+   to judge on). Only the rows' sun positions are used, never a test error.
+2. **The best of many candidates on 20 rows is optimistic.** :func:`select` asks a candidate's
+   weighted mean gain ``D`` over the coarse model to reach a relative margin that grows with the
+   candidate's flexibility (:attr:`SelectionRule.min_improvement_gp` for the GP,
+   :attr:`SelectionRule.min_improvement` for the networks), and its studentised gain ``D / s``
+   (``s`` from the weighted spread of the paired per-row gains) to exceed what the best of all
+   variants compared (every candidate at every fade length) reaches by noise alone: the
+   (1 - ``alpha``) quantile of their largest studentised gain when each row's gains get a random
+   sign, shared by all variants (Westfall and Young's max-T: it counts the weight-decay path's
+   nearly equal neighbours and nested fades as the few candidates they are; a Bonferroni bound
+   counts each). Of the candidates that pass, the simplest whose weighted mean is within one
+   standard error of the best is kept (the one-standard-error rule): near-ties go to the simpler,
+   more regularised model, so a choice does not flip with the last bits of a training
+   (docs/hybrid.md, "Training precision").
 
-Simplicity (:attr:`Candidate.complexity`, smaller is simpler) orders the coarse model < the GP
-without time < with time < the hybrid networks by decreasing weight decay (octave bands before
-integer bands at the same weight decay); a shorter fade (closer to the coarse model) before a
-longer one.
+Simplicity (:attr:`Candidate.complexity`, smaller is simpler) orders the GP without time < with
+time < the hybrid networks by decreasing weight decay (octave bands before integer bands at the
+same weight decay) < the pre-trained network; a shorter fade (closer to the coarse model) before
+a longer one. The settings were chosen on the Jülich heliostats and simulated static and dynamic
+ones (docs/hybrid.md, "Selection"; benchmarks/fine_selection.py).
 
-Everything here is plain numpy on per-row errors; the sweep (``stages/sweep.py``) computes them.
+Everything here is plain numpy on per-row errors; the sweep (``stages/selection.py``) computes
+them.
 """
 
 from __future__ import annotations
@@ -64,21 +70,26 @@ class SelectionRule:
 
     Attributes
     ----------
-    min_improvement : least relative gain over the coarse model's weighted validation error.
-    alpha : chance that noise alone lets one of the candidates pass (family-wise, one-sided);
-        1 switches the significance test off.
-    match_k : validation rows each test row spreads its weight over (0: unweighted validation).
+    min_improvement : least relative gain of a network (hybrid, pretrained-nn) over the coarse
+        model's weighted validation error: a network interpolates the coarse fit's residual
+        structure and gains up to 18 % on static heliostats without gaining on test
+        (docs/hybrid.md, "Selection").
+    min_improvement_gp : the same for the GP correction, which returns to the coarse model away
+        from its data.
+    alpha : the studentised gain must exceed the (1 - alpha) quantile of the largest one noise
+        alone makes among the variants compared (0.5: their median); 1 switches it off.
+    match_k : validation rows each test row spreads its weight over (0: equal weights).
+    match_share : share of the weights from the matching; the rest is equal per row.
     one_se : keep the simplest candidate within one standard error of the best.
-    multiplicity : how the margin accounts for the many candidates: ``maxt`` (the (1 - alpha)
-        quantile of the largest studentised gain of all variants compared when the rows' gains
-        are given random signs, Westfall and Young's max-T: exact for correlated candidates)
-        or ``bonferroni`` (``Phi^-1(1 - alpha / m)``, conservative when they are correlated).
+    multiplicity : ``maxt`` (module docstring) or ``bonferroni`` (``Phi^-1(1 - alpha / m)``).
     draws : random sign patterns of ``maxt`` (seeded with ``seed``).
     """
 
-    min_improvement: float = 0.10
-    alpha: float = 0.05
+    min_improvement: float = 0.20
+    min_improvement_gp: float = 0.10
+    alpha: float = 0.5
     match_k: int = 3
+    match_share: float = 0.5
     one_se: bool = True
     multiplicity: str = "maxt"
     draws: int = 2000
@@ -86,14 +97,20 @@ class SelectionRule:
 
     def validated(self) -> "SelectionRule":
         check_float(self.min_improvement, "min_improvement", _FUNC, -math.inf, 1.0)
+        check_float(self.min_improvement_gp, "min_improvement_gp", _FUNC, -math.inf, 1.0)
         check_float(self.alpha, "alpha", _FUNC, 0.0, 1.0, low_inclusive=False)
         check_int(self.match_k, "match_k", _FUNC, 0)
+        check_float(self.match_share, "match_share", _FUNC, 0.0, 1.0)
         check_int(self.draws, "draws", _FUNC, 10)
         check_int(self.seed, "seed", _FUNC, 0)
         if self.multiplicity not in ("maxt", "bonferroni"):
             raise ParameterError(f"The 'multiplicity' parameter of {_FUNC} must be one of maxt, "
                                  f"bonferroni. Got {self.multiplicity!r} instead.")
         return self
+
+    def margin_of(self, model: str) -> float:
+        """The relative margin of a candidate of ``model`` (``gp...``: the GP's)."""
+        return self.min_improvement_gp if model.startswith("gp") else self.min_improvement
 
     def z(self, n_candidates: int) -> float:
         """The one-sided Bonferroni quantile for ``n_candidates`` (``-inf`` with ``alpha`` 1)."""
@@ -141,11 +158,13 @@ class Judgement:
     passed: bool
 
 
-def validation_weights(val_distance_deg, test_distance_deg, k: int = 3) -> np.ndarray:
+def validation_weights(val_distance_deg, test_distance_deg, k: int = 3,
+                       share: float = 1.0) -> np.ndarray:
     """Weights (n_val,) summing to 1 that make the validation rows look like the test rows in
-    their distance to training (module docstring, 1): each test row adds ``1 / k`` to each of the
-    ``k`` validation rows whose distance is nearest its own (ties: the farther row, then the
-    earlier). ``k`` 0, or no test distances: equal weights."""
+    their distance to training (module docstring, 1): a ``share`` of the weight from the test
+    rows, each adding ``1 / k`` to each of the ``k`` validation rows whose distance is nearest
+    its own (ties: the farther row, then the earlier), the rest equal per row. ``k`` 0, or no
+    test distances: equal weights."""
     val = np.asarray(val_distance_deg, np.float64).reshape(-1)
     test = np.asarray(test_distance_deg, np.float64).reshape(-1)
     test = test[np.isfinite(test)]
@@ -161,10 +180,10 @@ def validation_weights(val_distance_deg, test_distance_deg, k: int = 3) -> np.nd
         gap = np.abs(val[order] - d)
         nearest = order[np.argsort(gap, kind="stable")[:k]]
         w[nearest] += 1.0 / k
-    return w / w.sum()
+    return share * w / w.sum() + (1.0 - share) / n
 
 
-def row_validation_weights(rows, labels, k: int = 3) -> np.ndarray:
+def row_validation_weights(rows, labels, k: int = 3, share: float = 1.0) -> np.ndarray:
     """:func:`validation_weights` of a heliostat's ``validation`` rows (in the rows' order) from
     the sun positions of ``rows`` (measurements.parquet columns) and their split ``labels``: each
     validation and test row's distance to the nearest ``train`` row, Euclidean in the (azimuth,
@@ -177,7 +196,7 @@ def row_validation_weights(rows, labels, k: int = 3) -> np.ndarray:
     el = rows["sun_elevation_deg"].to_numpy(np.float64)
     train = np.column_stack([az, el])[labels == "train"]
     dist = lambda m: sun_distance_deg(az[m], el[m], train)  # noqa: E731
-    return validation_weights(dist(labels == "validation"), dist(labels == "test"), k)
+    return validation_weights(dist(labels == "validation"), dist(labels == "test"), k, share)
 
 
 def paired_gain(coarse_errors, errors, weights) -> tuple[float, float, float]:
@@ -244,12 +263,13 @@ def max_t_threshold(coarse_errors, variant_errors: Sequence[np.ndarray], weights
 def judge(coarse_errors, candidate: Candidate, weights, rule: SelectionRule,
           margin: float) -> Judgement:
     """One candidate's :class:`Judgement` against the coarse model: passed when its relative
-    gain reaches ``rule.min_improvement`` and its studentised gain exceeds ``margin``."""
+    gain reaches its family's margin (:meth:`SelectionRule.margin_of`) and its studentised gain
+    exceeds ``margin``."""
     d, se, base = paired_gain(coarse_errors, candidate.val_errors, weights)
     if not math.isfinite(d) or not base > 0:
         return Judgement(float("nan"), d, se, float("nan"), False)
     rel = d / base
-    passed = rel >= rule.min_improvement and d > margin * se
+    passed = rel >= rule.margin_of(candidate.model) and d > margin * se
     return Judgement(base - d, d, se, rel, bool(passed))
 
 
