@@ -96,6 +96,17 @@ def test_the_relative_margin_grows_with_the_candidates_flexibility():
     assert select(coarse, [_candidate("gp-sun", errors, (1,))], w, rule)[0] == 0
 
 
+def test_never_worse_than_the_coarse_model_on_the_plain_validation_mean():
+    # 30 % better on the three far rows that carry the weight, 10 % worse on the other 17: the
+    # weighted mean gains, the plain mean loses (0.3 * 0.3 * 3 < 0.1 * 17 per row of 1 mrad)
+    coarse = np.full(20, 1.0)
+    errors = np.r_[np.full(17, 1.1), np.full(3, 0.7)]
+    w = np.r_[np.full(17, 0.01), np.full(3, 0.83 / 3)]
+    rule = SelectionRule(alpha=1.0, min_improvement_gp=0.0)
+    kept, judged = select(coarse, [_candidate("gp", errors, (1,))], w, rule)
+    assert judged[0].gain_mrad > 0 and kept is None
+
+
 def test_many_candidates_raise_the_margin():
     # gains of 0.05 +- 0.1 mrad over 20 rows: t = 0.05 / (0.1 / sqrt(20)) = 2.24 before the
     # noise; significant against one candidate (z 1.64), not against 100 (z 3.29)

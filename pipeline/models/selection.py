@@ -263,13 +263,17 @@ def max_t_threshold(coarse_errors, variant_errors: Sequence[np.ndarray], weights
 def judge(coarse_errors, candidate: Candidate, weights, rule: SelectionRule,
           margin: float) -> Judgement:
     """One candidate's :class:`Judgement` against the coarse model: passed when its relative
-    gain reaches its family's margin (:meth:`SelectionRule.margin_of`) and its studentised gain
-    exceeds ``margin``."""
+    gain reaches its family's margin (:meth:`SelectionRule.margin_of`), its studentised gain
+    exceeds ``margin`` and its plain (unweighted) validation mean is not above the coarse
+    model's."""
     d, se, base = paired_gain(coarse_errors, candidate.val_errors, weights)
     if not math.isfinite(d) or not base > 0:
         return Judgement(float("nan"), d, se, float("nan"), False)
     rel = d / base
-    passed = rel >= rule.margin_of(candidate.model) and d > margin * se
+    # paper 000's guarantee on the plain validation mean too: the weighting may not buy a
+    # candidate that is worse than the coarse model on the validation rows as they are
+    plain = float(np.nanmean(candidate.val_errors)) <= float(np.nanmean(coarse_errors))
+    passed = rel >= rule.margin_of(candidate.model) and d > margin * se and plain
     return Judgement(base - d, d, se, rel, bool(passed))
 
 
