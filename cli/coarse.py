@@ -8,13 +8,9 @@ import typer
 from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
-                              SchedulerChoice, Workdir, Workers, command, emit, progress_bar,
-                              stdout)
+                              SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
+                              progress_bar, stdout)
 from heliocal.pipeline.vocabulary import CoarseLoss, CoarsePreset, CoarseSolver, RobustStart
-
-
-def _fmt(x) -> str:
-    return "-" if x is None or x != x else f"{x:.3f}"
 
 
 def _human(summary: dict) -> None:
@@ -24,8 +20,9 @@ def _human(summary: dict) -> None:
         table.add_column(col, justify="left" if col in ("heliostat", "selected") else "right")
     for h in summary["heliostats"]:
         s = h["presets"][h["selected"]]
-        table.add_row(h["heliostat_id"], str(h["n_train"]), _fmt(h["nominal"]["test"]),
-                      h["selected"], _fmt(s["train"]), _fmt(s["validation"]), _fmt(s["test"]))
+        table.add_row(h["heliostat_id"], str(h["n_train"]), fmt_number(h["nominal"]["test"]),
+                      h["selected"], fmt_number(s["train"]), fmt_number(s["validation"]),
+                      fmt_number(s["test"]))
     stdout.print(table)
     stdout.print("mean error_mrad per split; the preset is chosen by validation error.")
     r = summary.get("regimes")

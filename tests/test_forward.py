@@ -53,6 +53,7 @@ def _selected(w: Path) -> pd.DataFrame:
     return p.merge(s, on=["heliostat_id", "measurement_id"])
 
 
+@pytest.mark.slow
 def test_time_split_error_comes_from_a_model_that_never_saw_the_step(step_workdir):
     rows = _selected(step_workdir)
     knn_test = rows.loc[rows["split"] == "test", "error_mrad"].mean()
@@ -74,6 +75,7 @@ def test_time_split_error_comes_from_a_model_that_never_saw_the_step(step_workdi
     assert rows.loc[early, "time_error_mrad"].mean() <= rows.loc[early, "error_mrad"].mean() + 0.01
 
 
+@pytest.mark.slow
 def test_time_split_fit_is_recorded_with_its_errors(step_workdir):
     p = read_artifact(step_workdir, COARSE_PARAMS)
     sel = p[p["selected"]]

@@ -18,6 +18,7 @@ __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "
            "REGIME_PARAMS",
            "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
+           "WINDOWS_RESERVED_NAMES",
            "nomenclature_markdown"]
 
 #: What a heliostat id may be. Ids become file names (``hybrid/<mode>/<id>.pt``, report figures),
@@ -29,12 +30,29 @@ HELIOSTAT_ID_RULE = ("1-64 ASCII letters, digits, '_', '-' or '.', starting with
                      "or '_'")
 
 
+#: Device names Windows reserves in every folder, in any case and also with an extension
+#: (``NUL.txt``): a file of that name cannot be made there, so they are not portable ids.
+WINDOWS_RESERVED_NAMES = frozenset(["CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(1, 10)),
+                                    *(f"LPT{i}" for i in range(1, 10))])
+
+
+def _reserved_stem(hid: str) -> str | None:
+    """The Windows device name ``hid`` is (its part before the first '.'), if any."""
+    stem = hid.split(".", 1)[0]
+    return stem if stem.upper() in WINDOWS_RESERVED_NAMES else None
+
+
 def heliostat_id_problem(hid) -> str | None:
-    """Why ``hid`` is not a valid heliostat id (see :data:`HELIOSTAT_ID_RE`), or ``None``."""
+    """Why ``hid`` is not a valid heliostat id (see :data:`HELIOSTAT_ID_RE` and
+    :data:`WINDOWS_RESERVED_NAMES`), or ``None``."""
     if not isinstance(hid, str):
         return f"it is a {type(hid).__name__}, not text"
     if HELIOSTAT_ID_RE.fullmatch(hid):
-        return None
+        stem = _reserved_stem(hid)
+        if stem is None:
+            return None
+        return (f"{stem!r} is a device name Windows reserves (CON, PRN, AUX, NUL, COM1-9, "
+                "LPT1-9), so no file can have that name there")
     if len(hid) > 64:
         return f"it has {len(hid)} characters, more than 64"
     if hid[:1] in (".", "-"):
@@ -48,6 +66,9 @@ def suggest_heliostat_id(hid: str) -> str:
     are dropped, cut to 64 characters (``"../../x/pwned"`` -> ``"x_pwned"``)."""
     text = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(hid))
     text = re.sub(r"^[._-]+", "", text)[:64]
+    stem = _reserved_stem(text)
+    if stem is not None:  # CON -> CON_, NUL.txt -> NUL_.txt
+        text = (stem + "_" + text[len(stem):])[:64]
     return text or "H1"
 
 
@@ -173,8 +194,10 @@ REJECTION_REASONS = {
     "focal_spot_far_from_target": "the focal spot lies implausibly far from its target",
     "malformed_file": "the file (one PAINT measurement) cannot be parsed",
     "sun_angle_out_of_range": "a sun angle is outside its physical range",
-    "invalid_heliostat_id": "the heliostat id is not " + HELIOSTAT_ID_RULE + " (it would be "
-                            "unsafe as a file name): rename the heliostat in the source",
+    "invalid_heliostat_id": "the heliostat id is not " + HELIOSTAT_ID_RULE + ", or it is a device "
+                            "name Windows reserves (CON, PRN, AUX, NUL, COM1-9, LPT1-9, also "
+                            "with an extension such as NUL.txt; it would be unsafe or impossible "
+                            "as a file name): rename the heliostat in the source",
     # plausibility of timestamps (ingest --time-min/--time-max/--date-format)
     "implausible_timestamp": "the timestamp lies outside the plausible range of the instrument "
                              "(default 1990 to now + 1 day; ingest --time-min, --time-max)",

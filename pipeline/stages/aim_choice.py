@@ -6,10 +6,9 @@ ask the same question as ``aim`` cheaply. :mod:`.aim` re-exports it.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Sequence
 
-from ..artifacts.manifests import load_manifest, read_committed
+from ..artifacts.manifests import CommittedWorkdir
 from ..artifacts.modelfiles import model_files
 from ..artifacts.schemas import COARSE_PARAMS, HELIOSTATS, HYBRID_PREDICTIONS, MEASUREMENTS
 from ..artifacts.store import artifact_present, check_fresh, read_artifact
@@ -21,16 +20,15 @@ __all__ = [
 ]
 
 
-def _model_committed(workdir: Path, mode: str, heliostat_id: str) -> bool:
+def _model_committed(wd: CommittedWorkdir, mode: str, heliostat_id: str) -> bool:
     """Whether the stage that writes ``mode``'s models committed one for the heliostat (both its
     files listed in the stage's manifest; :func:`load_model` checks their content)."""
-    cfg_rel, pt_rel = model_files(mode, heliostat_id)
-    m = load_manifest(workdir, "sweep" if mode == "selected" else "fit-hybrid")
-    return m is not None and cfg_rel in m.files and pt_rel in m.files
+    stage = "sweep" if mode == "selected" else "fit-hybrid"
+    return all(wd.listed(stage, rel) for rel in model_files(mode, heliostat_id))
 
 
 @restores_process_state
-def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
+def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
                strict: bool = False) -> dict:
     """Per heliostat the model ``aim --model auto`` uses, and its mean validation and test error.
 
@@ -39,14 +37,16 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
     ensemble (``hybrid/selected/``) if that was written; without a selection row for the
     heliostat, the ``fit-hybrid`` hybrid (``hybrid/hybrid/``) where fitted; otherwise (and when a
     selected hybrid's files are missing) the coarse model, ``fit-coarse``'s selected preset.
-    Every artifact and model is read through its stage's manifest. With ``strict`` (``aim``),
+    Every artifact and model is read through its stage's manifest (``workdir``: the work
+    directory or its :class:`CommittedWorkdir`, whose reads ``aim`` shares). With ``strict`` (``aim``),
     selection.parquet must also be fresh and a selected hybrid's model committed, else a
     one-line :class:`StageInputError` says what to rerun (``info`` shows what is there).
 
     Returns
     -------
     dict heliostat_id -> {``model`` (``coarse``, ``hybrid``, ``pretrained-nn`` or ``gp``),
-    ``variant`` (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``, ``gp``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
+    ``variant`` (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``, ``gp``, ``gp-sun``; None for
+    coarse), ``source`` (the stage that chose it: ``sweep``,
     ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
     ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
     such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
@@ -54,7 +54,7 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
     """
     from ..artifacts.schemas import SELECTION, SPLIT
 
-    workdir = Path(workdir)
+    workdir = CommittedWorkdir.of(workdir)
     if not artifact_present(workdir, COARSE_PARAMS):
         return {}
     params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
@@ -82,14 +82,14 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
             row = selection.loc[hid]
             entry.update(source="sweep", val_error_mrad=float(row["coarse_val_error_mrad"]),
                          test_error_mrad=float(row["coarse_test_error_mrad"]))
-        elif choice is not None and (choice.startswith("hybrid")
-                                     or choice in ("pretrained-nn", "gp")):
+        elif choice is not None and (choice.startswith(("hybrid", "gp"))
+                                     or choice == "pretrained-nn"):
             if _model_committed(workdir, "selected", hid):
                 row = selection.loc[hid]
-                entry.update(model=choice if choice in ("pretrained-nn", "gp") else "hybrid",
-                             variant=choice, source="sweep",
-                             weight_decay=(None if choice in ("pretrained-nn", "gp")
-                                           else float(row["weight_decay"])),
+                mode = choice if choice == "pretrained-nn" else choice.split("-")[0]
+                entry.update(model=mode, variant=choice, source="sweep",
+                             weight_decay=(float(row["weight_decay"]) if mode == "hybrid"
+                                           else None),
                              val_error_mrad=float(row["val_error_mrad"]),
                              test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
             elif strict:
@@ -98,20 +98,38 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
                                       f"sweep --workdir {workdir}`")
         elif _model_committed(workdir, "hybrid", hid):
             cfg_rel = model_files("hybrid", hid)[0]
-            cfg = json.loads(read_committed(
-                workdir, "fit-hybrid", cfg_rel,
+            cfg = _config(workdir.read(
+                "fit-hybrid", cfg_rel,
                 hint=f"`heliocal fit-hybrid --workdir {workdir} --mode hybrid`").data)
             if fit_hybrid_errors is None:
                 fit_hybrid_errors = _fit_hybrid_errors(workdir)
             val, test = fit_hybrid_errors.get(hid, (float("nan"), float("nan")))
             entry.update(model="hybrid", variant="hybrid", source="fit-hybrid",
-                         weight_decay=float(cfg.get("weight_decay", float("nan"))),
+                         weight_decay=_number(cfg.get("weight_decay")),
                          val_error_mrad=val, test_error_mrad=test, model_dir="hybrid")
         out[hid] = entry
     return out
 
 
-def _fit_hybrid_errors(workdir: Path) -> dict:
+def _config(data: bytes) -> dict:
+    """A model configuration's JSON object, or ``{}`` if it is not one (loading the model says
+    why: :func:`heliocal.pipeline.artifacts.modelfiles.read_model`)."""
+    try:
+        cfg = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError):
+        return {}
+    return cfg if isinstance(cfg, dict) else {}
+
+
+def _number(value) -> float:
+    """``value`` as a float, NaN if it is not a number."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def _fit_hybrid_errors(workdir: CommittedWorkdir) -> dict:
     """Mean validation and test error_mrad of fit-hybrid's ``hybrid`` mode per heliostat."""
     if not artifact_present(workdir, HYBRID_PREDICTIONS):
         return {}

@@ -8,8 +8,8 @@ validation; then each regime's error under the final model. :mod:`.fit_coarse` r
 
 from __future__ import annotations
 
-from dataclasses import fields
-from typing import Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -23,9 +23,10 @@ from ..models.regimes import (detect_field, detect_records, regime_of_rows,
 from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import HeliostatSpec
 from ..runtime.process_state import one_thread
+from ..vocabulary import MIN_IMPROVEMENT
 
 __all__ = ["detect_coarse_regimes", "follow_regimes", "REGIME_STEPS", "MAX_EPISODE_SHARE",
-           "EPISODE_REFIT_MIN_IMPROVEMENT"]
+           "EPISODE_REFIT_MIN_IMPROVEMENT", "CoarseChunk", "HeliostatResult", "ChunkResult"]
 
 
 def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
@@ -100,11 +101,11 @@ def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
 MAX_EPISODE_SHARE = 0.25
 
 #: Relative validation improvement (outside episodes) the fit without a heliostat's episodes
-#: needs to replace its first fit: the sweep's margin rule (stages.sweep.MIN_IMPROVEMENT). With
+#: needs to replace its first fit: the sweep's margin rule, the one constant MIN_IMPROVEMENT. With
 #: the default robust loss episodes pull a fit little, and a refit without them that is only a
 #: few per cent better on 20 validation rows was as often worse on test (sample_data's BH35:
 #: validation -7 %, test +11 %), so a small gain is not taken.
-EPISODE_REFIT_MIN_IMPROVEMENT = 0.20
+EPISODE_REFIT_MIN_IMPROVEMENT = MIN_IMPROVEMENT
 
 
 def _selected_error(predictions: pd.DataFrame, mask: np.ndarray) -> float:
@@ -118,8 +119,9 @@ def _segment_errors(regimes: pd.DataFrame, ids: Sequence[str], rows: Sequence[pd
                     results: Sequence[tuple]) -> pd.DataFrame:
     """One chunk's regimes with ``error_mrad``: the final selected model's mean error (per
     heliostat its rows and outputs) on the rows of every split between the segment's start and
-    end (an outlier: its own row). In the chunk's task: in the stage's process a merge of the
-    field's predictions with the measurements' times took 0.8 s at 2,000 heliostats."""
+    end (an outlier: its own row). Computed in the chunk's task, where each heliostat's rows and
+    predictions are at hand in the same order (the stage's process would have to merge the
+    field's predictions with the measurements' times)."""
     by_h = {}
     for hid, r, (_, pred, _) in zip(ids, rows, results):
         sel, mids, in_order = _selected_rows(pred, r)
@@ -140,9 +142,41 @@ def _segment_errors(regimes: pd.DataFrame, ids: Sequence[str], rows: Sequence[pd
 
 #: What ``fit-coarse`` does about regimes (``run_fit_coarse(regime_steps=...)``):
 #: ``candidates`` (the default: detection, the refit without episodes, the regime-aware
-#: candidates), ``detect`` (detection and the refit only) or ``off`` (the stage before issue
-#: 17; for benchmarks).
-REGIME_STEPS = ("candidates", "detect", "off")
+#: candidates) or ``detect`` (detection and the refit only).
+REGIME_STEPS = ("candidates", "detect")
+
+
+@dataclass
+class CoarseChunk:
+    """One task of ``fit-coarse``: heliostats of one kinematic and actuator type whose presets
+    are fitted together (scipy: one heliostat), then what follows from their regimes."""
+
+    solver: str                       # CoarseSolver: batched or scipy
+    heliostats: list[dict]            # their heliostats.parquet rows
+    rows: list[pd.DataFrame]          # each one's measurements with the split label
+    presets: tuple[str, ...]          # the presets to fit
+    options: dict                     # loss, f_scale_mrad, robust_start (fit_presets' keywords)
+    regime_steps: str | None          # one of REGIME_STEPS; None: the presets' fits only
+
+
+@dataclass
+class HeliostatResult:
+    """What a chunk's task returns for one heliostat."""
+
+    outputs: tuple                    # (coarse_params rows, coarse_predictions rows, summary)
+    regime_params: list[dict] = field(default_factory=list)  # its candidates' regime_params rows
+    episode_flags: np.ndarray | None = None  # per row: in a left-out episode (None: no refit)
+    refitted: bool = False            # fitted again without its episodes' rows
+    notes: list[str] = field(default_factory=list)  # lines for the stage's log
+
+
+@dataclass
+class ChunkResult:
+    """What a chunk's task returns: its regimes.parquet rows (None without regime steps) and
+    per heliostat, in the chunk's order, its :class:`HeliostatResult`."""
+
+    regimes: pd.DataFrame | None
+    heliostats: list[HeliostatResult]
 
 
 def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
@@ -156,16 +190,18 @@ def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
             for e, df in zip(ends, frames)]
 
 
-def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, starts,
-                   regime_steps) -> tuple:
-    """Regimes of each heliostat of a chunk on its first fit's residuals; heliostats with
-    episodes fitted again without the episodes' rows (kept by the sweep's margin); then the
-    regime-aware candidates of the heliostats with a break (``regime_steps == "candidates"``).
-    ``fit_again`` is fit_coarse's ``_fit_chunk`` (the presets' fits of some of the chunk's
-    heliostats). Returns fit_coarse's ``_fit_task``'s (regimes, per heliostat tuples)."""
+def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequence,
+                   fit_again: Callable) -> ChunkResult:
+    """Regimes of each heliostat of a chunk on its first fit's residuals (``outputs``: per
+    heliostat (param rows, prediction rows, summary); ``starts``: the batched candidates' start
+    or None); heliostats with episodes fitted again without the episodes' rows (kept by the
+    sweep's margin); then the regime-aware candidates of the heliostats with a break
+    (``chunk.regime_steps == "candidates"``). ``fit_again`` is fit_coarse's ``_fit_chunk`` (the
+    presets' fits of some of the chunk's heliostats)."""
+    hrows, presets, kwargs = chunk.heliostats, chunk.presets, chunk.options
     ids = [str(h["heliostat_id"]) for h in hrows]
-    regimes = _chunk_regimes(hrows, rows, results)
-    rows, results, starts = list(rows), list(results), list(starts)
+    regimes = _chunk_regimes(hrows, chunk.rows, outputs)
+    rows, results, starts = list(chunk.rows), list(outputs), list(starts)
     flags_of: list = [None] * len(ids)
     notes: list[list[str]] = [[] for _ in ids]
     refit = []
@@ -181,7 +217,7 @@ def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, sta
             flags_of[k] = flags
             refit.append(k)
     if refit:
-        again, again_starts = fit_again(solver, [hrows[k] for k in refit],
+        again, again_starts = fit_again(chunk.solver, [hrows[k] for k in refit],
                                         [rows[k] for k in refit], presets, kwargs)
         for k, res, start in zip(refit, again, again_starts):
             # the refit is a candidate: kept only if it beats the first fit by the sweep's margin
@@ -191,20 +227,21 @@ def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, sta
             if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old:
                 results[k], starts[k] = res, start
             else:
-                notes[k].append(f"{ids[k]}: the fit without its episodes is not 20 % better on "
+                notes[k].append(f"{ids[k]}: the fit without its episodes is not "
+                                f"{100 * EPISODE_REFIT_MIN_IMPROVEMENT:g} % better on "
                                 f"validation ({new:.3f} vs {old:.3f} mrad); the first fit is kept")
     # regime-aware candidates (per-regime offsets, drift) of heliostats with a break: each
     # replaces the fit above only if it beats it by the same margin on validation
     breaks = set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]), "heliostat_id"])
     of = dict(tuple(regimes.groupby("heliostat_id", sort=False)))
     broken = ([k for k, hid in enumerate(ids) if hid in breaks]
-              if regime_steps == "candidates" else [])
+              if chunk.regime_steps == "candidates" else [])
     specs = {k: HeliostatSpec.from_row(pd.Series(hrows[k])) for k in broken}
     batches = dict(zip(broken, _batches([rows[k] for k in broken])))
     setups = {k: candidate_setup(ids[k], rows[k], of[ids[k]], results[k], MAX_EPISODE_SHARE,
                                  batches[k]) for k in broken}
     fits, frames = {}, {}
-    if solver == "batched" and broken:   # the chunk is of one type: one program for all
+    if chunk.solver == "batched" and broken:   # the chunk is of one type: one program for all
         with one_thread(blas=True):
             fitted = fit_candidates_batched([specs[k] for k in broken],
                                             [setups[k] for k in broken], loss=kwargs["loss"],
@@ -222,5 +259,5 @@ def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, sta
                 f_scale_mrad=kwargs["f_scale_mrad"], margin=EPISODE_REFIT_MIN_IMPROVEMENT,
                 max_episode_share=MAX_EPISODE_SHARE, setup=setups[k], fits=fits.get(k),
                 frames=frames.get(k))
-        out.append((results[k], regime_rows, flags_of[k], k in refit, notes[k]))
-    return _segment_errors(regimes, ids, rows, results), out
+        out.append(HeliostatResult(results[k], regime_rows, flags_of[k], k in refit, notes[k]))
+    return ChunkResult(_segment_errors(regimes, ids, rows, results), out)

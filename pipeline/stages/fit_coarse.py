@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -34,7 +35,8 @@ from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
-from .coarse_regimes import REGIME_STEPS, detect_coarse_regimes, follow_regimes
+from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
+                             detect_coarse_regimes, follow_regimes)
 from .forward import (TIME_COLUMN, attach_coarse_time, chunks_per_worker, fit_coarse_time_split,
                       load_time_labels)
 
@@ -248,19 +250,22 @@ def _fit_chunk(solver: str, hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
     return [o[:3] for o in out], [o[3] for o in out]
 
 
-def _fit_task(task) -> tuple:
+def _fit_task(chunk: CoarseChunk) -> ChunkResult:
     """One chunk of heliostats (batched: one type; scipy: one heliostat), a picklable task for
-    :func:`~heliocal.pipeline.runtime.parallel.map_tasks`. The presets' fits, then, unless
-    ``regime_steps`` is ``off``, what follows from the regimes of their residuals
-    (:func:`.coarse_regimes.follow_regimes`), in the task, so that a heliostat's rows and frames
-    go to a worker once. Returns (the chunk's regimes.parquet rows or None, per heliostat (outputs,
-    regime_params rows, episode flags or None, refitted, log lines))."""
-    solver, hrows, rows, presets, kwargs, regime_steps = task
-    results, starts = _fit_chunk(solver, hrows, rows, presets, kwargs)
-    if regime_steps == "off":
-        return None, [(res, [], None, False, []) for res in results]
-    return follow_regimes(_fit_chunk, solver, hrows, rows, presets, kwargs, results, starts,
-                          regime_steps)
+    :func:`~heliocal.pipeline.runtime.parallel.map_tasks`: the presets' fits, then what follows
+    from the regimes of their residuals (:func:`.coarse_regimes.follow_regimes`), in the task, so
+    that a heliostat's rows and frames go to a worker once."""
+    outputs, starts = _fit_chunk(chunk.solver, chunk.heliostats, chunk.rows, chunk.presets,
+                                 chunk.options)
+    if chunk.regime_steps is None:
+        return ChunkResult(None, [HeliostatResult(out) for out in outputs])
+    return follow_regimes(chunk, outputs, starts, _fit_chunk)
+
+
+#: For benchmarks only (benchmarks/regimes_cost.py): True makes fit-coarse skip everything about
+#: regimes (no detection, refit or candidates; regimes.parquet empty), to measure what they cost.
+#: Not an option of the stage; heliocal never sets it.
+_SKIP_REGIMES = False
 
 
 def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
@@ -274,6 +279,118 @@ def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
         members = sorted(group.index, key=lambda h: (n_train[h], h))
         chunks += [members[i:i + batch_size] for i in range(0, len(members), batch_size)]
     return chunks
+
+
+def _read_rows(workdir: Path, heliostats: Sequence[str] | None) -> tuple[pd.DataFrame, dict]:
+    """(heliostats.parquet indexed by id, heliostat -> its measurements with the split and time
+    split labels, without rows the split excluded) of the heliostats with training rows."""
+    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
+    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
+    measurements["split"] = load_split_labels(workdir, measurements).to_numpy()
+    measurements[TIME_COLUMN] = load_time_labels(workdir, measurements)
+    helio = helio.set_index("heliostat_id", drop=False)
+    with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])
+    ids = [h for h in helio.index if h in with_train]   # (a scan per heliostat is O(H N))
+    if not ids:
+        raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
+                       "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")
+    groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
+    return helio, {hid: groups[hid][groups[hid]["split"] != "excluded"] for hid in ids}
+
+
+def _chunks(solver: str, helio: pd.DataFrame, rows_of: dict, batch_size: int) -> list[list[str]]:
+    """The heliostats' chunks (scipy: one each; batched: :func:`_chunks_by_type`), the chunks
+    with the most rows first: the longest tasks are not the last ones, so the workers finish
+    together (the results come back in task order)."""
+    ids = list(rows_of)
+    if solver == "scipy":
+        chunks = [[hid] for hid in ids]
+    else:
+        n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in ids}
+        chunks = _chunks_by_type(helio, ids, n_train, batch_size)
+    chunks.sort(key=lambda chunk: -sum(len(rows_of[h]) for h in chunk))
+    return chunks
+
+
+@dataclass
+class _FieldFits:
+    """The chunks' results gathered for the field."""
+
+    outputs: dict            # heliostat -> (coarse_params rows, coarse_predictions rows, summary)
+    regimes: pd.DataFrame    # regimes.parquet
+    regime_params: pd.DataFrame  # regime_params.parquet
+    refitted: list[str]      # heliostats fitted again without their episodes' rows
+
+
+def _collect(chunks: Sequence[list[str]], results: Sequence[ChunkResult],
+             rows_of: dict) -> _FieldFits:
+    """Gather the chunks' results; a heliostat refitted without its episodes gets their flags
+    in ``rows_of`` (the time split's fit leaves them out too). Logs the chunks' notes."""
+    outputs, found, regime_rows, refitted = {}, [], [], []
+    for chunk, result in zip(chunks, results):
+        if result.regimes is not None and len(result.regimes):
+            found.append(result.regimes)
+        for hid, h in zip(chunk, result.heliostats):
+            outputs[hid] = h.outputs
+            regime_rows += h.regime_params
+            if h.episode_flags is not None:
+                rows_of[hid] = rows_of[hid].assign(episode=h.episode_flags)
+            if h.refitted:
+                refitted.append(hid)
+            for line in h.notes:
+                log.info("%s", line)
+    regimes = (pd.concat(found, ignore_index=True)
+               .sort_values("heliostat_id", kind="mergesort").reset_index(drop=True)
+               if found else detect_field(pd.DataFrame(columns=["heliostat_id", "timestamp",
+                                                                "measurement_id",
+                                                                *REGIME_COMPONENTS]))
+               .assign(error_mrad=np.nan))
+    return _FieldFits(outputs, regimes, pd.DataFrame(regime_rows,
+                                                     columns=REGIME_PARAMS.column_names()),
+                      refitted)
+
+
+def _log_fit_warnings(summary: dict) -> None:
+    """A heliostat's warnings: degenerate training data, an implausible selected fit."""
+    if summary["degenerate"]:
+        log.warning("%s: degenerate training data: %s; its errors say nothing about accuracy "
+                    "(calibrate it at more sun positions)", summary["heliostat_id"],
+                    summary["degenerate"])
+    for name, items in summary["implausible"].items():
+        if name == summary["selected"]:
+            log.warning("%s: the nominal geometry needed a large correction (%s)",
+                        summary["heliostat_id"], "; ".join(items))
+
+
+def _write_outputs(workdir: Path, tables: dict, heliostats: Sequence[str] | None,
+                   opts: dict) -> None:
+    """Write fit-coarse's four artifacts. A partial run keeps the other heliostats' fits when the
+    previous run read the same inputs (artifacts.merge_with_previous); the inputs are recorded
+    as they were read."""
+    if heliostats:
+        replaced = lambda old: old["heliostat_id"].isin(set(heliostats))  # noqa: E731
+        tables = {schema: merge_with_previous(workdir, schema, df, replaced)
+                  for schema, df in tables.items()}
+    for schema, df in tables.items():
+        write_artifact(df, workdir, schema, stage="fit-coarse", options=opts)
+
+
+def _regimes_summary(fits: _FieldFits, summaries: Sequence[dict]) -> dict:
+    """The summary's counts of regimes, refits and regime-aware models."""
+    regimes = fits.regimes
+    return {
+        "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
+            ["detected", "renovation"]), "heliostat_id"].nunique()),
+        "detected_breaks": int((regimes["cause"] == "detected").sum()),
+        "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
+        "episodes": int((regimes["kind"] == "episode").sum()),
+        "outliers": int((regimes["kind"] == "outlier").sum()),
+        "refitted_without_episodes": sorted(h for h in fits.refitted
+                                            if fits.outputs[h][2]["episode_rows"]),
+        "regime_models_fitted": int(fits.regime_params["heliostat_id"].nunique()),
+        "regime_models_selected": sorted(
+            s["heliostat_id"] for s in summaries
+            if s.get("regime_candidates", {}).get("selected"))}
 
 
 @locks_workdir("fit-coarse")
@@ -301,8 +418,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         Levenberg-Marquardt program per chunk and preset, :mod:`heliocal.pipeline.physics.lm`) or
         ``scipy`` (one :func:`scipy.optimize.least_squares` per heliostat, the reference).
     batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
-    regime_steps : one of :data:`REGIME_STEPS` (default ``candidates``; the others measure what
-        the regimes cost, ``benchmarks/regimes_cost.py``).
+    regime_steps : one of :data:`REGIME_STEPS`: ``candidates`` (the default) or ``detect``
+        (detection and the refit without episodes, no regime-aware candidates).
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
@@ -310,108 +427,46 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     check_choice(solver, "solver", "fit_coarse", SOLVERS)
     check_choice(regime_steps, "regime_steps", "fit_coarse", REGIME_STEPS)
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
+    steps = None if _SKIP_REGIMES else regime_steps
     warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
-    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
-    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
-    measurements["split"] = load_split_labels(workdir, measurements).to_numpy()
-    measurements[TIME_COLUMN] = load_time_labels(workdir, measurements)
+    helio, rows_of = _read_rows(workdir, heliostats)
+    ids = list(rows_of)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
-    helio = helio.set_index("heliostat_id", drop=False)
-    with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])
-    ids = [h for h in helio.index if h in with_train]   # (a scan per heliostat is O(H N))
-    if not ids:
-        raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
-                       "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")
-    groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
-    rows_of = {hid: groups[hid][groups[hid]["split"] != "excluded"] for hid in ids}
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
-
-    if solver == "scipy":
-        chunks = [[hid] for hid in ids]
-    else:
-        n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in ids}
-        chunks = _chunks_by_type(helio, ids, n_train, batch_size)
-    # the chunks with the most rows go first: the longest tasks are not the last ones, so the
-    # workers finish together (the results come back in task order)
-    chunks.sort(key=lambda chunk: -sum(len(rows_of[h]) for h in chunk))
-    tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
-              presets, kwargs, regime_steps) for chunk in chunks]
+    chunks = _chunks(solver, helio, rows_of, batch_size)
+    tasks = [CoarseChunk(solver, [helio.loc[h].to_dict() for h in chunk],
+                         [rows_of[h] for h in chunk], presets, kwargs, steps) for chunk in chunks]
     chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
                               dask_address=dask_address,
                               progress=(lambda done, total: progress(done, total, None))
                               if progress else None,
                               chunks_per_worker=chunks_per_worker(solver))
-    by_id, found, regime_rows, refit = {}, [], [], []
-    for chunk, (segments, results) in zip(chunks, chunk_results):
-        if segments is not None and len(segments):
-            found.append(segments)
-        for hid, (outputs, rows, flags, refitted, notes) in zip(chunk, results):
-            by_id[hid] = outputs
-            regime_rows += rows
-            if flags is not None:   # the time split's fit leaves the episodes out too
-                rows_of[hid] = rows_of[hid].assign(episode=flags)
-            if refitted:
-                refit.append(hid)
-            for line in notes:
-                log.info("%s", line)
-    regimes = (pd.concat(found, ignore_index=True)
-               .sort_values("heliostat_id", kind="mergesort").reset_index(drop=True)
-               if found else detect_field(pd.DataFrame(columns=["heliostat_id", "timestamp",
-                                                                "measurement_id",
-                                                                *REGIME_COMPONENTS]))
-               .assign(error_mrad=np.nan))
-    regime_params = pd.DataFrame(regime_rows, columns=REGIME_PARAMS.column_names())
+    fits = _collect(chunks, chunk_results, rows_of)
     all_params, all_preds, summaries = [], [], []
-    for params, preds, summary in (by_id[h] for h in ids):
-        if summary["degenerate"]:
-            log.warning("%s: degenerate training data: %s; its errors say nothing about accuracy "
-                        "(calibrate it at more sun positions)", summary["heliostat_id"],
-                        summary["degenerate"])
-        for name, items in summary["implausible"].items():
-            if name == summary["selected"]:
-                log.warning("%s: the nominal geometry needed a large correction (%s)",
-                            summary["heliostat_id"], "; ".join(items))
+    for params, preds, summary in (fits.outputs[h] for h in ids):
+        _log_fit_warnings(summary)
         all_params += params
         all_preds.append(preds)
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
-            "robust_start": robust_start, "solver": solver, "regime_steps": regime_steps,
+            "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
             "heliostats": list(heliostats) if heliostats else None}
     params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
     # forward in time: the selected preset fitted again on the time split's training rows (a
     # regime-aware selection: its base preset; the time split's regimes are not refitted)
     time_fits = fit_coarse_time_split(
-        helio, rows_of, {h: base_preset(by_id[h][2]["selected"]) for h in ids}, solver=solver,
-        batch_size=batch_size, options=kwargs, workers=workers, scheduler=scheduler,
-        dask_address=dask_address)
+        helio, rows_of, {s["heliostat_id"]: base_preset(s["selected"]) for s in summaries},
+        solver=solver, batch_size=batch_size, options=kwargs, workers=workers,
+        scheduler=scheduler, dask_address=dask_address)
     params, preds = attach_coarse_time(params, preds, time_fits, rows_of)
     for s in summaries:
         tf = time_fits.get(s["heliostat_id"])
         labels = rows_of[s["heliostat_id"]][TIME_COLUMN].to_numpy(dtype=object)
         s["time_split"] = None if tf is None else {
             sp: _mean(tf[1][labels == sp]) for sp in ("train", "validation", "test")}
-    if heliostats:
-        # a partial run keeps the other heliostats' fits when the previous run read the same
-        # inputs (artifacts.merge_with_previous); the inputs are recorded as they were read
-        replaced = lambda old: old["heliostat_id"].isin(set(heliostats))  # noqa: E731
-        params = merge_with_previous(workdir, COARSE_PARAMS, params, replaced)
-        preds = merge_with_previous(workdir, COARSE_PREDICTIONS, preds, replaced)
-        regimes = merge_with_previous(workdir, REGIMES, regimes, replaced)
-        regime_params = merge_with_previous(workdir, REGIME_PARAMS, regime_params, replaced)
-    write_artifact(params, workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
-    write_artifact(preds, workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
-    write_artifact(regimes, workdir, REGIMES, stage="fit-coarse", options=opts)
-    write_artifact(regime_params, workdir, REGIME_PARAMS, stage="fit-coarse", options=opts)
+    _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
+                             REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params},
+                   heliostats, opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
-            "regimes": {
-                "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
-                    ["detected", "renovation"]), "heliostat_id"].nunique()),
-                "detected_breaks": int((regimes["cause"] == "detected").sum()),
-                "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
-                "episodes": int((regimes["kind"] == "episode").sum()),
-                "outliers": int((regimes["kind"] == "outlier").sum()),
-                "refitted_without_episodes": sorted(h for h in refit if by_id[h][2]["episode_rows"]),
-                "regime_models_fitted": int(regime_params["heliostat_id"].nunique()),
-                "regime_models_selected": sorted(
-                    h for h in ids if by_id[h][2].get("regime_candidates", {}).get("selected"))}}
+            "regimes": _regimes_summary(fits, summaries)}

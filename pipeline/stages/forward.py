@@ -30,6 +30,7 @@ few timestamps) has no ``time_error_mrad`` and every forward-in-time figure of i
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -174,8 +175,7 @@ def attach_coarse_time(params: pd.DataFrame, preds: pd.DataFrame, fits: dict,
     tf, tv, tt = (params[c].to_numpy(float).copy() for c in
                   ("time_fitted", "time_val_error_mrad", "time_test_error_mrad"))
     te = preds["time_error_mrad"].to_numpy(float).copy()
-    # the whole columns once (converting them per heliostat made this quadratic in the field:
-    # 88 s of fit-coarse's 168 s at 2,000 heliostats)
+    # the whole columns once: converted per heliostat, they would make this quadratic in the field
     p_index = params["parameter_index"].to_numpy()
     e_mid = preds["measurement_id"].astype(str).to_numpy()
     for hid, (theta, err) in fits.items():
@@ -212,6 +212,20 @@ def load_time_parameters(workdir: str | Path, heliostats: Sequence[str] | None =
 # ------------------------------------------------------------------------------------------------
 # sweep
 # ------------------------------------------------------------------------------------------------
+@dataclass
+class _TimeEntry:
+    """One heliostat whose selected model the sweep trains again on the time split."""
+
+    hid: str
+    rows: pd.DataFrame          # its measurements, in the order of its predictions
+    hrow: dict                  # its heliostats.parquet row
+    labels: np.ndarray          # its time split's label per row (None: not in it)
+    theta: torch.Tensor         # fit-coarse's time-split fit of its selected preset (28,)
+    free: torch.Tensor          # the preset's free parameters (28,) bool
+    weight_decay: float         # the selected model's
+    seed: int                   # the selected model's
+
+
 def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
     """One group of heliostats whose selected models train together (one hybrid variant, one
     kinematic and actuator type and free parameters; or one heliostat's pretrained-nn): per
@@ -220,42 +234,40 @@ def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
     kind, entries, cfg, weight_decays, path, train_path = task
     torch.use_deterministic_algorithms(True, warn_only=True)
     out = []
-    prepared = []
-    for hid, rows, hrow, labels, theta, free, wd, seed in entries:
-        hrow = pd.Series(hrow)
-        prepared.append((hid, rows, hrow, time_rows(labels), theta, free, wd, seed,
-                         HeliostatSpec.from_row(hrow), MeasurementBatch.from_frame(rows)))
+    hrows = [pd.Series(e.hrow) for e in entries]
+    labels = [time_rows(e.labels) for e in entries]
     if kind == "pretrained-nn":
-        for hid, rows, hrow, labels, theta, _, _, seed, spec, data in prepared:
-            _, _, normal, position = fit_pretrained(theta, spec, hrow, rows, data, labels, seed,
-                                                    cfg)
+        for e, hrow, lab in zip(entries, hrows, labels):
+            d = MeasurementBatch.from_frame(e.rows)
+            _, _, normal, position = fit_pretrained(e.theta, HeliostatSpec.from_row(hrow), hrow,
+                                                    e.rows, d, lab, e.seed, cfg)
             with torch.no_grad():
-                out.append((hid, error_mrad(normal, measured_normal(data.sun, position,
-                                                                    data.focal_spot)).numpy()))
+                out.append((e.hid, error_mrad(normal, measured_normal(d.sun, position,
+                                                                      d.focal_spot)).numpy()))
         return out
     k_ens = cfg.ensemble
     problems, taken, fit_labels = [], [], []
-    for hid, rows, hrow, labels, theta, free, *_ in prepared:
-        p = build_problem(rows, hrow, theta, free, cfg)
-        fitting = np.isin(labels, ("train", "validation"))
+    for e, hrow, lab in zip(entries, hrows, labels):
+        p = build_problem(e.rows, hrow, e.theta, e.free, cfg)
+        fitting = np.isin(lab, ("train", "validation"))
         problems.append(p)
         taken.append(take_rows(p, torch.as_tensor(fitting)))
-        fit_labels.append(labels[fitting])
+        fit_labels.append(lab[fitting])
     stacked, valid = stack_problems([t for t in taken for _ in range(k_ens)])
     n = stacked.data.steps.shape[1]
     lab = np.array([np.resize(x, n) for x in fit_labels for _ in range(k_ens)])
-    seeds = [s for e in prepared for s in ensemble_seeds(e[7], k_ens)]
+    seeds = [s for e in entries for s in ensemble_seeds(e.seed, k_ens)]
     # the selected weight decays are reached along the sweep's path (strong to weak)
-    wds = [w for w in weight_decays if w >= min(e[6] for e in prepared)]
+    wds = [w for w in weight_decays if w >= min(e.weight_decay for e in entries)]
     for wd, result in train_path(stacked, torch.as_tensor(lab == "train") & valid,
                                  torch.as_tensor(lab == "validation") & valid, seeds, wds, cfg,
                                  path):
-        for k, e in enumerate(prepared):
-            if e[6] == wd:
+        for k, e in enumerate(entries):
+            if e.weight_decay == wd:
                 nets = slice(k * k_ens, (k + 1) * k_ens)
                 layers = [(w[nets], b[nets]) for w, b in result.layers]
                 with torch.no_grad():
-                    out.append((e[0], ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]))
+                    out.append((e.hid, ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]))
     return out
 
 
@@ -278,8 +290,7 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
     Parameters
     ----------
     chosen : the selection results (``selection``, ``predictions``) of the sweep.
-    items : heliostat -> the sweep's inputs (id, rows, heliostat row, split rows, selected
-        coarse fit, coarse predictions per model, ...).
+    items : heliostat -> the sweep's inputs (:class:`~.sweep_inputs.SweepInputs`).
     variants : the sweep's ``(name, FineConfig)``; ``pretrain_config``: a selected
         pretrained-nn's.
     """
@@ -290,9 +301,10 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
     for res in chosen:
         sel = res["selection"]
         hid = sel["heliostat_id"]
-        _, rows, hrow, srows, selected, coarse, *_ = items[hid]
-        rows = rows.reset_index(drop=True)
-        by_id = dict(zip(srows["measurement_id"].astype(str), srows[TIME_COLUMN]))
+        item = items[hid]
+        rows, hrow, selected = item.rows.reset_index(drop=True), item.hrow, item.selected
+        by_id = dict(zip(item.split_rows["measurement_id"].astype(str),
+                         item.split_rows[TIME_COLUMN]))
         labels = np.array([None if pd.isna(v := by_id.get(m)) else v
                            for m in rows["measurement_id"].astype(str)], dtype=object)
         res["time_labels"] = labels
@@ -300,15 +312,16 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
         if (labels == "train").sum() < 2 or theta is None:
             continue
         if sel["model"] == "coarse":
-            errors[hid] = coarse[selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
+            errors[hid] = item.coarse[selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
             continue
         if not enabled:
             continue
         free = selected["free"]
         key = (sel["model"], str(hrow["kinematic_type"]), str(hrow["actuator_type"]),
                tuple(bool(x) for x in free.tolist()))
-        entries.setdefault(key, []).append((hid, rows, hrow, labels, theta, free,
-                                            float(sel["weight_decay"]), int(sel["seed"])))
+        entries.setdefault(key, []).append(_TimeEntry(hid, rows, hrow, labels, theta, free,
+                                                      float(sel["weight_decay"]),
+                                                      int(sel["seed"])))
     tasks = []
     for key in sorted(entries):
         step = 1 if key[0] == "pretrained-nn" else batch_size
@@ -322,12 +335,13 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
     for res in chosen:
         sel, pred = res["selection"], res["predictions"]
         hid, labels = sel["heliostat_id"], res.pop("time_labels")
-        rows = items[hid][1].reset_index(drop=True)
+        rows = items[hid].rows.reset_index(drop=True)
         err = errors.get(hid)
         position = pd.Series(np.arange(len(rows)), index=rows["measurement_id"].astype(str))
         at = position.loc[pred["measurement_id"].astype(str).to_numpy()].to_numpy()
         pred["time_error_mrad"] = np.nan if err is None else err[at]
         test = labels == "test"
-        coarse = items[hid][5][items[hid][4]["preset"]]["time_error_mrad"].to_numpy(np.float64)
+        coarse = (items[hid].coarse[items[hid].selected["preset"]]["time_error_mrad"]
+                  .to_numpy(np.float64))
         sel["time_test_error_mrad"] = _mean(err[test]) if err is not None else float("nan")
         sel["coarse_time_test_error_mrad"] = _mean(coarse[test])
