@@ -30,6 +30,7 @@ few timestamps) has no ``time_error_mrad`` and every forward-in-time figure of i
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -42,6 +43,7 @@ from ..artifacts.schemas import COARSE_PARAMS, SPLIT
 from ..artifacts.store import artifact_present, read_artifact
 from ..models.coarse import MeasurementBatch, fit_presets, predict
 from ..models.config import ensemble_seeds
+from ..models.fade import TIME_FADE_DAYS, Fade
 from ..models.pretrained import fit_pretrained
 from ..models.training import build_problem, ensemble_errors_mrad, stack_problems, take_rows
 from ..physics.metrics import error_mrad, measured_normal
@@ -224,6 +226,7 @@ class _TimeEntry:
     free: torch.Tensor          # the preset's free parameters (28,) bool
     weight_decay: float         # the selected model's
     seed: int                   # the selected model's
+    fade_length_deg: float = float("inf")   # its sun fade length (models.fade), time fade too
 
 
 def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
@@ -266,8 +269,12 @@ def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
             if e.weight_decay == wd:
                 nets = slice(k * k_ens, (k + 1) * k_ens)
                 layers = [(w[nets], b[nets]) for w, b in result.layers]
+                # the model's fade, measured from the time split's training rows
+                fade = Fade.of_rows(e.rows[labels[k] == "train"], e.fade_length_deg,
+                                    TIME_FADE_DAYS).weights_of_rows(e.rows)
                 with torch.no_grad():
-                    out.append((e.hid, ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]))
+                    out.append((e.hid, ensemble_errors_mrad(problems[k], layers, k_ens,
+                                                            fade).numpy()[0]))
     return out
 
 
@@ -311,6 +318,9 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
         theta = time_params.get(hid)
         if (labels == "train").sum() < 2 or theta is None:
             continue
+        if res.get("choice") is not None and res["choice"].time_errors is not None:
+            errors[hid] = res["choice"].time_errors   # a GP's, refitted by stages.selection
+            continue
         if sel["model"] == "coarse":
             errors[hid] = item.coarse[selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
             continue
@@ -321,7 +331,8 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
                tuple(bool(x) for x in free.tolist()))
         entries.setdefault(key, []).append(_TimeEntry(hid, rows, hrow, labels, theta, free,
                                                       float(sel["weight_decay"]),
-                                                      int(sel["seed"])))
+                                                      int(sel["seed"]),
+                                                      float(sel.get("fade_length_deg", math.inf))))
     tasks = []
     for key in sorted(entries):
         step = 1 if key[0] == "pretrained-nn" else batch_size
