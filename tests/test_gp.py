@@ -165,3 +165,33 @@ def test_aim_with_the_gp_puts_the_corrected_beam_on_the_aim_point(gp_workdir):
     # the correction moved the steps (a fraction of a mrad is tens of steps on these actuators)
     assert abs(out["axis_1_steps"] - coarse["axis_1_steps"]) + \
         abs(out["axis_2_steps"] - coarse["axis_2_steps"]) > 1
+
+
+@pytest.mark.slow
+def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_workdir, tmp_path):
+    # SYN1's monthly tilt: the GP correction wins the selection against the coarse model (the
+    # hybrids held at it by a weight decay of 1000); aim --model auto aims with it; the report
+    # draws its correction map
+    import shutil
+
+    from test_hybrid import HID
+
+    from heliocal.pipeline.artifacts.schemas import SELECTION
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.models.config import PathConfig
+    from heliocal.pipeline.stages.aim import aim_steps
+    from heliocal.pipeline.stages.report import run_report
+    from heliocal.pipeline.stages.sweep import run_sweep
+
+    wd = tmp_path / "wd"
+    shutil.copytree(gp_workdir[0], wd)
+    run_sweep(wd, study=0, weight_decays=[1000.0], extra_bands=(), workers=1,
+              path=PathConfig(stage_epochs=20))
+    sel = read_artifact(wd, SELECTION).set_index("heliostat_id").loc[HID]
+    assert sel["model"] in ("gp", "gp-sun"), sel.to_dict()
+    assert sel["weighted_val_error_mrad"] <= 0.9 * sel["coarse_weighted_val_error_mrad"]
+    assert sel["test_error_mrad"] < sel["coarse_test_error_mrad"]
+    out = aim_steps(wd, HID, aim_point_enu=[0.5, -3.235754, 36.5], time_utc="2023-05-03T11:00Z")
+    assert out["model"] == "gp" and out["aim_error_mrad"] < 0.01
+    summary = run_report(wd, workers=1)
+    assert any(f.endswith(f"gp_correction_{HID}.png") for f in summary["figures"])

@@ -29,6 +29,7 @@ __all__ = [
     "fit_heliostat_gps",
     "fit_heliostat_gp",
     "gp_aim_steps",
+    "correction_grid",
 ]
 
 
@@ -197,3 +198,31 @@ def gp_aim_steps(model: GPCorrection, params: torch.Tensor, spec, sun: torch.Ten
     with torch.no_grad():
         normal, position = forward_kinematics(params, spec, steps)
     return GPAim(steps, iterations, correct_normals(normal, g.numpy()), position, pred)
+
+
+def correction_grid(model: GPCorrection, time_s: float | None = None, *, n_azimuth: int = 64,
+                    n_elevation: int = 40, margin_deg: float = 15.0) -> dict:
+    """The faded correction of ``model`` on a grid of sun positions around its training rows
+    (``margin_deg`` beyond them, elevation within 0-90 deg) at the time ``time_s`` [s since 1970]
+    (default: its latest training row's): what the report's correction map draws
+    (:func:`heliocal.pipeline.report.figures.plot_gp_correction`)."""
+    train = model.fade.train_sun_deg
+    times = model.fade.train_time_s[np.isfinite(model.fade.train_time_s)]
+    if time_s is None:
+        time_s = float(times.max()) if len(times) else math.nan
+    az = np.linspace(train[:, 0].min() - margin_deg, train[:, 0].max() + margin_deg, n_azimuth)
+    el = np.linspace(max(0.0, train[:, 1].min() - margin_deg),
+                     min(90.0, train[:, 1].max() + margin_deg), n_elevation)
+    aa, ee = np.meshgrid(az, el)
+    t = np.full(aa.size, time_s)
+    fade = model.fade.weights(aa.ravel(), ee.ravel(), t)
+    pred = model.predict(model.inputs.encode(aa.ravel(), ee.ravel(), t,
+                                             np.zeros((aa.size, len(model.inputs.env)))
+                                             if model.inputs.env else None), fade)
+    when = (pd.Timestamp(time_s, unit="s", tz="UTC").strftime("%Y-%m-%d")
+            if math.isfinite(time_s) else "no date")
+    return {"azimuth_deg": az, "elevation_deg": el,
+            "mean_h": pred.mean_mrad[:, 0].reshape(aa.shape),
+            "mean_v": pred.mean_mrad[:, 1].reshape(aa.shape), "fade": fade.reshape(aa.shape),
+            "train_sun_deg": train, "structure": model.structure,
+            "fade_length_deg": model.fade.length_deg, "when": when}
