@@ -26,19 +26,22 @@ def test_sun_distance_is_to_the_nearest_training_row():
     assert np.isinf(sun_distance_deg([0.0], [0.0], np.zeros((0, 2)))).all()
 
 
-def test_time_distance_is_to_the_nearest_training_time_and_zero_without_time():
+def test_time_distance_is_outside_the_training_period_and_zero_without_time():
+    # training rows on days 0 and 10: day 3 is inside the period, day 12 two days after it,
+    # day -1 one day before it
     d = time_distance_days(np.array([3 * DAY, 12 * DAY, -1 * DAY, np.nan]), TRAIN_TIME)
-    assert d == pytest.approx([3.0, 2.0, 1.0, 0.0])
+    assert d == pytest.approx([0.0, 2.0, 1.0, 0.0])
     assert time_distance_days([5 * DAY], [np.nan]) == pytest.approx([0.0])
 
 
 def test_weights_follow_the_formula():
     fade = Fade(10.0, 30.0, TRAIN_SUN, TRAIN_TIME)
-    w = fade.weights([3.0, 0.0], [34.0, 30.0], np.array([3 * DAY, 0.0]))
-    # row 1: d_sun 5, d_time 3 days: exp(-(0.5^2 + 0.1^2) / 2); row 2 is a training row: 1
+    w = fade.weights([3.0, 0.0], [34.0, 30.0], np.array([13 * DAY, 0.0]))
+    # row 1: d_sun 5, d_time 3 days (after the last training day): exp(-(0.5^2 + 0.1^2) / 2);
+    # row 2 is a training row: 1
     assert w == pytest.approx([math.exp(-0.5 * (0.25 + 0.01)), 1.0], rel=1e-12)
     # an infinite length switches a distance off
-    assert fade.with_lengths(math.inf).weights([3.0], [34.0], np.array([3 * DAY])) == \
+    assert fade.with_lengths(math.inf).weights([3.0], [34.0], np.array([13 * DAY])) == \
         pytest.approx([math.exp(-0.5 * 0.01)])
     assert fade.with_lengths(10.0, math.inf).weights([3.0], [34.0], None) == \
         pytest.approx([math.exp(-0.125)])

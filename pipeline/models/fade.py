@@ -12,8 +12,11 @@ fine model return to the coarse model away from its data, with one rule for all 
 
 - ``d_sun`` [deg]: distance of the row's sun position to the nearest training row's, Euclidean in
   the (azimuth, elevation) plane (split-knn's default metric, docs/split.md "Distances");
-- ``d_time`` [days]: time to the nearest training row's time (only for models with date inputs;
-  a row without a timestamp has ``d_time = 0``, as the fine models give it the median time);
+- ``d_time`` [days]: time outside the training rows' period, before the first or after the last
+  of them (only for models with date inputs; a row without a timestamp has ``d_time = 0``, as the
+  fine models give it the median time). Within the period a fine model interpolates in time
+  between its rows (a GP by its own time kernel); beyond it, forward in time, is where a date
+  input extrapolates;
 - ``L_sun`` [deg], ``L_time`` [days]: the fade lengths, chosen on validation
   (:mod:`heliocal.pipeline.models.selection`); ``inf`` switches a distance off.
 
@@ -39,6 +42,7 @@ __all__ = [
     "NO_FADE",
     "FADE_LENGTHS_DEG",
     "TIME_FADE_DAYS",
+    "NETWORK_TIME_FADE_DAYS",
     "sun_distance_deg",
     "time_distance_days",
     "epoch_seconds",
@@ -53,10 +57,12 @@ _DAY_S = 86400.0
 #: would fade the model between its training rows.
 FADE_LENGTHS_DEG = (math.inf, 16.0, 8.0)
 
-#: Time fade length [days] of a fine model with date inputs: the correction of a date is faded
-#: with the time to the nearest training row's date (forward in time: the days since the last
-#: training row).
+#: Time fade length [days] of the GP correction with time: its correction of a date is faded
+#: with the days outside its training period (forward in time: since the last training row).
 TIME_FADE_DAYS = 30.0
+
+#: The same for the hybrid networks (their inputs include the date).
+NETWORK_TIME_FADE_DAYS = 30.0
 
 
 def epoch_seconds(timestamps) -> np.ndarray:
@@ -83,20 +89,18 @@ def sun_distance_deg(azimuth_deg, elevation_deg, train_sun_deg) -> np.ndarray:
 
 
 def time_distance_days(time_s, train_time_s) -> np.ndarray:
-    """Time [days] from each time (N,) [s since 1970] to the nearest of ``train_time_s``; 0 where
-    the time is missing (the fine models give such rows the median time) or no training row has
-    one."""
+    """Time [days] from each time (N,) [s since 1970] to the training rows' period
+    [first, last] of ``train_time_s`` (0 within it); 0 where the time is missing (the fine models
+    give such rows the median time) or no training row has one."""
     t = np.asarray(time_s, np.float64).reshape(-1)
-    train = np.sort(np.asarray(train_time_s, np.float64).reshape(-1))
+    train = np.asarray(train_time_s, np.float64).reshape(-1)
     train = train[np.isfinite(train)]
     out = np.zeros(len(t))
     ok = np.isfinite(t)
     if not len(train) or not ok.any():
         return out
-    i = np.searchsorted(train, t[ok])
-    before = train[np.clip(i - 1, 0, len(train) - 1)]
-    after = train[np.clip(i, 0, len(train) - 1)]
-    out[ok] = np.minimum(np.abs(t[ok] - before), np.abs(after - t[ok])) / _DAY_S
+    first, last = train.min(), train.max()
+    out[ok] = np.maximum(0.0, np.maximum(t[ok] - last, first - t[ok])) / _DAY_S
     return out
 
 

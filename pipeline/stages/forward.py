@@ -43,7 +43,7 @@ from ..artifacts.schemas import COARSE_PARAMS, SPLIT
 from ..artifacts.store import artifact_present, read_artifact
 from ..models.coarse import MeasurementBatch, fit_presets, predict
 from ..models.config import ensemble_seeds
-from ..models.fade import TIME_FADE_DAYS, Fade
+from ..models.fade import NETWORK_TIME_FADE_DAYS, Fade
 from ..models.pretrained import fit_pretrained
 from ..models.training import build_problem, ensemble_errors_mrad, stack_problems, take_rows
 from ..physics.metrics import error_mrad, measured_normal
@@ -271,7 +271,7 @@ def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
                 layers = [(w[nets], b[nets]) for w, b in result.layers]
                 # the model's fade, measured from the time split's training rows
                 fade = Fade.of_rows(e.rows[labels[k] == "train"], e.fade_length_deg,
-                                    TIME_FADE_DAYS).weights_of_rows(e.rows)
+                                    NETWORK_TIME_FADE_DAYS).weights_of_rows(e.rows)
                 with torch.no_grad():
                     out.append((e.hid, ensemble_errors_mrad(problems[k], layers, k_ens,
                                                             fade).numpy()[0]))

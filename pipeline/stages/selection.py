@@ -7,7 +7,7 @@ A :class:`CandidatePool` collects one heliostat's candidates as the sweep trains
 - each hybrid ensemble (band set, weight decay, seed) at the sun fade length of
   :data:`heliocal.pipeline.models.fade.FADE_LENGTHS_DEG` its weighted validation error likes
   best (:func:`heliocal.pipeline.models.selection.choose_fade`) and the time fade
-  :data:`heliocal.pipeline.models.fade.TIME_FADE_DAYS` (its inputs include the date);
+  :data:`heliocal.pipeline.models.fade.NETWORK_TIME_FADE_DAYS` (its inputs include the date);
 - the Gaussian-process correction (``gp``) of the structure with the highest marginal
   likelihood and, when that structure has time, the ``sun`` structure too (a static candidate:
   the fallback of the forward check, and the simpler model of the one-standard-error rule);
@@ -33,7 +33,7 @@ import pandas as pd
 import torch
 
 from ..models.coarse import metrics_frame
-from ..models.fade import FADE_LENGTHS_DEG, TIME_FADE_DAYS, Fade
+from ..models.fade import FADE_LENGTHS_DEG, NETWORK_TIME_FADE_DAYS, TIME_FADE_DAYS, Fade
 from ..models.gp import GPConfig
 from ..models.gp_heliostat import HeliostatGP, fit_heliostat_gps
 from ..models.network import layers_to_state
@@ -126,7 +126,8 @@ class CandidatePool:
                                               self.rule.match_share)
         self.coarse_errors = h.coarse[h.selected["preset"]]["error_mrad"].to_numpy(np.float64)
         base = Fade.of_rows(h.rows[h.train])
-        self.fades = [base.with_lengths(length, TIME_FADE_DAYS) for length in FADE_LENGTHS_DEG]
+        self.fades = [base.with_lengths(length, NETWORK_TIME_FADE_DAYS)
+                      for length in FADE_LENGTHS_DEG]
         self.fade_weights = [f.weights_of_rows(h.rows) for f in self.fades]
 
     # -------------------------------------------------------------------------------- adding
