@@ -93,10 +93,11 @@ from ..models.regime_fit import predict_parameters
 from ..models.network import MODES, layers_to_state
 from ..models.config import FineConfig, ensemble_seeds
 from ..models.pretrained import PretrainConfig, fit_pretrained
-from ..models.fade import FADE_LENGTHS_DEG, NO_FADE, TIME_FADE_DAYS, Fade
+from ..models.fade import (FADE_LENGTHS_DEG, NETWORK_TIME_FADE_DAYS, NO_FADE, TIME_FADE_DAYS,
+                           Fade)
 from ..models.gp import GPConfig
 from ..models.gp_heliostat import fit_heliostat_gp
-from ..models.selection import choose_fade, row_validation_weights
+from ..models.selection import SelectionRule, choose_fade, row_validation_weights
 from ..models.training import (FineProblem, build_problem, faded_errors_mrad, predict_ensembles,
                                predictions_frame, stack_problems, take_rows, train_members)
 from ..physics.parameters import HeliostatSpec
@@ -206,18 +207,25 @@ def _hybrid_chunk_task(task):
     return out
 
 
+def _weights(rows, labels) -> np.ndarray:
+    """The validation rows' weights as the sweep's default rule weighs them (their distances
+    to training matched to the test rows'; models.selection)."""
+    rule = SelectionRule()
+    return row_validation_weights(rows, labels, rule.match_k, rule.match_share)
+
+
 def _network_fade(rows, labels, problem, layers) -> Fade:
     """The hybrid's fade: the sun fade length of :data:`FADE_LENGTHS_DEG` with the lowest mean
     error on the validation rows weighted by their distance to training (the sweep's rule,
-    :mod:`heliocal.pipeline.models.selection`), the time fade :data:`TIME_FADE_DAYS` (the
+    :mod:`heliocal.pipeline.models.selection`), the time fade :data:`NETWORK_TIME_FADE_DAYS` (the
     network has date inputs); no validation rows: no sun fade."""
-    base = Fade.of_rows(rows[labels == "train"], length_days=TIME_FADE_DAYS)
+    base = Fade.of_rows(rows[labels == "train"], length_days=NETWORK_TIME_FADE_DAYS)
     fades = [base.with_lengths(length) for length in FADE_LENGTHS_DEG]
     val = labels == "validation"
     if not val.any():
         return fades[0]
     errors = faded_errors_mrad(problem, layers, None, [f.weights_of_rows(rows) for f in fades])
-    return fades[choose_fade([e[0][val] for e in errors], row_validation_weights(rows, labels))]
+    return fades[choose_fade([e[0][val] for e in errors], _weights(rows, labels))]
 
 
 def _gp_outputs(hid, rows, hrow, sel, labels, spec, data, coarse_pred, coarse,
@@ -226,7 +234,7 @@ def _gp_outputs(hid, rows, hrow, sel, labels, spec, data, coarse_pred, coarse,
     coarse model, the fade length chosen on its validation rows weighted by their distance to
     training (:func:`heliocal.pipeline.models.gp.fit_heliostat_gp`); outputs as
     :func:`_hybrid_outputs`'."""
-    weights = row_validation_weights(rows, labels)
+    weights = _weights(rows, labels)
     fit = fit_heliostat_gp(rows, labels, spec, data, coarse, gp_config, weights,
                            time_length_days=TIME_FADE_DAYS)
     problem = FineProblem(spec, sel["params"], sel["free"], torch.zeros(0), None, data,
