@@ -88,9 +88,11 @@ def test_training_size_study_rows(static_workdir):
     # which fit-coarse did not fit, are fitted at the full size too). Hybrid, once with the
     # config's Fourier bands and once with octaves: 2 sizes x 2 weight decays x 2 seeds in the
     # study plus 2 weight decays x 2 seeds of the production selection at the full size.
-    # nn-only: 3 sizes x 2 seeds.
+    # nn-only: 3 sizes x 2 seeds. The GP: the 2 study sizes and the production one (plus, at the
+    # full size, its sun structure when the best one has time: gp-sun).
+    assert counts.pop("gp-sun", 1) == 1
     assert counts == {"static-6": 3, "stone-8": 3, "static-20": 3, "hybrid": 12,
-                      "hybrid-octaves": 12, "nn-only": 6}
+                      "hybrid-octaves": 12, "nn-only": 6, "gp": 3}
     # fewer training rows (the largest kNN distances kept) lie farther from the test set
     d = sweep[sweep["model"] == "static-6"].set_index("n_train")["test_train_distance_deg"]
     assert d[10] > d[40]
