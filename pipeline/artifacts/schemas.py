@@ -304,13 +304,16 @@ COARSE_PARAMS = ArtifactSchema(
           nullable=True),
         C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
           nullable=True),
-        C("time_fitted", "float64", "", "Selected preset only: the parameter fitted again, the "
-          "same way, on the time split's training rows (split.parquet `time_split`); missing "
-          "for the other presets and where the heliostat has no time split.", nullable=True),
-        C("time_val_error_mrad", "float64", "mrad", "Selected preset only: mean error of that "
-          "time-split fit on the time split's validation rows (missing: n/a).", nullable=True),
-        C("time_test_error_mrad", "float64", "mrad", "Selected preset only: its mean error on "
-          "the time split's test rows, the latest measurements (missing: n/a).", nullable=True),
+        C("time_fitted", "float64", "", "The parameter fitted again, the same way, on the time "
+          "split's training rows outside detected episodes (split.parquet `time_split`; a "
+          "regime-aware candidate with the same regimes, its latest regime's value); missing "
+          "where the heliostat has no time split.", nullable=True),
+        C("time_val_error_mrad", "float64", "mrad", "Mean error of that time-split fit on the "
+          "time split's validation rows outside detected episodes (missing: n/a); the selection "
+          "weighs it beside `val_error_mrad` (docs/split.md, \"Choosing forward-aware\").",
+          nullable=True),
+        C("time_test_error_mrad", "float64", "mrad", "Its mean error on the time split's test "
+          "rows, the latest measurements (missing: n/a).", nullable=True),
     ),
 )
 
@@ -337,11 +340,12 @@ COARSE_PREDICTIONS = ArtifactSchema(
         C("spot_offset_vertical_m", "float64", "m", "Same, vertical axis (up)."),
         C("spot_offset_m", "float64", "m", "Distance between predicted and measured spot on the "
           "target plane."),
-        C("time_error_mrad", "float64", "mrad", "The selected model only: error_mrad of the same "
-          "model (preset, or hybrid configuration) trained again on the time split's training "
-          "rows (split.parquet `time_split`), so that on the time split's validation and test "
-          "rows it is an honest forward-in-time error; missing for the other models and where "
-          "the heliostat has no time split.", nullable=True),
+        C("time_error_mrad", "float64", "mrad", "error_mrad of the same model (preset, "
+          "regime-aware candidate, or the selected hybrid configuration) trained again on the "
+          "time split's training rows (split.parquet `time_split`), so that on the time split's "
+          "validation and test rows it is an honest forward-in-time error; missing for the "
+          "nominal geometry, for hybrids other than the selected one and where the heliostat "
+          "has no time split.", nullable=True),
     ),
 )
 

@@ -7,7 +7,6 @@ coarse_params.parquet and coarse_predictions.parquet in one transaction. The fit
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -37,8 +36,8 @@ from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes)
-from .forward import (TIME_COLUMN, attach_coarse_time, chunks_per_worker, fit_coarse_time_split,
-                      load_time_labels)
+from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
+                      time_labels_of)
 
 __all__ = [
     "fit_heliostat_chunk",
@@ -75,28 +74,64 @@ def load_split_labels(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
     return labels.fillna("excluded")
 
 
-def _heliostat_inputs(hrow, rows: pd.DataFrame):
-    """(spec, nominal, all rows, split labels, training rows, episode mask) of one heliostat.
+@dataclass
+class _Inputs:
+    """What the presets' fits of one heliostat need (:func:`_heliostat_inputs`)."""
+
+    hid: str
+    spec: HeliostatSpec
+    nominal: torch.Tensor          # (28,)
+    data: MeasurementBatch         # all its rows
+    labels: np.ndarray             # (N,) split label
+    train: MeasurementBatch        # the training rows outside episodes
+    episode: np.ndarray            # (N,) bool: in a detected episode left out of the fits
+    time_labels: np.ndarray | None  # (N,) time split label (None: no time split)
+    time_train: MeasurementBatch | None  # the time split's training rows outside episodes
+
+
+def _heliostat_inputs(hrow, rows: pd.DataFrame) -> _Inputs:
+    """The inputs of one heliostat's fits.
 
     Rows of a detected episode (column ``episode``, if present) are left out of the training
-    rows and of the validation error that selects the preset."""
+    rows, of the time split's training rows and of the validation errors that select the
+    preset."""
     spec = HeliostatSpec.from_row(hrow)
     data = MeasurementBatch.from_frame(rows)
     labels = rows["split"].to_numpy()
     episode = (rows["episode"].to_numpy(bool) if "episode" in rows.columns
                else np.zeros(len(rows), dtype=bool))
-    return (spec, nominal_parameters(hrow), data, labels,
-            data.subset((labels == "train") & ~episode), episode)
+    time_labels = time_labels_of(rows)
+    time_train = (None if time_labels is None
+                  else data.subset((time_labels == "train") & ~episode))
+    return _Inputs(str(hrow["heliostat_id"]), spec, nominal_parameters(hrow), data, labels,
+                   data.subset((labels == "train") & ~episode), episode, time_labels, time_train)
+
+
+def _fit_inputs(inputs: Sequence[_Inputs], presets: Sequence[str], solver: str,
+                **kwargs) -> tuple[list, list]:
+    """Every preset of each heliostat fitted on its training rows, and again on its time split's
+    training rows where it has a time split (None elsewhere): per heliostat the two lists of
+    :class:`CoarseFit` in the order of ``presets``."""
+    fits = fit_presets([i.spec for i in inputs], [i.nominal for i in inputs],
+                       [i.train for i in inputs], presets, solver=solver, **kwargs)
+    timed = [k for k, i in enumerate(inputs) if i.time_train is not None]
+    time_fits: list = [None] * len(inputs)
+    if timed:
+        again = fit_presets([inputs[k].spec for k in timed], [inputs[k].nominal for k in timed],
+                            [inputs[k].time_train for k in timed], presets, solver=solver,
+                            **kwargs)
+        for k, f in zip(timed, again):
+            time_fits[k] = f
+    return fits, time_fits
 
 
 def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
                       loss: str, f_scale_mrad: float, robust_start: bool):
     """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary)."""
-    spec, nominal, data, labels, train, episode = _heliostat_inputs(hrow, rows)
-    fits = fit_presets([spec], [nominal], [train], presets, solver="scipy", loss=loss,
-                       f_scale_mrad=f_scale_mrad, robust_start=robust_start)[0]
-    return _heliostat_outputs(str(hrow["heliostat_id"]), spec, nominal, data, labels, train,
-                              episode, fits)[:3]
+    inputs = [_heliostat_inputs(hrow, rows)]
+    fits, time_fits = _fit_inputs(inputs, presets, "scipy", loss=loss,
+                                  f_scale_mrad=f_scale_mrad, robust_start=robust_start)
+    return _heliostat_outputs(inputs[0], fits[0], time_fits[0])[:3]
 
 
 def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: Sequence[str], *,
@@ -112,44 +147,58 @@ def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: 
 def _chunk_outputs(hrows, rows, presets, **kwargs) -> list[tuple]:
     """:func:`fit_heliostat_chunk`'s tuples with :func:`_heliostat_outputs`' fourth item."""
     inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
-    fits = fit_presets([i[0] for i in inputs], [i[1] for i in inputs], [i[4] for i in inputs],
-                       presets, solver="batched", **kwargs)
-    return [_heliostat_outputs(str(h["heliostat_id"]), *inp, fits[k])
-            for k, (h, inp) in enumerate(zip(hrows, inputs))]
+    fits, time_fits = _fit_inputs(inputs, presets, "batched", **kwargs)
+    return [_heliostat_outputs(i, f, t) for i, f, t in zip(inputs, fits, time_fits)]
 
 
-def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
-                       data: MeasurementBatch, labels: np.ndarray, train: MeasurementBatch,
-                       episode: np.ndarray, fits: Sequence[CoarseFit]):
-    """Predictions, the validation selection, param rows and summary of one heliostat's fits,
-    and the selected fit's (residuals (n, 3), Jacobian (n, 3, 28)) on its training rows with the
-    mask (N,) of those rows (the regime candidates start there; None without training rows)."""
-    preds, summaries = [], []
-    nominal_pred = predict(nominal, spec, data).assign(model="nominal")
-    preds.append(nominal_pred)
-    for fit in fits:
-        p = predict(fit.params, spec, data).assign(model=fit.preset)
-        preds.append(p)
-        err = p["error_mrad"].to_numpy()
-        summaries.append({"preset": fit.preset, "train": _mean(err[labels == "train"]),
-                          "validation": _mean(err[labels == "validation"]),
-                          "test": _mean(err[labels == "test"]),
-                          "validation_outside_episodes": _mean(
-                              err[(labels == "validation") & ~episode])})
-    # selection: lowest validation error outside detected episodes (no geometry predicts an
-    # episode's rows); without validation rows the largest preset asked
-    vals = [s["validation_outside_episodes"] for s in summaries]
-    if all(math.isnan(v) for v in vals):
-        chosen = len(fits) - 1
-    else:
-        chosen = int(np.nanargmin(vals))
-    mask = (labels == "train") & ~episode
+def _preset_errors(inp: _Inputs, fit: CoarseFit, time_fit: CoarseFit | None):
+    """One preset's predictions (with ``time_error_mrad``: the time split's fit's errors, NaN
+    without one) and its summary of mean errors."""
+    pred = predict(fit.params, inp.spec, inp.data).assign(model=fit.preset)
+    err = pred["error_mrad"].to_numpy()
+    t_err = (predict(time_fit.params, inp.spec, inp.data)["error_mrad"].to_numpy()
+             if time_fit is not None else np.full(len(err), np.nan))
+    pred["time_error_mrad"] = t_err
+    t_lab = inp.time_labels if inp.time_labels is not None else np.full(len(err), None)
+    outside = ~inp.episode
+    summary = {"preset": fit.preset, "train": _mean(err[inp.labels == "train"]),
+               "validation": _mean(err[inp.labels == "validation"]),
+               "test": _mean(err[inp.labels == "test"]),
+               "validation_outside_episodes": _mean(err[(inp.labels == "validation") & outside]),
+               "time_validation": _mean(t_err[(t_lab == "validation") & outside]),
+               "time_test": _mean(t_err[t_lab == "test"])}
+    return pred, summary
+
+
+def _heliostat_outputs(inp: _Inputs, fits: Sequence[CoarseFit],
+                       time_fits: Sequence[CoarseFit] | None):
+    """Predictions, the selection, param rows and summary of one heliostat's fits, and the
+    selected fit's (residuals (n, 3), Jacobian (n, 3, 28)) on its training rows with the mask
+    (N,) of those rows (the regime candidates start there; None without training rows).
+
+    The selection (:func:`~.forward.forward_guarded_choice`): the lowest validation error
+    outside detected episodes (no geometry predicts an episode's rows), unless the time split's
+    fits show that preset worse forward in time than another by more than the margin; without
+    validation rows the largest preset asked."""
+    hid, spec, nominal, data, labels, train = (inp.hid, inp.spec, inp.nominal, inp.data,
+                                               inp.labels, inp.train)
+    nominal_pred = predict(nominal, spec, data).assign(model="nominal",
+                                                       time_error_mrad=np.nan)
+    preds, summaries = [nominal_pred], []
+    for k, fit in enumerate(fits):
+        pred, summary = _preset_errors(inp, fit, time_fits[k] if time_fits else None)
+        preds.append(pred)
+        summaries.append(summary)
+    chosen = forward_guarded_choice([s["validation_outside_episodes"] for s in summaries],
+                                    [s["time_validation"] for s in summaries])
+    mask = (labels == "train") & ~inp.episode
     with torch.no_grad():
         start = (residual_and_jacobian(fits[chosen].params.to(torch.float64), spec, train.steps,
                                        train.sun, train.focal_spot) if len(train) else None)
     degenerate = data_degeneracy(spec, fits[chosen].params, nominal, train, jacobian=start)
     param_rows = []
     for k, (fit, s) in enumerate(zip(fits, summaries)):
+        time_params = time_fits[k].params if time_fits else None
         for i, name in enumerate(PARAMETER_NAMES):
             param_rows.append({
                 "heliostat_id": hid, "preset": fit.preset, "selected": k == chosen,
@@ -161,7 +210,10 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
                 "fit_status": fit.status, "fit_implausible": "; ".join(fit.implausible),
                 "fit_degenerate": degenerate,
                 "n_train": len(train), "train_error_mrad": s["train"],
-                "val_error_mrad": s["validation"], "test_error_mrad": s["test"]})
+                "val_error_mrad": s["validation"], "test_error_mrad": s["test"],
+                "time_fitted": float(time_params[i]) if time_params is not None else np.nan,
+                "time_val_error_mrad": s["time_validation"],
+                "time_test_error_mrad": s["time_test"]})
     pred = pd.concat(preds, ignore_index=True)
     pred["heliostat_id"] = hid
     pred["split"] = np.tile(labels, len(preds))
@@ -173,7 +225,7 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
         "presets": {s["preset"]: {k: s[k] for k in ("train", "validation", "test")} for s in summaries},
         "implausible": {f.preset: f.implausible for f in fits if f.implausible},
         "degenerate": degenerate,
-        "episode_rows": int(episode.sum()),
+        "episode_rows": int(inp.episode.sum()),
         "wall_time_s": float(sum(f.wall_time_s for f in fits)),
     }
     return param_rows, pred, summary, (None if start is None else (*start, mask))
@@ -350,6 +402,20 @@ def _collect(chunks: Sequence[list[str]], results: Sequence[ChunkResult],
                       refitted)
 
 
+def _time_split_summary(preds: pd.DataFrame, rows: pd.DataFrame) -> dict | None:
+    """Mean ``time_error_mrad`` of a heliostat's selected model (``preds``: its predictions) on
+    each part of its time split (the model fitted again on the time split's training rows);
+    None without a time split."""
+    labels = time_labels_of(rows)
+    if labels is None:
+        return None
+    mine = preds[preds["selected"].to_numpy(bool)]
+    by_id = dict(zip(rows["measurement_id"].astype(str), labels))
+    lab = mine["measurement_id"].astype(str).map(by_id).to_numpy(dtype=object)
+    err = mine["time_error_mrad"].to_numpy(float)
+    return {sp: _mean(err[lab == sp]) for sp in ("train", "validation", "test")}
+
+
 def _log_fit_warnings(summary: dict) -> None:
     """A heliostat's warnings: degenerate training data, an implausible selected fit."""
     if summary["degenerate"]:
@@ -444,8 +510,10 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                               chunks_per_worker=chunks_per_worker(solver))
     fits = _collect(chunks, chunk_results, rows_of)
     all_params, all_preds, summaries = [], [], []
-    for params, preds, summary in (fits.outputs[h] for h in ids):
+    for hid in ids:
+        params, preds, summary = fits.outputs[hid]
         _log_fit_warnings(summary)
+        summary["time_split"] = _time_split_summary(preds, rows_of[hid])
         all_params += params
         all_preds.append(preds)
         summaries.append(summary)
@@ -453,18 +521,6 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
             "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
             "heliostats": list(heliostats) if heliostats else None}
     params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
-    # forward in time: the selected preset fitted again on the time split's training rows (a
-    # regime-aware selection: its base preset; the time split's regimes are not refitted)
-    time_fits = fit_coarse_time_split(
-        helio, rows_of, {s["heliostat_id"]: base_preset(s["selected"]) for s in summaries},
-        solver=solver, batch_size=batch_size, options=kwargs, workers=workers,
-        scheduler=scheduler, dask_address=dask_address)
-    params, preds = attach_coarse_time(params, preds, time_fits, rows_of)
-    for s in summaries:
-        tf = time_fits.get(s["heliostat_id"])
-        labels = rows_of[s["heliostat_id"]][TIME_COLUMN].to_numpy(dtype=object)
-        s["time_split"] = None if tf is None else {
-            sp: _mean(tf[1][labels == sp]) for sp in ("train", "validation", "test")}
     _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
                              REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params},
                    heliostats, opts)
