@@ -15,7 +15,7 @@ import re
 from .table import ArtifactSchema, Column
 
 __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS", "REGIMES",
-           "REGIME_PARAMS",
+           "REGIME_PARAMS", "ROLLING_ORIGIN",
            "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
            "WINDOWS_RESERVED_NAMES",
@@ -432,6 +432,34 @@ REGIME_PARAMS = ArtifactSchema(
     ),
 )
 
+ROLLING_ORIGIN = ArtifactSchema(
+    name="rolling_origin",
+    filename="rolling_origin.parquet",
+    producer="fit-coarse",
+    sort_by=("heliostat_id", "measurement_id"),
+    description="The rolling-origin (prequential) evaluation of fit-coarse's selected preset: at "
+                "each origin (a calibration day with enough earlier rows; at most "
+                "`--rolling-origins` per heliostat, spread over its history) the preset is "
+                "fitted again on every row before that day (a regime-aware selection: the rows "
+                "since its latest break) and scores that day's rows: the next-day error of a "
+                "heliostat recalibrated every calibration day "
+                "(heliocal.pipeline.stages.rolling says how).",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("measurement_id", "string", "", "The row scored."),
+        C("origin_date", "timestamp", "UTC", "The calibration day (UTC midnight) whose rows are "
+          "scored by the fit on the rows before it."),
+        C("model", "string", "", "The preset fitted at the origin (the selected model's "
+          "geometry)."),
+        C("n_train", "int64", "", "Rows the origin's fit used."),
+        C("days_since_last_row", "float64", "d", "Time from the fit's last row to the row "
+          "scored [days]."),
+        C("error_mrad", "float64", "mrad", "The row's error under the origin's fit (the next-day "
+          "error)."),
+    ),
+)
+
+
 HYBRID_PREDICTIONS = dataclasses.replace(
     COARSE_PREDICTIONS,
     name="hybrid_predictions",
@@ -539,7 +567,8 @@ SELECTED_PREDICTIONS = ArtifactSchema(
 def all_schemas() -> list[ArtifactSchema]:
     """Every artifact schema of heliocal, in the order of the stages that write them."""
     return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
-            REGIMES, REGIME_PARAMS, HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
+            REGIMES, REGIME_PARAMS, ROLLING_ORIGIN, HYBRID_PREDICTIONS, SWEEP, SELECTION,
+            SELECTED_PREDICTIONS]
 
 
 def nomenclature_markdown() -> str:

@@ -17,7 +17,7 @@ import torch
 
 from ..artifacts.paths import artifact_path
 from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS,
-                                 REGIME_PARAMS, REGIMES)
+                                 REGIME_PARAMS, REGIMES, ROLLING_ORIGIN)
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
 from ..artifacts.transaction import stage_transaction
@@ -36,6 +36,7 @@ from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes)
+from .rolling import DEFAULT_MAX_ORIGINS, evaluate_rolling, rolling_chunks
 from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
                       time_labels_of)
 
@@ -416,6 +417,17 @@ def _time_split_summary(preds: pd.DataFrame, rows: pd.DataFrame) -> dict | None:
     return {sp: _mean(err[lab == sp]) for sp in ("train", "validation", "test")}
 
 
+def _add_next_day(summaries: Sequence[dict], rolling: pd.DataFrame) -> None:
+    """Each summary's ``next_day``: the rolling-origin evaluation's origins, rows and mean
+    next-day error (None without origins)."""
+    by_h = dict(tuple(rolling.groupby("heliostat_id", sort=False))) if len(rolling) else {}
+    for s in summaries:
+        g = by_h.get(s["heliostat_id"])
+        s["next_day"] = None if g is None else {
+            "origins": int(g["origin_date"].nunique()), "rows": len(g),
+            "mean_error_mrad": float(g["error_mrad"].mean())}
+
+
 def _log_fit_warnings(summary: dict) -> None:
     """A heliostat's warnings: degenerate training data, an implausible selected fit."""
     if summary["degenerate"]:
@@ -468,7 +480,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    heliostats: Sequence[str] | None = None, progress=None,
                    workers: int | None = 1, scheduler: str = "local",
                    dask_address: str | None = None, solver: str = "batched",
-                   batch_size: int = 64, regime_steps: str = "candidates") -> dict:
+                   batch_size: int = 64, regime_steps: str = "candidates",
+                   rolling_origins: int = DEFAULT_MAX_ORIGINS) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -486,6 +499,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
     regime_steps : one of :data:`REGIME_STEPS`: ``candidates`` (the default) or ``detect``
         (detection and the refit without episodes, no regime-aware candidates).
+    rolling_origins : origins per heliostat of the rolling-origin evaluation
+        (:mod:`.rolling`; rolling_origin.parquet); 0 skips it (the artifact is then empty).
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
@@ -493,6 +508,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     check_choice(solver, "solver", "fit_coarse", SOLVERS)
     check_choice(regime_steps, "regime_steps", "fit_coarse", REGIME_STEPS)
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
+    rolling_origins = check_int(rolling_origins, "rolling_origins", "fit_coarse", 0)
     steps = None if _SKIP_REGIMES else regime_steps
     warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
@@ -519,10 +535,19 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
+            "rolling_origins": rolling_origins,
             "heliostats": list(heliostats) if heliostats else None}
     params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
+    rolling = evaluate_rolling(
+        rolling_chunks(helio, rows_of, {s["heliostat_id"]: s["selected"] for s in summaries},
+                       fits.regimes, solver=solver, options=kwargs, batch_size=batch_size,
+                       max_origins=rolling_origins) if rolling_origins else [],
+        workers=workers, scheduler=scheduler, dask_address=dask_address,
+        chunks_per_worker=chunks_per_worker(solver))
+    _add_next_day(summaries, rolling)
     _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
-                             REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params},
+                             REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params,
+                             ROLLING_ORIGIN: rolling},
                    heliostats, opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
             "regimes": _regimes_summary(fits, summaries)}
