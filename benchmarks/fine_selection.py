@@ -1,12 +1,14 @@
 """Does the fine model earn its place? The sweep's candidates and choices on real and simulated
 heliostats, before and after issue 35's selection (the GP correction, the fade, the
-distance-weighted validation with its Bonferroni margin, the forward-in-time check).
+distance-weighted validation with its max-T margin, the forward-in-time check).
 
 Datasets (each through ``ingest``, ``split-knn`` and ``fit-coarse`` once, cached in ``--out``):
 
 - ``juelich-csv``: ../shared/data/juelich's CSV log with its PAINT properties (the heliostats
   with enough rows for the split: 30 test + 20 validation + 2 training);
 - ``juelich-paint``: its PAINT folder (BE36, BF41, BH35);
+- ``synthetic``: the synthetic sample (sample_data/synthetic: 2 static, 2 dynamic heliostats,
+  its ground_truth.json);
 - ``sim``: the simulated development fields of docs/experiments/hybrid-development.md
   (``heliocal simulate --heliostats 4 --measurements 140,160 --seed S --dynamic-fraction 0.5``,
   S = 11..16: 12 static and 12 dynamic heliostats; ground_truth.json says which and gives each
@@ -22,9 +24,12 @@ selected whose test error is above the coarse model's) before and after, and the
 issue 35. Usage::
 
     flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/fine_selection.py \\
-        [--datasets juelich-paint,juelich-csv,sim] [--out runs/fine-selection]
+        [--datasets juelich-paint,juelich-csv,synthetic,sim] [--env temperature]
+        [--out runs/fine-selection]
 
-(``sim-S`` names one simulated field; a suffix ``-nN``, e.g. ``juelich-paint-n40``, restricts
+``--env temperature`` gives the networks and the GP the logged temperature (the simulated
+heliostats' thermal tilt is a function of it; docs/experiments/hybrid-development.md runs its
+fields so). (``sim-S`` names one simulated field; a suffix ``-nN``, e.g. ``juelich-paint-n40``, restricts
 every heliostat's training rows to N with ``split-knn --n-train N``.) ``--records FILE ...`` re-analyses the records of
 previous runs (no sweep).
 """
@@ -68,6 +73,10 @@ def prepare(name: str, out: Path) -> list[tuple[str, Path, dict]]:
                                  "--properties", str(SHARED / "paint")], None)]
     elif name == "juelich-paint":
         jobs = [("juelich-paint", ["ingest", str(SHARED / "paint")], None)]
+    elif name == "synthetic":
+        field = ROOT / "sample_data" / "synthetic"
+        jobs = [("synthetic", ["ingest", str(field / "calibration_log.csv"), "--properties",
+                               str(field / "paint")], field)]
     else:
         jobs = []
         seeds = SIM_SEEDS if name == "sim" else (int(name.split("-")[1]),)
@@ -95,9 +104,11 @@ def prepare(name: str, out: Path) -> list[tuple[str, Path, dict]]:
     return done
 
 
-def record_sweep(wd: Path) -> tuple[list[dict], pd.DataFrame, float]:
-    """Run the sweep, recording every heliostat's candidates as the selection sees them."""
+def record_sweep(wd: Path, env: tuple[str, ...] = ()) -> tuple[list[dict], pd.DataFrame, float]:
+    """Run the sweep (``env``: env_* columns as inputs of the networks and the GP), recording
+    every heliostat's candidates as the selection sees them."""
     from heliocal.pipeline.artifacts.schemas import SELECTION
+    from heliocal.pipeline.models.config import FineConfig
     from heliocal.pipeline.artifacts.store import read_artifact
     from heliocal.pipeline.models.fade import sun_distance_deg
     from heliocal.pipeline.stages import selection as sel_module
@@ -127,7 +138,7 @@ def record_sweep(wd: Path) -> tuple[list[dict], pd.DataFrame, float]:
 
     t0 = time.perf_counter()
     with mock.patch.object(sel_module.CandidatePool, "choose", recording):
-        run_sweep(wd, study=0, workers=1, time_split=True)
+        run_sweep(wd, study=0, workers=1, time_split=True, config=FineConfig(env=env))
     return records, read_artifact(wd, SELECTION).set_index("heliostat_id"), time.perf_counter() - t0
 
 
@@ -284,19 +295,25 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", default="juelich-paint,juelich-csv,sim")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "fine-selection")
+    ap.add_argument("--env", default="",
+                    help="env_* columns (comma-separated, without the prefix) as inputs of the "
+                         "networks and the GP, e.g. temperature (the simulated fields' thermal "
+                         "tilt is a function of it)")
     ap.add_argument("--records", type=Path, nargs="*", default=None,
                     help="analyse these records instead of running the sweeps")
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
+    env = tuple(e.strip() for e in a.env.split(",") if e.strip())
     if a.records is None:
         saved = []
         for name in a.datasets.split(","):
             for label, wd, truth in prepare(name, a.out):
-                records, selection, seconds = record_sweep(wd)
+                records, selection, seconds = record_sweep(wd, env)
                 print(f"{label}: sweep of {len(selection)} heliostats in {seconds:.0f} s",
                       flush=True)
                 saved.append((label, records, selection, truth))
-        path = a.out / f"records-{a.datasets.replace(',', '+')}.pkl"
+        tag = a.datasets.replace(",", "+") + (f"-env-{'+'.join(env)}" if env else "")
+        path = a.out / f"records-{tag}.pkl"
         with open(path, "wb") as f:
             pickle.dump(saved, f)
         a.records = [path]
