@@ -63,7 +63,9 @@ def fit_hybrid_cmd(
     mode: Annotated[Mode, typer.Option(
         "--mode", help="hybrid: coarse fit + network deviations (paper 000); nn-only: the same "
                        "network from the nominal geometry; pretrained-nn: paper 002's network "
-                       "on the coarse model (variant: --pretrain-variant).")] = Mode.hybrid,
+                       "on the coarse model (variant: --pretrain-variant); gp: a Gaussian-"
+                       "process correction of the coarse model's pointing over sun position, "
+                       "time and --env columns.")] = Mode.hybrid,
     pretrain_variant: Annotated[PretrainVariant, typer.Option(
         "--pretrain-variant", help="pretrained-nn only. residual: the network learns the "
                                    "correction to the coarse model's inverse kinematics in "
@@ -197,7 +199,8 @@ def aim_cmd(
     env: Annotated[Optional[list[str]], typer.Option(
         "--env", help="NAME=VALUE of an env input of the model (repeat).")] = None,
     model: Annotated[AimModel, typer.Option(
-        "--model", help="auto: hybrid where fitted, else coarse.")] = AimModel.auto,
+        "--model", help="auto: the sweep's selection, else the hybrid where fitted, else "
+                        "coarse.")] = AimModel.auto,
     max_expected_error: Annotated[Optional[float], typer.Option(
         "--max-expected-error", metavar="MRAD",
         help="Refuse an aim expected to be off by more [mrad] (batch: that row is rejected).")] = None,

@@ -25,7 +25,8 @@ def _human(summary: dict) -> None:
     f = summary.get("field_summary") or {}
     if f:
         stdout.print(f"field: {f['n_calibrated']} of {f['n_heliostats']} heliostats calibrated "
-                     f"({f['n_hybrid']} hybrid, {f['n_coarse']} coarse); median test error "
+                     f"({f['n_hybrid']} hybrid, " + (f"{f['n_gp']} GP, " if f.get("n_gp") else "")
+                     + f"{f['n_coarse']} coarse); median test error "
                      f"{fmt_number(f['median_test_error_mrad'])} mrad, p95 "
                      f"{fmt_number(f['p95_test_error_mrad'])} mrad; {f['n_on_alert']} on alert",
                      markup=False)

@@ -85,8 +85,14 @@ def sweep_cmd(
     time_split: Annotated[bool, typer.Option(
         "--time-split/--no-time-split",
         help="Also evaluate the selected hybrids forward in time: train each again on the "
-             "time split's training rows (split.parquet time_split); never changes the "
-             "selection; about +50 % sweep time. Coarse selections always get it (free).")] = False,
+             "time split's training rows (split.parquet time_split); a selected hybrid worse "
+             "there than the coarse model falls back to the static choice (without this "
+             "option its check is left out: selection.parquet forward_check). Coarse and GP "
+             "selections always get it (cheap).")] = False,
+    gp: Annotated[bool, typer.Option(
+        "--gp/--no-gp",
+        help="The Gaussian-process correction of the coarse model is a candidate (and a line "
+             "of the training-size study).")] = True,
     pretrain_variant: Annotated[PretrainVariant, typer.Option(
         "--pretrain-variant", help="Variant of the pre-trained network (candidate and "
                                    "baseline): residual (correction to the coarse inverse "
@@ -115,7 +121,7 @@ def sweep_cmd(
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
-    """Select every heliostat's model (coarse or hybrid) at its full training size; study the
+    """Select every heliostat's model (coarse, hybrid or GP) at its full training size; study the
     training size on a sample of heliostats."""
     from heliocal.pipeline.models.pretrained import PretrainConfig
     from heliocal.pipeline.stages.sweep import run_sweep, weight_decay_grid
@@ -135,5 +141,5 @@ def sweep_cmd(
                             extra_bands=(OCTAVE_BANDS,) if octaves else (), study=study,
                             study_seed=study_seed, path=path, batch_size=batch_size,
                             pretrain_config=PretrainConfig(variant=pretrain_variant.value),
-                            select_pretrained=select_pretrained, time_split=time_split)
+                            select_pretrained=select_pretrained, time_split=time_split, gp=gp)
     emit(summary, json_, _human)

@@ -83,11 +83,12 @@ class SplitMetric(Choice):
 
 class FineMode(Choice):
     """``fit-hybrid --mode``: the fine model on the coarse one, the network alone, paper 002's
-    pre-trained network."""
+    pre-trained network, the Gaussian-process correction of the coarse model's pointing."""
 
     hybrid = "hybrid"
     nn_only = "nn-only"
     pretrained_nn = "pretrained-nn"
+    gp = "gp"
 
 
 class PretrainVariant(Choice):
@@ -118,6 +119,7 @@ class AimModel(Choice):
     hybrid = "hybrid"
     nn_only = "nn-only"
     pretrained_nn = "pretrained-nn"
+    gp = "gp"
 
 
 class CoarseLoss(Choice):

@@ -413,15 +413,24 @@ def test_cli_table_and_missing_coarse_error(workdir, runner, tmp_path):
     run_fit_hybrid(wd, mode="hybrid", seed=0, config=FAST)
 
 
+def _aim(runner, wd, time, aim, model="auto"):
+    res = runner.invoke(app, ["aim", "-w", str(wd), "--heliostat", HID, "--time", time,
+                              "--target", ",".join(map(str, aim)), "--model", model])
+    assert res.exit_code == 0, res.output
+    return json.loads(res.stdout)
+
+
 @pytest.mark.slow
 def test_aim_round_trip(workdir, runner):
-    """The forward model at the returned steps puts the beam on the aim point (0.01 mrad)."""
+    """The forward model at the returned steps puts the beam on the aim point (0.01 mrad), with
+    the fine model's fade (models/fade.py) applied as fit-hybrid chose it."""
+    from heliocal.pipeline.models.fade import fade_weights
+    from heliocal.pipeline.physics.sun import spa_sun_position, sun_vector_enu
+
     wd, _ = workdir
     aim = (0.5, -3.235754, 36.5)
-    res = runner.invoke(app, ["aim", "-w", str(wd), "--heliostat", HID, "--time",
-                              "2024-05-03T11:00Z", "--target", ",".join(map(str, aim))])
-    assert res.exit_code == 0, res.output
-    out = json.loads(res.stdout)
+    when = "2023-05-03T11:00Z"                      # within the training rows' dates
+    out = _aim(runner, wd, when, aim)
     assert out["model"] == "hybrid"
     # independent check of the fixed point: parameters from the fine model at those steps
     cfg, layers = load_model(wd, "hybrid", HID)
@@ -431,29 +440,34 @@ def test_aim_round_trip(workdir, runner):
                           torch.tensor(cfg["scales"]), FeatureEncoder.from_dict(cfg["encoder"]),
                           None, None)
     steps = torch.tensor([[out["axis_1_steps"], out["axis_2_steps"]]], dtype=torch.float64)
-    ctx = problem.encoder.context([pd.Timestamp("2024-05-03T11:00Z")])
-    # the model is the mean of its ensemble's networks (parameters are linear in the outputs)
+    ctx = problem.encoder.context([pd.Timestamp(when)])
+    az, el = spa_sun_position([when], 50.915305, 6.387838, 88.7)
+    fade = float(fade_weights(cfg, az, el, [pd.Timestamp(when)])[0])
+    assert cfg["fade"]["length_days"] == 30.0 and fade > 0.5
+    # the model is the mean of its ensemble's networks (parameters are linear in the outputs),
+    # its deviation times the fade
     assert layers[0][0].shape[0] == FAST.ensemble > 1
-    params = member_parameters(problem, layers, problem.encoder.encode(steps, ctx)).mean(0).detach()
+    mean = member_parameters(problem, layers, problem.encoder.encode(steps, ctx)).mean(0).detach()
+    params = problem.base + fade * (mean - problem.base)
     normal, position = forward_kinematics(params, spec, steps)
-    from heliocal.pipeline.physics.sun import spa_sun_position, sun_vector_enu
-    az, el = spa_sun_position(["2024-05-03T11:00Z"], 50.915305, 6.387838, 88.7)
     sun = torch.tensor(sun_vector_enu(az, el))
     beam = reflect(-sun, normal)
     miss = float(error_mrad(beam, torch.tensor(aim) - position)[0])
     assert miss < 0.01 and out["inverse_residual_mrad"] < 0.01
     # the fine model moved the answer away from the coarse one
-    coarse = runner.invoke(app, ["aim", "-w", str(wd), "--heliostat", HID, "--time",
-                                 "2024-05-03T11:00Z", "--target", ",".join(map(str, aim)),
-                                 "--model", "coarse"])
-    c = json.loads(coarse.stdout)
+    c = _aim(runner, wd, when, aim, "coarse")
     assert c["model"] == "coarse" and c["inverse_residual_mrad"] < 0.01
     assert abs(c["axis_1_steps"] - out["axis_1_steps"]) + abs(c["axis_2_steps"] - out["axis_2_steps"]) > 1
+    # four months after the last training row the time fade (30 days) has returned the hybrid
+    # to the coarse model: exp(-(120 / 30)^2 / 2) = 3e-4 of its deviation is left
+    late = "2024-05-03T11:00Z"
+    far, c = _aim(runner, wd, late, aim), _aim(runner, wd, late, aim, "coarse")
+    assert abs(c["axis_1_steps"] - far["axis_1_steps"]) + abs(c["axis_2_steps"] - far["axis_2_steps"]) < 0.1
     # the batch aim takes the same fixed point for a hybrid row (aim_field solves it per row)
     from heliocal.pipeline.stages.aim_field import aim_schedule
 
     batch = aim_schedule(wd, pd.DataFrame({
-        "heliostat_id": [HID], "time_utc": ["2024-05-03T11:00Z"], "aim_e_m": [aim[0]],
+        "heliostat_id": [HID], "time_utc": [when], "aim_e_m": [aim[0]],
         "aim_n_m": [aim[1]], "aim_u_m": [aim[2]]}))
     assert batch["model"].tolist() == ["hybrid"] and batch["status"].tolist() == ["ok"]
     assert batch["axis_1_steps"].iloc[0] == pytest.approx(out["axis_1_steps"], abs=1e-6)

@@ -30,6 +30,7 @@ from heliocal.pipeline.stages.split import run_split
 from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, default_ladder, run_sweep,
                                             study_heliostats, weight_decay_grid)
 from heliocal.pipeline.models.config import PathConfig
+from heliocal.pipeline.models.selection import SelectionRule
 from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 
 #: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
@@ -87,9 +88,11 @@ def test_training_size_study_rows(static_workdir):
     # which fit-coarse did not fit, are fitted at the full size too). Hybrid, once with the
     # config's Fourier bands and once with octaves: 2 sizes x 2 weight decays x 2 seeds in the
     # study plus 2 weight decays x 2 seeds of the production selection at the full size.
-    # nn-only: 3 sizes x 2 seeds.
+    # nn-only: 3 sizes x 2 seeds. The GP: the 2 study sizes and the production one (plus, at the
+    # full size, its sun structure when the best one has time: gp-sun).
+    assert counts.pop("gp-sun", 1) == 1
     assert counts == {"static-6": 3, "stone-8": 3, "static-20": 3, "hybrid": 12,
-                      "hybrid-octaves": 12, "nn-only": 6}
+                      "hybrid-octaves": 12, "nn-only": 6, "gp": 3}
     # fewer training rows (the largest kNN distances kept) lie farther from the test set
     d = sweep[sweep["model"] == "static-6"].set_index("n_train")["test_train_distance_deg"]
     assert d[10] > d[40]
@@ -98,16 +101,17 @@ def test_training_size_study_rows(static_workdir):
     assert np.isfinite(sweep["test_error_mrad"]).all()
 
 
-def test_selected_predictions_match_the_selection(static_workdir, monkeypatch):
+def test_selected_predictions_match_the_selection(static_workdir):
     # the per-measurement predictions of the selected model reproduce the selection's means
     # (same model, same rows): a check that the right member, ensemble and base were used. A
     # negative margin forces a hybrid choice on this static heliostat.
-    from heliocal.pipeline.stages import sweep as sweep_module
     from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS
 
-    monkeypatch.setattr(sweep_module, "MIN_IMPROVEMENT", -1.0)
+    # every hybrid passes (no margin, no significance screen, plain validation, the best kept)
+    force = SelectionRule(min_improvement=-1.0, alpha=1.0, match_k=0, one_se=False)
     run_sweep(static_workdir, n_train=[10, 10_000], weight_decays=[1e-3, 0.0], presets=("static-20",),
-              baselines=(), config=FineConfig(max_epochs=60, patience=60), heliostats=["SP13"])
+              baselines=(), config=FineConfig(max_epochs=60, patience=60), heliostats=["SP13"],
+              gp=False, rule=force)
     sel = pd.read_parquet(static_workdir / SELECTION.filename).iloc[0]
     assert sel["model"] in ("hybrid", "hybrid-octaves")
     sweep = pd.read_parquet(static_workdir / SWEEP.filename)
@@ -303,15 +307,9 @@ def test_selection_never_worse_than_fit_coarse_on_validation(tmp_path_factory, s
     root = tmp_path_factory.mktemp("prop")
     shift = {"angle_shift": (0.24, 0.58), "stroke_shift": (0.2, 0.16)} if shifted else {}
     w = _simulated_workdir(root, seed, n, dynamic=dynamic, **shift)
-    import heliocal.pipeline.stages.sweep as sweep_module
-
-    saved = sweep_module.MIN_IMPROVEMENT
-    sweep_module.MIN_IMPROVEMENT = -0.5
-    try:
-        run_sweep(w, n_train=[5], weight_decays=[1e-2, 0.0], baselines=(), config=FAST,
-                  extra_bands=(), study=1)
-    finally:
-        sweep_module.MIN_IMPROVEMENT = saved
+    run_sweep(w, n_train=[5], weight_decays=[1e-2, 0.0], baselines=(), config=FAST,
+              extra_bands=(), study=1,
+              rule=SelectionRule(min_improvement=-0.5, min_improvement_gp=-0.5, alpha=1.0))
     sel = _assert_one_source_of_truth(w)
     fc = _fit_coarse_selected(w)
     assert (sel["val_error_mrad"] <= fc.loc[sel.index, "val_error_mrad"]).all()

@@ -57,8 +57,21 @@ def _short(exc: BaseException) -> str:
     return (text[:160] + "...") if len(text) > 160 else text or type(exc).__name__
 
 
+def _check_gp_shapes(state: Mapping, path: Path, hint: str) -> None:
+    """A GP correction's tensors: training inputs (n, D) and their residuals (n, 2)."""
+    x, y = state.get("gp.x_train"), state.get("gp.y_train_mrad")
+    ok = (x is not None and y is not None and getattr(x, "dim", lambda: 0)() == 2
+          and getattr(y, "dim", lambda: 0)() == 2 and y.shape[1] == 2 and x.shape[0] == y.shape[0])
+    if not ok:
+        raise SchemaError(f"{path} does not hold a heliocal GP correction (training inputs (n, D) "
+                          f"and residuals (n, 2)); rerun {hint}")
+
+
 def _check_shapes(state: Mapping, cfg: dict, path: Path, hint: str) -> None:
-    """The tensors form a chain of layers, and match the configuration's layer sizes."""
+    """The tensors form a chain of layers, and match the configuration's layer sizes (a GP
+    correction: :func:`_check_gp_shapes`)."""
+    if cfg.get("mode") == "gp":
+        return _check_gp_shapes(state, path, hint)
     n = len([k for k in state if k.endswith(".weight")])
     try:
         shapes = [(tuple(state[f"layers.{k}.weight"].shape), tuple(state[f"layers.{k}.bias"].shape))

@@ -415,7 +415,7 @@ HYBRID_PREDICTIONS = dataclasses.replace(
     name="hybrid_predictions",
     filename="hybrid_predictions.parquet",
     producer="fit-hybrid",
-    description="Per measurement and fitted mode (hybrid, nn-only, pretrained-nn): the errors "
+    description="Per measurement and fitted mode (hybrid, nn-only, pretrained-nn, gp): the errors "
                 "defined once in heliocal.pipeline.physics.metrics, same columns as "
                 "coarse_predictions.parquet; `model` is the mode, `selected` is True for the "
                 "hybrid mode (the one `aim` uses).",
@@ -433,7 +433,8 @@ SWEEP = ArtifactSchema(
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
         C("model", "string", "", "Coarse preset name (at the full size: fit-coarse's fit of "
-          "it), `hybrid` (the config's Fourier bands), `hybrid-octaves` (octave bands), "
+          "it), `hybrid` (the config's Fourier bands), `hybrid-octaves` (octave bands), `gp` "
+          "(the GP correction; `gp-sun` its sun-only structure beside one with time), "
           "`nn-only` or `pretrained-nn`."),
         C("n_train", "int64", "", "Training rows (largest kNN distance first)."),
         C("weight_decay", "float64", "", "Weight decay of the hybrid (NaN for other models).",
@@ -451,18 +452,25 @@ SWEEP = ArtifactSchema(
         C("base_preset", "string", "", "Coarse preset under the hybrid / the preset itself."),
         C("wall_time_s", "float64", "s", "Wall time of this member's share of the training (0 "
           "for fit-coarse's fits, which the sweep reads)."),
+        C("fade_length_deg", "float64", "deg", "Sun fade length of a fine model of the "
+          "production selection, chosen on its distance-weighted validation rows (inf: no "
+          "fade; docs/hybrid.md \"The fade\"); its errors are the faded model's.", nullable=True),
     ),
 )
 
 SELECTION = ArtifactSchema(
     name="selection", filename="selection.parquet", producer="sweep", sort_by=("heliostat_id",),
-    description="Per heliostat the model used by aim and report: the hybrid ensemble (or, with "
-                "`sweep --select-pretrained`, the pre-trained network) with the best validation "
-                "error at the full training size if it beats fit-coarse's selected preset by "
-                "20 % on validation, else that coarse model.",
+    description="Per heliostat the model used by aim and report: a fine candidate at the full "
+                "training size (a hybrid ensemble, the GP correction, with `sweep "
+                "--select-pretrained` the pre-trained network) where it beats fit-coarse's "
+                "selected preset on the distance-weighted validation rows by the rule's margins "
+                "(and, with date inputs, is not worse forward in time), else that coarse model "
+                "(docs/hybrid.md \"Selection\").",
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
-        C("model", "string", "", "`hybrid`, `hybrid-octaves`, `pretrained-nn` or `coarse`."),
+        C("model", "string", "", "`hybrid`, `hybrid-octaves`, `gp` (the GP correction of the "
+          "highest marginal likelihood), `gp-sun` (its sun-only structure), `pretrained-nn` or "
+          "`coarse`."),
         C("preset", "string", "", "Coarse preset (of the coarse model under the hybrid)."),
         C("weight_decay", "float64", "", "Selected weight decay (NaN for coarse and "
           "pretrained-nn).", nullable=True),
@@ -480,6 +488,22 @@ SELECTION = ArtifactSchema(
           "selected hybrid of a sweep without --time-split).", nullable=True),
         C("coarse_time_test_error_mrad", "float64", "mrad", "The same for the coarse model "
           "(fit-coarse's time-split fit, as coarse_params.parquet).", nullable=True),
+        C("fade_length_deg", "float64", "deg", "Sun fade length of the selected fine model (inf: "
+          "no fade; missing for the coarse model and pretrained-nn).", nullable=True),
+        C("weighted_val_error_mrad", "float64", "mrad", "Mean validation error of the selected "
+          "model with the validation rows weighted to the test rows' distances to training "
+          "(what the rule compares; docs/hybrid.md \"Selection\")."),
+        C("coarse_weighted_val_error_mrad", "float64", "mrad", "The same for the coarse model."),
+        C("n_candidates", "int64", "", "Fine candidates compared (each fade length counted): "
+          "the m of the rule's Bonferroni margin."),
+        C("forward_check", "string", "", "Forward-in-time check of a selected model with date "
+          "inputs (empty: none needed): passed, failed (the static choice is selected instead), "
+          "or not checked (no time split, or a sweep without its forward pass)."),
+        C("time_val_error_mrad", "float64", "mrad", "The forward check's figure: mean error on "
+          "the time split's validation rows of the checked model trained on its training rows.",
+          nullable=True),
+        C("coarse_time_val_error_mrad", "float64", "mrad", "The same for the coarse model "
+          "(fit-coarse's time-split fit).", nullable=True),
     ),
 )
 

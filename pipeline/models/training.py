@@ -35,6 +35,7 @@ __all__ = [
     "member_errors_mrad",
     "predict_ensembles",
     "ensemble_errors_mrad",
+    "faded_errors_mrad",
     "predictions_frame",
     "take_rows",
     "grouped_components",
@@ -259,9 +260,10 @@ def predict_members(problem: FineProblem, layers: Layers, steps: torch.Tensor | 
 
 
 def grouped_components(problem: FineProblem, layers: Layers, features: torch.Tensor,
-             ensemble: int | None) -> ParameterComponents:
+             ensemble: int | None, fade=None) -> ParameterComponents:
     """Components of G = M / K models whose K networks are consecutive members (K =
-    ``ensemble``; None: all M networks are one model)."""
+    ``ensemble``; None: all M networks are one model). ``fade`` (N,) scales every row's
+    deviation (:mod:`heliocal.pipeline.models.fade`; None: 1)."""
     out = mlp_columns(layers, features) * problem.scales.unsqueeze(-1)   # (M, P, N)
     m = out.shape[0]
     k = m if ensemble is None else int(ensemble)
@@ -269,6 +271,8 @@ def grouped_components(problem: FineProblem, layers: Layers, features: torch.Ten
         raise ParameterError(f"The 'ensemble' parameter must divide the {m} networks. Got {k} "
                              "instead.")
     out = out.reshape(m // k, k, *out.shape[1:]).mean(1)                  # (G, P, N)
+    if fade is not None:
+        out = out * torch.as_tensor(np.asarray(fade, np.float64), dtype=out.dtype)
     base = problem.base
     if base.dim() == 3 and base.shape[0] == m:                            # per-member bases
         base = base[::k]
@@ -276,18 +280,33 @@ def grouped_components(problem: FineProblem, layers: Layers, features: torch.Ten
 
 
 def predict_ensembles(problem: FineProblem, layers: Layers, ensemble: int | None = None,
-                      steps: torch.Tensor | None = None, context: torch.Tensor | None = None):
+                      steps: torch.Tensor | None = None, context: torch.Tensor | None = None,
+                      fade=None):
     """Mirror normals and centres (G, N, 3) of models made of ``ensemble`` consecutive
     networks each (G = M / ensemble; default: all of ``layers`` is one model), whose deviation
-    is the mean of their networks' deviations. Steps and context as :func:`predict_members`."""
+    is the mean of their networks' deviations, times ``fade`` (N,) (None: 1). Steps and context
+    as :func:`predict_members`."""
     steps = problem.data.steps if steps is None else steps
     return _kinematics(problem, grouped_components(problem, layers, problem.features(steps, context),
-                                         ensemble), steps)
+                                         ensemble, fade), steps)
 
 
-def ensemble_errors_mrad(problem: FineProblem, layers: Layers, ensemble: int | None = None):
+def ensemble_errors_mrad(problem: FineProblem, layers: Layers, ensemble: int | None = None,
+                         fade=None):
     """error_mrad (G, N) of the models of :func:`predict_ensembles` on the problem's rows."""
-    return _errors(problem, *predict_ensembles(problem, layers, ensemble))
+    return _errors(problem, *predict_ensembles(problem, layers, ensemble, fade=fade))
+
+
+def faded_errors_mrad(problem: FineProblem, layers: Layers, ensemble: int | None,
+                      fade_weights: Sequence) -> np.ndarray:
+    """error_mrad (L, G, N) of the models of :func:`predict_ensembles` under each of L fades
+    (each (N,) weights of the problem's rows, :meth:`heliocal.pipeline.models.fade.Fade.weights`);
+    an all-ones fade is the model itself. The sweep and ``fit-hybrid`` choose a fade length on
+    validation from these (:func:`heliocal.pipeline.models.selection.choose_fade`)."""
+    with torch.no_grad():
+        return np.stack([ensemble_errors_mrad(problem, layers, ensemble,
+                                              None if np.all(w == 1.0) else w).numpy()
+                         for w in fade_weights])
 
 
 def _kinematics(problem: FineProblem, params: ParameterComponents, steps: torch.Tensor):

@@ -161,6 +161,7 @@ def field_summary(table: pd.DataFrame, *, alert_mrad: float = ALERT_MRAD) -> dic
         "n_hybrid": int((table["model"] == "hybrid").sum()),
         "n_pretrained": int((table["model"] == "pretrained-nn").sum()),
         "n_nominal": int((table["model"] == "nominal").sum()),
+        "n_gp": int((table["model"] == "gp").sum()),
         "presets": {str(k): int(v) for k, v in table["preset"].dropna().value_counts()
                     .sort_index().items()},
         "n_with_test_error": int(ok.sum()),

@@ -23,6 +23,7 @@ __all__ = [
     "plot_weight_decay",
     "plot_hybrid_vs_coarse",
     "plot_error_over_time",
+    "plot_gp_correction",
     "SKY_POINTS_PER_MRAD",
 ]
 
@@ -402,3 +403,36 @@ def plot_error_over_time(measurements: pd.DataFrame, predictions: pd.DataFrame, 
     ax.set_title(title, fontsize="medium", y=TITLE_Y)
     ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     return fig, None
+
+
+def plot_gp_correction(grid: dict, heliostat: str):
+    """The GP correction of one heliostat over the sky (issue 35): colour the size of the faded
+    correction [mrad], arrows its direction (horizontal, vertical on the mirror), dots the
+    training rows, the dashed line where the fade is 1/2. ``grid`` (computed where the model is,
+    :func:`heliocal.pipeline.models.gp_heliostat.correction_grid`): ``azimuth_deg`` (A,),
+    ``elevation_deg`` (E,), ``mean_h``, ``mean_v``, ``fade`` (E, A), ``train_sun_deg`` (M, 2),
+    ``structure``, ``fade_length_deg``, ``when`` (the date it shows)."""
+    az, el = np.asarray(grid["azimuth_deg"]), np.asarray(grid["elevation_deg"])
+    h, v = np.asarray(grid["mean_h"]), np.asarray(grid["mean_v"])
+    size = np.hypot(h, v)
+    fig, axes = new_figure(8.5, 4.8, margins_in=(0.65, 0.2, 0.55, 0.35))
+    ax = axes[0, 0]
+    mesh = ax.pcolormesh(az, el, size, cmap="viridis", shading="auto",
+                         vmin=0.0, vmax=max(float(np.nanmax(size)), 1e-3))
+    fig.colorbar(mesh, ax=ax, label="correction [mrad]", pad=0.02)
+    step = (slice(None, None, max(1, len(el) // 12)), slice(None, None, max(1, len(az) // 16)))
+    aa, ee = np.meshgrid(az, el)
+    ax.quiver(aa[step], ee[step], h[step], v[step], color="w", alpha=0.8, width=0.003)
+    if np.nanmin(grid["fade"]) < 0.5:
+        ax.contour(az, el, grid["fade"], levels=[0.5], colors="w", linestyles="--",
+                   linewidths=1.0)
+    train = np.asarray(grid["train_sun_deg"]).reshape(-1, 2)
+    ax.scatter(train[:, 0], train[:, 1], s=6, c="k", lw=0, zorder=3)
+    ax.set_xlabel("sun azimuth [deg] (0 = south, positive toward east)")
+    ax.set_ylabel("sun elevation [deg]")
+    length = grid.get("fade_length_deg")
+    fade = ("no sun fade" if length is None or not math.isfinite(length)
+            else f"fade length {length:g} deg")
+    ax.set_title(f"{heliostat}: GP correction ({grid['structure']}; {fade}) at {grid['when']}",
+                 fontsize="medium", y=TITLE_Y)
+    return fig

@@ -54,6 +54,9 @@ class ReportInputs:
     rolling: pd.DataFrame | None = None  # rolling_origin.parquet: the next-day errors
     paths: dict[str, Path] = field(default_factory=dict)  # filename -> path of every input read
     notes: list[str] = field(default_factory=list)  # staleness and similar warnings
+    # heliostat -> its GP correction on a sky grid (the report stage computes it from the model
+    # aim uses, models.gp_heliostat.correction_grid; this package reads no model files)
+    gp_maps: dict[str, dict] = field(default_factory=dict)
 
     def producer(self, filename: str) -> str:
         schema = _schema_for(filename)

@@ -15,8 +15,9 @@ from typing import Any
 
 import pandas as pd
 
-from .figures import (SKY_POINTS_PER_MRAD, plot_error_over_time, plot_hybrid_vs_coarse,
-                      plot_sky_map, plot_training_size, plot_weight_decay, png_bytes)
+from .figures import (SKY_POINTS_PER_MRAD, plot_error_over_time, plot_gp_correction,
+                      plot_hybrid_vs_coarse, plot_sky_map, plot_training_size, plot_weight_decay,
+                      png_bytes)
 from .inputs import ReportInputs
 
 __all__ = [
@@ -67,6 +68,8 @@ def _draw(task: FigureTask):
     if task.kind == "error_over_time":
         return plot_error_over_time(a["measurements"], a["predictions"], task.heliostat,
                                     a["model"], a["coarse"], label=a.get("label"))
+    if task.kind == "gp_correction":
+        return plot_gp_correction(a["grid"], task.heliostat), None
     if task.kind == "hybrid_vs_coarse":
         return plot_hybrid_vs_coarse(a["table"]), None
     if task.kind == "regimes":
@@ -157,7 +160,8 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
                  by_heliostat(inp.split), by_heliostat(inp.predictions), by_heliostat(inp.sweep),
                  sweep_choices(inp))
     return (_training_size_plan(plan) + _sky_map_plan(plan, finals) + _weight_decay_plan(plan)
-            + _hybrid_vs_coarse_plan(plan) + _regime_plan(inp, plan.hids, plan.meas, plan.preds)
+            + _gp_map_plan(plan) + _hybrid_vs_coarse_plan(plan)
+            + _regime_plan(inp, plan.hids, plan.meas, plan.preds)
             + _error_over_time_plan(plan, finals))
 
 
@@ -231,9 +235,31 @@ def _weight_decay_plan(plan: _Plan) -> list[tuple]:
             "training size (band: spread over seeds); dashed lines: the selected coarse "
             "model's validation and test error; dotted: the selected weight decay.", hid,
             {"sweep": plan.sweep.get(hid, plan.empty_sweep),
-             "model": plan.choice.get(hid, sel["model"]) if sel["model"] == "selected"
-             else sel["model"], "cval": cval,
+             "model": _swept_model(plan.choice.get(hid, sel["model"]) if sel["model"] == "selected"
+                                   else sel["model"]), "cval": cval,
              "ctest": ctest, "weight_decay": chosen_wd.get(hid, sel["weight_decay"])})))
+    return out
+
+
+def _swept_model(model: str | None) -> str | None:
+    """The model whose weight decays the figure shows: the chosen one where it has them (a
+    hybrid), else the figure's default (None: the hybrids'), e.g. for a GP or coarse choice."""
+    return model if model is not None and model.startswith("hybrid") else None
+
+
+def _gp_map_plan(plan: _Plan) -> list[tuple]:
+    """The GP correction over the sky of every heliostat whose model is a GP (issue 35)."""
+    maps = {hid: plan.inp.gp_maps[hid] for hid in plan.hids if hid in plan.inp.gp_maps}
+    if not maps:
+        return []
+    out: list[tuple] = [("h3", "GP correction of the coarse model")]
+    for hid, grid in maps.items():
+        out.append(("task", FigureTask(
+            "gp_correction", f"gp_correction_{hid}.png",
+            f"{hid}: the Gaussian-process correction of the coarse model's pointing [mrad] over "
+            f"sun azimuth and elevation at {grid['when']}, as aim applies it (faded with the "
+            "distance to the training rows, black dots; dashed: fade 1/2); arrows: its "
+            "direction on the mirror (horizontal, vertical).", hid, {"grid": grid})))
     return out
 
 

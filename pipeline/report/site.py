@@ -127,6 +127,7 @@ def index_html(title: str, subtitle: str, summary: dict, table: pd.DataFrame, wo
             ("calibrated", s["n_calibrated"]),
             ("hybrid / coarse", f"{s['n_hybrid']} / {s['n_coarse']}"
              + (f" (+ {s['n_pretrained']} pretrained-nn)" if s.get("n_pretrained") else "")
+             + (f" (+ {s['n_gp']} GP)" if s.get("n_gp") else "")
              + (f" (+ {s['n_nominal']} on the nominal geometry)" if s.get("n_nominal") else "")),
             ("median test error", f"{_num(s['median_test_error_mrad'])} mrad"
              + (f" ({s['n_degenerate']} degenerate left out)" if s.get("n_degenerate") else "")),

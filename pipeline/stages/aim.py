@@ -24,12 +24,16 @@ from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs, r
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REGIME_PARAMS, REGIMES
 from ..artifacts.store import artifact_columns, artifact_present, read_artifact
 from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
+from ..models.fade import epoch_seconds, fade_weights
+from ..models.gp import GPCorrection
+from ..models.gp_heliostat import gp_aim_steps
 from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
 from ..models.pretrained import PretrainedModel
 from ..models.training import FineProblem, grouped_components
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
+from ..physics.sun import sun_angles_from_vector
 from ..physics.vectors import unit_vector as _unit
 from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
 from .fit_coarse import coarse_row_parameters, load_selected_parameters
@@ -107,7 +111,7 @@ def load_model(workdir, mode: str, heliostat_id: str) -> tuple[dict, Layers] | N
     if found is None:
         return None
     cfg, state = found
-    return cfg, state_to_layers(state)
+    return cfg, state if cfg.get("mode") == "gp" else state_to_layers(state)
 
 
 def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Tensor) -> FineProblem:
@@ -225,7 +229,7 @@ def _choose_model(wd: CommittedWorkdir, h: _Heliostat, model: str) -> tuple[str,
         choice = aim_models(wd, [h.id], strict=True).get(h.id, {})
         if choice.get("model") == "nominal":
             return use_nominal(h, choice["fallback"]), None
-        if choice.get("model") in ("hybrid", "pretrained-nn"):
+        if choice.get("model") in ("hybrid", "pretrained-nn", "gp"):
             fitted = load_model(wd, choice["model_dir"], h.id)
             if choice["source"] == "sweep":
                 rerun = f"`heliocal sweep --workdir {wd}`"
@@ -297,10 +301,11 @@ def _time_warnings(wd: CommittedWorkdir, h: _Heliostat, time_utc: pd.Timestamp |
 
 def _fixed_point(h: _Heliostat, chosen: str, fitted: tuple, sun, aim, steps, time_utc, env,
                  max_iterations: int, tolerance_steps: float):
-    """(steps, parameters, iterations) of the hybrid: the steps whose parameters (the network's
-    deviations at those steps) aim at the point, found by fixed-point iteration from the coarse
-    steps until the steps change by less than ``tolerance_steps``. A loop that does not get there
-    in ``max_iterations`` raises :class:`FitError` with the last change."""
+    """(steps, parameters, iterations, None) of the hybrid: the steps whose parameters (the
+    network's deviations at those steps, times its fade) aim at the point, found by fixed-point
+    iteration from the coarse steps until the steps change by less than ``tolerance_steps``. A
+    loop that does not get there in ``max_iterations`` raises :class:`FitError` with the last
+    change."""
     cfg, layers = fitted
     problem = _fine_problem_from_config(cfg, h.spec, nominal_parameters(h.row))
     enc = problem.encoder
@@ -312,10 +317,13 @@ def _fixed_point(h: _Heliostat, chosen: str, fitted: tuple, sun, aim, steps, tim
         raise ParameterError(f"the {chosen} model of {h.id} uses the date as input: give --time")
     context = enc.context([time_utc], np.array([[float(env[e]) for e in enc.env]])
                           if enc.env else None)
+    az, el = sun_angles_from_vector(sun.numpy())
+    fade = fade_weights(cfg, az, el, [time_utc])     # the fine model's fade (models.fade)
 
     def params_at(s):
         with torch.no_grad():
-            return grouped_components(problem, layers, enc.encode(s, context), None).stacked()[0, 0]
+            return grouped_components(problem, layers, enc.encode(s, context), None,
+                                      fade).stacked()[0, 0]
 
     delta = float("inf")
     for iterations in range(1, max_iterations + 1):
@@ -325,28 +333,52 @@ def _fixed_point(h: _Heliostat, chosen: str, fitted: tuple, sun, aim, steps, tim
         delta = float((new - steps).abs().max())
         steps = new
         if delta < tolerance_steps:
-            return steps, params_at(steps), iterations
+            return steps, params_at(steps), iterations, None
     raise FitError(f"the {chosen} model of {h.id} did not converge to the aim steps: after "
                    f"{max_iterations} fixed-point iterations the steps still changed by "
                    f"{delta:.3g} steps (tolerance {tolerance_steps:g}); aim with --model coarse, "
                    "or refit the heliostat")
 
 
+def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: int,
+              tolerance_steps: float):
+    """(steps, coarse parameters, iterations, corrected normal) of a GP correction
+    (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`)."""
+    cfg, state = fitted
+    names = cfg["gp"]["inputs"].get("env", ())
+    missing = [e for e in names if e not in env]
+    if missing:
+        raise ParameterError(f"the gp model of {h.id} uses env inputs {missing}: give them with "
+                             "--env NAME=VALUE")
+    if time_utc is None and "time" in cfg["gp"]["structure"]:
+        raise ParameterError(f"the gp model of {h.id} uses the date as input: give --time")
+    fit = gp_aim_steps(GPCorrection.from_model(cfg, state), h.coarse, h.spec, sun, aim,
+                       None if time_utc is None else epoch_seconds([time_utc])[0],
+                       [float(env[e]) for e in names] if names else None,
+                       max_iterations=max_iterations, tolerance_steps=tolerance_steps)
+    if not bool(torch.isfinite(fit.steps).all()):
+        raise _unreachable(h.id)
+    return fit.steps, h.coarse, fit.iterations, fit.normal
+
+
 def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iterations: int,
            tolerance_steps: float):
-    """(steps, parameters, iterations) that aim the chosen model's beam at ``aim``."""
+    """(steps, parameters, iterations, the normal where the parameters do not give it (a GP's
+    corrected one; else None)) that aim the chosen model's beam at ``aim``."""
     steps = inverse_kinematics(h.coarse, h.spec, sun, aim)
     if not bool(torch.isfinite(steps).all()):
         raise _unreachable(h.id)
     if chosen in ("coarse", "nominal"):
-        return steps, h.coarse, 0
+        return steps, h.coarse, 0, None
+    if chosen == "gp":
+        return _gp_solve(h, fitted, sun, aim, time_utc, env, max_iterations, tolerance_steps)
     if chosen == "pretrained-nn":
         cfg, layers = fitted
         with torch.no_grad():
             steps = PretrainedModel.from_dict(cfg, layers).steps(sun, aim, spec=h.spec)
         if not bool(torch.isfinite(steps).all()):
             raise _unreachable(h.id)
-        return steps, h.coarse, 0
+        return steps, h.coarse, 0, None
     return _fixed_point(h, chosen, fitted, sun, aim, steps, time_utc, env, max_iterations,
                         tolerance_steps)
 
@@ -380,7 +412,7 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
     env : values of the model's env inputs (name without ``env_`` -> value); every name must be
         an env column of the measurements.
     model : ``auto`` (the sweep's selection where ``sweep`` ran, else the fit-hybrid hybrid where
-        fitted, else coarse), ``coarse``, ``hybrid``, ``nn-only`` or ``pretrained-nn``.
+        fitted, else coarse), ``coarse``, ``hybrid``, ``nn-only``, ``pretrained-nn`` or ``gp``.
     max_iterations, tolerance_steps : the hybrid's fixed-point iteration stops when the steps
         change by less than ``tolerance_steps`` [steps]; without that in ``max_iterations`` it
         raises :class:`FitError`.
@@ -399,8 +431,6 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
     ``sun_azimuth_deg``, ``sun_elevation_deg``, ``regime``, ``days_after_last_measurement``
     (None without a time) and ``warnings`` (texts, also logged: an aim far from the data).
     """
-    from ..physics.sun import sun_angles_from_vector
-
     check_choice(model, "model", "aim", ("auto", "coarse") + MODES)
     if (aim_point_enu is None) == (target is None):
         raise ParameterError("aim needs one aim point: give aim_point_enu or target")
@@ -416,10 +446,11 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
     if chosen != "nominal" and time_utc is not None and h.selected.get("regime_table") is not None:
         h.coarse = coarse_row_parameters(h.selected, [time_utc])[0]   # its regime, its drift
     days = _time_warnings(wd, h, time_utc)
-    steps, params, iterations = _solve(h, chosen, fitted, sun, aim, time_utc, env,
-                                       max_iterations, tolerance_steps)
+    steps, params, iterations, corrected = _solve(h, chosen, fitted, sun, aim, time_utc, env,
+                                                  max_iterations, tolerance_steps)
     with torch.no_grad():
         normal, position = forward_kinematics(params, h.spec, steps)
+        normal = normal if corrected is None else corrected
         inverse_residual = float(error_mrad(reflect(-sun, normal), aim - position)[0])
     if not math.isfinite(inverse_residual):
         raise _unreachable(h.id)

@@ -45,10 +45,11 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
 
     Returns
     -------
-    dict heliostat_id -> {``model`` (``coarse``, ``hybrid``, ``pretrained-nn``, or ``nominal``
-    where the fitted model is worse than the nominal geometry on held-out rows:
+    dict heliostat_id -> {``model`` (``coarse``, ``hybrid``, ``pretrained-nn``, ``gp``, or
+    ``nominal`` where the fitted model is worse than the nominal geometry on held-out rows:
     :func:`nominal_fallback`, whose sentence is in ``fallback``, else None), ``variant``
-    (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
+    (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``, ``gp``, ``gp-sun``; None for coarse),
+    ``source`` (the stage that chose it: ``sweep``,
     ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
     ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
     such rows), ``forward_error_mrad`` (the same model fitted on the time split's training rows,
@@ -92,13 +93,14 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
             row = selection.loc[hid]
             entry.update(source="sweep", val_error_mrad=float(row["coarse_val_error_mrad"]),
                          test_error_mrad=float(row["coarse_test_error_mrad"]))
-        elif choice is not None and (choice.startswith("hybrid") or choice == "pretrained-nn"):
+        elif choice is not None and (choice.startswith(("hybrid", "gp"))
+                                     or choice == "pretrained-nn"):
             if _model_committed(workdir, "selected", hid):
                 row = selection.loc[hid]
-                entry.update(model="pretrained-nn" if choice == "pretrained-nn" else "hybrid",
-                             variant=choice, source="sweep",
-                             weight_decay=(None if choice == "pretrained-nn"
-                                           else float(row["weight_decay"])),
+                mode = choice if choice == "pretrained-nn" else choice.split("-")[0]
+                entry.update(model=mode, variant=choice, source="sweep",
+                             weight_decay=(float(row["weight_decay"]) if mode == "hybrid"
+                                           else None),
                              val_error_mrad=float(row["val_error_mrad"]),
                              test_error_mrad=float(row["test_error_mrad"]),
                              forward_error_mrad=_number(row.get("time_test_error_mrad")),

@@ -93,8 +93,13 @@ from ..models.regime_fit import predict_parameters
 from ..models.network import MODES, layers_to_state
 from ..models.config import FineConfig, ensemble_seeds
 from ..models.pretrained import PretrainConfig, fit_pretrained
-from ..models.training import (FineProblem, build_problem, predict_ensembles, predictions_frame,
-                               stack_problems, take_rows, train_members)
+from ..models.fade import (FADE_LENGTHS_DEG, NETWORK_TIME_FADE_DAYS, NO_FADE, TIME_FADE_DAYS,
+                           Fade)
+from ..models.gp import GPConfig
+from ..models.gp_heliostat import fit_heliostat_gp
+from ..models.selection import SelectionRule, choose_fade, row_validation_weights
+from ..models.training import (FineProblem, build_problem, faded_errors_mrad, predict_ensembles,
+                               predictions_frame, stack_problems, take_rows, train_members)
 from ..physics.parameters import HeliostatSpec
 from ..runtime.parallel import map_tasks, warm_up
 from .fit_coarse import coarse_row_parameters, load_selected_parameters, load_split_labels
@@ -144,6 +149,8 @@ def _hybrid_chunk_task(task):
         coarse = coarse_row_parameters(sel, rows["timestamp"])   # each row at its regime's
         prepared.append((hid, rows, hrow, sel, rows["split"].to_numpy(), spec, data,
                          predict_parameters(coarse, spec, data), coarse))
+    if mode == "gp":
+        return [_gp_outputs(*p, GPConfig(env=config.env, seed=seed)) for p in prepared]
     out = []
     if mode == "pretrained-nn":
         for hid, rows, hrow, sel, labels, spec, data, coarse_pred, _ in prepared:
@@ -181,20 +188,64 @@ def _hybrid_chunk_task(task):
             zip(prepared, problems)):
         nets = slice(h * k_ens, (h + 1) * k_ens)
         layers = [(w[nets], b[nets]) for w, b in result.layers]
+        fade = _network_fade(rows, labels, problem, layers) if mode == "hybrid" else NO_FADE
         with torch.no_grad():
-            normal, position = predict_ensembles(problem, layers)
+            normal, position = predict_ensembles(problem, layers,
+                                                 fade=fade.weights_of_rows(rows))
         info = {"best_epoch": result.best_epoch[nets].tolist(),
-                "epochs": result.epochs_run[nets].tolist()}
+                "epochs": result.epochs_run[nets].tolist(),
+                "fade_length_deg": None if fade is NO_FADE else fade.to_dict()["length_deg"]}
         cfg = {"mode": mode, "heliostat_id": hid, "seed": seed, "weight_decay": weight_decay,
                "fine_config": config.to_dict(), "encoder": problem.encoder.to_dict(),
                # aim's base: the latest regime's parameters under a regime-aware coarse model
                "base_params": (sel["params"] if problem.per_row_base else problem.base).tolist(),
                "free": sel["free"].tolist(),
                "scales": problem.scales.tolist(), "coarse_preset": sel["preset"],
-               "sizes": problem.sizes(config), **info}
+               "sizes": problem.sizes(config), "fade": fade.to_dict(), **info}
         out.append(_hybrid_outputs(hid, mode, sel, labels, problem, normal[0], position[0],
                                    coarse_pred, layers_to_state(layers), cfg, info, wall))
     return out
+
+
+def _weights(rows, labels) -> np.ndarray:
+    """The validation rows' weights as the sweep's default rule weighs them (their distances
+    to training matched to the test rows'; models.selection)."""
+    rule = SelectionRule()
+    return row_validation_weights(rows, labels, rule.match_k, rule.match_share)
+
+
+def _network_fade(rows, labels, problem, layers) -> Fade:
+    """The hybrid's fade: the sun fade length of :data:`FADE_LENGTHS_DEG` with the lowest mean
+    error on the validation rows weighted by their distance to training (the sweep's rule,
+    :mod:`heliocal.pipeline.models.selection`), the time fade :data:`NETWORK_TIME_FADE_DAYS` (the
+    network has date inputs); no validation rows: no sun fade."""
+    base = Fade.of_rows(rows[labels == "train"], length_days=NETWORK_TIME_FADE_DAYS)
+    fades = [base.with_lengths(length) for length in FADE_LENGTHS_DEG]
+    val = labels == "validation"
+    if not val.any():
+        return fades[0]
+    errors = faded_errors_mrad(problem, layers, None, [f.weights_of_rows(rows) for f in fades])
+    return fades[choose_fade([e[0][val] for e in errors], _weights(rows, labels))]
+
+
+def _gp_outputs(hid, rows, hrow, sel, labels, spec, data, coarse_pred, coarse,
+                gp_config: GPConfig):
+    """One heliostat's GP correction (``--mode gp``): fitted on its training rows on top of its
+    coarse model, the fade length chosen on its validation rows weighted by their distance to
+    training (:func:`heliocal.pipeline.models.gp.fit_heliostat_gp`); outputs as
+    :func:`_hybrid_outputs`'."""
+    weights = _weights(rows, labels)
+    fit = fit_heliostat_gp(rows, labels, spec, data, coarse, gp_config, weights,
+                           time_length_days=TIME_FADE_DAYS)
+    problem = FineProblem(spec, sel["params"], sel["free"], torch.zeros(0), None, data,
+                          torch.zeros(0))
+    cfg = {"mode": "gp", "heliostat_id": hid, "seed": gp_config.seed,
+           "gp_config": gp_config.to_dict(), "gp": fit.model.to_dict(),
+           "base_params": sel["params"].tolist(), "free": sel["free"].tolist(),
+           "coarse_preset": sel["preset"]}
+    info = {"structure": fit.model.structure, "fade_length_deg": fit.lengths[fit.chosen]}
+    return _hybrid_outputs(hid, "gp", sel, labels, problem, fit.normal, fit.position, coarse_pred,
+                           fit.model.to_state(), cfg, info, fit.wall_time_s)
 
 
 def _hybrid_outputs(hid, mode, sel, labels, problem, normal, position, coarse_pred, state, cfg,

@@ -37,6 +37,7 @@ chosen on the kNN validation alone and every forward-in-time figure of it is "n/
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -49,6 +50,7 @@ from ..artifacts.schemas import COARSE_PARAMS, SPLIT
 from ..artifacts.store import artifact_present, read_artifact
 from ..models.coarse import MeasurementBatch
 from ..models.config import ensemble_seeds
+from ..models.fade import NETWORK_TIME_FADE_DAYS, Fade
 from ..models.pretrained import fit_pretrained
 from ..models.training import build_problem, ensemble_errors_mrad, stack_problems, take_rows
 from ..physics.metrics import error_mrad, measured_normal
@@ -168,6 +170,7 @@ class _TimeEntry:
     free: torch.Tensor          # the preset's free parameters (28,) bool
     weight_decay: float         # the selected model's
     seed: int                   # the selected model's
+    fade_length_deg: float = float("inf")   # its sun fade length (models.fade), time fade too
 
 
 def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
@@ -210,8 +213,12 @@ def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
             if e.weight_decay == wd:
                 nets = slice(k * k_ens, (k + 1) * k_ens)
                 layers = [(w[nets], b[nets]) for w, b in result.layers]
+                # the model's fade, measured from the time split's training rows
+                fade = Fade.of_rows(e.rows[labels[k] == "train"], e.fade_length_deg,
+                                    NETWORK_TIME_FADE_DAYS).weights_of_rows(e.rows)
                 with torch.no_grad():
-                    out.append((e.hid, ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]))
+                    out.append((e.hid, ensemble_errors_mrad(problems[k], layers, k_ens,
+                                                            fade).numpy()[0]))
     return out
 
 
@@ -255,6 +262,9 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
         theta = time_params.get(hid)
         if (labels == "train").sum() < 2 or theta is None:
             continue
+        if res.get("choice") is not None and res["choice"].time_errors is not None:
+            errors[hid] = res["choice"].time_errors   # a GP's, refitted by stages.selection
+            continue
         if sel["model"] == "coarse":
             errors[hid] = item.coarse[selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
             continue
@@ -265,7 +275,8 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
                tuple(bool(x) for x in free.tolist()))
         entries.setdefault(key, []).append(_TimeEntry(hid, rows, hrow, labels, theta, free,
                                                       float(sel["weight_decay"]),
-                                                      int(sel["seed"])))
+                                                      int(sel["seed"]),
+                                                      float(sel.get("fade_length_deg", math.inf))))
     tasks = []
     for key in sorted(entries):
         step = 1 if key[0] == "pretrained-nn" else batch_size

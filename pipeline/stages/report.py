@@ -195,10 +195,11 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
 
     txn = current_transaction(out, "report")
     inp = load_inputs(workdir)
+    choices = aim_models(workdir)
+    inp.gp_maps = _gp_maps(workdir, choices)
     metrics = compute_metrics(inp)
     helios = metrics["heliostats"]
     blocks = build_report(inp, metrics)
-    choices = aim_models(workdir)
     table = field_table(inp, metrics, choices, alert_mrad=alert_mrad,
                         extra_alerts=regime_alerts(inp.regimes))
     summary = field_summary(table, alert_mrad=alert_mrad)
@@ -275,6 +276,23 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
             "measurement_floor": {"value_mrad": floor, "source": floor_source,
                                   "problems": measured_floor.problems},
             "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats}
+
+
+def _gp_maps(workdir: Path, choices: dict) -> dict[str, dict]:
+    """heliostat -> its GP correction on a sky grid, for every heliostat whose model (the one aim
+    uses, ``choices`` of :func:`aim_models`) is a GP correction."""
+    from ..models.gp import GPCorrection
+    from ..models.gp_heliostat import correction_grid
+    from .aim import load_model
+
+    out = {}
+    for hid, choice in choices.items():
+        if choice.get("model") != "gp" or choice.get("model_dir") is None:
+            continue
+        fitted = load_model(workdir, choice["model_dir"], hid)
+        if fitted is not None:
+            out[hid] = correction_grid(GPCorrection.from_model(*fitted))
+    return out
 
 
 def _field_plan(inp, wd_frame, ts_frame, comp) -> list[tuple]:

@@ -52,13 +52,15 @@ from ..artifacts.store import merge_with_previous, previous_run_matches, write_a
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import ParameterError, check_float, check_int
-from ..models.coarse import fit_presets, metrics_frame, normal_errors_mrad
+from ..models.coarse import fit_presets, normal_errors_mrad
 from ..models.config import FineConfig, PathConfig, ensemble_seeds
-from ..models.network import layers_to_state
+from ..models.fade import TIME_FADE_DAYS
+from ..models.gp import GPConfig
+from ..models.gp_heliostat import fit_heliostat_gps
 from ..models.pretrained import PretrainConfig
+from ..models.selection import SelectionRule
 from ..models.training import (FineProblem, MemberResult, build_problem, ensemble_errors_mrad,
-                               predict_ensembles, predictions_frame, stack_problems, take_rows,
-                               train_members)
+                               stack_problems, take_rows, train_members)
 from ..runtime.parallel import map_tasks, warm_up
 from ..runtime.process_state import restores_process_state
 from ..vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCTAVE_BANDS,
@@ -66,9 +68,10 @@ from ..vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCT
 from .fit_coarse import coarse_fit_options, coarse_row_parameters
 from .fit_hybrid import hybrid_chunks
 from .forward import add_sweep_time_split
+from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
 from .sweep_inputs import (SweepHeliostat, SweepInputs, fit_pretrained_errors, read_sweep_inputs,
-                           split_stats, sweep_row)
+                           sweep_row)
 
 __all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants", "MIN_IMPROVEMENT",
            "train_path", "study_heliostats"]
@@ -140,32 +143,20 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
         yield wd, result
 
 
-_METRICS = ("error_mrad", "beam_error_mrad", "spot_offset_horizontal_m", "spot_offset_vertical_m",
-            "spot_offset_m")
-
-
-def _sel_frame(h: SweepHeliostat, metrics: pd.DataFrame) -> pd.DataFrame:
-    """selected_predictions rows of one heliostat from a frame of the metric columns."""
-    out = metrics[list(_METRICS)].reset_index(drop=True).copy()
-    out["measurement_id"] = h.rows["measurement_id"].astype(str).to_numpy()
-    out["heliostat_id"], out["split"] = h.hid, h.labels
-    out["model"], out["selected"] = "selected", True
-    return out
-
-
 # ------------------------------------------------------------------------------------------------
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
 def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, path,
-                  pretrain_config: PretrainConfig | None = None) -> list[dict]:
+                  pretrain_config: PretrainConfig | None = None,
+                  gp_config: GPConfig | None = None,
+                  rule: SelectionRule = SelectionRule()) -> list[dict]:
     """The full-size candidates and the selection of a chunk of heliostats that share one
     kinematic type, actuator type and coarse preset (one batched program per weight decay);
-    with ``pretrain_config`` the pre-trained network (first seed) is a candidate too."""
+    with ``gp_config`` the GP correction, with ``pretrain_config`` the pre-trained network (first
+    seed) are candidates too. Each heliostat's choice is its :class:`CandidatePool`'s."""
     helios = [SweepHeliostat.of(item) for item in items]
-    val_masks = [h.labels == "validation" for h in helios]
-    test_masks = [h.labels == "test" for h in helios]
+    pools = [CandidatePool(h, rule) for h in helios]
     out_rows: list[list[dict]] = [[] for _ in helios]
-    best = []
     for h, rows in zip(helios, out_rows):
         # the coarse presets exactly as fit-coarse fitted them (its predictions)
         for model, frame in h.coarse.items():
@@ -174,8 +165,6 @@ def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, 
             rows.append(sweep_row(h.hid, model, h.n_full, float("nan"), 0,
                              frame["error_mrad"].to_numpy(np.float64), h.labels, h.train,
                              h.test_distance, model, 0.0))
-        best.append({"model": "coarse", "weight_decay": float("nan"), "seed": 0,
-                     "val": h.coarse_val, "test": h.coarse_test})
     n_seeds = len(seeds)
     for kind, cfg in variants:
         k_ens = cfg.ensemble
@@ -194,76 +183,37 @@ def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, 
                                      net_seeds, weight_decays, cfg, path):
             wall = result.wall_time_s / (len(helios) * n_seeds)
             for i, (h, problem) in enumerate(zip(helios, problems)):
-                nets = slice(i * per_h, (i + 1) * per_h)
-                layers = [(w[nets], b[nets]) for w, b in result.layers]
-                with torch.no_grad():
-                    err = ensemble_errors_mrad(problem, layers, k_ens).numpy()   # (seeds, N)
-                threshold = h.coarse_val * (1.0 - MIN_IMPROVEMENT)
                 for j, s in enumerate(seeds):
-                    out_rows[i].append(sweep_row(h.hid, kind, h.n_full, wd, s, err[j], h.labels,
-                                            h.train, h.test_distance, h.selected["preset"], wall))
-                    v = split_stats(err[j], val_masks[i])[0]
-                    # a hybrid replaces the coarse model only if it is better on validation by
-                    # more than MIN_IMPROVEMENT (relative); see its comment
-                    if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
-                        continue
-                    if best[i]["model"] == "coarse" or v < best[i]["val"]:
-                        ens = slice(j * k_ens, (j + 1) * k_ens)
-                        best[i] = {"model": kind, "weight_decay": wd, "seed": int(s), "val": v,
-                                   "test": split_stats(err[j], test_masks[i])[0], "cfg": cfg,
-                                   "problem": problem,
-                                   "layers": [(w[ens].clone(), b[ens].clone()) for w, b in layers]}
-    if pretrain_config is not None:
-        for i, h in enumerate(helios):
+                    ens = slice(i * per_h + j * k_ens, i * per_h + (j + 1) * k_ens)
+                    err, length = pools[i].add_network(
+                        kind, cfg, wd, s, problem, [(w[ens], b[ens]) for w, b in result.layers],
+                        path)
+                    out_rows[i].append(sweep_row(h.hid, kind, h.n_full, wd, s, err, h.labels,
+                                                 h.train, h.test_distance, h.selected["preset"],
+                                                 wall, length))
+    for i, h in enumerate(helios):
+        if gp_config is not None:
+            fits = fit_heliostat_gps(h.rows, h.labels, h.spec, h.data, coarse_row_parameters(
+                h.selected, h.rows["timestamp"]), gp_config, pools[i].weights,
+                time_length_days=TIME_FADE_DAYS)
+            for name, fit in pools[i].add_gp(fits, gp_config):
+                out_rows[i].append(sweep_row(h.hid, name, h.n_full, float("nan"), gp_config.seed,
+                                             fit.errors, h.labels, h.train, h.test_distance,
+                                             h.selected["preset"], fit.wall_time_s,
+                                             fit.fade_length_deg))
+        if pretrain_config is not None:
             model, info, normal, position, err, wall = fit_pretrained_errors(
                 h, h.selected["params"], h.labels, seeds[0], pretrain_config)
-            out_rows[i].append(sweep_row(h.hid, "pretrained-nn", h.n_full, float("nan"), seeds[0], err,
-                                    h.labels, h.train, h.test_distance, h.selected["preset"], wall))
-            v = split_stats(err, val_masks[i])[0]
-            threshold = h.coarse_val * (1.0 - MIN_IMPROVEMENT)   # the hybrids' margin rule
-            if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
-                continue
-            if best[i]["model"] == "coarse" or v < best[i]["val"]:
-                best[i] = {"model": "pretrained-nn", "weight_decay": float("nan"),
-                           "seed": int(seeds[0]), "val": v,
-                           "test": split_stats(err, test_masks[i])[0], "pretrained": model,
-                           "normal": normal, "position": position, "info": info}
+            out_rows[i].append(sweep_row(h.hid, "pretrained-nn", h.n_full, float("nan"), seeds[0],
+                                         err, h.labels, h.train, h.test_distance,
+                                         h.selected["preset"], wall))
+            pools[i].add_pretrained(model, info, normal, position, err, seeds[0], pretrain_config)
     results = []
-    for h, rows, b in zip(helios, out_rows, best):
-        state = None
-        if b["model"] == "coarse":
-            pred = _sel_frame(h, h.coarse[h.selected["preset"]])
-        elif b["model"] == "pretrained-nn":
-            model = b["pretrained"]
-            pred = _sel_frame(h, metrics_frame(h.data, b["normal"], b["position"]))
-            state = {
-                "state": model.to_state(),
-                "config": {"mode": "pretrained-nn", "heliostat_id": h.hid, "seed": b["seed"],
-                           "pretrain_config": pretrain_config.to_dict(), **model.to_dict(),
-                           "coarse_preset": h.selected["preset"], **b["info"],
-                           "selected_by": "sweep"}}
-        else:
-            problem, layers, cfg = b["problem"], b["layers"], b["cfg"]
-            with torch.no_grad():
-                normal, position = predict_ensembles(problem, layers)
-            pred = _sel_frame(h, predictions_frame(problem, normal[0], position[0]))
-            state = {
-                "state": layers_to_state(layers),
-                "config": {"mode": "hybrid", "heliostat_id": h.hid, "seed": b["seed"],
-                           "weight_decay": float(b["weight_decay"]),
-                           "fine_config": cfg.to_dict(), "encoder": problem.encoder.to_dict(),
-                           "variant": b["model"], "base_params": h.selected["params"].tolist(),
-                           "free": h.selected["free"].tolist(),
-                           "scales": problem.scales.tolist(),
-                           "coarse_preset": h.selected["preset"], "sizes": problem.sizes(cfg),
-                           "path": path.to_dict(), "selected_by": "sweep"}}
-        selection = {"heliostat_id": h.hid, "model": b["model"], "preset": h.selected["preset"],
-                     "weight_decay": b["weight_decay"], "seed": int(b["seed"]),
-                     "n_train": h.n_full, "val_error_mrad": b["val"],
-                     "test_error_mrad": b["test"], "coarse_val_error_mrad": h.coarse_val,
-                     "coarse_test_error_mrad": h.coarse_test}
-        results.append({"rows": rows, "selection": selection, "selected_state": state,
-                        "predictions": pred})
+    for rows, pool in zip(out_rows, pools):
+        choice = pool.choose()
+        results.append({"rows": rows, "selection": choice.selection,
+                        "selected_state": choice.state, "predictions": choice.predictions,
+                        "choice": choice})
     return results
 
 
@@ -271,9 +221,11 @@ def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, 
 # the training-size study: one heliostat, every size
 # ------------------------------------------------------------------------------------------------
 def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
-                     pretrain_config, baselines, coarse_options) -> dict:
+                     pretrain_config, baselines, coarse_options, gp_config: GPConfig | None = None,
+                     rule: SelectionRule = SelectionRule()) -> dict:
     """Study rows of one heliostat: every size below the full one (refits with fit-coarse's
-    function and options), and the baselines at every size."""
+    function and options, the hybrids, with ``gp_config`` the GP correction), and the baselines
+    at every size."""
     h = SweepHeliostat.of(item)
     hid, labels = h.hid, h.labels
     out_rows: list[dict] = []
@@ -311,6 +263,11 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
             if fit.preset == base_preset and n < h.n_full:
                 bases[n] = fit.params
     val_mask = labels == "validation"
+    if gp_config is not None and small:
+        for n, fit in study_gps(h, {n: masks[n] for n in small}, bases, gp_config, rule).items():
+            out_rows.append(sweep_row(hid, "gp", n, float("nan"), gp_config.seed, fit.errors,
+                                      labels, masks[n], dists[n], base_preset, fit.wall_time_s,
+                                      fit.fade_length_deg))
 
     def train(kind, cfg, members, base_of, wds, path_=path):
         """members (n, seed): ensembles of K networks, trained along the weight-decay path."""
@@ -466,7 +423,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               extra_bands: Sequence[Sequence[float]] = (OCTAVE_BANDS,),
               study: int | Sequence[str] | None = DEFAULT_STUDY, study_seed: int = 0,
               path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE,
-              select_pretrained: bool = False, time_split: bool = False) -> dict:
+              select_pretrained: bool = False, time_split: bool = False, gp: bool = True,
+              gp_config: GPConfig | None = None, rule: SelectionRule | None = None) -> dict:
     """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
     (and ``hybrid/selected/``), return a summary.
 
@@ -485,7 +443,12 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     path : how the weight-decay path is trained (:class:`PathConfig`).
     batch_size : heliostats per batched program of the production selection.
     select_pretrained : the pre-trained network (first seed) is a production candidate too.
-    time_split : also train the selected hybrids forward in time (:mod:`.forward`; +50 % time).
+    time_split : also train the selected hybrids forward in time (:mod:`.forward`): their
+        forward-in-time check (:func:`heliocal.pipeline.stages.selection.apply_forward_checks`)
+        needs it; without it a selected hybrid is kept unchecked.
+    gp, gp_config : the GP correction is a candidate and a line of the study (settings: default
+        :class:`GPConfig` with the config's env columns and the first seed).
+    rule : the selection rule (:class:`heliocal.pipeline.models.selection.SelectionRule`).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
     workdir = Path(workdir)
@@ -496,6 +459,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     path = (path or PathConfig()).validated()
     batch_size = check_int(batch_size, "batch_size", "sweep", 1)
     variants = hybrid_variants(config, extra_bands)
+    gp_config = (gp_config or GPConfig(env=config.env, seed=seeds[0])).validated() if gp else None
+    rule = (rule or SelectionRule()).validated()
     warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
     items = read_sweep_inputs(workdir, heliostats)
     selected = {hid: item.selected for hid, item in items.items()}
@@ -503,14 +468,15 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          index=list(items)) if items else None
     ids = sorted(items, key=lambda h: (len(items[h].rows), h))
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
-                         pretrain_config if select_pretrained else None))
+                         pretrain_config if select_pretrained else None, gp_config, rule))
              for chunk in hybrid_chunks(ids, selected, helio, batch_size)]
     studied = study_heliostats(list(items), study, study_seed)
     coarse_options = coarse_fit_options(workdir)
     for hid in studied:
         tasks.append(("study", (items[hid], _study_sizes(items[hid], n_train),
                                 _study_presets(items[hid], presets), variants, weight_decays,
-                                seeds, path, pretrain_config, baselines, coarse_options)))
+                                seeds, path, pretrain_config, baselines, coarse_options,
+                                gp_config, rule)))
     parts = map_tasks(_sweep_task, tasks, workers=workers, scheduler=scheduler,
                       dask_address=dask_address,
                       progress=(lambda d, t: progress(d, t, None)) if progress else None)
@@ -520,6 +486,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     add_sweep_time_split(workdir, chosen, items, variants, weight_decays, path, pretrain_config,
                          train_path, time_split, batch_size=batch_size, workers=workers,
                          scheduler=scheduler, dask_address=dask_address)
+    apply_forward_checks(chosen, items)
     opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
             "seeds": seeds, "presets": list(presets) if presets else "fit-coarse's",
             "baselines": list(baselines), "extra_bands": [list(b) for b in extra_bands],
@@ -528,6 +495,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "study_seed": study_seed, "study_heliostats": studied, "path": path.to_dict(),
             "batch_size": batch_size, "select_pretrained": bool(select_pretrained),
             "coarse_options": coarse_options, "time_split": bool(time_split),
+            "gp_config": gp_config.to_dict() if gp_config else None, "rule": rule.to_dict(),
             "heliostats": list(heliostats) if heliostats else None}
     selection = _write_outputs(workdir, results, chosen, heliostats, opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),

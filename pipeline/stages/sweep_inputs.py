@@ -20,6 +20,7 @@ from ..models.pretrained import PretrainConfig, fit_pretrained
 from ..physics.metrics import error_mrad, measured_normal
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from .fit_coarse import load_selected_parameters
+from .forward import load_time_parameters
 
 __all__ = ["SweepInputs", "SweepHeliostat", "read_sweep_inputs", "coarse_by_model", "split_stats",
            "sweep_row", "fit_pretrained_errors"]
@@ -33,9 +34,11 @@ def split_stats(err: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     return float(v.mean()), float(np.median(v))
 
 
-def sweep_row(hid, model, n_train, wd, seed, err, labels, train_mask, dist, base_preset, wall):
+def sweep_row(hid, model, n_train, wd, seed, err, labels, train_mask, dist, base_preset, wall,
+              fade_length_deg: float = float("nan")):
     """One sweep.parquet row: a model's errors ``err`` (N,) [mrad] of one heliostat on its
-    training rows ``train_mask`` and its validation and test ``labels``."""
+    training rows ``train_mask`` and its validation and test ``labels`` (a fine model's at its
+    sun fade length ``fade_length_deg`` [deg])."""
     tr = split_stats(err, train_mask)
     va = split_stats(err, labels == "validation")
     te = split_stats(err, labels == "test")
@@ -44,7 +47,8 @@ def sweep_row(hid, model, n_train, wd, seed, err, labels, train_mask, dist, base
             "train_error_mrad": tr[0], "train_median_error_mrad": tr[1],
             "val_error_mrad": va[0], "val_median_error_mrad": va[1],
             "test_error_mrad": te[0], "test_median_error_mrad": te[1],
-            "test_train_distance_deg": dist, "base_preset": base_preset, "wall_time_s": wall}
+            "test_train_distance_deg": dist, "base_preset": base_preset, "wall_time_s": wall,
+            "fade_length_deg": fade_length_deg}
 
 
 @dataclass
@@ -59,6 +63,7 @@ class SweepInputs:
     coarse: dict                # model -> DataFrame of coarse_predictions metric columns, rows' order
     coarse_val: float           # fit-coarse's selected preset's mean validation error [mrad]
     coarse_test: float          # ... and test error [mrad] (coarse_params.parquet)
+    time_params: torch.Tensor | None = None   # fit-coarse's time-split fit (28,); None: none
 
 
 @dataclass
@@ -119,6 +124,7 @@ def read_sweep_inputs(workdir: Path, heliostats: Sequence[str] | None) -> dict[s
                                     "test_error_mrad"])
     params = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
     preds = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats)
+    time_params = load_time_parameters(workdir, heliostats)
     pred_of = dict(tuple(preds.groupby("heliostat_id", sort=False)))
     merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
                                 on=["heliostat_id", "measurement_id"], how="inner")
@@ -135,7 +141,7 @@ def read_sweep_inputs(workdir: Path, heliostats: Sequence[str] | None) -> dict[s
         items[hid] = SweepInputs(hid, rows, helio.loc[hid].to_dict(), srows, selected[hid],
                                  coarse_by_model(pred_of[hid], rows),
                                  float(params.loc[hid, "val_error_mrad"]),
-                                 float(params.loc[hid, "test_error_mrad"]))
+                                 float(params.loc[hid, "test_error_mrad"]), time_params.get(hid))
     if not items:
         raise FitError(f"no heliostat in {workdir} has a coarse fit and training rows; run "
                        f"`heliocal fit-coarse --workdir {workdir}` first")

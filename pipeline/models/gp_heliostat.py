@@ -1,0 +1,228 @@
+"""The Gaussian-process correction of one heliostat: fitted on top of its coarse model with the
+fade length chosen on validation (``fit-hybrid --mode gp`` and the sweep's candidate), and the
+steps that aim with it (``aim``). The model itself: :mod:`heliocal.pipeline.models.gp`.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import pandas as pd
+import torch
+
+from ..physics.kinematics import forward_kinematics, inverse_kinematics
+from ..physics.metrics import error_mrad, measured_normal, reflect
+from ..physics.sun import sun_angles_from_vector
+from .fade import FADE_LENGTHS_DEG
+from .gp import (GPConfig, GPCorrection, GPPrediction, best_structure, correct_normals,
+                 fit_gp_corrections, pointing_frame, pointing_residuals_mrad)
+from .selection import choose_fade
+
+__all__ = [
+    "HeliostatGP",
+    "GPAim",
+    "coarse_normals",
+    "fit_heliostat_gps",
+    "fit_heliostat_gp",
+    "gp_aim_steps",
+    "correction_grid",
+]
+
+
+# ------------------------------------------------------------------------------------------------
+# one heliostat: residuals of its coarse model, the fit, the fade chosen on validation
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class HeliostatGP:
+    """The GP correction of one heliostat (one kernel structure) with every row's errors.
+
+    Attributes
+    ----------
+    model : the fitted correction, its fade set to the chosen lengths.
+    errors_by_length : (L, N) error_mrad of every row with each sun fade length of ``lengths``.
+    lengths : the sun fade lengths tried [deg] (longest first); ``chosen`` the index kept.
+    normal, position : (N, 3) the corrected normals at the chosen fade and the mirror centres.
+    wall_time_s : seconds of its fit and predictions.
+    """
+
+    model: GPCorrection
+    errors_by_length: np.ndarray
+    lengths: tuple
+    chosen: int
+    normal: torch.Tensor
+    position: torch.Tensor
+    wall_time_s: float
+
+    @property
+    def errors(self) -> np.ndarray:
+        return self.errors_by_length[self.chosen]
+
+    @property
+    def fade_length_deg(self) -> float:
+        return float(self.lengths[self.chosen])
+
+
+def coarse_normals(params_rows: torch.Tensor, spec, data) -> tuple[torch.Tensor, torch.Tensor,
+                                                                      torch.Tensor]:
+    """Predicted normals, mirror centres and measured normals (N, 3) of a heliostat's rows under
+    per-row coarse parameters (N, 28) (a regime-aware model: each row its regime's)."""
+    with torch.no_grad():
+        params = params_rows if params_rows.dim() == 2 else params_rows.expand(len(data), -1)
+        n, pos = forward_kinematics(params, spec, data.steps.unsqueeze(1))
+        n, pos = n[:, 0], pos[:, 0]
+        return n, pos, measured_normal(data.sun, pos, data.focal_spot)
+
+
+def fit_heliostat_gps(rows: pd.DataFrame, labels: np.ndarray, spec, data,
+                      params_rows: torch.Tensor, config: GPConfig, val_weights: np.ndarray, *,
+                      lengths: Sequence[float] | None = None,
+                      time_length_days: float = math.inf) -> dict[str, HeliostatGP]:
+    """The GP corrections of one heliostat, one per structure of ``config``: fitted on its
+    ``train`` rows, each structure's sun fade length chosen on its ``validation`` rows weighted
+    by ``val_weights`` (in the rows' order; :func:`heliocal.pipeline.models.selection.choose_fade`).
+
+    Parameters
+    ----------
+    rows, labels : the heliostat's rows (measurements.parquet) and their split labels (N,).
+    spec, data : its :class:`HeliostatSpec` and :class:`MeasurementBatch` of ``rows``.
+    params_rows : (N, 28) or (28,) the coarse model's parameters (the prior mean).
+    config : :class:`GPConfig`.
+    lengths : sun fade lengths [deg] to choose from (default
+        :data:`heliocal.pipeline.models.fade.FADE_LENGTHS_DEG`).
+    time_length_days : the time fade length of a structure with time [days].
+    """
+    t0 = _time.perf_counter()
+    lengths = tuple(FADE_LENGTHS_DEG if lengths is None else lengths)
+    labels = np.asarray(labels, dtype=object)
+    train, val = labels == "train", labels == "validation"
+    n, pos, meas = coarse_normals(params_rows, spec, data)
+    models = fit_gp_corrections(rows[train], pointing_residuals_mrad(n, meas)[train], config)
+    shared = (_time.perf_counter() - t0) / len(models)
+    out = {}
+    for structure, model in models.items():
+        t1 = _time.perf_counter()
+        days = time_length_days if model.uses_time else math.inf
+        fades = [model.fade.with_lengths(length, days) for length in lengths]
+        with torch.no_grad():
+            mean = model.predict(model.inputs.encode_rows(rows)).mean_mrad
+            normals = [correct_normals(n, f.weights_of_rows(rows)[:, None] * mean) for f in fades]
+            errs = np.stack([error_mrad(c, meas).numpy() for c in normals])
+        chosen = choose_fade([e[val] for e in errs], val_weights) if val.any() else 0
+        out[structure] = HeliostatGP(model.with_fade(fades[chosen]), errs, lengths, chosen,
+                                     normals[chosen], pos, shared + _time.perf_counter() - t1)
+    return out
+
+
+def fit_heliostat_gp(rows: pd.DataFrame, labels: np.ndarray, spec, data,
+                     params_rows: torch.Tensor, config: GPConfig, val_weights: np.ndarray,
+                     **kwargs) -> HeliostatGP:
+    """:func:`fit_heliostat_gps`' structure of the highest log marginal likelihood."""
+    fits = fit_heliostat_gps(rows, labels, spec, data, params_rows, config, val_weights, **kwargs)
+    best = best_structure({k: f.model for k, f in fits.items()})
+    return fits[best.structure]
+
+
+# ------------------------------------------------------------------------------------------------
+# aiming with the correction
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class GPAim:
+    """Steps that aim with a GP-corrected coarse model (:func:`gp_aim_steps`).
+
+    Attributes
+    ----------
+    steps : (1, 2) motor steps; iterations : fixed-point iterations used.
+    normal, position : (1, 3) the corrected mirror normal and the mirror centre at ``steps``.
+    prediction : the correction there (mean [mrad], variance [mrad^2], fade).
+    """
+
+    steps: torch.Tensor
+    iterations: int
+    normal: torch.Tensor
+    position: torch.Tensor
+    prediction: GPPrediction
+
+
+def gp_aim_steps(model: GPCorrection, params: torch.Tensor, spec, sun: torch.Tensor,
+                 aim_point: torch.Tensor, time_s: float | None, env_values=None, *,
+                 max_iterations: int = 50, tolerance_steps: float = 1e-6) -> GPAim:
+    """Motor steps whose GP-corrected normal reflects the sun onto ``aim_point``.
+
+    The correction ``g`` depends on the sun, the time and env, not on the steps, so the coarse
+    model must point its normal at ``n_c`` with ``correct(n_c, g) = n*`` (``n*`` the bisector of
+    the sun and the direction to the aim point): the coarse inverse kinematics aims at the point
+    the normal ``n_c`` reflects the sun to, at the aim point's distance. The mirror centre moves
+    with the steps, so this is iterated until the steps change by less than ``tolerance_steps``.
+
+    Parameters
+    ----------
+    model : the heliostat's correction; params : (28,) its coarse parameters.
+    sun : (1, 3) unit vector toward the sun; aim_point : (1, 3) [m] ENU.
+    time_s : time of the aim [s since 1970 UTC] (None: the median training time).
+    env_values : (E,) raw env values of the model's env inputs.
+    """
+    sun = sun.reshape(1, 3)
+    az, el = (float(a[0]) for a in sun_angles_from_vector(sun.numpy()))
+    t = np.array([np.nan if time_s is None else float(time_s)])
+    x = model.inputs.encode([az], [el], t, None if env_values is None
+                            else np.asarray(env_values, np.float64).reshape(1, -1))
+    pred = model.predict(x, model.fade.weights([az], [el], None if time_s is None else t))
+    g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
+    steps = inverse_kinematics(params, spec, sun, aim_point)
+    iterations = 0
+    for iterations in range(1, max_iterations + 1):
+        with torch.no_grad():
+            _, position = forward_kinematics(params, spec, steps)
+            to_aim = aim_point - position
+            wanted = sun + to_aim / torch.linalg.vector_norm(to_aim, dim=-1, keepdim=True)
+            wanted = wanted / torch.linalg.vector_norm(wanted, dim=-1, keepdim=True)
+            coarse_normal = wanted
+            for _ in range(3):            # the frame of n_c, not of n*: second order, converges
+                h, v = pointing_frame(coarse_normal)
+                coarse_normal = wanted - 1e-3 * (g[:, :1] * h + g[:, 1:] * v)
+                coarse_normal = coarse_normal / torch.linalg.vector_norm(coarse_normal, dim=-1,
+                                                                         keepdim=True)
+            beam = reflect(-sun, coarse_normal)
+            target = position + torch.linalg.vector_norm(to_aim, dim=-1, keepdim=True) * beam
+            new = inverse_kinematics(params, spec, sun, target)
+        if not bool(torch.isfinite(new).all()):
+            return GPAim(new, iterations, torch.full((1, 3), float("nan")), position, pred)
+        delta = float((new - steps).abs().max())
+        steps = new
+        if delta < tolerance_steps:
+            break
+    with torch.no_grad():
+        normal, position = forward_kinematics(params, spec, steps)
+    return GPAim(steps, iterations, correct_normals(normal, g.numpy()), position, pred)
+
+
+def correction_grid(model: GPCorrection, time_s: float | None = None, *, n_azimuth: int = 64,
+                    n_elevation: int = 40, margin_deg: float = 15.0) -> dict:
+    """The faded correction of ``model`` on a grid of sun positions around its training rows
+    (``margin_deg`` beyond them, elevation within 0-90 deg) at the time ``time_s`` [s since 1970]
+    (default: its latest training row's): what the report's correction map draws
+    (:func:`heliocal.pipeline.report.figures.plot_gp_correction`)."""
+    train = model.fade.train_sun_deg
+    times = model.fade.train_time_s[np.isfinite(model.fade.train_time_s)]
+    if time_s is None:
+        time_s = float(times.max()) if len(times) else math.nan
+    az = np.linspace(train[:, 0].min() - margin_deg, train[:, 0].max() + margin_deg, n_azimuth)
+    el = np.linspace(max(0.0, train[:, 1].min() - margin_deg),
+                     min(90.0, train[:, 1].max() + margin_deg), n_elevation)
+    aa, ee = np.meshgrid(az, el)
+    t = np.full(aa.size, time_s)
+    fade = model.fade.weights(aa.ravel(), ee.ravel(), t)
+    pred = model.predict(model.inputs.encode(aa.ravel(), ee.ravel(), t,
+                                             np.zeros((aa.size, len(model.inputs.env)))
+                                             if model.inputs.env else None), fade)
+    when = (pd.Timestamp(time_s, unit="s", tz="UTC").strftime("%Y-%m-%d")
+            if math.isfinite(time_s) else "no date")
+    return {"azimuth_deg": az, "elevation_deg": el,
+            "mean_h": pred.mean_mrad[:, 0].reshape(aa.shape),
+            "mean_v": pred.mean_mrad[:, 1].reshape(aa.shape), "fade": fade.reshape(aa.shape),
+            "train_sun_deg": train, "structure": model.structure,
+            "fade_length_deg": model.fade.length_deg, "when": when}

@@ -1,0 +1,197 @@
+"""The Gaussian-process correction (models/gp.py, models/gp_heliostat.py, ``fit-hybrid --mode gp``,
+``aim --model gp``).
+
+Unit tests use residual fields written out here (a smooth sky pattern, a step in time) on sun
+positions and times drawn with a fixed seed; the end-to-end tests use test_hybrid's synthetic
+heliostat SYN1 (a static-6 rigid body plus a monthly tilt the rigid body cannot follow).
+"""
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from heliocal.pipeline.errors import ParameterError
+from heliocal.pipeline.models.gp import (GPConfig, GPCorrection, correct_normals,
+                                         fit_gp_correction, gp_correction, pointing_frame,
+                                         pointing_residuals_mrad)
+from heliocal.pipeline.physics.metrics import error_mrad
+
+
+def _rows(n, seed, az=(-80.0, 80.0), el=(15.0, 60.0), days=100.0):
+    rng = np.random.default_rng(seed)
+    t = pd.Timestamp("2023-03-01", tz="UTC") + pd.to_timedelta(np.sort(rng.uniform(0, days, n)), "D")
+    return pd.DataFrame({"sun_azimuth_deg": rng.uniform(*az, n),
+                         "sun_elevation_deg": rng.uniform(*el, n), "timestamp": t})
+
+
+def _sky(rows):
+    """A smooth pointing residual over the sky [mrad]: (sin(az / 10), 0.5 cos(el / 8)), the
+    angles in degrees, so it varies over tens of degrees."""
+    return np.column_stack([np.sin(rows["sun_azimuth_deg"].to_numpy() / 10),
+                            0.5 * np.cos(rows["sun_elevation_deg"].to_numpy() / 8)])
+
+
+def test_residual_components_and_correction_are_inverse():
+    # a normal turned by 1 mrad along h and -2 mrad along v has residual (1, -2) mrad (to second
+    # order: 1e-6 relative), and correcting the first by it gives the second (below 1e-5 mrad)
+    n = torch.nn.functional.normalize(torch.tensor([[0.3, -0.8, 0.5], [0.0, -0.6, 0.8]],
+                                                   dtype=torch.float64), dim=-1)
+    h, v = pointing_frame(n)
+    assert float((h * n).sum(-1).abs().max()) < 1e-15
+    assert float(h[:, 2].abs().max()) < 1e-15                           # h is horizontal
+    m = torch.nn.functional.normalize(n + 1e-3 * h - 2e-3 * v, dim=-1)
+    r = pointing_residuals_mrad(n, m)
+    assert r == pytest.approx(np.array([[1.0, -2.0]] * 2), rel=1e-5)
+    assert error_mrad(correct_normals(n, r), m).max() < 1e-5
+
+
+def test_the_gp_learns_a_sky_pattern_and_returns_to_the_coarse_model_far_away():
+    train, test = _rows(150, 0), _rows(40, 1)
+    noise = np.random.default_rng(2).normal(0, 0.05, (150, 2))
+    model = fit_gp_correction(train, _sky(train) + noise, GPConfig(structures=("sun",)))
+    inside = model.predict_rows(test)
+    # interpolation between training rows: within 0.05 mrad RMS of the true pattern (noise 0.05)
+    assert np.sqrt(np.mean((inside.mean_mrad - _sky(test)) ** 2)) < 0.05
+    # 150 deg of azimuth away from every training row the prior mean (the coarse model) is back
+    # and the variance is the prior's: 2 components x the fitted signal variance
+    far = model.predict(model.inputs.encode([170.0], [40.0], [np.nan]))
+    assert np.abs(far.mean_mrad).max() < 0.05           # of a pattern of amplitude 1 and 0.5
+    signal = float(model._fitted().kernel_.k1.k1.constant_value) * model.y_scale_mrad ** 2
+    assert far.variance_mrad2[0] == pytest.approx(2 * signal, rel=0.02)   # 1 - k(far, X): 1 %
+    assert (inside.variance_mrad2 < 0.1 * far.variance_mrad2[0]).all()
+
+
+def test_a_step_in_time_is_found_by_the_marginal_likelihood():
+    # the same sky pattern plus a 1 mrad step of the h component after day 50: the additive
+    # sun+time kernel explains it, the sun kernel alone cannot (log marginal likelihood)
+    train = _rows(150, 3)
+    days = (train["timestamp"] - train["timestamp"].min()).dt.total_seconds() / 86400
+    y = _sky(train) + np.random.default_rng(4).normal(0, 0.05, (150, 2))
+    y[:, 0] += np.where(days > 50, 1.0, 0.0)
+    sun = fit_gp_correction(train, y, GPConfig(structures=("sun",)))
+    both = fit_gp_correction(train, y, GPConfig(structures=("sun", "sun+time")))
+    assert both.structure == "sun+time"
+    assert both.log_marginal_likelihood > sun.log_marginal_likelihood + 50
+
+
+def test_the_model_file_predicts_the_same():
+    train = _rows(80, 5)
+    model = fit_gp_correction(train, _sky(train), GPConfig())
+    config = {"gp": model.to_dict()}
+    state = {k: v.clone() for k, v in model.to_state().items()}
+    again = gp_correction((json.loads(json.dumps(config)), state), _rows(10, 6))
+    first = gp_correction(model, _rows(10, 6))
+    assert again.mean_mrad == pytest.approx(first.mean_mrad, abs=1e-10)
+    assert again.variance_mrad2 == pytest.approx(first.variance_mrad2, abs=1e-10)
+    # the fit is seeded: the same rows and settings give the same hyperparameters
+    assert fit_gp_correction(train, _sky(train), GPConfig()).theta.tolist() == model.theta.tolist()
+
+
+def test_settings_are_checked():
+    with pytest.raises(ParameterError, match=r"The 'structures' parameter of fit_gp_correction "
+                                             r"must list structures of sun, sun\+time, sun\*time. "
+                                             r"Got 'time' instead."):
+        GPConfig(structures=("time",)).validated()
+    with pytest.raises(ParameterError, match=r"one \(h, v\) row per training row"):
+        fit_gp_correction(_rows(5, 0), np.zeros((4, 2)))
+    assert isinstance(fit_gp_correction(_rows(5, 0), np.zeros((5, 2))), GPCorrection)
+
+
+# --------------------------------------------------------------------------------------------
+# fit-hybrid --mode gp and aim --model gp on SYN1 (test_hybrid's synthetic heliostat)
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def gp_workdir(tmp_path_factory):
+    from test_hybrid import HELIOSTAT_ROW, synthetic_measurements
+
+    from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import write_artifact
+    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
+    from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
+    from heliocal.pipeline.stages.split import run_split
+
+    wd = tmp_path_factory.mktemp("gp")
+    rows = synthetic_measurements()
+    write_artifact(rows, wd, MEASUREMENTS, stage="test")
+    write_artifact(pd.DataFrame([dict(HELIOSTAT_ROW, n_measurements=len(rows))]), wd, HELIOSTATS,
+                   stage="test")
+    run_split(wd, n_test=30, n_val=20)
+    run_fit_coarse(wd, preset="static-6", robust_start=False, regime_steps="detect")
+    return wd, run_fit_hybrid(wd, mode="gp", seed=0)
+
+
+@pytest.mark.slow
+def test_gp_mode_corrects_the_monthly_tilt(gp_workdir):
+    # SYN1's monthly tilt (test_hybrid.SEASONAL_AMPLITUDE_RAD) is smooth in time: the additive
+    # time kernel follows it and the corrected model beats the rigid body on every split
+    _, summary = gp_workdir
+    h = summary["heliostats"][0]
+    assert h["mode"] == "gp"
+    for split in ("validation", "test"):
+        assert h["gp"][split] < 0.9 * h["coarse"][split], h
+
+
+@pytest.mark.slow
+def test_aim_with_the_gp_puts_the_corrected_beam_on_the_aim_point(gp_workdir):
+    from test_hybrid import HELIOSTAT_ROW, HID
+
+    from heliocal.pipeline.physics.kinematics import forward_kinematics
+    from heliocal.pipeline.physics.metrics import reflect
+    from heliocal.pipeline.physics.parameters import HeliostatSpec
+    from heliocal.pipeline.physics.sun import spa_sun_position, sun_vector_enu
+    from heliocal.pipeline.stages.aim import aim_steps, load_model
+
+    wd, _ = gp_workdir
+    aim, when = np.array([0.5, -3.235754, 36.5]), pd.Timestamp("2023-05-03T11:00Z")
+    out = aim_steps(wd, HID, aim_point_enu=aim, time_utc=when, model="gp")
+    coarse = aim_steps(wd, HID, aim_point_enu=aim, time_utc=when, model="coarse")
+    assert out["model"] == "gp" and out["inverse_residual_mrad"] < 0.01
+    # independently: the coarse normal at the returned steps, corrected by the model file's GP
+    # at that sun and time, reflects the sun onto the aim point
+    cfg, state = load_model(wd, "gp", HID)
+    spec = HeliostatSpec.from_row(pd.Series(HELIOSTAT_ROW))
+    steps = torch.tensor([[out["axis_1_steps"], out["axis_2_steps"]]], dtype=torch.float64)
+    normal, position = forward_kinematics(torch.tensor(cfg["base_params"]), spec, steps)
+    az, el = spa_sun_position([when], 50.915305, 6.387838, 88.7)
+    row = pd.DataFrame({"sun_azimuth_deg": az, "sun_elevation_deg": el, "timestamp": [when]})
+    g = gp_correction((cfg, state), row)
+    assert 0.05 < np.abs(g.mean_mrad).max() and g.variance_mrad2[0] > 0
+    beam = reflect(-torch.tensor(sun_vector_enu(az, el)), correct_normals(normal, g.mean_mrad))
+    assert float(error_mrad(beam, torch.tensor(aim) - position)[0]) < 0.01
+    # the correction moved the steps (a fraction of a mrad is tens of steps on these actuators)
+    assert abs(out["axis_1_steps"] - coarse["axis_1_steps"]) + \
+        abs(out["axis_2_steps"] - coarse["axis_2_steps"]) > 1
+
+
+@pytest.mark.slow
+def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_workdir, tmp_path):
+    # SYN1's monthly tilt: the GP correction wins the selection against the coarse model (the
+    # hybrids held at it by a weight decay of 1000); aim --model auto aims with it; the report
+    # draws its correction map
+    import shutil
+
+    from test_hybrid import HID
+
+    from heliocal.pipeline.artifacts.schemas import SELECTION
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.models.config import PathConfig
+    from heliocal.pipeline.stages.aim import aim_steps
+    from heliocal.pipeline.stages.report import run_report
+    from heliocal.pipeline.stages.sweep import run_sweep
+
+    wd = tmp_path / "wd"
+    shutil.copytree(gp_workdir[0], wd)
+    run_sweep(wd, study=0, weight_decays=[1000.0], extra_bands=(), workers=1,
+              path=PathConfig(stage_epochs=20))
+    sel = read_artifact(wd, SELECTION).set_index("heliostat_id").loc[HID]
+    assert sel["model"] in ("gp", "gp-sun"), sel.to_dict()
+    assert sel["weighted_val_error_mrad"] <= 0.9 * sel["coarse_weighted_val_error_mrad"]
+    assert sel["test_error_mrad"] < sel["coarse_test_error_mrad"]
+    out = aim_steps(wd, HID, aim_point_enu=[0.5, -3.235754, 36.5], time_utc="2023-05-03T11:00Z")
+    assert out["model"] == "gp" and out["inverse_residual_mrad"] < 0.01
+    summary = run_report(wd, workers=1)
+    assert any(f.endswith(f"gp_correction_{HID}.png") for f in summary["figures"])
