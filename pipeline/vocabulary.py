@@ -14,7 +14,7 @@ import enum
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
            "PretrainVariant", "AimModel", "CoarseLoss", "CoarseSolver", "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "DEFAULT_BATCH_ROWS",
            "DEFAULT_TIME_MIN", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_FOURIER_BANDS",
-           "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD"]
+           "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "PLAN_MIN_ELEVATION_DEG", "PLAN_DEFAULT_DAYS"]
 
 
 class Choice(str, enum.Enum):
@@ -167,3 +167,9 @@ DEFAULT_ALERT_MRAD = 2.0
 DEFAULT_FOURIER_BANDS = tuple(float(b) for b in range(1, 33))
 #: Fourier bands of the ``hybrid-octaves`` candidate: Tancik et al.'s octaves 1, 2, 4, ..., 32.
 OCTAVE_BANDS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+
+
+#: ``plan``: lowest sun elevation of a planned row and of the year's aims [deg], and the
+#: default length of a plan [days].
+PLAN_MIN_ELEVATION_DEG = 10.0
+PLAN_DEFAULT_DAYS = 7
