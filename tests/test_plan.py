@@ -296,6 +296,11 @@ def test_plan_end_to_end(runner, ingested, tmp_path):
     csv = pd.read_csv(wd / "plan.csv")
     assert len(csv) == 10 and csv["time_utc"].is_monotonic_increasing
     assert set(csv["heliostat_id"]) <= {"BE36", "BF41", "BH35"}
+    # the report shows it
+    assert runner.invoke(app, ["report", "--workdir", str(wd), "--workers", "1"]).exit_code == 0
+    page = (wd / "report" / "plan.html").read_text()
+    assert "Measurement plan" in page and f"{len(plan)} measurements" in page
+    assert "plan.html" in (wd / "report" / "index.html").read_text()
     # retrospective: rows already measured, none of them a test row
     result = runner.invoke(app, ["plan", "--workdir", str(wd), "--start", "2022-06-01",
                                  "--days", "62", "--from-existing", "--budget", "12",
