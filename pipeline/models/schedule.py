@@ -90,8 +90,10 @@ class SlotGrid:
         return len(self.time)
 
     def around(self, node: int) -> np.ndarray:
-        """Slots next to node ``node``: those whose lower or upper node it is."""
-        return np.flatnonzero((self.lower == node) | (self.upper == node))
+        """Slots next to node ``node``: those whose lower or upper node it is (a contiguous
+        range: both are non-decreasing and differ by at most one)."""
+        return np.arange(np.searchsorted(self.upper, node, "left"),
+                         np.searchsorted(self.lower, node, "right"))
 
     def interpolate(self, node_jacobian: np.ndarray, slots: np.ndarray) -> np.ndarray:
         """Aim Jacobians (K, 3, P) at ``slots`` from one target's node Jacobians (N, 3, P)."""
@@ -177,14 +179,17 @@ class Pick:
 
 @dataclass
 class Occupancy:
-    """What the schedule has taken so far."""
+    """What the schedule has taken so far: per target its taken slots (over ``n_slots``), per
+    day and heliostat the count, per heliostat its slots (or rows)."""
 
     limits: Limits
     n_heliostats: int
-    taken: set = field(default_factory=set)           # (target name, slot)
+    n_slots: int = 0
+    taken: dict = field(default_factory=dict)          # target name -> (S,) bool
     day_count: np.ndarray = None
     count: np.ndarray = None
-    busy: list = None                                  # per heliostat: its slots (or rows)
+    busy: list = None
+    busy_slots: dict = field(default_factory=dict)     # heliostat -> (S,) bool, once it has one
 
     def __post_init__(self):
         self.day_count = np.zeros(self.limits.days, int)
@@ -197,13 +202,27 @@ class Occupancy:
             return np.ones(d.shape, bool)
         return self.day_count[d] < self.limits.per_day
 
+    def free(self, h: int, target_name: str, slots: np.ndarray, days: np.ndarray) -> np.ndarray:
+        """Which of ``slots`` heliostat ``h`` may take on ``target_name``: the target's slot is
+        free, ``h`` is not measured then, the day has room."""
+        ok = ~self.taken_slots(target_name)[slots] & self.day_open(days)
+        if h in self.busy_slots:
+            ok &= ~self.busy_slots[h][slots]
+        return ok
+
+    def taken_slots(self, target_name: str) -> np.ndarray:
+        if target_name not in self.taken:
+            self.taken[target_name] = np.zeros(self.n_slots, bool)
+        return self.taken[target_name]
+
     def room_for(self, h: int) -> bool:
         cap = self.limits.max_per_heliostat
         return cap is None or self.count[h] < cap
 
     def take(self, pick: Pick, target_name: str | None) -> None:
         if target_name is not None:
-            self.taken.add((target_name, pick.slot))
+            self.taken_slots(target_name)[pick.slot] = True
+            self.busy_slots.setdefault(pick.heliostat, np.zeros(self.n_slots, bool))[pick.slot] = True
         self.busy[pick.heliostat].add(pick.slot)
         self.day_count[pick.day] += 1
         self.count[pick.heliostat] += 1
@@ -220,6 +239,7 @@ class GridCandidates:
                  targets: Sequence[Sequence[str]]):
         self.grid, self.designs, self.targets = grid, designs, targets
         self._gains: dict[int, tuple[int, np.ndarray]] = {}
+        self._last: dict[int, tuple[int, Pick]] = {}
 
     def _node_gains(self, h: int, cov: ParameterCovariance, version: int) -> np.ndarray:
         cached = self._gains.get(h)
@@ -232,7 +252,19 @@ class GridCandidates:
         return cached[1]
 
     def best(self, h: int, cov: ParameterCovariance, version: int, occ: Occupancy) -> Pick | None:
-        """Heliostat ``h``'s best allowed slot, or None."""
+        """Heliostat ``h``'s best allowed slot, or None (its last answer while that slot is
+        still allowed and its covariance unchanged: taking slots only removes candidates)."""
+        last = self._last.get(h)
+        if last is not None and last[0] == version and occ.free(
+                h, self.targets[h][last[1].target], np.array([last[1].slot]),
+                np.array([last[1].day]))[0]:
+            return last[1]
+        pick = self._best(h, cov, version, occ)
+        if pick is not None:
+            self._last[h] = (version, pick)
+        return pick
+
+    def _best(self, h: int, cov: ParameterCovariance, version: int, occ: Occupancy) -> Pick | None:
         gains = self._node_gains(h, cov, version)
         d, names = self.designs[h], self.targets[h]
         while True:
@@ -241,9 +273,7 @@ class GridCandidates:
             if not np.isfinite(gains[t, n]):
                 return None
             slots = self.grid.around(n)
-            free = np.array([(names[t], s) not in occ.taken and s not in occ.busy[h]
-                             for s in slots], bool) & occ.day_open(self.grid.day[slots])
-            slots = slots[free]
+            slots = slots[occ.free(h, names[t], slots, self.grid.day[slots])]
             if len(slots):
                 j = self.grid.interpolate(d.node_jacobian[t], slots)
                 g = _finite_or_floor(gains_mrad2(cov, d.information, j))
@@ -289,7 +319,7 @@ def greedy_schedule(designs: Sequence[HeliostatDesign], candidates, limits: Limi
     """The greedy schedule (module docstring): the picks in the order taken (highest gain first)
     and every heliostat's covariance after them."""
     covs = [d.covariance for d in designs]
-    occ = Occupancy(limits, len(designs))
+    occ = Occupancy(limits, len(designs), len(getattr(candidates, "grid", ())))
     version = [0] * len(designs)
     heap: list[tuple[float, int]] = []
     for h in range(len(designs)):

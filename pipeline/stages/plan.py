@@ -38,7 +38,7 @@ from .plan_inputs import (PriorScale, default_prior_scale, log_per_day, log_spac
                           planned_heliostats, plant_site, solar_days)
 
 __all__ = ["run_plan", "MIN_ELEVATION_DEG", "NODE_MINUTES", "YEAR_EVERY_DAYS",
-           "YEAR_EVERY_MINUTES", "MAX_DAYS"]
+           "YEAR_EVERY_MINUTES", "MAX_DAYS", "MAX_DAYS_EXISTING"]
 
 log = logging.getLogger("heliocal.plan")
 
@@ -54,8 +54,9 @@ NODE_MINUTES = 30
 #: 1 % of a grid of every day and 10 minutes, docs/plan.md).
 YEAR_EVERY_DAYS, YEAR_EVERY_MINUTES = 15, 30
 
-#: Longest plan [days]: a plan is meant to be made again as its rows come in.
-MAX_DAYS = 62
+#: Longest plan [days]: a plan is meant to be made again as its rows come in (its candidates
+#: cost memory per day). With --from-existing a window may cover the logs' whole history.
+MAX_DAYS, MAX_DAYS_EXISTING = 62, 3660
 
 #: Heliostats per batched design task.
 CHUNK = 64
@@ -64,7 +65,7 @@ _FUNC = "plan"
 
 
 def _check_options(start, days, per_day, budget, max_per_heliostat, spacing_minutes,
-                   min_elevation_deg, seed):
+                   min_elevation_deg, seed, from_existing):
     try:
         day = pd.Timestamp(start)
     except (ValueError, TypeError):
@@ -72,7 +73,7 @@ def _check_options(start, days, per_day, budget, max_per_heliostat, spacing_minu
     if day is None or day is pd.NaT or day != day.normalize():
         raise ParameterError(f"The 'start' parameter of {_FUNC} must be a date like 2024-06-01. "
                              f"Got {start!r} instead.")
-    days = check_int(days, "days", _FUNC, 1, MAX_DAYS)
+    days = check_int(days, "days", _FUNC, 1, MAX_DAYS_EXISTING if from_existing else MAX_DAYS)
     per_day = None if per_day is None else check_int(per_day, "per_day", _FUNC, 1)
     budget = None if budget is None else check_int(budget, "budget", _FUNC, 1)
     if max_per_heliostat is not None:
@@ -306,7 +307,8 @@ def run_plan(workdir: str | Path, *, start, days: int, per_day: int | None = Non
     Parameters
     ----------
     start : first (solar) day of the plan, a date like ``2024-06-01``.
-    days : days in the plan [1, :data:`MAX_DAYS`].
+    days : days in the plan [1, :data:`MAX_DAYS`] (with ``from_existing``
+        :data:`MAX_DAYS_EXISTING`).
     per_day, budget : measurements per day and in all (both apply when both are given; neither:
         the logs' median per measurement day).
     max_per_heliostat : at most this many rows per heliostat (default: no limit).
@@ -322,7 +324,7 @@ def run_plan(workdir: str | Path, *, start, days: int, per_day: int | None = Non
     """
     (start, days, per_day, budget, max_per_heliostat, spacing_minutes, min_elevation_deg,
      seed) = _check_options(start, days, per_day, budget, max_per_heliostat, spacing_minutes,
-                            min_elevation_deg, seed)
+                            min_elevation_deg, seed, from_existing)
     workdir = Path(workdir)
     helio = _read_heliostats(workdir, heliostats)
     site = plant_site(workdir, helio)

@@ -136,13 +136,20 @@ class PlannedHeliostat:
     candidates: pd.DataFrame | None = None
 
 
-def _targets(rows: pd.DataFrame) -> tuple[list[str], np.ndarray]:
-    """Target names by use (most used first) and their centres (T, 3) [m ENU]."""
+def _targets(meas: pd.DataFrame) -> dict:
+    """Per heliostat (and ``None``: the field) its target names by use (most used first) and
+    their centres (T, 3) [m ENU]; one grouping of the whole table."""
     cols = ["target_e_m", "target_n_m", "target_u_m"]
-    counts = rows["target_name"].value_counts(sort=False)
-    order = sorted(counts.index, key=lambda name: (-counts[name], name))
-    centres = rows.groupby("target_name")[cols].median()
-    return list(order), centres.loc[order].to_numpy(float)
+    g = meas.groupby(["heliostat_id", "target_name"], sort=True)
+    table = g[cols].median().assign(n=g.size())
+    field = meas.groupby("target_name")[cols].median().assign(
+        n=meas.groupby("target_name").size())
+    out = {}
+    for key, t in [(None, field)] + list(table.groupby(level=0)):
+        names = t.index.get_level_values(-1)
+        order = sorted(range(len(t)), key=lambda k: (-int(t["n"].iloc[k]), names[k]))
+        out[key] = ([str(names[k]) for k in order], t[cols].to_numpy(float)[order])
+    return out
 
 
 def current_regime_rows(rows: pd.DataFrame, regimes: pd.DataFrame | None,
@@ -196,14 +203,14 @@ def planned_heliostats(helio: pd.DataFrame, meas: pd.DataFrame, selected: dict,
     """
     groups = dict(tuple(meas.groupby("heliostat_id", sort=False)))
     by_regime = {} if regimes is None else dict(tuple(regimes.groupby("heliostat_id", sort=False)))
-    field_targets = _targets(meas) if len(meas) else ([], np.zeros((0, 3)))
+    targets = _targets(meas) if len(meas) else {None: ([], np.zeros((0, 3)))}
     presets = _field_presets(helio, selected)
     out = []
     for _, hrow in helio.iterrows():
         hid = str(hrow["heliostat_id"])
         rows = groups.get(hid, meas.iloc[:0])
         spec, nominal = HeliostatSpec.from_row(hrow), nominal_parameters(hrow)
-        names, points = _targets(rows) if len(rows) else field_targets
+        names, points = targets.get(hid, targets[None])
         if not names:
             continue
         fit = selected.get(hid)
