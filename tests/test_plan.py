@@ -313,3 +313,30 @@ def test_plan_end_to_end(runner, ingested, tmp_path):
     assert chosen.groupby("heliostat_id").size().max() <= 4
     assert {labels[f"{h}/{m}"] for h, m in zip(chosen["heliostat_id"], chosen["measurement_id"])
             } <= {"train", "validation"}
+
+
+# ------------------------------------------------------------------------------------------------
+# checking a plan against ground truth (models.plan_check)
+# ------------------------------------------------------------------------------------------------
+def test_simulated_rows_and_year_error_against_the_truth():
+    """A noiseless row's spot is where the true chain sends the beam at the row's (rounded)
+    steps, so the true geometry's error on it is zero (< 1e-9 mrad); the true geometry's
+    year-round aim error is zero too (to the inverse kinematics' tolerance) and the nominal
+    one's is the size of the simulated deviations (10.6 mrad here; > 0.5 asserted)."""
+    from heliocal.pipeline.models.coarse import MeasurementBatch, normal_errors_mrad
+    from heliocal.pipeline.models.plan_check import simulated_rows, year_error_mrad
+    from heliocal.pipeline.models.simulator import simulate_field
+
+    f = simulate_field(1, seed=4, measurements=(5, 5), dynamic_fraction=0.0, noise_mrad=0.0)
+    h = next(iter(f.heliostats.values()))
+    times = pd.date_range("2024-05-02T06:00Z", periods=6, freq="2h")
+    rows = simulated_rows(f, h, times, ["tower_target_lower", "tower_target_upper"] * 3,
+                          np.random.default_rng(0))
+    assert len(rows) == 6 and set(rows.columns) >= set(f.measurements.columns)
+    with torch.no_grad():
+        err = normal_errors_mrad(h.true, h.spec, MeasurementBatch.from_frame(rows)).numpy()
+    assert err.max() < 1e-9
+    sun = year_sun_grid(f.reference, "2024-01-01", 30, 60, 10.0)
+    aim = f.targets["tower_target_lower"]["center_enu"]
+    assert year_error_mrad(h.true, h, sun, aim)[0] < 1e-6
+    assert year_error_mrad(h.nominal, h, sun, aim)[0] > 0.5
