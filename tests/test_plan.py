@@ -205,6 +205,10 @@ def test_log_spacing_from_the_gaps_between_heliostats():
     assert spacing == 180 and "200 s" in source        # median 200 s, to the nearest minute
     few = pd.DataFrame(rows[:8])
     assert log_spacing_s(few)[0] == DEFAULT_SPACING_S
+    # heliostats measured now and then (gaps of 800, 1600, 2400 s): no session's pace
+    sparse = pd.DataFrame(rows).assign(timestamp=lambda d: t0 + (d["timestamp"] - t0) * 8)
+    spacing, source = log_spacing_s(sparse)
+    assert spacing == DEFAULT_SPACING_S and "1600 s" in source
 
 
 def _regimes(step_mrad: float) -> pd.DataFrame:

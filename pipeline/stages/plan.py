@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import pickle
 from collections import defaultdict
 from pathlib import Path
 from typing import Sequence
@@ -30,7 +31,7 @@ from ..models.design import aim_rows, heliostat_designs, year_variance_mrad2
 from ..models.schedule import (GridCandidates, Limits, RowCandidates, greedy_schedule, slot_grid,
                                year_sun_grid)
 from ..models.uncertainty import aim_jacobian, covariance_after
-from ..runtime.parallel import map_tasks, shared_pool
+from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
 from ..vocabulary import PLAN_MIN_ELEVATION_DEG
 from .fit_coarse import load_selected_parameters, load_split_labels
@@ -138,10 +139,12 @@ def _pace(meas, site, n_heliostats, spacing_minutes, per_day, budget, days, max_
     return spacing_s, spacing_source, Limits(total, days, per_day, max_per_heliostat), per_day_source
 
 
-def _design_task(task) -> list:
-    """One chunk's designs (a picklable task for map_tasks); with candidate rows also their data
-    Jacobians (R, 3, P)."""
-    items, year_sun, node_sun, candidates = task
+def _design_task(task: bytes) -> list:
+    """One chunk's designs (a task for map_tasks: the pickled (items, year sun, node sun,
+    candidate rows)); with candidate rows also their data Jacobians (R, 3, P). The task is
+    pickled by value (plain pickle) because torch sends the tensors of a task through shared
+    memory, one file descriptor each, and thousands of heliostats' tensors exhaust them."""
+    items, year_sun, node_sun, candidates = pickle.loads(task)
     designs = heliostat_designs(items, year_sun, node_sun)
     if candidates is None:
         return [(d, None) for d in designs]
@@ -166,8 +169,10 @@ def _chunk_tasks(planned, indices, year_sun, node_sun, rows_mode: bool) -> tuple
         members = groups[key]
         for i in range(0, len(members), CHUNK):
             part = members[i:i + CHUNK]
-            tasks.append(([planned[k].item for k in part], year_sun, node_sun,
-                          [planned[k].candidates for k in part] if rows_mode else None))
+            tasks.append(pickle.dumps(
+                ([planned[k].item for k in part], year_sun, node_sun,
+                 [planned[k].candidates for k in part] if rows_mode else None),
+                protocol=pickle.HIGHEST_PROTOCOL))
             order.append(part)
     return tasks, order
 
@@ -325,6 +330,7 @@ def run_plan(workdir: str | Path, *, start, days: int, per_day: int | None = Non
     (start, days, per_day, budget, max_per_heliostat, spacing_minutes, min_elevation_deg,
      seed) = _check_options(start, days, per_day, budget, max_per_heliostat, spacing_minutes,
                             min_elevation_deg, seed, from_existing)
+    warm_up((__name__,), workers=workers)
     workdir = Path(workdir)
     helio = _read_heliostats(workdir, heliostats)
     site = plant_site(workdir, helio)

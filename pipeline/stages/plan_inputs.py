@@ -46,6 +46,11 @@ DEFAULT_SPACING_S = 180
 #: Gaps (< 1 h) on one target the logs must show before their median is the default spacing.
 MIN_SPACING_GAPS = 20
 
+#: A median gap above this [s] is no calibration session's pace (the plant measured heliostats
+#: now and then, not one after the other): then the default spacing. Logs of heliostats
+#: scheduled independently (simulate's) show medians of 20-26 minutes.
+MAX_SESSION_SPACING_S = 600
+
 #: A detected break moves a heliostat into a young regime (the plan's covariance then rests on
 #: the rows after it only) when its step is at least this [mrad]: the smallest step
 #: ``simulate`` draws. With few rows a fit's residuals are small and regime detection finds
@@ -94,8 +99,9 @@ def solar_days(times: pd.Series, start, longitude_deg: float) -> np.ndarray:
 def log_spacing_s(meas: pd.DataFrame) -> tuple[int, str]:
     """The default spacing on one target [s] and where it comes from: the median gap between
     consecutive measurements of two different heliostats on one target, counting gaps under an
-    hour (the pace of a calibration session), in whole minutes (at least one); else
-    :data:`DEFAULT_SPACING_S`."""
+    hour (the pace of a calibration session), to the nearest whole minute (at least one); else
+    (fewer than :data:`MIN_SPACING_GAPS` gaps, or a median above
+    :data:`MAX_SESSION_SPACING_S`) :data:`DEFAULT_SPACING_S`."""
     m = meas.dropna(subset=["timestamp"]).sort_values(["target_name", "timestamp"])
     gap = m.groupby("target_name")["timestamp"].diff().dt.total_seconds()
     other = m["heliostat_id"].ne(m.groupby("target_name")["heliostat_id"].shift())
@@ -104,6 +110,9 @@ def log_spacing_s(meas: pd.DataFrame) -> tuple[int, str]:
         return DEFAULT_SPACING_S, (f"default ({len(gaps)} gaps under an hour between two heliostats "
                                    f"on one target in the logs, fewer than {MIN_SPACING_GAPS})")
     median = float(gaps.median())
+    if median > MAX_SESSION_SPACING_S:
+        return DEFAULT_SPACING_S, (f"default (the logs' median gap between two heliostats on one "
+                                   f"target, {median:.0f} s, is no calibration session's pace)")
     return max(60, int(round(median / 60.0)) * 60), (
         f"the logs' median gap between two heliostats on one target, {median:.0f} s "
         f"({len(gaps)} gaps under an hour), in whole minutes")
