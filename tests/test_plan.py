@@ -344,3 +344,18 @@ def test_simulated_rows_and_year_error_against_the_truth():
     aim = f.targets["tower_target_lower"]["center_enu"]
     assert year_error_mrad(h.true, h, sun, aim)[0] < 1e-6
     assert year_error_mrad(h.nominal, h, sun, aim)[0] > 0.5
+
+
+def test_noise_from_heliostats_with_degrees_of_freedom():
+    """A heliostat's own noise scale needs 2 N - P >= 10; the others take the field's median;
+    when none has 10, those with at least one; when none has one, every heliostat with rows."""
+    from types import SimpleNamespace
+
+    from heliocal.pipeline.stages.plan import MIN_NOISE_DOF, _noise_groups
+
+    assert MIN_NOISE_DOF == 10
+    field = lambda *dof: [SimpleNamespace(noise_dof=d) for d in dof]  # noqa: E731
+    assert _noise_groups(field(14, 0, None, 10)) == ([0, 3], [1, 2])
+    assert _noise_groups(field(4, 0, None)) == ([0], [1, 2])
+    assert _noise_groups(field(0, -2, None)) == ([0, 1], [2])
+    assert _noise_groups(field(None)) == ([], [0])

@@ -39,7 +39,7 @@ from .plan_inputs import (PriorScale, default_prior_scale, log_per_day, log_spac
                           planned_heliostats, plant_site, solar_days)
 
 __all__ = ["run_plan", "MIN_ELEVATION_DEG", "NODE_MINUTES", "YEAR_EVERY_DAYS",
-           "YEAR_EVERY_MINUTES", "MAX_DAYS", "MAX_DAYS_EXISTING"]
+           "YEAR_EVERY_MINUTES", "MAX_DAYS", "MAX_DAYS_EXISTING", "MIN_NOISE_DOF"]
 
 log = logging.getLogger("heliocal.plan")
 
@@ -61,6 +61,11 @@ MAX_DAYS, MAX_DAYS_EXISTING = 62, 3660
 
 #: Heliostats per batched design task.
 CHUNK = 64
+
+#: A heliostat's own noise scale needs this many degrees of freedom (2 N - P) of its residuals;
+#: with fewer (a fit of P parameters on about P / 2 rows nearly interpolates them) it takes the
+#: field's median: the noise is mostly the camera-target system's, shared by the field.
+MIN_NOISE_DOF = 10
 
 _FUNC = "plan"
 
@@ -177,12 +182,23 @@ def _chunk_tasks(planned, indices, year_sun, node_sun, rows_mode: bool) -> tuple
     return tasks, order
 
 
+def _noise_groups(planned) -> tuple[list[int], list[int]]:
+    """(heliostats whose own rows give the noise scale, the others, which take the first
+    group's median): own when the residuals leave at least :data:`MIN_NOISE_DOF` degrees of
+    freedom; when none does, those with at least one, else every heliostat with rows."""
+    dof = [p.noise_dof for p in planned]
+    for least in (MIN_NOISE_DOF, 1, -math.inf):
+        own = [k for k, d in enumerate(dof) if d is not None and d >= least]
+        if own:
+            return own, [k for k in range(len(planned)) if k not in set(own)]
+    return [], list(range(len(planned)))
+
+
 def _designs(planned, year_sun, node_sun, rows_mode: bool, workers) -> tuple[list, list, float]:
     """Every heliostat's design (and candidate row Jacobians): those with a noise scale of
-    their own first, then the others with the field's median (``nan`` if none has one)."""
+    their own first (:func:`_noise_groups`), then the others with the field's median."""
     designs, row_jacs = [None] * len(planned), [None] * len(planned)
-    own = [k for k, p in enumerate(planned) if p.own_noise]
-    rest = [k for k, p in enumerate(planned) if not p.own_noise]
+    own, rest = _noise_groups(planned)
 
     def run(indices):
         tasks, order = _chunk_tasks(planned, indices, year_sun, node_sun, rows_mode)

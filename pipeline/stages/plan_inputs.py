@@ -133,15 +133,15 @@ def log_per_day(meas: pd.DataFrame, longitude_deg: float, n_heliostats: int) -> 
 @dataclass
 class PlannedHeliostat:
     """One heliostat of the plan: its :class:`DesignInput`, the model its covariance rests on,
-    its targets' names (the order of ``item.target_points``), how many known rows, whether its
-    rows give it a noise scale of its own (else it takes the field's), and
-    (``--from-existing``) its candidate rows."""
+    its targets' names (the order of ``item.target_points``), how many known rows, the degrees of
+    freedom ``2 N - P`` of the residuals its noise scale would rest on (None without rows for
+    it), and (``--from-existing``) its candidate rows."""
 
     item: DesignInput
     model: str
     targets: list[str]
     n_known: int
-    own_noise: bool
+    noise_dof: int | None
     candidates: pd.DataFrame | None = None
 
 
@@ -251,8 +251,8 @@ def planned_heliostats(helio: pd.DataFrame, meas: pd.DataFrame, selected: dict,
                  ) if noise_mask.any() else None
         item = DesignInput(hid, spec, params, free, np.asarray(prior(hrow, nominal), float),
                            known, noise, points[0], points)
-        out.append(PlannedHeliostat(item, model, names, len(known), noise is not None,
-                                    candidates))
+        dof = None if noise is None else 2 * len(noise) - int(np.sum(free))
+        out.append(PlannedHeliostat(item, model, names, len(known), dof, candidates))
     return out
 
 
