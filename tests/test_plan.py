@@ -225,12 +225,13 @@ def _regimes(step_mrad: float) -> pd.DataFrame:
     (0.2, True, [False, False, True, True]),      # fit-coarse modelled the regimes
 ])
 def test_young_regime_rows(step, regime_aware, expected):
-    from heliocal.pipeline.stages.plan_inputs import YOUNG_REGIME_MIN_STEP_MRAD, current_regime_rows
+    from heliocal.pipeline.stages.plan_inputs import (YOUNG_REGIME_MIN_STEP_MRAD,
+                                                      current_regime_rows, regime_breaks)
 
     assert YOUNG_REGIME_MIN_STEP_MRAD == 1.0
-    rows = pd.DataFrame({"timestamp": pd.to_datetime(
-        ["2024-01-05", "2024-01-20", "2024-02-02", "2024-02-20"], utc=True)})
-    current, episode = current_regime_rows(rows, _regimes(step), regime_aware)
+    times = pd.to_datetime(["2024-01-05", "2024-01-20", "2024-02-02", "2024-02-20"], utc=True)
+    starts, spans = regime_breaks(_regimes(step), {"H"} if regime_aware else set())
+    current, episode = current_regime_rows(times, starts.get("H"), spans.get("H", []))
     assert current.tolist() == expected and not episode.any()
 
 

@@ -124,7 +124,8 @@ def _read_fits(workdir: Path, helio: pd.DataFrame):
         upstream["split"] = SPLIT
     check_fresh(workdir, COARSE_PARAMS, upstream)
     ids = list(helio["heliostat_id"])
-    meas = read_artifact(workdir, MEASUREMENTS, heliostats=ids).reset_index(drop=True)
+    meas = read_artifact(workdir, MEASUREMENTS, heliostats=ids)
+    meas = meas.sort_values("heliostat_id", kind="mergesort").reset_index(drop=True)
     meas["split"] = load_split_labels(workdir, meas).to_numpy()
     selected = load_selected_parameters(workdir, ids)
     regimes = read_artifact(workdir, REGIMES, heliostats=ids) if artifact_present(workdir, REGIMES) else None

@@ -35,6 +35,7 @@ __all__ = [
     "FALLBACK_PRESET",
     "YOUNG_REGIME_MIN_STEP_MRAD",
     "current_regime_rows",
+    "regime_breaks",
 ]
 
 log = logging.getLogger("heliocal.plan")
@@ -146,41 +147,66 @@ class PlannedHeliostat:
 
 
 def _targets(meas: pd.DataFrame) -> dict:
-    """Per heliostat (and ``None``: the field) its target names by use (most used first) and
-    their centres (T, 3) [m ENU]; one grouping of the whole table."""
+    """Per heliostat (and ``None``: the field) its target names by use (most used first, then by
+    name) and their centres (T, 3) [m ENU]; one grouping of the whole table."""
     cols = ["target_e_m", "target_n_m", "target_u_m"]
-    g = meas.groupby(["heliostat_id", "target_name"], sort=True)
-    table = g[cols].median().assign(n=g.size())
-    field = meas.groupby("target_name")[cols].median().assign(
-        n=meas.groupby("target_name").size())
     out = {}
-    for key, t in [(None, field)] + list(table.groupby(level=0)):
-        names = t.index.get_level_values(-1)
-        order = sorted(range(len(t)), key=lambda k: (-int(t["n"].iloc[k]), names[k]))
-        out[key] = ([str(names[k]) for k in order], t[cols].to_numpy(float)[order])
+    for keys in (["target_name"], ["heliostat_id", "target_name"]):
+        g = meas.groupby(keys, sort=False)
+        t = g[cols].median().assign(n=g.size()).reset_index()
+        if len(keys) == 1:
+            t["heliostat_id"] = None
+        t = t.sort_values(["heliostat_id", "n", "target_name"], ascending=[True, False, True],
+                          na_position="first", kind="mergesort")
+        hids, names, points = t["heliostat_id"].to_numpy(), t["target_name"].to_numpy(), \
+            t[cols].to_numpy(float)
+        cut = np.flatnonzero(np.r_[True, hids[1:] != hids[:-1], True])
+        for a, b in zip(cut[:-1], cut[1:]):
+            out[hids[a]] = ([str(x) for x in names[a:b]], points[a:b])
     return out
 
 
-def current_regime_rows(rows: pd.DataFrame, regimes: pd.DataFrame | None,
-                  regime_aware: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(rows of the heliostat's current regime, rows inside an episode) of one heliostat.
+def regime_breaks(regimes: pd.DataFrame | None, regime_aware: set) -> tuple[dict, dict]:
+    """(per heliostat the UTC start of its current regime, per heliostat the (start, end) spans
+    of its episodes that count) from regimes.parquet's rows.
 
     The current regime starts at the latest break that moved the heliostat: a renovation, a
-    detected break of at least :data:`YOUNG_REGIME_MIN_STEP_MRAD`, or any break when the
-    selected model is regime-aware (fit-coarse found the regimes worth a model of their own).
-    Episodes count by the same size rule."""
-    n = len(rows)
-    if regimes is None or regimes.empty or rows["timestamp"].isna().all():
-        return np.ones(n, bool), np.zeros(n, bool)
-    t = pd.to_datetime(rows["timestamp"], utc=True)
-    segments = regimes[(regimes["kind"] == "regime") & (regimes["cause"] != "start")]
-    moved = segments[regime_aware | (segments["cause"] == "renovation")
-                     | (segments["step_mrad"].fillna(0.0) >= YOUNG_REGIME_MIN_STEP_MRAD)]
-    current = (t >= moved["start"].max()).to_numpy() if len(moved) else np.ones(n, bool)
-    episode = np.zeros(n, bool)
-    episodes = regimes[regimes["kind"] == "episode"]
-    for _, e in episodes[episodes["step_mrad"].fillna(0.0) >= YOUNG_REGIME_MIN_STEP_MRAD].iterrows():
-        episode |= ((t >= e["start"]) & (t <= e["end"])).to_numpy()
+    detected break of at least :data:`YOUNG_REGIME_MIN_STEP_MRAD`, or any break of a heliostat in
+    ``regime_aware`` (its selected model is regime-aware: fit-coarse found the regimes worth a
+    model of their own). Episodes count by the same size rule."""
+    if regimes is None or regimes.empty:
+        return {}, {}
+    step = regimes["step_mrad"].fillna(0.0)
+    breaks = (regimes["kind"] == "regime") & (regimes["cause"] != "start")
+    moved = breaks & ((regimes["cause"] == "renovation") | (step >= YOUNG_REGIME_MIN_STEP_MRAD)
+                      | regimes["heliostat_id"].isin(regime_aware))
+    starts = regimes[moved].groupby("heliostat_id")["start"].max().to_dict()
+    episodes = regimes[(regimes["kind"] == "episode") & (step >= YOUNG_REGIME_MIN_STEP_MRAD)]
+    spans = {h: list(zip(g["start"], g["end"])) for h, g in episodes.groupby("heliostat_id")}
+    return starts, spans
+
+
+def _utc_ns(times) -> np.ndarray:
+    """UTC times as naive datetime64[ns] (NaT stays NaT: every comparison with it is False)."""
+    t = pd.to_datetime(pd.Series(times), utc=True)
+    return t.dt.tz_localize(None).to_numpy("datetime64[ns]")
+
+
+def _utc_ns1(time) -> np.datetime64:
+    t = pd.Timestamp(time)
+    return np.datetime64((t.tz_convert("UTC").tz_localize(None) if t.tzinfo else t).value, "ns")
+
+
+def current_regime_rows(times, start, spans) -> tuple[np.ndarray, np.ndarray]:
+    """(rows of the current regime, rows inside an episode that counts) for a heliostat's row
+    times (UTC; or already naive UTC datetime64[ns]), the start of its current regime (None: it
+    never moved) and its episodes' spans (:func:`regime_breaks`). A row without time is in no
+    regime but the first."""
+    t = times if getattr(times, "dtype", None) == np.dtype("datetime64[ns]") else _utc_ns(times)
+    current = np.ones(len(t), bool) if start is None else t >= _utc_ns1(start)
+    episode = np.zeros(len(t), bool)
+    for a, b in spans:
+        episode |= (t >= _utc_ns1(a)) & (t <= _utc_ns1(b))
     return current, episode
 
 
@@ -195,59 +221,78 @@ def _field_presets(helio: pd.DataFrame, selected: dict) -> dict:
     return out
 
 
+def _rows_of(meas: pd.DataFrame) -> dict:
+    """Per heliostat the (first, end) positions of its rows in ``meas`` (sorted by heliostat)."""
+    hids = meas["heliostat_id"].to_numpy()
+    if len(hids) and (hids[1:] < hids[:-1]).any():
+        raise ValueError("planned_heliostats needs the measurements sorted by heliostat_id")
+    cut = np.flatnonzero(np.r_[True, hids[1:] != hids[:-1], True]) if len(hids) else np.array([0])
+    return {hids[a]: (a, b) for a, b in zip(cut[:-1], cut[1:])}
+
+
+def _slice(batch: MeasurementBatch, a: int, b: int) -> MeasurementBatch:
+    """Rows a..b of a batch as a batch of its own (copies: a view would carry, and pickle, the
+    whole field's tensors)."""
+    return MeasurementBatch(batch.measurement_id[a:b], batch.steps[a:b].clone(),
+                            batch.sun[a:b].clone(), batch.focal_spot[a:b].clone(),
+                            batch.target_center[a:b].clone(), batch.target_normal[a:b].clone())
+
+
 def planned_heliostats(helio: pd.DataFrame, meas: pd.DataFrame, selected: dict,
                        regimes: pd.DataFrame | None, prior: PriorScale, *, window_start=None,
                        window_days: np.ndarray | None = None,
                        days: int = 0) -> list[PlannedHeliostat]:
     """Every heliostat's design input, in ``helio``'s order.
 
-    ``meas`` carries each row's split label (``split``; ``excluded``: a heliostat without a fit).
-    A fitted heliostat's covariance rests on its training rows outside episodes in its latest
-    regime (a young regime has few) at its selected model's parameters; its noise scale on the
-    rows its parameters describe. A heliostat without a fit rests on all its rows at its nominal
-    geometry with the field's most common preset of its type, and takes the field's noise.
-    With ``window_start`` (``--from-existing``) only rows before the window are known, and the
-    rows in its ``days`` (``window_days``: each row's solar day) that are not test rows are the
-    candidates.
+    ``meas`` (sorted by heliostat) carries each row's split label (``split``; ``excluded``: a
+    heliostat without a fit). A fitted heliostat's covariance rests on its training rows outside
+    episodes in its current regime (:func:`regime_breaks`; a young regime has few) at its
+    selected model's parameters; its noise scale on the rows its parameters describe. A
+    heliostat without a fit rests on all its rows at its nominal geometry with the field's most
+    common preset of its type, and takes the field's noise. With ``window_start``
+    (``--from-existing``) only rows before the window are known, and the rows in its ``days``
+    (``window_days``: each row's solar day) that are not test rows are the candidates.
     """
-    groups = dict(tuple(meas.groupby("heliostat_id", sort=False)))
-    by_regime = {} if regimes is None else dict(tuple(regimes.groupby("heliostat_id", sort=False)))
+    span = _rows_of(meas)
+    batch = MeasurementBatch.from_frame(meas)
+    split = meas["split"].to_numpy()
+    has_time = meas["timestamp"].notna().to_numpy()
+    times = _utc_ns(meas["timestamp"])
+    starts, spans = regime_breaks(regimes, {h for h, f in selected.items()
+                                            if f["preset"] != f["base_preset"]})
     targets = _targets(meas) if len(meas) else {None: ([], np.zeros((0, 3)))}
     presets = _field_presets(helio, selected)
     out = []
     for _, hrow in helio.iterrows():
         hid = str(hrow["heliostat_id"])
-        rows = groups.get(hid, meas.iloc[:0])
-        spec, nominal = HeliostatSpec.from_row(hrow), nominal_parameters(hrow)
         names, points = targets.get(hid, targets[None])
         if not names:
             continue
-        fit = selected.get(hid)
-        regime_aware = fit is not None and fit["preset"] != fit["base_preset"]
-        latest, episode = current_regime_rows(rows, by_regime.get(hid), regime_aware)
-        before = np.ones(len(rows), bool)
-        candidates = None
+        a, b = span.get(hid, (0, 0))
+        spec, nominal = HeliostatSpec.from_row(hrow), nominal_parameters(hrow)
+        current, episode = current_regime_rows(times[a:b], starts.get(hid), spans.get(hid, []))
+        before, candidates = np.ones(b - a, bool), None
         if window_start is not None:
-            day = window_days[meas.index.get_indexer(rows.index)]
-            before = rows["timestamp"].notna().to_numpy() & (day < 0)
-            pick = (np.isfinite(day) & (day >= 0) & (day < days)
-                    & (rows["split"] != "test").to_numpy())
-            candidates = rows[pick].assign(day=day[pick].astype(int))
+            day = window_days[a:b]
+            before = has_time[a:b] & (day < 0)
+            pick = np.isfinite(day) & (day >= 0) & (day < days) & (split[a:b] != "test")
+            candidates = meas.iloc[a:b][pick].assign(day=day[pick].astype(int))
+        fit = selected.get(hid)
         if fit is not None:
-            train = (rows["split"] == "train").to_numpy() & ~episode
-            noise_mask = train & latest if regime_aware else train
-            known_mask = train & latest & before
+            train = (split[a:b] == "train") & ~episode
+            noise_mask = train & current if fit["preset"] != fit["base_preset"] else train
+            known_mask = train & current & before
             params, free, model = fit["params"], fit["free"].numpy(), fit["preset"]
         else:
             preset = presets.get(spec.kinematic_type, FALLBACK_PRESET)
-            known_mask = before & (rows["split"] != "test").to_numpy()
-            noise_mask = np.zeros(len(rows), bool)
+            known_mask = before & (split[a:b] != "test")
+            noise_mask = np.zeros(b - a, bool)
             params = nominal
             free = preset_mask(preset, spec.actuator_type, spec.kinematic_type).numpy()
             model = f"nominal:{preset}"
-        batch = MeasurementBatch.from_frame(rows) if len(rows) else None
-        known = batch.subset(known_mask) if batch is not None else _empty_batch()
-        noise = (known if np.array_equal(noise_mask, known_mask) else batch.subset(noise_mask)
+        rows = _slice(batch, a, b)
+        known = rows.subset(known_mask)
+        noise = (known if np.array_equal(noise_mask, known_mask) else rows.subset(noise_mask)
                  ) if noise_mask.any() else None
         item = DesignInput(hid, spec, params, free, np.asarray(prior(hrow, nominal), float),
                            known, noise, points[0], points)
