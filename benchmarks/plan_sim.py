@@ -10,8 +10,11 @@ rows per heliostat are measured (simulated, same noise) in the plan's days, chos
 * ``plan-fieldprior``: as ``plan``, with the covariance's prior scale per parameter the RMS of the
   simulated field's true deviations (what a field prior learned from this field, issue 34,
   would approach; fit-coarse's prior is 2 to 50 times wider than the simulator's deviations);
-* ``random``: per planned row, the same day and target at a random daylight time (sun above the
-  plan's minimum elevation), seeds 0..S-1;
+* ``random``: per planned row, the same day at a random daylight time (sun above the plan's
+  minimum elevation) on a target drawn from the heliostat's logged rows (as the plant uses its
+  targets), seeds 0..S-1;
+* ``random-same-target``: the same on the planned row's target (the plan's choice of target
+  kept: only the time is random), seeds 0..S-1;
 * ``historical``: times of day and targets drawn from the field's logged rows (the hours the
   plant has measured at), on random days of the plan, seeds 0..S-1.
 
@@ -19,11 +22,12 @@ Each arm's 20 rows per heliostat are fitted again the same way, and each heliost
 test error is the mean aim error of its fitted model against the noiseless true geometry over a
 dense grid of a year's sun positions (every 3rd day, every 10 minutes, sun above 10 deg; aims at
 the lower tower target; ``models.plan_check.year_error_mrad``). Printed: per arm the field's mean
-and median year-round error and the ratio to ``random`` (mean over its seeds). Usage::
+and median year-round error and the ratio to ``random`` (mean over its seeds), and the covariance's
+expected year-round errors from the plan's summary. Usage::
 
     flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/plan_sim.py \\
-        [--heliostats 40] [--seeds 5] [--noise 0.4] [--preset static-6] [--deviations static-6] \\
-        [--start 2024-03-01] [--days 7] [--seed 0] [--out runs/plan-sim]
+        [--heliostats 40] [--fields 1] [--seeds 5] [--noise 0.4] [--preset static-6] \\
+        [--deviations static-6] [--start 2024-03-01] [--days 7] [--seed 0] [--out runs/plan-sim]
 """
 
 from __future__ import annotations
@@ -84,11 +88,20 @@ def _daylight_minutes(reference, start: str, days: int, min_elevation: float) ->
     return {d: t[(day == d) & (el > min_elevation)] for d in range(days)}
 
 
-def random_rows(plan: pd.DataFrame, daylight: dict, seed: int) -> pd.DataFrame:
-    """Each planned row on its day and target at a random daylight minute."""
+def random_rows(field_, plan: pd.DataFrame, daylight: dict, seed: int,
+                same_target: bool) -> pd.DataFrame:
+    """Each planned row on its day at a random daylight minute, on the planned target or on one
+    of the heliostat's logged rows' targets (drawn with their frequencies)."""
     rng = np.random.default_rng(seed)
     times = [daylight[int(d)][rng.integers(len(daylight[int(d)]))] for d in plan["day"]]
-    return plan[["heliostat_id", "target"]].assign(time_utc=times)
+    if same_target:
+        targets = list(plan["target"])
+    else:
+        logged = field_.measurements.groupby("heliostat_id")["target_name"]
+        pools = {h: g.to_numpy() for h, g in logged}
+        targets = [pools[h][rng.integers(len(pools[h]))] for h in plan["heliostat_id"]]
+    return pd.DataFrame({"heliostat_id": plan["heliostat_id"].to_numpy(), "time_utc": times,
+                         "target": targets})
 
 
 def historical_rows(field_, plan: pd.DataFrame, daylight: dict, seed: int) -> pd.DataFrame:
@@ -128,28 +141,20 @@ def year_errors(field_, fitted: dict, sun: np.ndarray) -> pd.Series:
                       for hid, h in field_.heliostats.items()})
 
 
-def main(argv=None) -> int:
+def run_field(a, seed: int) -> tuple[dict, dict, pd.Series]:
+    """One simulated field (seed ``seed``): per arm the heliostats' year-round errors (a list of
+    Series, one per run), the plans' summaries and the errors with the 10 rows alone."""
     from heliocal.pipeline.models.schedule import year_sun_grid
     from heliocal.pipeline.models.simulator import simulate_field
     from heliocal.pipeline.stages.plan import run_plan
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--heliostats", type=int, default=40)
-    ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--noise", type=float, default=0.4, help="beam noise per axis [mrad]")
-    ap.add_argument("--preset", default="static-6")
-    ap.add_argument("--deviations", default="static-6", help="simulate_field's deviations")
-    ap.add_argument("--start", default="2024-03-01")
-    ap.add_argument("--days", type=int, default=7)
-    ap.add_argument("--seed", type=int, default=0, help="the field's seed")
-    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "plan-sim")
-    a = ap.parse_args(argv)
     h = a.heliostats
-    field_ = simulate_field(h, seed=a.seed, measurements=(10, 10), dynamic_fraction=0.0,
+    out = a.out / f"field-{seed}"
+    field_ = simulate_field(h, seed=seed, measurements=(10, 10), dynamic_fraction=0.0,
                             noise_mrad=a.noise, deviations=a.deviations, start="2023-01-01",
                             end="2024-01-01")
-    base = _fit(field_, a.out / "base", a.preset)
-    wd = a.out / "base" / "work"
+    base = _fit(field_, out / "base", a.preset)
+    wd = out / "base" / "work"
     dense = year_sun_grid(field_.reference, a.start, 3, 10, 10.0)
     daylight = _daylight_minutes(field_.reference, a.start, a.days, 10.0)
     arms: dict[str, list[pd.Series]] = {}
@@ -161,33 +166,59 @@ def main(argv=None) -> int:
         plan = pd.read_parquet(wd / "plan.parquet")
         if arm == "plan":
             capped = plan
-        fitted = _fit(_with_rows(field_, plan), a.out / arm, a.preset)
+        fitted = _fit(_with_rows(field_, plan), out / arm, a.preset)
         arms[arm] = [year_errors(field_, fitted, dense)]
     for s in range(a.seeds):
-        for arm, rows in (("random", random_rows(capped, daylight, s)),
+        for arm, rows in (("random", random_rows(field_, capped, daylight, s, False)),
+                          ("random-same-target", random_rows(field_, capped, daylight, s, True)),
                           ("historical", historical_rows(field_, capped, daylight, s))):
-            fitted = _fit(_with_rows(field_, rows), a.out / f"{arm}-{s}", a.preset)
+            fitted = _fit(_with_rows(field_, rows), out / f"{arm}-{s}", a.preset)
             arms.setdefault(arm, []).append(year_errors(field_, fitted, dense))
-    before = year_errors(field_, base, dense)
-    random_mean = float(np.mean([e.mean() for e in arms["random"]]))
-    print(f"field: {h} static heliostats, 10 rows each over 2023 (noise {a.noise} mrad, "
-          f"deviations {a.deviations}); fit-coarse --preset {a.preset}; plan {a.start} + {a.days} "
-          f"days; year-round test grid of {len(dense)} sun positions")
-    print(f"{'arm':16s} {'runs':>4s} {'mean mrad':>10s} {'median':>8s} {'x random':>9s}")
-    print(f"{'10 rows':16s} {1:4d} {before.mean():10.4f} {before.median():8.4f} "
-          f"{before.mean() / random_mean:9.3f}")
-    for arm, runs in arms.items():
-        m = float(np.mean([e.mean() for e in runs]))
-        med = float(np.mean([e.median() for e in runs]))
-        spread = (f"  (seeds {min(e.mean() for e in runs):.4f}-{max(e.mean() for e in runs):.4f})"
-                  if len(runs) > 1 else "")
-        print(f"{arm:16s} {len(runs):4d} {m:10.4f} {med:8.4f} {m / random_mean:9.3f}{spread}")
-    for arm in ("plan", "plan-free", "plan-fieldprior"):
-        s = summaries[arm]
-        print(f"{arm}: expected (covariance) now {s['expected_error_now_mrad']:.4f}, after plan "
-              f"{s['expected_error_after_plan_mrad']:.4f}, after random "
-              f"{s['expected_error_after_random_mrad']:.4f} mrad; spacing {s['spacing_s']} s; "
-              f"rows per heliostat {pd.Series([x['planned_rows'] for x in s['heliostats']]).describe()[['min', '50%', 'max']].tolist()}")
+    return arms, summaries, year_errors(field_, base, dense)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--heliostats", type=int, default=40, help="per field")
+    ap.add_argument("--fields", type=int, default=1, help="fields, seeds SEED..SEED+FIELDS-1")
+    ap.add_argument("--seeds", type=int, default=5, help="runs of the random arms per field")
+    ap.add_argument("--noise", type=float, default=0.4, help="beam noise per axis [mrad]")
+    ap.add_argument("--preset", default="static-6")
+    ap.add_argument("--deviations", default="static-6", help="simulate_field's deviations")
+    ap.add_argument("--start", default="2024-03-01")
+    ap.add_argument("--days", type=int, default=7)
+    ap.add_argument("--seed", type=int, default=0, help="the first field's seed")
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "plan-sim")
+    a = ap.parse_args(argv)
+    print(f"{a.fields} field(s) of {a.heliostats} static heliostats, 10 rows each over 2023 "
+          f"(noise {a.noise} mrad, deviations {a.deviations}); fit-coarse --preset {a.preset}; "
+          f"plan {a.start} + {a.days} days; year-round test: every 3rd day, every 10 minutes")
+    pooled: dict[str, list[float]] = {}
+    for k in range(a.fields):
+        arms, summaries, before = run_field(a, a.seed + k)
+        arms = {"10 rows": [before], **arms}
+        random_mean = float(np.mean([e.mean() for e in arms["random"]]))
+        print(f"\nfield seed {a.seed + k}:")
+        print(f"{'arm':19s} {'runs':>4s} {'mean mrad':>10s} {'median':>8s} {'x random':>9s}")
+        for arm, runs in arms.items():
+            m = float(np.mean([e.mean() for e in runs]))
+            med = float(np.mean([e.median() for e in runs]))
+            spread = (f"  (runs {min(e.mean() for e in runs):.4f}-"
+                      f"{max(e.mean() for e in runs):.4f})" if len(runs) > 1 else "")
+            print(f"{arm:19s} {len(runs):4d} {m:10.4f} {med:8.4f} {m / random_mean:9.3f}{spread}")
+            pooled.setdefault(arm, []).append(m)
+        for arm, s in summaries.items():
+            rows = pd.Series([x["planned_rows"] for x in s["heliostats"]])
+            print(f"  {arm}: expected (covariance) now {s['expected_error_now_mrad']:.4f}, after "
+                  f"plan {s['expected_error_after_plan_mrad']:.4f}, after random "
+                  f"{s['expected_error_after_random_mrad']:.4f} mrad; spacing {s['spacing_s']} s; "
+                  f"rows per heliostat {rows.min()}-{rows.max()} (median {rows.median():g})")
+    if a.fields > 1:
+        r = np.mean(pooled["random"])
+        print(f"\nall {a.fields} fields (mean of the fields' means; x random):")
+        for arm, ms in pooled.items():
+            print(f"{arm:19s} {np.mean(ms):10.4f} {np.mean(ms) / r:9.3f}  (per field: "
+                  + ", ".join(f"{m / x:.3f}" for m, x in zip(ms, pooled["random"])) + ")")
     return 0
 
 
