@@ -11,9 +11,10 @@ one slot at a time (over all targets).
 Nodes. A candidate's aim Jacobian changes slowly with the time of day, so it is evaluated exactly
 only at *nodes* (every ``node_every``-th slot of each daylight run and the run's last slot) and
 interpolated linearly in time between the two nodes around a slot. The greedy choice ranks a
-heliostat's candidates by their gains at the nodes, then takes the best free slot next to the
-best node; the plan's expected gains are computed again from exact Jacobians at the chosen times
-(``plan`` does; the difference is reported).
+heliostat's candidates by their gains at the nodes, then takes the free slot next to the best
+node whose gain, interpolated between the nodes around it, is largest; the chosen row updates the
+covariance with its interpolated Jacobian. The plan's expected gains are computed again from
+exact Jacobians at the chosen times (``plan`` does; the difference is reported).
 
 Greedy. Repeatedly the (heliostat, slot) of highest gain among those still allowed (free slot,
 day under ``per_day``, heliostat under ``max_per_heliostat``) is taken and that heliostat's
@@ -240,6 +241,20 @@ class GridCandidates:
         self.grid, self.designs, self.targets = grid, designs, targets
         self._gains: dict[int, tuple[int, np.ndarray]] = {}
         self._last: dict[int, tuple[int, Pick]] = {}
+        self._node_day = grid.day[grid.nodes]
+        self._size = np.array([len(grid.around(n)) for n in range(len(grid.nodes))])
+        self._free: dict[str, np.ndarray] = {}             # target -> free slots next to a node
+
+    def _free_next_to(self, target_name: str) -> np.ndarray:
+        if target_name not in self._free:
+            self._free[target_name] = self._size.copy()
+        return self._free[target_name]
+
+    def took(self, pick: Pick) -> None:
+        """Count the slot ``pick`` took out of its target's free slots next to its nodes."""
+        counts = self._free_next_to(self.target_name(pick))
+        for n in {int(self.grid.lower[pick.slot]), int(self.grid.upper[pick.slot])}:
+            counts[n] -= 1
 
     def _node_gains(self, h: int, cov: ParameterCovariance, version: int) -> np.ndarray:
         cached = self._gains.get(h)
@@ -265,23 +280,31 @@ class GridCandidates:
         return pick
 
     def _best(self, h: int, cov: ParameterCovariance, version: int, occ: Occupancy) -> Pick | None:
+        """The best node with a free slot next to it on a day with room, then the best of those
+        slots by the gains interpolated between the nodes around it (a node whose free slots are
+        all taken by ``h`` itself is skipped for ``h``); the pick's Jacobian is interpolated
+        the same way."""
         gains = self._node_gains(h, cov, version)
         d, names = self.designs[h], self.targets[h]
+        open_ = (np.stack([self._free_next_to(name) > 0 for name in names])
+                 & occ.day_open(self._node_day)[None])
+        g = np.where(open_, gains, -np.inf)
         while True:
-            flat = int(np.argmax(gains))
-            t, n = divmod(flat, gains.shape[1])
-            if not np.isfinite(gains[t, n]):
+            flat = int(np.argmax(g))
+            t, n = divmod(flat, g.shape[1])
+            if not np.isfinite(g[t, n]):
                 return None
             slots = self.grid.around(n)
             slots = slots[occ.free(h, names[t], slots, self.grid.day[slots])]
             if len(slots):
-                j = self.grid.interpolate(d.node_jacobian[t], slots)
-                g = _finite_or_floor(gains_mrad2(cov, d.information, j))
-                k = int(np.argmax(g))
-                if np.isfinite(g[k]):
-                    return Pick(h, t, int(slots[k]), int(self.grid.day[slots[k]]), j[k],
-                                float(g[k]))
-            gains[t, n] = -np.inf          # nothing left next to this node for h
+                w = self.grid.weight[slots]
+                gk = (1.0 - w) * gains[t, self.grid.lower[slots]] + w * gains[t, self.grid.upper[slots]]
+                k = int(np.argmax(gk))
+                if np.isfinite(gk[k]):
+                    s = slots[k:k + 1]
+                    return Pick(h, t, int(s[0]), int(self.grid.day[s[0]]),
+                                self.grid.interpolate(d.node_jacobian[t], s)[0], float(gk[k]))
+            gains[t, n] = g[t, n] = -np.inf          # nothing left next to this node for h
 
     def target_name(self, pick: Pick) -> str:
         return self.targets[pick.heliostat][pick.target]
@@ -313,6 +336,9 @@ class RowCandidates:
     def target_name(self, pick: Pick) -> None:
         return None
 
+    def took(self, pick: Pick) -> None:
+        """Nothing to count: a row is taken once (Occupancy.busy)."""
+
 
 def greedy_schedule(designs: Sequence[HeliostatDesign], candidates, limits: Limits
                     ) -> tuple[list[Pick], list[ParameterCovariance]]:
@@ -337,6 +363,7 @@ def greedy_schedule(designs: Sequence[HeliostatDesign], candidates, limits: Limi
             heapq.heappush(heap, (-pick.gain_mrad2, h))
             continue
         occ.take(pick, candidates.target_name(pick))
+        candidates.took(pick)
         picks.append(pick)
         covs[h] = covariance_after(covs[h], pick.jacobian[None])
         version[h] += 1
