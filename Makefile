@@ -7,7 +7,13 @@ LOCK ?= requirements.lock
 LOCK_VENV ?= .venv-lock
 LATEST_VENV ?= /tmp/heliocal-latest-venv
 UV_VERSION ?= 0.13.9
+# Where pip finds the locked CPU build of torch: a folder holding the wheel (TORCH_WHEELS) when it
+# has it, else PyTorch's own CPU wheel index (TORCH_INDEX); the lock's SHA-256 checks it either way.
 TORCH_WHEELS ?= /opt/wheels
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+TORCH_PIN := $(shell sed -n 's/^torch==\([^ ]*\).*/\1/p' $(LOCK) 2>/dev/null)
+TORCH_LOCAL = $(wildcard $(TORCH_WHEELS)/torch-$(TORCH_PIN)-*.whl)
+TORCH_SOURCE = $(if $(TORCH_LOCAL),--find-links $(TORCH_WHEELS),--extra-index-url $(TORCH_INDEX))
 HELIOCAL = $(VENV)/bin/heliocal
 WORKDIR ?= runs/sample
 SOURCES ?= sample_data/juelich/paint
@@ -15,6 +21,7 @@ SEED ?= 0
 PRESET ?= auto
 BASELINES ?= nn-only
 STUDY ?= 10
+TEST_WORKERS ?= 2
 
 SOURCE_FILES := $(shell find $(SOURCES) -type f 2>/dev/null)
 CODE := $(shell find pipeline cli -name '*.py' 2>/dev/null)
@@ -32,11 +39,14 @@ install: $(VENV)/.installed
 # The lock is the one source of installed versions: every package pinned with its SHA-256, resolved
 # for this Python (3.11) on x86_64 Linux. pyproject.toml keeps the ranges for people who install
 # heliocal into their own environment. The venv is made anew whenever the lock changes, so nothing
-# from an earlier resolution survives, and `check-lock` proves it.
+# from an earlier resolution survives, and `check-lock` proves it. The lock's own --find-links
+# line (the folder it was resolved with) is left out: TORCH_SOURCE says where torch is here.
 $(VENV)/.installed: $(LOCK) pyproject.toml
+	$(if $(TORCH_LOCAL),,$(PYTHON) .ci/torch_index.py $(TORCH_INDEX) $(TORCH_PIN) $(TORCH_WHEELS))
 	rm -rf $(VENV)
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --quiet --require-hashes --no-deps -r $(LOCK)
+	grep -v '^--find-links' $(LOCK) > $(VENV)/requirements.lock
+	$(VENV)/bin/pip install --quiet --require-hashes --no-deps $(TORCH_SOURCE) -r $(VENV)/requirements.lock
 	$(VENV)/bin/pip install --quiet --no-deps --no-build-isolation -e .
 	$(VENV)/bin/python .ci/check_lock.py $(LOCK)
 	touch $@
@@ -82,9 +92,15 @@ sample: $(WORKDIR)/report/index.html
 ## report: HTML report, figures and metrics.json of the run ($(WORKDIR)/report/)
 report: $(WORKDIR)/report/index.html
 
-## test: install and run the test suite (all tests, as CI does)
+## test: install and run the test suite (all tests, as CI does): in TEST_WORKERS processes (default
+##       2), then the tests marked alone (time windows) by themselves; about 6 minutes on 2 cores
+# A module (or a class) goes to one worker, those with slow tests first (tests/conftest.py); each
+# pass runs even if the other fails, and the target fails if either did.
 test: $(VENV)/.installed
-	$(VENV)/bin/python -m pytest -q
+	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist loadscope --no-loadscope-reorder \
+	  -m "not alone"; parallel=$$?; \
+	$(VENV)/bin/python -m pytest -q -m alone; alone=$$?; \
+	test $$parallel = 0 && test $$alone = 0
 
 ## test-fast: the developer's loop: every test not marked slow (unit tests; under a minute)
 test-fast: $(VENV)/.installed

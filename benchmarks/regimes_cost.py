@@ -4,16 +4,14 @@ regime-aware candidates of heliostats with breaks) adds to ``fit-coarse``.
 Simulates a field (default 200 juelich heliostats, 100 to 400 measurements each over one year,
 half of them dynamic as in benchmarks/field.py, and 20 % with steps, 20 % with episodes, 10 % with
 a drift), runs ``ingest`` and ``split-knn`` once, then ``fit-coarse`` alternately *without*
-detection (``regime_steps="off"``: the stage as it was before issue 17, nothing detected,
-refitted or offered as a candidate), with detection and the episode refit but without the
+detection (``fit_coarse._SKIP_REGIMES``, a hook for this benchmark only: the stage with
+nothing detected, refitted or offered as a candidate), with detection and the episode refit but without the
 candidates (``"detect"``), and *with* both (``"candidates"``, the default), ``--repeats`` times
 each, every run in a fresh Python process as ``heliocal fit-coarse`` runs, and prints the median
 times and their ratios from this one run: the stage's own time (``run_fit_coarse``, measured in
 that process) and the whole process's wall time (what ``benchmarks/field.py`` times for the CLI).
-Runs in one process (this benchmark before 2026-11-26) share the workers' fork server and the
-heap of the runs before them; there the candidates' extra time came out 3 s larger than in fresh
-processes (9.7 s against 6.6 s on the same field, same hour), so one process is not what a user
-runs. ``--workdir`` takes an ingested and split work directory instead (the
+Fresh processes, because runs in one process share the workers' fork server and the heap of the
+runs before them, which is not what a user runs (docs/experiments/regimes-cost.md). ``--workdir`` takes an ingested and split work directory instead (the
 issue's benchmark: ``benchmarks/field.py``'s field, whose fit-coarse runs ``--preset static-20``
 with 2 workers; its dynamic heliostats drift, so about half of them get candidates). Usage::
 
@@ -103,15 +101,18 @@ def main(argv=None) -> int:
     return 0
 
 
-#: One run in a fresh process: argv workdir, regime_steps, preset, workers; prints the stage's
-#: own time [s] last.
+#: One run in a fresh process: argv workdir, regime steps (``off``: none, through the stage's
+#: benchmark hook), preset, workers; prints the stage's own time [s] last.
 _CHILD = """
 import sys, time
-from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
+from heliocal.pipeline.stages import fit_coarse
 if __name__ == "__main__":
     work, steps, preset, workers = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
+    if steps == "off":
+        fit_coarse._SKIP_REGIMES = True
+        steps = "candidates"
     t0 = time.perf_counter()
-    run_fit_coarse(work, regime_steps=steps, preset=preset, workers=workers)
+    fit_coarse.run_fit_coarse(work, regime_steps=steps, preset=preset, workers=workers)
     print(f"{time.perf_counter() - t0:.3f}")
 """
 

@@ -43,6 +43,7 @@ __all__ = [
     "DaskAddress",
     "command",
     "emit",
+    "fmt_number",
     "progress_enabled",
     "progress_bar",
     "DEFAULT_WORKDIR",
@@ -79,6 +80,11 @@ Scheduler = Annotated[SchedulerChoice, typer.Option(
 DaskAddress = Annotated[Optional[str], typer.Option(
     "--dask-address", help="Run per-heliostat work on this Dask scheduler (tcp://HOST:PORT).")]
 Seed = Annotated[int, typer.Option("--seed", help="Seed of every random step (same seed, same artifacts).")]
+
+
+def fmt_number(value: float | None, digits: int = 3) -> str:
+    """A number of a result table with ``digits`` decimals; ``-`` for a missing one (None, NaN)."""
+    return "-" if value is None or value != value else f"{value:.{digits}f}"
 
 
 def progress_enabled(quiet: bool) -> bool:

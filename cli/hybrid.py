@@ -14,9 +14,9 @@ from rich import box
 from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
-                              SchedulerChoice, Seed, Workdir, Workers, command, emit, progress_bar,
-                              stdout)
-from heliocal.pipeline.errors import InputError, ParameterError
+                              SchedulerChoice, Seed, Workdir, Workers, command, emit, fmt_number,
+                              progress_bar, stdout)
+from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.vocabulary import (HYBRID_BATCH_SIZE, AimModel, FineMode, PretrainVariant,
                                          TrainingDtype)
@@ -26,10 +26,6 @@ __all__ = ["fit_hybrid_cmd", "aim_cmd"]
 # str Enums (heliocal.pipeline.vocabulary): typer lists the choices in --help and rejects others
 # as a usage error (exit 2). The library (torch) is imported when a command runs.
 Mode = FineMode
-
-
-def _fmt(x) -> str:
-    return "-" if x is None or x != x else f"{x:.3f}"
 
 
 def _human(summary: dict) -> None:
@@ -43,9 +39,9 @@ def _human(summary: dict) -> None:
         table.add_column(col, justify="right", no_wrap=True)
     for h in summary["heliostats"]:
         c, f = h["coarse"], h[mode]
-        table.add_row(h["heliostat_id"], h["coarse_preset"], _fmt(c["train"]),
-                      _fmt(c["validation"]), _fmt(c["test"]), _fmt(f["train"]),
-                      _fmt(f["validation"]), _fmt(f["test"]))
+        table.add_row(h["heliostat_id"], h["coarse_preset"], fmt_number(c["train"]),
+                      fmt_number(c["validation"]), fmt_number(c["test"]), fmt_number(f["train"]),
+                      fmt_number(f["validation"]), fmt_number(f["test"]))
     stdout.print(table)
     stdout.print("mean error_mrad per split: the selected coarse preset (first three columns) vs "
                  f"{mode} (last three); wrote hybrid/{mode}/ and hybrid_predictions.parquet", markup=False)
@@ -79,8 +75,9 @@ def fit_hybrid_cmd(
     env: Annotated[str, typer.Option(
         "--env", help="Comma-separated env_* columns (without the prefix) to use as inputs, "
                       "e.g. temperature,wind_speed.")] = "",
-    depth: Annotated[int, typer.Option("--depth", min=0, help="Hidden layers.")] = 14,
-    width: Annotated[int, typer.Option("--width", min=1, help="Neurons per hidden layer.")] = 2,
+    depth: Annotated[int, typer.Option("--depth", min=0, help="Hidden layers.")] = FineConfig.depth,
+    width: Annotated[int, typer.Option(
+        "--width", min=1, help="Neurons per hidden layer.")] = FineConfig.width,
     fourier_bands: Annotated[str, typer.Option(
         "--fourier-bands", help="Frequency bands of the Fourier features of the steps "
                                 "[1 / max steps], comma-separated (default: every integer 1..32)."
@@ -129,23 +126,56 @@ def fit_hybrid_cmd(
     emit(summary, json_, _human)
 
 
-def _target(text: str, workdir) -> tuple[list[float], str | None]:
+def _target(text: str) -> tuple[list[float] | None, str | None]:
+    """(E, N, U) [m] when ``text`` is three comma-separated numbers (each finite), else the
+    target name."""
+    import math
+
     parts = text.split(",")
     if len(parts) == 3:
         try:
-            return [float(p) for p in parts], None
+            point = [float(p) for p in parts]
         except ValueError:
-            pass
-    from heliocal.pipeline.artifacts.store import read_artifact
-    from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
+            return None, text
+        if not all(math.isfinite(v) for v in point):
+            raise typer.BadParameter(f"{text!r}: the aim point must be three finite numbers "
+                                     "E,N,U [m] (not finite), or a target name",
+                                     param_hint="'--target'")
+        return point, None
+    return None, text
 
-    m = read_artifact(workdir, MEASUREMENTS, columns=["target_name", "target_e_m", "target_n_m",
-                                                       "target_u_m"])
-    rows = m[m["target_name"] == text]
-    if rows.empty:
-        names = sorted(m["target_name"].dropna().unique())
-        raise InputError(f"unknown target {text!r}: give E,N,U in metres or one of {names}")
-    return rows[["target_e_m", "target_n_m", "target_u_m"]].median().tolist(), text
+
+def _env(items: list[str]) -> dict[str, float]:
+    values = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            number = float(value)
+        except ValueError:
+            number = None
+        if not sep or not name.strip() or number is None:
+            raise typer.BadParameter(f"{item!r}: give NAME=VALUE with a number",
+                                     param_hint="'--env'")
+        values[name.strip()] = number
+    return values
+
+
+def _sun(azimuth: float | None, elevation: float | None):
+    import math
+
+    if (azimuth is None) != (elevation is None):
+        raise ParameterError("give both --sun-azimuth and --sun-elevation, or neither")
+    if azimuth is None:
+        return None
+    for value, name in ((azimuth, "--sun-azimuth"), (elevation, "--sun-elevation")):
+        if not math.isfinite(value):
+            raise typer.BadParameter(f"{value!r} is not finite", param_hint=f"'{name}'")
+    if not -90.0 <= elevation <= 90.0:
+        raise typer.BadParameter(f"{elevation!r}: the elevation must be in [-90, 90] deg",
+                                 param_hint="'--sun-elevation'")
+    from heliocal.pipeline.physics.sun import sun_vector_enu
+
+    return sun_vector_enu(azimuth, elevation)
 
 
 @command("aim")
@@ -156,7 +186,7 @@ def aim_cmd(
     workdir: Workdir = DEFAULT_WORKDIR,
     time: Annotated[Optional[str], typer.Option(
         "--time", help="UTC time, e.g. 2024-06-01T12:00Z (sun from NREL SPA; the date is an "
-                       "input of the fine model).")] = None,
+                       "input of the fine model). Without a zone it is UTC.")] = None,
     sun_azimuth: Annotated[Optional[float], typer.Option(
         "--sun-azimuth", help="Sun azimuth [deg], 0 = south, positive toward east.")] = None,
     sun_elevation: Annotated[Optional[float], typer.Option(
@@ -167,26 +197,24 @@ def aim_cmd(
         "--model", help="auto: hybrid where fitted, else coarse.")] = AimModel.auto,
     quiet: QuietFlag = False,
 ) -> None:
-    """Motor steps that put the reflected beam on an aim point (printed as JSON)."""
+    """Motor steps that put the reflected beam on an aim point (printed as JSON; warnings, such
+    as an aim far from the heliostat's data, also on stderr)."""
     import numpy as np
 
-    from heliocal.pipeline.physics.sun import sun_vector_enu
-    from heliocal.pipeline.stages.aim import aim_steps
+    from heliocal.pipeline.stages.aim import aim_steps, utc_time
 
-    if (sun_azimuth is None) != (sun_elevation is None):
-        raise ParameterError("give both --sun-azimuth and --sun-elevation, or neither")
-    if time is None and sun_azimuth is None:
+    sun = _sun(sun_azimuth, sun_elevation)
+    if time is None and sun is None:
         raise ParameterError("give --time or --sun-azimuth/--sun-elevation")
-    sun = None if sun_azimuth is None else sun_vector_enu(sun_azimuth, sun_elevation)
-    values = {}
-    for item in env or []:
-        name, _, value = item.partition("=")
-        try:
-            values[name.strip()] = float(value)
-        except ValueError:
-            raise ParameterError(f"--env must be NAME=VALUE with a number. Got {item!r} instead.") from None
-    point, name = _target(target, workdir)
-    result = aim_steps(workdir, heliostat, aim_point_enu=np.asarray(point), sun_vector_enu=sun,
-                       time_utc=time, env=values, model=model.value)
+    try:
+        when = utc_time(time, "--time")
+    except ParameterError:
+        raise typer.BadParameter(f"{time!r} is not a UTC time such as 2023-06-21T12:00:00Z",
+                                 param_hint="'--time'") from None
+    values = _env(env or [])
+    point, name = _target(target)
+    result = aim_steps(workdir, heliostat, aim_point_enu=None if point is None else np.asarray(point),
+                       target=name, sun_vector_enu=sun, time_utc=when, env=values,
+                       model=model.value)
     result["target"] = name or target
     sys.stdout.write(json.dumps(result, indent=2) + "\n")

@@ -19,6 +19,8 @@ dictionaries; only :func:`info_cmd` and the ``_print_*`` helpers format them.
 from __future__ import annotations
 
 import json
+import os
+import stat
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -28,12 +30,14 @@ from rich.table import Table
 from rich.text import Text
 
 from heliocal.cli.app import JsonFlag, command, emit, stdout
-from heliocal.pipeline.artifacts.paths import file_sha256
-from heliocal.pipeline.errors import InputError, SchemaError
+from heliocal.pipeline.artifacts.audit import hostile_entries
+from heliocal.pipeline.artifacts.paths import file_sha256, kind_of
+from heliocal.pipeline.errors import HeliocalError, InputError, SchemaError
 from heliocal.pipeline.artifacts.workdir_lock import lock_holder
 from heliocal.pipeline.artifacts.manifests import all_manifests, verify_files
-from heliocal.pipeline.artifacts.transaction import (pending_commits, stale_staging_folders,
-                                                     staging_in_use)
+from heliocal.pipeline.artifacts.leftovers import (leftovers, stale_staging_folders,
+                                                   staging_in_use)
+from heliocal.pipeline.artifacts.transaction import pending_commits
 
 if TYPE_CHECKING:
     import pyarrow.parquet as pq
@@ -41,17 +45,6 @@ if TYPE_CHECKING:
 __all__ = ["info_cmd", "describe_artifact", "describe_workdir"]
 
 _SOURCE_PREFIX = "source:"  # ingest records each source as "source:<path as given>"
-
-#: Status of one artifact, best first: fresh, then the reasons it may not be.
-STATUSES = {
-    "fresh": "committed by its stage's last run, and every recorded input equals the current one",
-    "stale": "an input changed after the artifact was written: rerun its stage",
-    "unknown": "an input cannot be found to compare (moved source, or none recorded)",
-    "incompatible": "written with another schema version: rerun its stage",
-    "modified": "its bytes differ from what its run committed (changed by hand?): rerun its stage",
-    "uncommitted": "no complete run of its stage lists it (made by hand, by an older heliocal, or "
-                   "by an interrupted run): rerun its stage",
-}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -69,10 +62,15 @@ class _HashCache:
     def __init__(self) -> None:
         self._cache: dict[Path, str] = {}
 
-    def __call__(self, path: Path) -> str:
+    def __call__(self, path: Path) -> str | None:
+        """The SHA-256 of a source, ``None`` when it cannot be hashed (a FIFO or device named as
+        a source in a tampered provenance is never read)."""
         key = path.resolve()
         if key not in self._cache:
-            self._cache[key] = file_sha256(key)
+            try:
+                self._cache[key] = file_sha256(key)
+            except (HeliocalError, OSError):
+                self._cache[key] = None
         return self._cache[key]
 
 
@@ -119,6 +117,10 @@ def _read_metadata(path: Path) -> tuple[pq.FileMetaData, dict]:
 
     if not path.exists():
         raise InputError(f"{path}: no such file or folder; check the path")
+    mode = path.stat().st_mode
+    if not stat.S_ISREG(mode):  # a FIFO or device is never opened (it could block or not end)
+        raise InputError(f"{path} is {kind_of(mode)}, not a heliocal artifact; give a Parquet "
+                         "artifact or a work directory")
     try:
         meta = pq.ParquetFile(path).metadata
     except (pa.ArrowInvalid, OSError) as exc:
@@ -234,13 +236,19 @@ def describe_workdir(workdir: str | Path) -> dict:
     manifests = _Manifests(workdir)
     artifacts, foreign = [], []
     for path in sorted(workdir.glob("*.parquet")):
-        if path.name.startswith("."):
-            continue
+        if path.name.startswith(".") or os.path.islink(path) or not path.is_file():
+            continue  # a link, FIFO or device: listed under "hostile", never opened
         try:
             d = describe_artifact(path, _sha=sha, _schemas=schemas, _manifests=manifests)
         except SchemaError as exc:
-            foreign.append({"path": str(path), "reason": str(exc)})
-            continue
+            listed = _commit(path, manifests)
+            if listed["status"] != "modified":
+                foreign.append({"path": str(path), "reason": str(exc)})
+                continue
+            # committed, but its bytes changed so that they no longer read as an artifact
+            d = {"path": str(path), "artifact": None, "stage": listed["stage"], "rows": None,
+                 "status": "modified", "inputs": {}, "commit": listed, "provenance": {},
+                 "hint": f"rerun `heliocal {listed['stage']} --workdir {workdir}`"}
         artifacts.append({k: d[k] for k in ("path", "artifact", "stage", "rows", "status", "hint",
                                              "inputs")}
                          | {"schema_version": d["provenance"].get("schema_version"),
@@ -256,25 +264,37 @@ def describe_workdir(workdir: str | Path) -> dict:
     pending = [{"stage": m.stage, "run_id": m.run_id, "staging": str(m.staging),
                 "staged_files": sum(1 for r in m.files if (m.staging / r).is_file())}
                for m in pending_commits(workdir)]
-    leftovers = sorted(str(p) for p in workdir.glob(".*.tmp-*"))
-    from heliocal.pipeline.stages.aim import aim_models
-
     stopped = [{"path": str(p), "in_progress": staging_in_use(p)}
                for p in stale_staging_folders(workdir)]
+    hostile = hostile_entries(workdir)
+    models, models_error = _aim_models(workdir)
     return {
         "workdir": str(workdir),
         "artifacts": artifacts,
         "runs": runs,
         "fresh": all(a["status"] == "fresh" for a in artifacts)
-        and not any(r["problems"] for r in runs),
+        and not any(r["problems"] for r in runs) and not hostile,
         "not_artifacts": foreign,
         "pending_commits": pending,
         "uncommitted_runs": stopped,
-        "leftovers": leftovers,
-        "aim_models": [{k: v for k, v in m.items() if k != "model_dir"}
-                       for m in aim_models(workdir).values()],
+        "leftovers": [str(p) for p in leftovers(workdir) if not os.path.islink(p)],
+        "hostile": hostile,
+        "aim_models": models,
+        "aim_models_error": models_error,
         "writer": lock_holder(workdir),  # the stage writing it right now, if any (not blocked)
     }
+
+
+def _aim_models(workdir: Path) -> tuple[list, str | None]:
+    """The models ``aim --model auto`` uses, or why that cannot be told (a modified or missing
+    input: the artifacts' table above shows which), so that ``info`` still shows the rest."""
+    from heliocal.pipeline.stages.aim import aim_models
+
+    try:
+        return [{k: v for k, v in m.items() if k != "model_dir"}
+                for m in aim_models(workdir).values()], None
+    except HeliocalError as exc:
+        return [], str(exc)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -405,6 +425,8 @@ def _print_workdir(d: dict) -> None:
     for p in d["leftovers"]:
         stdout.print(Text(f"leftover of an interrupted write (no stage reads it; safe to delete): "
                           f"{p}"))
+    for h in d.get("hostile", []):
+        stdout.print(Text(f"hostile: {h['path']}: {h['problem']}", style="bold red"))
     w = d.get("writer")
     if w is not None:
         stdout.print(Text(f"being written now by `heliocal {w.get('stage', '?')}` (pid "
@@ -412,6 +434,9 @@ def _print_workdir(d: dict) -> None:
                           f"{w.get('started', '?')}): artifacts may change while you look"))
     if d.get("aim_models"):
         stdout.print(_aim_table(d["aim_models"]))
+    elif d.get("aim_models_error"):
+        stdout.print(Text(f"the models `aim --model auto` uses cannot be told: "
+                          f"{d['aim_models_error']}"))
 
 
 def _mrad(x) -> str:
@@ -420,16 +445,22 @@ def _mrad(x) -> str:
 
 def _aim_table(models: list) -> Table:
     table = Table(title=Text("models `aim --model auto` uses (mean error_mrad)"),
+                  caption=Text("forward: the same model fitted on the time split's training "
+                               "rows, on its test rows (the latest); next day: fit-coarse's "
+                               "rolling-origin evaluation (rolling_origin.parquet)"),
                   box=box.SIMPLE_HEAD, pad_edge=False)
-    for col in ("heliostat", "model", "weight decay", "chosen by", "validation", "test"):
-        table.add_column(col, justify="right" if col in ("validation", "test", "weight decay")
-                         else "left", no_wrap=True)
+    numbers = ("validation", "test", "forward", "next day", "weight decay")
+    for col in ("heliostat", "model", "weight decay", "chosen by", "validation", "test",
+                "forward", "next day"):
+        table.add_column(col, justify="right" if col in numbers else "left", no_wrap=True)
     for m in models:
         name = (f"coarse {m['preset']}" if m["model"] == "coarse"
                 else f"{m['variant']} on {m['preset']}")
         wd = "-" if m["weight_decay"] is None else f"{m['weight_decay']:g}"
         table.add_row(Text(m["heliostat_id"]), Text(name), Text(wd), Text(m["source"]),
-                      Text(_mrad(m["val_error_mrad"])), Text(_mrad(m["test_error_mrad"])))
+                      Text(_mrad(m["val_error_mrad"])), Text(_mrad(m["test_error_mrad"])),
+                      Text(_mrad(m.get("forward_error_mrad"))),
+                      Text(_mrad(m.get("next_day_error_mrad"))))
     return table
 
 

@@ -10,7 +10,15 @@ from rich.table import Table
 
 from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.vocabulary import DEFAULT_BATCH_ROWS, DEFAULT_TIME_MIN
+from heliocal.pipeline.vocabulary import (DEFAULT_BATCH_ROWS, DEFAULT_MAX_SPOT_DISTANCE_M,
+                                         DEFAULT_SUN_TOLERANCE_DEG, DEFAULT_TIME_MAX_MARGIN_DAYS,
+                                         DEFAULT_TIME_MIN, AzimuthConvention, FocalSpotDetector)
+
+
+def _choices(choice) -> str:
+    """An option's choices from the vocabulary, as --help shows them. The library checks the
+    value (IngestOptions.validate): a wrong one is its one-line error, exit code 1."""
+    return f"<{'|'.join(choice.values())}>"
 
 
 def _parse_location(text: Optional[str]):
@@ -50,13 +58,19 @@ def ingest_cmd(
     properties: Annotated[Optional[Path], typer.Option(
         help="Heliostat properties: a PAINT folder, or a CSV/TOML file (required for ENU logs).")] = None,
     focal_spot: Annotated[str, typer.Option(
-        help="PAINT focal-spot detector: utis or helios (a row without it falls back to the other).")] = "utis",
+        metavar=_choices(FocalSpotDetector),
+        help="PAINT focal-spot detector (a row without it falls back to the other).")
+    ] = FocalSpotDetector.utis.value,
     max_spot_distance: Annotated[float, typer.Option(
-        help="Reject focal spots farther than this from their target centre [m].")] = 25.0,
+        help="Reject focal spots farther than this from their target centre [m].")
+    ] = DEFAULT_MAX_SPOT_DISTANCE_M,
     sun_tolerance: Annotated[float, typer.Option(
-        help="Flag rows whose logged sun differs from NREL SPA by more than this [deg].")] = 0.1,
+        help="Flag rows whose logged sun differs from NREL SPA by more than this [deg].")
+    ] = DEFAULT_SUN_TOLERANCE_DEG,
     azimuth_convention: Annotated[str, typer.Option(
-        help="Logged sun azimuth convention: south (0 = south, + east) or north-clockwise.")] = "south",
+        metavar=_choices(AzimuthConvention),
+        help="Logged sun azimuth convention: south (0 = south, + east) or north-clockwise "
+             "(0 = north, + east).")] = AzimuthConvention.south.value,
     timezone: Annotated[Optional[str], typer.Option(
         help="Time zone of timestamps that carry none (e.g. Europe/Berlin).")] = None,
     location: Annotated[Optional[str], typer.Option(
@@ -67,7 +81,8 @@ def ingest_cmd(
     time_min: Annotated[str, typer.Option(
         help="Reject measurements before this time (implausible_timestamp).")] = DEFAULT_TIME_MIN,
     time_max: Annotated[Optional[str], typer.Option(
-        help="Reject measurements after this time (default: now + 1 day).")] = None,
+        help="Reject measurements after this time (default: now + "
+             f"{DEFAULT_TIME_MAX_MARGIN_DAYS} day).")] = None,
     batch_rows: Annotated[int, typer.Option(
         help="Rows of a log read and validated at a time; peak memory grows with it, not with the "
              "log (a longer log is sorted by heliostat in a hidden folder of the workdir). "

@@ -9,29 +9,25 @@ from typing import Annotated, Optional
 import typer
 
 from heliocal.pipeline.vocabulary import DEFAULT_ALERT_MRAD
-from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, Workers, command, emit,
-                              fail, stdout)
+from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, Workers, command,
+                              emit, fail, fmt_number, stdout)
 
 __all__ = ["report_cmd"]
-
-
-def _fmt(x) -> str:
-    return "-" if x is None else f"{x:.3f}"
 
 
 def _human(summary: dict) -> None:
     for h in summary["heliostats"]:
         stdout.print(f"{h['heliostat_id']}: {h['model'] or 'no model'}, test mean "
-                     f"{_fmt(h['test_mean_error_mrad'])} mrad, p95 "
-                     f"{_fmt(h['test_p95_error_mrad'])} mrad", markup=False)
+                     f"{fmt_number(h['test_mean_error_mrad'])} mrad, p95 "
+                     f"{fmt_number(h['test_p95_error_mrad'])} mrad", markup=False)
     for note in summary["notes"]:
         stdout.print(f"note: {note}", markup=False)
     f = summary.get("field_summary") or {}
     if f:
         stdout.print(f"field: {f['n_calibrated']} of {f['n_heliostats']} heliostats calibrated "
                      f"({f['n_hybrid']} hybrid, {f['n_coarse']} coarse); median test error "
-                     f"{_fmt(f['median_test_error_mrad'])} mrad, p95 "
-                     f"{_fmt(f['p95_test_error_mrad'])} mrad; {f['n_on_alert']} on alert",
+                     f"{fmt_number(f['median_test_error_mrad'])} mrad, p95 "
+                     f"{fmt_number(f['p95_test_error_mrad'])} mrad; {f['n_on_alert']} on alert",
                      markup=False)
     stdout.print(f"wrote {summary['report']} ({len(summary['figures'])} figures, "
                  f"{len(summary.get('heliostat_pages', []))} heliostat pages), "

@@ -9,7 +9,8 @@ import typer
 from rich import box
 from rich.table import Table
 
-from heliocal.cli.app import DEFAULT_WORKDIR, JsonFlag, QuietFlag, Seed, Workdir, command, emit, stdout
+from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Seed, Workdir, command, emit,
+                              fmt_number, stdout)
 from heliocal.pipeline.vocabulary import SplitMethod, SplitMetric
 
 __all__ = ["split_knn"]
@@ -22,10 +23,6 @@ Method = SplitMethod
 Metric = SplitMetric
 
 
-def _fmt(value: float | None) -> str:
-    return "-" if value is None else f"{value:.2f}"
-
-
 def _print_summary(summary: dict) -> None:
     table = Table(title=f"split-knn: method {summary['method']}, k={summary['k']}, metric "
                         f"{summary['metric']}", box=box.SIMPLE_HEAD, pad_edge=False)
@@ -36,9 +33,10 @@ def _print_summary(summary: dict) -> None:
     for h in summary["heliostats"]:
         c, d = h["counts"], h["mean_knn_distance_deg"]
         table.add_row(h["heliostat_id"], str(h["n_measurements"]), str(c["train"]),
-                      str(c["validation"]), str(c["test"]), str(c["unused"]), _fmt(d["train"]),
-                      _fmt(d["validation"]), _fmt(d["test"]),
-                      _fmt(h["mean_test_to_train_distance_deg"]))
+                      str(c["validation"]), str(c["test"]), str(c["unused"]),
+                      fmt_number(d["train"], 2), fmt_number(d["validation"], 2),
+                      fmt_number(d["test"], 2),
+                      fmt_number(h["mean_test_to_train_distance_deg"], 2))
     stdout.print(table)
     stdout.print("kNN <set>: mean kNN distance of the set (deg); test->train: mean distance from "
                  "a test measurement to the nearest training measurement (deg).", markup=False)

@@ -9,12 +9,13 @@ import typer
 from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
-                              SchedulerChoice, Workdir, Workers, command, emit, progress_bar,
-                              stdout)
+                              SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
+                              progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig
-from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS,
-                                         PretrainVariant, TrainingDtype)
+from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT,
+                                         OCTAVE_BANDS, NeuralBaseline, PretrainVariant,
+                                         TrainingDtype)
 
 
 def _ints(text: Optional[str], name: str):
@@ -27,10 +28,6 @@ def _ints(text: Optional[str], name: str):
                              f"Got {text!r} instead.") from exc
 
 
-def _fmt(x) -> str:
-    return "-" if x is None or x != x else f"{x:.3f}"
-
-
 def _human(summary: dict) -> None:
     table = Table(title=f"sweep -> {summary['workdir']} (selection at the full training size)",
                   show_edge=False)
@@ -40,8 +37,8 @@ def _human(summary: dict) -> None:
     for s in summary["selection"]:
         table.add_row(s["heliostat_id"], s["model"], s["preset"],
                       "-" if s["weight_decay"] != s["weight_decay"] else f"{s['weight_decay']:g}",
-                      _fmt(s["val_error_mrad"]), _fmt(s["test_error_mrad"]),
-                      _fmt(s["coarse_val_error_mrad"]), _fmt(s["coarse_test_error_mrad"]))
+                      fmt_number(s["val_error_mrad"]), fmt_number(s["test_error_mrad"]),
+                      fmt_number(s["coarse_val_error_mrad"]), fmt_number(s["coarse_test_error_mrad"]))
     stdout.print(table)
     stdout.print("mean error_mrad; coarse = fit-coarse's selected fit (the same numbers), always a "
                  "candidate, so the selection is never worse than it on validation.")
@@ -77,13 +74,14 @@ def sweep_cmd(
     ensemble: Annotated[int, typer.Option(
         min=1, help="Networks averaged per member (weight decay, seed).")] = FineConfig.ensemble,
     baselines: Annotated[str, typer.Option(
-        help="Neural baselines of the study: nn-only, pretrained-nn (comma-separated, or "
-             "none).")] = "nn-only",
+        help="Neural baselines of the study: "
+             f"{', '.join(NeuralBaseline.values())} (comma-separated, or none).")
+    ] = NeuralBaseline.nn_only.value,
     select_pretrained: Annotated[bool, typer.Option(
         "--select-pretrained/--no-select-pretrained",
         help="Also fit the pre-trained network (pretrained-nn, --pretrain-variant) on every "
-             "heliostat as a candidate of the selection, under the hybrids' 20 % margin "
-             "rule.")] = False,
+             "heliostat as a candidate of the selection, under the hybrids' "
+             f"{100 * MIN_IMPROVEMENT:g} % margin rule.")] = False,
     time_split: Annotated[bool, typer.Option(
         "--time-split/--no-time-split",
         help="Also evaluate the selected hybrids forward in time: train each again on the "
@@ -126,10 +124,6 @@ def sweep_cmd(
                         training_dtype=training_dtype.value,
                         env=tuple(e.strip() for e in env.split(",") if e.strip()) if env else ())
     base = [] if baselines.strip() in ("", "none") else [b.strip() for b in baselines.split(",")]
-    for b in base:
-        if b not in ("nn-only", "pretrained-nn"):
-            raise ParameterError(f"The 'baselines' parameter of sweep must list nn-only and/or "
-                                 f"pretrained-nn. Got {b!r} instead.")
     path = PathConfig(warm_start=warm_start, stage_epochs=stage_epochs,
                       stage_patience=stage_patience)
     with progress_bar("sweep", quiet) as advance:

@@ -19,6 +19,7 @@ __all__ = [
     "FitError",
     "WorkdirBusyError",
     "UnsafePathError",
+    "ClusterError",
     "check_choice",
     "check_int",
     "check_float",
@@ -61,6 +62,11 @@ class WorkdirBusyError(HeliocalError):
 class UnsafePathError(InputError, ValueError):
     """A name taken from the data cannot be used as a file name inside its folder (see
     :func:`heliocal.pipeline.artifacts.store.safe_child`)."""
+
+
+class ClusterError(HeliocalError):
+    """A Dask scheduler cannot be reached at the address given, or the connection to it was lost
+    while its tasks ran (see :mod:`heliocal.pipeline.runtime.parallel`)."""
 
 
 def _param_error(name: str, func: str, must: str, value) -> ParameterError:

@@ -1,19 +1,126 @@
-"""Shared, generic fixtures: paths of the committed test data, the real Jülich data and a CLI runner."""
+"""Shared fixtures: paths of the committed test data, the real Jülich data, a CLI runner, and the
+work directories that several test modules start from, built once per test session.
+
+How the suite runs (``make test``; docs/experiments/test-durations.md has the measurements):
+
+* a parallel pass, ``pytest -n 2 --dist loadscope -m "not alone"`` (pytest-xdist): the tests of one
+  module (or of one class) go to the same worker process, in file order, so a module-scoped
+  fixture is built once; modules with slow tests start first (``pytest_collection_modifyitems``);
+  a module whose slow tests are independent chains can put each in a class of its own
+  (test_docs_commands.py does);
+* a serial pass, ``pytest -m alone``: tests that need the machine to themselves (time windows,
+  watchdogs, a worker pool they count) run there, with nothing beside them.
+
+A new test that runs stages end to end is marked ``slow`` (``make test-fast`` skips it); one whose
+checks depend on time (a deadline, a window in seconds) is marked ``alone`` as well. A work
+directory that several modules need is a session fixture here, built by :func:`built_once`
+(once for all worker processes) and never written to: a test that changes it works on a copy
+(:func:`copy_of`); a session that changed it fails at its end.
+"""
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
+import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
 TESTS = Path(__file__).resolve().parent
+REPO = TESTS.parent
 GOOD = TESTS / "data" / "good"
 BAD = TESTS / "data" / "bad"
 #: The real PAINT data; CI keeps it in ../shared beside the repository.
 JUELICH = Path(__file__).resolve().parents[2] / "shared" / "data" / "juelich"
+#: The bundled sample of three Jülich heliostats (BE36 177, BF41 170, BH35 149 measurements).
+SAMPLE_PAINT = REPO / "sample_data" / "juelich" / "paint"
 
 
+# ------------------------------------------------------------------------------------------------
+# scheduling under pytest-xdist
+# ------------------------------------------------------------------------------------------------
+def _scope(item) -> str:
+    """The unit of work of ``--dist loadscope``: the test's module, or its class."""
+    return item.nodeid.rsplit("::", 1)[0]
+
+
+def pytest_collection_modifyitems(config, items):
+    """In a worker process of xdist the units of work (modules, classes) that hold slow tests
+    come first, in file order, so that the long ones start early and the short ones fill in at
+    the end (``--no-loadscope-reorder`` keeps this order; xdist's own would put the units with
+    the most tests first). Without xdist the order is pytest's."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        slow = {_scope(item) for item in items if item.get_closest_marker("slow")}
+        items.sort(key=lambda item: _scope(item) not in slow)  # stable: file order within
+
+
+# ------------------------------------------------------------------------------------------------
+# folders built once per session, shared by the worker processes
+# ------------------------------------------------------------------------------------------------
+def _digest(folder: Path) -> str:
+    """SHA-256 over the relative names and bytes of every file under ``folder``."""
+    h = hashlib.sha256()
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        h.update(str(path.relative_to(folder)).encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Path:
+    """The folder ``name``, made by ``build(folder)`` once in this test session: the worker
+    processes of ``pytest -n`` share one (a file lock lets the first build it and the others wait
+    for it). Read it, never write it: copy it first (:func:`copy_of`)."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, above the workers' own
+    folder = root / f"shared-{name}"
+    done = root / f"shared-{name}.sha256"
+    with open(root / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.is_file():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            done.write_text(_digest(folder))
+    return folder
+
+
+def check_unchanged(folder: Path) -> None:
+    """Fail if a shared folder of :func:`built_once` was written to since it was built."""
+    recorded = (folder.parent / f"{folder.name}.sha256").read_text()
+    assert _digest(folder) == recorded, (
+        f"a test changed the shared folder {folder}; tests must work on a copy (copy_of)")
+
+
+def copy_of(folder: Path, dest: Path) -> Path:
+    """A private copy of ``folder`` at ``dest`` (modification times kept, as Make needs)."""
+    return Path(shutil.copytree(folder, dest, symlinks=True))
+
+
+@pytest.fixture(scope="session")
+def sample_split(tmp_path_factory) -> Path:
+    """``heliocal ingest sample_data/juelich/paint`` and ``heliocal split-knn`` (defaults: 30 test
+    + 20 validation, kNN, seed 0) in one work directory, as the first two stages of ``make
+    sample`` make it. Shared: read only, or copy it (:func:`copy_of`)."""
+    from heliocal.cli.main import app
+
+    def build(wd: Path) -> None:
+        runner = CliRunner()
+        for args in (["ingest", str(SAMPLE_PAINT)], ["split-knn"]):
+            result = runner.invoke(app, [*args, "--workdir", str(wd), "--quiet"])
+            assert result.exit_code == 0, (args, result.stdout, result.stderr)
+
+    folder = built_once(tmp_path_factory, "sample-split", build)
+    yield folder
+    check_unchanged(folder)
+
+
+# ------------------------------------------------------------------------------------------------
+# data and a runner
+# ------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="session")
 def good_dir() -> Path:
     """Small valid fixtures written out by tests/data/bad/make_corpus.py."""

@@ -212,6 +212,7 @@ def test_empty_sun_angles_are_computed_with_spa(runner, tmp_path):
     assert m.loc[1, "sun_elevation_deg"] == pytest.approx(51.56794833385448, abs=0.01)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("source", ["binary_garbage.csv", "not_utf8.csv"])
 def test_installed_command_prints_no_traceback(source, tmp_path):
     """The real console script (not CliRunner): one stderr line, exit 1, no traceback."""

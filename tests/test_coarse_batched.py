@@ -34,6 +34,7 @@ from heliocal.pipeline.artifacts.store import read_artifact
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from heliocal.pipeline.stages.split import run_split
 
+from conftest import copy_of
 from test_coarse_recovery import _ingested
 
 #: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
@@ -60,20 +61,21 @@ def test_noiseless_heliostats_in_one_batch_recover_their_true_parameters(tmp_pat
         assert fit.status.startswith("batched LM:")
 
 
-def _workdir(tmp_path: Path, name: str) -> Path:
+def _workdir(tmp_path: Path, name: str, sample_split: Path) -> Path:
+    """The sample ingested and split (defaults): a copy of the session's ``sample_split`` for
+    sample_data/juelich, made here for sample_data/synthetic."""
     wd = tmp_path / name
     if name == "juelich":
-        run_ingest([SAMPLES / "juelich" / "paint"], wd)
-    else:
-        run_ingest([SAMPLES / "synthetic" / "calibration_log.csv"], wd,
-                   IngestOptions(properties=SAMPLES / "synthetic" / "paint"))
+        return copy_of(sample_split, wd)
+    run_ingest([SAMPLES / "synthetic" / "calibration_log.csv"], wd,
+               IngestOptions(properties=SAMPLES / "synthetic" / "paint"))
     run_split(wd)
     return wd
 
 
 @pytest.mark.parametrize("sample", ["juelich", "synthetic"])
-def test_batched_and_scipy_agree_on_the_sample_heliostats(tmp_path, sample):
-    wd = _workdir(tmp_path, sample)
+def test_batched_and_scipy_agree_on_the_sample_heliostats(tmp_path, sample, sample_split):
+    wd = _workdir(tmp_path, sample, sample_split)
     out = {}
     for solver in ("scipy", "batched"):
         run_fit_coarse(wd, preset="auto", solver=solver)  # soft_l1, 1 mrad: the stage's default
@@ -108,8 +110,8 @@ def test_batched_and_scipy_agree_on_the_sample_heliostats(tmp_path, sample):
     assert new["fit_status"].str.startswith("batched LM:").all()
 
 
-def test_a_heliostat_in_a_padded_batch_fits_as_alone(tmp_path):
-    wd = _workdir(tmp_path, "juelich")
+def test_a_heliostat_in_a_padded_batch_fits_as_alone(sample_split):
+    wd = sample_split  # only read
     meas = read_artifact(wd, MEASUREMENTS)
     split = pd.read_parquet(wd / "split.parquet")
     helio = read_artifact(wd, HELIOSTATS).set_index("heliostat_id", drop=False)

@@ -386,6 +386,8 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
         assert seen == expected, (n, event, path, _differences(view, new_view if
                                                            expected == "new" else old_view))
         assert (run == old_run) == (expected == "old")
+        if stage == "sweep":  # issue 22's case 3 at every write point (see _check_one_sweep_run)
+            _check_one_sweep_run(workdir, [60] if expected == "old" else [100])
         _info_clean(workdir, stage)
         # the next run completes an interrupted commit or removes an uncommitted staging folder;
         # the readers see the same afterwards, and nothing is left
@@ -405,7 +407,8 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
 
 
 # ------------------------------------------------------------------------------------------------
-# the moments issue 22 names (cases 1-3), each checked with what the issue saw going wrong
+# the moments issue 22 names (cases 1 and 2 here; case 3 after every kill of the sweep above),
+# each checked with what the issue saw going wrong
 # ------------------------------------------------------------------------------------------------
 def _killed_copies(zygotes, base: Path, tmp_path: Path, argv: list[str], moments) -> dict:
     """Work directories where ``argv`` was killed right after each (event, path) of ``moments``."""
@@ -480,15 +483,13 @@ def test_case_2_fit_hybrid_killed_between_model_files_and_predictions(zygotes, b
         assert out["model"] == "hybrid" and out["aim_error_mrad"] < 1e-6
 
 
-@pytest.mark.slow
-def test_case_3_sweep_killed_between_sweep_and_selection(zygotes, base, tmp_path):
-    """Issue case 3: sweep.parquet and selection.parquet from different runs. Now one run."""
-    argv = ["sweep", "--n-train", "100", "--wd-max", "1", "--wd-min", "0.1", "--ensemble", "1",
-            "--baselines", "none", "--no-octaves", "--max-epochs", "20", "--seeds", "1",
-            "--workers", "1"]
-    moments = [("staged", ".txn-sweep-<run>/sweep.parquet"), ("apply", "sweep.parquet"),
-               ("apply", "selection.parquet")]
-    for moment, wd in _killed_copies(zygotes, base, tmp_path, argv, moments).items():
-        opts = [_committed_provenance(wd, "sweep", f)["options"]["n_train"]
-                for f in ("sweep.parquet", "selection.parquet", "selected_predictions.parquet")]
-        assert opts == [[60] if moment[0] == "staged" else [100]] * 3
+def _check_one_sweep_run(workdir: Path, n_train: list[int]) -> None:
+    """Issue case 3: sweep.parquet and selection.parquet from different runs. The committed
+    sweep.parquet, selection.parquet and selected_predictions.parquet were all written by the
+    run with ``--n-train`` ``n_train`` (the previous run's 60, or the killed run's 100): checked
+    by test_kill_after_every_write_point_leaves_old_or_new[sweep] after every kill, among them
+    the three moments the issue names (sweep.parquet staged; sweep.parquet in place, selection
+    not yet; selection in place)."""
+    opts = [_committed_provenance(workdir, "sweep", f)["options"]["n_train"]
+            for f in ("sweep.parquet", "selection.parquet", "selected_predictions.parquet")]
+    assert opts == [n_train] * 3, opts

@@ -8,6 +8,11 @@ regeneration in docs/report.md) and links to the Makefile, the code and ``.venv`
 ``.venv/bin`` first on PATH. Each must exit with 0. The commands that genuinely cannot run here
 are listed in NOT_RUN with the reason; a test keeps that list short and current.
 
+The commands form *chains*, one per work directory (:func:`chain_of`): `make sample` and every
+later command on ``runs/sample``, the README's typical run on ``runs/juelich``, ... Each chain runs
+in order in a sandbox of its own, as a test class of its own (a unit of work of ``pytest -n 2
+--dist loadscope``), so that the typical run and ``make sample`` run side by side, each in order.
+
 A second, quick test checks the command lines that are not run (NOT_RUN, usage synopses in
 plain ``` blocks, commands quoted inline in the text): every ``--option`` they name exists on
 that heliocal subcommand.
@@ -59,9 +64,17 @@ def _blocks(path: Path, language: str | None) -> list[tuple[int, str]]:
 
 def shell_commands(path: Path) -> list[tuple[str, int, str]]:
     """(file, line, command) of every command in ``path``'s ```sh blocks."""
-    commands, pending, start = [], "", 0
+    return [c[:3] for c in _shell_commands_with_blocks(path)]
+
+
+def _shell_commands_with_blocks(path: Path) -> list[tuple[str, int, str, int]]:
+    """(file, line, command, line of its block's first command) of ``path``'s ```sh blocks."""
+    commands, pending, start, block, previous = [], "", 0, 0, -1
     for no, line in _blocks(path, "sh"):
         text = line.rstrip()
+        if no != previous + 1:
+            block = no  # a new fenced block (a block's lines are consecutive)
+        previous = no
         if not pending and (not text.strip() or text.lstrip().startswith("#")):
             continue
         if not pending:
@@ -69,16 +82,41 @@ def shell_commands(path: Path) -> list[tuple[str, int, str]]:
         if text.endswith("\\"):
             pending += text[:-1] + " "
             continue
-        commands.append((str(path.relative_to(ROOT)), start, (pending + text).strip()))
+        commands.append((str(path.relative_to(ROOT)), start, (pending + text).strip(), block))
         pending = ""
     return commands
+
+
+def _work_directory(command: str) -> str | None:
+    """The work directory or output folder a command names: ``--workdir``/``--out`` or a path
+    under ``runs/``; ``make sample`` works in the Makefile's WORKDIR, runs/sample."""
+    if re.match(r"make\s+sample\b", command):
+        return "runs/sample"
+    m = re.search(r"--(?:workdir|out)[= ](\S+)", command) or re.search(r"\b(runs/[^\s/]+)", command)
+    return m.group(1) if m else None
+
+
+def chain_of(commands: list[tuple[str, int, str, int]]) -> list[str]:
+    """The chain of each command: the work directory the first command of its ```sh block names
+    (a block is run in order: input_formats.md's ingest reads what the simulate before it
+    wrote), else its file's name."""
+    first: dict[tuple[str, int], str] = {}
+    out = []
+    for source, _, command, block in commands:
+        key = (source, block)
+        if key not in first:
+            first[key] = _work_directory(_strip_comment(command)) or source
+        out.append(first[key])
+    return out
 
 
 def _strip_comment(command: str) -> str:
     return re.sub(r"\s+#.*$", "", command).strip()
 
 
-COMMANDS = [c for p in DOCS for c in shell_commands(p)]
+_WITH_BLOCKS = [c for p in DOCS for c in _shell_commands_with_blocks(p)]
+COMMANDS = [c[:3] for c in _WITH_BLOCKS]
+CHAINS = chain_of(_WITH_BLOCKS)
 
 
 def test_commands_are_found_and_the_not_run_list_is_short_and_current():
@@ -89,8 +127,31 @@ def test_commands_are_found_and_the_not_run_list_is_short_and_current():
     assert all(reason for reason in NOT_RUN.values())
 
 
+def test_chains_keep_each_work_directory_in_one_order():
+    """make sample and the commands on runs/sample are one chain, the README's typical run
+    another, and a block is never split (input_formats.md ingests what its simulate wrote)."""
+    runs = [(command, chain) for (_, _, command), chain in zip(COMMANDS, CHAINS)]
+    assert {c for command, c in runs if command == "make sample"} == {"runs/sample"}
+    assert {c for command, c in runs if "runs/sample" in command} == {"runs/sample"}
+    assert {c for command, c in runs if "runs/juelich" in command} == {"runs/juelich"}
+    simulated = [c for command, c in runs if "runs/simulated" in command]
+    assert len(simulated) >= 2 and set(simulated) == {"runs/simulated"}
+
+
 @pytest.fixture(scope="module")
-def sandbox(tmp_path_factory) -> dict:
+def sandboxes(tmp_path_factory):
+    """A sandbox per chain (made when the chain's first command runs)."""
+    boxes: dict[str, dict] = {}
+
+    def get(chain: str) -> dict:
+        if chain not in boxes:
+            boxes[chain] = _sandbox(tmp_path_factory)
+        return boxes[chain]
+
+    return get
+
+
+def _sandbox(tmp_path_factory) -> dict:
     """The temporary directory the commands run in, and their environment."""
     box = tmp_path_factory.mktemp("docs")
     shutil.copytree(ROOT / "sample_data", box / "sample_data")
@@ -108,18 +169,34 @@ def sandbox(tmp_path_factory) -> dict:
     return {"dir": box, "env": env, "seconds": {}}
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("source,line,command", COMMANDS,
-                         ids=[f"{s}:{n}" for s, n, _ in COMMANDS])
-def test_documented_command_runs(sandbox, source, line, command):
-    if _strip_comment(command) in NOT_RUN:
-        pytest.skip(f"not run: {NOT_RUN[_strip_comment(command)]}")
-    t0 = time.monotonic()
-    proc = subprocess.run(["bash", "-c", command], cwd=sandbox["dir"], env=sandbox["env"],
-                          capture_output=True, text=True, timeout=900)
-    sandbox["seconds"][f"{source}:{line}"] = time.monotonic() - t0
-    assert proc.returncode == 0, (f"{source}:{line}: `{command}` exited with {proc.returncode}\n"
-                                  f"stdout: {proc.stdout[-2000:]}\nstderr: {proc.stderr[-3000:]}")
+def _chain_class(chain: str) -> type:
+    """A test class running the commands of ``chain`` in order (a class is its own unit of work
+    for ``pytest -n 2 --dist loadscope``, so two chains can run on two workers)."""
+
+    @pytest.mark.slow
+    @pytest.mark.parametrize("source,line,command", [
+        pytest.param(s, n, c, id=f"{s}:{n}") for (s, n, c), ch in zip(COMMANDS, CHAINS)
+        if ch == chain])
+    def test_documented_command_runs(self, sandboxes, source, line, command):
+        if _strip_comment(command) in NOT_RUN:
+            pytest.skip(f"not run: {NOT_RUN[_strip_comment(command)]}")
+        sandbox = sandboxes(chain)
+        t0 = time.monotonic()
+        proc = subprocess.run(["bash", "-c", command], cwd=sandbox["dir"], env=sandbox["env"],
+                              capture_output=True, text=True, timeout=900)
+        sandbox["seconds"][f"{source}:{line}"] = time.monotonic() - t0
+        assert proc.returncode == 0, (
+            f"{source}:{line}: `{command}` exited with {proc.returncode}\n"
+            f"stdout: {proc.stdout[-2000:]}\nstderr: {proc.stderr[-3000:]}")
+
+    name = "TestChain_" + re.sub(r"\W", "_", chain)
+    return type(name, (), {"__doc__": f"The documented commands on {chain}, in order.",
+                           "test_documented_command_runs": test_documented_command_runs})
+
+
+for _chain in dict.fromkeys(CHAINS):
+    _cls = _chain_class(_chain)
+    globals()[_cls.__name__] = _cls
 
 
 # ------------------------------------------------------------------------------------------------

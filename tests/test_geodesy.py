@@ -35,7 +35,7 @@ def _ecef(lat, lon, h):
 
 def test_matches_independent_ecef_rotation():
     """PROJ agrees with ECEF difference rotated into the local frame (independent formula)."""
-    lat0, lon0, h0 = np.radians(REF[0]), np.radians(REF[1]), REF[2]
+    lat0, lon0 = np.radians(REF[0]), np.radians(REF[1])
     d = _ecef(*MULTI_FOCUS) - _ecef(*REF)
     rot = np.array([[-np.sin(lon0), np.cos(lon0), 0],
                     [-np.sin(lat0) * np.cos(lon0), -np.sin(lat0) * np.sin(lon0), np.cos(lat0)],
@@ -43,7 +43,24 @@ def test_matches_independent_ecef_rotation():
     expected = rot @ d
     got = np.array([float(x) for x in wgs84_to_enu(*MULTI_FOCUS, REF)])
     assert got == pytest.approx(expected, abs=1e-6)
-    assert h0 == 87.0
+
+
+def test_up_is_the_height_difference_less_the_earths_curvature():
+    """Up is measured from the reference height along its ellipsoid normal: a point straight above
+    the reference is at (0, 0, dh); a point d away horizontally is dh - d^2 / (2 R) up, R the
+    radius of curvature of the ellipsoid's normal section toward it (Euler: 1/R = cos^2(a) / M +
+    sin^2(a) / N, a its azimuth; M, N the meridian and prime-vertical radii)."""
+    above = [float(x) for x in wgs84_to_enu(REF[0], REF[1], REF[2] + 50.0, REF)]
+    assert above == pytest.approx([0.0, 0.0, 50.0], abs=1e-9)
+    e, n, u = (float(x) for x in wgs84_to_enu(*MULTI_FOCUS, REF))
+    a, f = 6378137.0, 1 / 298.257223563
+    e2 = f * (2 - f)
+    w = np.sqrt(1 - e2 * np.sin(np.radians(REF[0])) ** 2)
+    meridian, prime_vertical = a * (1 - e2) / w**3, a / w
+    azimuth = np.arctan2(e, n)
+    radius = 1 / (np.cos(azimuth) ** 2 / meridian + np.sin(azimuth) ** 2 / prime_vertical)
+    drop = (e * e + n * n) / (2 * radius)  # 2.5e-5 m over the tower's 17.8 m
+    assert u == pytest.approx(MULTI_FOCUS[2] - REF[2] - drop, abs=1e-8)
 
 
 def test_reference_point_is_origin():

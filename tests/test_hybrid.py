@@ -306,6 +306,7 @@ def test_float32_training_stays_float32_and_returns_float64_weights():
     assert res.best_val_mrad.dtype == torch.float64
 
 
+@pytest.mark.slow
 def test_batched_training_equals_single_member_trainings():
     rows = synthetic_measurements(60)
     problem = _problem(rows)
@@ -327,6 +328,7 @@ def test_batched_training_equals_single_member_trainings():
         assert float((err_s[0] - err_b[m]).abs().max()) < 1e-9
 
 
+@pytest.mark.slow
 def test_dynamic_monthly_tilt_is_learned(workdir):
     """Issue: with a dynamic disturbance the hybrid's test error is at most 0.7 x the coarse."""
     _, summary = workdir
@@ -335,6 +337,7 @@ def test_dynamic_monthly_tilt_is_learned(workdir):
     assert h["hybrid"]["validation"] <= h["coarse"]["validation"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("training_dtype", ["float32", "float64"])
 def test_static_heliostat_hybrid_stays_at_coarse(training_dtype):
     """Without a dynamic disturbance early stopping keeps the hybrid (an ensemble of 4 networks,
@@ -364,6 +367,7 @@ def test_static_heliostat_hybrid_stays_at_coarse(training_dtype):
     assert hyb[test].mean() <= 1.03 * coarse[test].mean()
 
 
+@pytest.mark.slow
 def test_reproducible_with_seed(workdir):
     wd, _ = workdir
     cfg, layers = load_model(wd, "hybrid", HID)
@@ -376,6 +380,7 @@ def test_reproducible_with_seed(workdir):
 # --------------------------------------------------------------------------------------------
 # stage, artifacts, CLI
 # --------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_predictions_artifact_has_coarse_columns_and_modes(workdir, runner):
     wd, _ = workdir
     assert HYBRID_PREDICTIONS.column_names() == COARSE_PREDICTIONS.column_names()
@@ -393,6 +398,7 @@ def test_predictions_artifact_has_coarse_columns_and_modes(workdir, runner):
     assert cfg["sizes"][1:-1] == [2] * 14 and cfg["mode"] == "nn-only"
 
 
+@pytest.mark.slow
 def test_cli_table_and_missing_coarse_error(workdir, runner, tmp_path):
     wd, _ = workdir
     res = runner.invoke(app, ["fit-hybrid", "-w", str(wd), "--max-epochs", "5", "--fourier-bands",
@@ -407,6 +413,7 @@ def test_cli_table_and_missing_coarse_error(workdir, runner, tmp_path):
     run_fit_hybrid(wd, mode="hybrid", seed=0, config=FAST)
 
 
+@pytest.mark.slow
 def test_aim_round_trip(workdir, runner):
     """The forward model at the returned steps puts the beam on the aim point (0.01 mrad)."""
     wd, _ = workdir
@@ -444,6 +451,7 @@ def test_aim_round_trip(workdir, runner):
     assert abs(c["axis_1_steps"] - out["axis_1_steps"]) + abs(c["axis_2_steps"] - out["axis_2_steps"]) > 1
 
 
+@pytest.mark.slow
 def test_aim_errors_are_one_line(workdir, runner):
     wd, _ = workdir
     res = runner.invoke(app, ["aim", "-w", str(wd), "--heliostat", HID, "--sun-azimuth", "10",
@@ -455,6 +463,7 @@ def test_aim_errors_are_one_line(workdir, runner):
     assert res.exit_code == 1 and "unknown target" in res.stderr
 
 
+@pytest.mark.slow
 def test_members_that_stop_leave_the_program_without_changing_the_others():
     """Stopped members are dropped from the running program (their Adam moments are sliced
     away, the rest continue). Expected values: each member trained alone; they stop at

@@ -6,8 +6,6 @@ heliostat-by-heliostat run (a batched program of several heliostats trains each 
 would train alone, up to floating-point reassociation: 1e-9 mrad).
 """
 
-from pathlib import Path
-
 import pandas as pd
 import pytest
 
@@ -16,14 +14,12 @@ from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.artifacts.schemas import HYBRID_PREDICTIONS
 from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
-from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.runtime.parallel import map_tasks, shared_pool
-from heliocal.pipeline.stages.split import run_split
+
+from conftest import copy_of
 
 #: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
 pytestmark = pytest.mark.slow
-
-SAMPLE = Path(__file__).resolve().parents[1] / "sample_data" / "juelich" / "paint"
 
 
 def _square(x):
@@ -143,18 +139,11 @@ def test_calls_in_a_shared_pool_block_reuse_its_workers_and_the_block_stops_them
 
 
 @pytest.fixture(scope="module")
-def workdirs(tmp_path_factory):
-    import shutil
-
+def workdirs(sample_split, tmp_path_factory):
+    """Four copies of the sample ingested and split (n_test=30, n_val=20: the session's
+    ``sample_split``)."""
     base = tmp_path_factory.mktemp("par")
-    first = base / "seq"
-    run_ingest([SAMPLE], first)
-    run_split(first, n_test=30, n_val=20)
-    dirs = {"seq": first}
-    for name in ("local2", "dask", "batched"):
-        dirs[name] = base / name
-        shutil.copytree(first, dirs[name])
-    return dirs
+    return {name: copy_of(sample_split, base / name) for name in ("seq", "local2", "dask", "batched")}
 
 
 def _fit(workdir, batch_size=1, training_dtype=FineConfig.training_dtype, **kw):

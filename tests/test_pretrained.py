@@ -42,6 +42,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SYNTHETIC = ROOT / "sample_data" / "synthetic"
 INJECT_STEPS, INJECT_PERIOD_DEG = 40.0, 30.0
 
+#: end to end (ingest, split-knn, fit-coarse and sweep through the CLI): `make test` runs it,
+#: `make test-fast` skips it
+pytestmark = pytest.mark.slow
+
 
 def _ok(runner, args):
     result = runner.invoke(app, args)

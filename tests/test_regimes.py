@@ -175,6 +175,7 @@ def changing_field(tmp_path_factory):
             "after": params(), "errors_before": errors_before, "errors_after": errors(), "times": {h: g["timestamp"] for h, g in seen.groupby("heliostat_id")}}
 
 
+@pytest.mark.slow
 def test_simulated_steps_and_episodes_are_found(changing_field):
     from heliocal.pipeline.models.changes import score_detection
 
@@ -190,6 +191,7 @@ def test_simulated_steps_and_episodes_are_found(changing_field):
     assert score["static_heliostats"] >= 3 and score["static_false_alarms"] == 0
 
 
+@pytest.mark.slow
 def test_static_heliostats_keep_their_fit_and_episode_refits_need_the_margin(changing_field):
     field, before, after = changing_field["field"], changing_field["before"], changing_field["after"]
     regimes = changing_field["regimes"]
@@ -218,6 +220,7 @@ def test_static_heliostats_keep_their_fit_and_episode_refits_need_the_margin(cha
             assert err <= 1.2 * field.heliostats[hid].noise_floor_mrad
 
 
+@pytest.mark.slow
 def test_aim_reports_the_latest_regime(changing_field):
     from heliocal.pipeline.stages.aim import aim_steps
 

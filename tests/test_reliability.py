@@ -40,6 +40,7 @@ from heliocal.pipeline.artifacts.store import (SCHEMA_VERSION, check_fresh, read
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
 from heliocal.pipeline.artifacts.schemas import SPLIT
 from heliocal.pipeline.artifacts.workdir_lock import LOCK_FILENAME, lock_holder
+from conftest import copy_of
 from workdir_tools import recommit
 
 #: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
@@ -51,10 +52,6 @@ PAINT_SMALL = REPO / "tests" / "data" / "good" / "paint_small"
 INGEST_ARTIFACTS = ("measurements.parquet", "heliostats.parquet", "rejected.parquet")
 #: Small and quick coarse fit: 6 parameters, one heliostat (about 1 s).
 COARSE_ARGS = ["--preset", "static-6", "--heliostat", "BE36"]
-
-
-def _registered() -> set[str]:
-    return {c.name or c.callback.__name__ for c in app.registered_commands}
 
 
 def _run(runner, *args: str):
@@ -86,23 +83,11 @@ def _set_schema_version(path: Path, version: int) -> None:
     recommit(path.parent, path.name)
 
 
-@pytest.fixture(scope="module")
-def split_workdir(tmp_path_factory) -> Path:
-    """ingest sample_data/juelich/paint + split-knn (defaults, seed 0); tests work on copies."""
-    from typer.testing import CliRunner
-
-    workdir = tmp_path_factory.mktemp("split")
-    runner = CliRunner()
-    for args in (["ingest", PAINT, "--workdir", workdir], ["split-knn", "--workdir", workdir]):
-        result = _run(runner, *args)
-        assert result.exit_code == 0, result.stderr
-    return workdir
-
-
 @pytest.fixture
-def workdir(split_workdir, tmp_path) -> Path:
-    """A private copy of the ingested and split work directory."""
-    return Path(shutil.copytree(split_workdir, tmp_path / "run"))
+def workdir(sample_split, tmp_path) -> Path:
+    """A private copy of sample_data/juelich/paint ingested and split (defaults, seed 0; the
+    session's shared ``sample_split``, tests/conftest.py)."""
+    return copy_of(sample_split, tmp_path / "run")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -117,24 +102,18 @@ def test_missing_measurements_names_ingest(stage, runner, tmp_path):
 
 
 def test_missing_measurements_report(runner, tmp_path):
-    if "report" not in _registered():
-        pytest.skip("`heliocal report` is not registered in cli/main.py")
     line = _one_line_error(_run(runner, "report", "--workdir", tmp_path))
     assert line == (f"Error: {tmp_path}/measurements.parquet is missing: run "
                     f"`heliocal ingest SOURCE... --workdir {tmp_path}` first")
 
 
 def test_fit_hybrid_without_coarse_fit_names_fit_coarse(runner, workdir):
-    if "fit-hybrid" not in _registered():
-        pytest.skip("`heliocal fit-hybrid` is not registered in cli/main.py")
     line = _one_line_error(_run(runner, "fit-hybrid", "--workdir", workdir))
     assert line == (f"Error: {workdir}/coarse_params.parquet is missing: run "
                     f"`heliocal fit-coarse --workdir {workdir}` first")
 
 
 def test_fit_hybrid_refuses_incompatible_or_stale_coarse_fit(runner, workdir, tmp_path):
-    if "fit-hybrid" not in _registered():
-        pytest.skip("`heliocal fit-hybrid` is not registered in cli/main.py")
     assert _run(runner, "fit-coarse", "--workdir", workdir, *COARSE_ARGS).exit_code == 0
     other = Path(shutil.copytree(workdir, tmp_path / "other"))
     _set_schema_version(other / "coarse_params.parquet", 999)
@@ -367,13 +346,13 @@ def test_artifact_permissions_follow_umask(runner, tmp_path):
 TIMING_COLUMNS = {"wall_time_s"}
 
 
-#: fit-hybrid, when registered: BE36 only, 30 epochs (well under a second).
+#: fit-hybrid: BE36 only, 30 epochs (well under a second).
 HYBRID_ARGS = ["fit-hybrid", "--heliostat", "BE36", "--max-epochs", "30", "--seed", "0"]
 
 
-def _pipeline(runner, workdir: Path, hybrid: bool) -> None:
+def _pipeline(runner, workdir: Path) -> None:
     stages = [["ingest", PAINT], ["split-knn", "--seed", "0"], ["fit-coarse", *COARSE_ARGS]]
-    for args in stages + ([HYBRID_ARGS] if hybrid else []):
+    for args in stages + [HYBRID_ARGS]:
         result = _run(runner, *args, "--workdir", workdir)
         assert result.exit_code == 0, (args, result.stderr)
 
@@ -385,17 +364,16 @@ def _normalized_provenance(path: Path, workdir: Path) -> dict:
 
 
 def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
-    hybrid = "fit-hybrid" in _registered()
     first, second = tmp_path / "first", tmp_path / "second"
-    _pipeline(runner, first, hybrid)
-    _pipeline(runner, second, hybrid)
+    _pipeline(runner, first)
+    _pipeline(runner, second)
     files = sorted(str(p.relative_to(first)) for p in first.rglob("*")
                    if p.is_file() and not p.name.endswith(".manifest.json"))
     assert files == sorted(str(p.relative_to(second)) for p in second.rglob("*")
                            if p.is_file() and not p.name.endswith(".manifest.json"))
     names = [f for f in files if f.endswith(".parquet")]
     assert names == ["coarse_params.parquet", "coarse_predictions.parquet", "heliostats.parquet",
-                     *(["hybrid_predictions.parquet"] if hybrid else []),
+                     "hybrid_predictions.parquet",
                      "measurements.parquet", "regime_params.parquet", "regimes.parquet",
                      "rejected.parquet", "split.parquet"]
     for name in names:
@@ -411,15 +389,15 @@ def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
                                       atol=0.0, obj=name)
         assert _normalized_provenance(first / name, first) == \
             _normalized_provenance(second / name, second), name
-    if hybrid:  # the fine model's files: weights exactly equal (fit-hybrid runs single-threaded)
-        import torch
+    # the fine model's files: weights exactly equal (fit-hybrid runs single-threaded)
+    import torch
 
-        assert [f for f in files if not f.endswith(".parquet")] == ["hybrid/hybrid/BE36.json",
-                                                                    "hybrid/hybrid/BE36.pt"]
-        a, b = (torch.load(d / "hybrid/hybrid/BE36.pt", weights_only=True) for d in (first, second))
-        assert list(a) == list(b) and all(torch.equal(a[k], b[k]) for k in a)
-        a, b = (json.loads((d / "hybrid/hybrid/BE36.json").read_text()) for d in (first, second))
-        assert a == b
+    assert [f for f in files if not f.endswith(".parquet")] == ["hybrid/hybrid/BE36.json",
+                                                                "hybrid/hybrid/BE36.pt"]
+    a, b = (torch.load(d / "hybrid/hybrid/BE36.pt", weights_only=True) for d in (first, second))
+    assert list(a) == list(b) and all(torch.equal(a[k], b[k]) for k in a)
+    a, b = (json.loads((d / "hybrid/hybrid/BE36.json").read_text()) for d in (first, second))
+    assert a == b
     # freshness compares content hashes, so a rerun on the same inputs must write the same bytes
     for name in ("measurements.parquet", "heliostats.parquet", "rejected.parquet", "split.parquet",
                  "coarse_params.parquet"):

@@ -288,6 +288,7 @@ FIELD_FIGURES = ["field_error_cdf.png", "field_weight_decay.png", "field_trainin
                  "field_hybrid_vs_coarse.png"]
 
 
+@pytest.mark.slow
 def test_report_writes_every_figure_and_references_it(full_report):
     wd, summary = full_report
     out = wd / "report"
@@ -313,6 +314,7 @@ def test_report_writes_every_figure_and_references_it(full_report):
     assert not any("Omitted" in n for n in summary["notes"])
 
 
+@pytest.mark.slow
 def test_figures_are_readable_images(full_report):
     import matplotlib.image
 
@@ -322,6 +324,7 @@ def test_figures_are_readable_images(full_report):
         assert img.shape[0] >= 300 and img.shape[1] >= 600, (name, img.shape)
 
 
+@pytest.mark.slow
 def test_tables_in_markdown(full_report):
     wd, _ = full_report
     md = (wd / "report" / "report.md").read_text()
@@ -341,6 +344,7 @@ def test_tables_in_markdown(full_report):
     assert "| AB02 | static-20 | hybrid | 0.01 | 0.600 | 0.700 | 0.850 | 1.000 | n/a | n/a |" in md
 
 
+@pytest.mark.slow
 def test_metrics_values_and_schema(full_report):
     wd, _ = full_report
     metrics = json.loads((wd / "report" / "metrics.json").read_text())
@@ -388,6 +392,7 @@ def test_metrics_values_and_schema(full_report):
     assert all(re.fullmatch("[0-9a-f]{64}", h) for h in metrics["inputs"].values())
 
 
+@pytest.mark.slow
 def test_metrics_json_is_deterministic(full_report):
     wd, _ = full_report
     text = (wd / "report" / "metrics.json").read_text()
@@ -448,6 +453,7 @@ def test_stale_predictions_are_noted(tmp_path):
             "(rerun `heliocal fit-coarse`).") in summary["notes"]
 
 
+@pytest.mark.slow
 def test_figures_of_removed_stages_are_removed(tmp_path):
     wd = make_workdir(tmp_path, "sweep")
     run_report(wd)
@@ -480,6 +486,7 @@ def test_sweep_columns_are_found_by_name():
 # ------------------------------------------------------------------------------------------------
 # CLI
 # ------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_report_and_compare(runner, tmp_path):
     wd = make_workdir(tmp_path, "coarse")
     res = runner.invoke(app, ["report", "--workdir", str(wd), "--json"])
@@ -515,6 +522,7 @@ def test_cli_report_help(runner):
     assert "index.html" in res.stdout and "--compare" in res.stdout
 
 
+@pytest.mark.slow
 def test_alert_list_of_regimes(full_report):
     # the fake regimes above: one detected change (AA01, 2.5 mrad), no renovation
     wd, _ = full_report

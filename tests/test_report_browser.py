@@ -21,7 +21,9 @@ from heliocal.pipeline.stages.report import run_report
 from test_report import make_workdir
 
 WHY = missing_browser()
-pytestmark = pytest.mark.skipif(WHY is not None, reason=f"no browser check: {WHY}")
+#: end to end (a report, then a browser): `make test` runs it, `make test-fast` skips it
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(WHY is not None, reason=f"no browser check: {WHY}")]
 
 #: an id that would open an alert dialog (and fail the page load in selenium) if it ran
 EVIL = '<script>alert("x")'

@@ -34,6 +34,7 @@ def coarse_report(tmp_path_factory):
     return wd, run_report(wd, alert_mrad=0.97, workers=1)
 
 
+@pytest.mark.slow
 def test_overview_numbers_are_the_errors_aim_uses(coarse_report):
     wd, summary = coarse_report
     choices = aim_models(wd)
@@ -66,12 +67,14 @@ def test_overview_numbers_are_the_errors_aim_uses(coarse_report):
     assert 'src="figures/field_error_cdf.png"' in index
 
 
+@pytest.mark.slow
 def test_index_stays_small_and_embeds_no_image(coarse_report):
     wd, _ = coarse_report
     index = (wd / "report" / "index.html").read_bytes()
     assert b"data:image" not in index and len(index) < 60_000
 
 
+@pytest.mark.slow
 def test_every_heliostat_has_its_page(coarse_report):
     wd, summary = coarse_report
     out = wd / "report"
@@ -92,6 +95,7 @@ def test_every_heliostat_has_its_page(coarse_report):
     assert all(f'href="heliostats/{h}.html"' in listing for h in HIDS)
 
 
+@pytest.mark.slow
 def test_pages_of_heliostats_no_longer_present_are_removed(tmp_path):
     wd = make_workdir(tmp_path, "coarse")
     run_report(wd, workers=1)
@@ -101,6 +105,7 @@ def test_pages_of_heliostats_no_longer_present_are_removed(tmp_path):
     assert not stale.exists()
 
 
+@pytest.mark.slow
 def test_input_text_is_escaped(tmp_path):
     """A heliostat id with markup (ingest refuses it; the report must not trust that) shows as
     text on every page, its file name is the id itself and links to it are percent-encoded."""
@@ -137,6 +142,7 @@ def test_field_map_escapes_and_orders():
     assert list(worst(table, 1)["heliostat_id"]) == ["C"]
 
 
+@pytest.mark.slow
 def test_figures_drawn_in_worker_processes_equal_those_drawn_here(tmp_path, monkeypatch):
     wd = make_workdir(tmp_path, "sweep")
     here = run_report(wd, tmp_path / "here", workers=1)
@@ -152,6 +158,7 @@ def test_figures_drawn_in_worker_processes_equal_those_drawn_here(tmp_path, monk
         (tmp_path / "pool" / "index.html").read_text()
 
 
+@pytest.mark.slow
 def test_measurement_floor(tmp_path):
     wd = make_workdir(tmp_path, "coarse")
     assert report_stage.measurement_floor(wd, None) == (None, "")
@@ -196,6 +203,7 @@ def test_index_of_2000_heliostats_stays_under_2_mb():
     assert page.count("<circle") >= n and len(page.encode()) < 2 * 2**20
 
 
+@pytest.mark.slow
 def test_extra_alerts_join_the_field_table(coarse_report):
     """Alerts of other detectors (regime changes, say) are marked like the report's own."""
     from heliocal.pipeline.report.field import field_summary, field_table

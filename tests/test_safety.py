@@ -418,8 +418,12 @@ NOT_DATA = {
         "hdir comes from listing the output folder (removing a previous simulation)",
     ("io/spill.py", "Path(self.folder) / f'{self.name}-{len(self.runs):06d}.parquet'"):
         "a fixed prefix and a counter",
-    ("artifacts/manifests.py", "Path(root) / f'{stage}.manifest.json'"):
-        "stage is one of heliocal's stage names (ingest ... report), never data",
+    ("artifacts/manifests.py", "Path(root) / f'{stage}{_MANIFEST_SUFFIX}'"):
+        "stage is one of heliocal's stage names (ingest ... report), or a name listed from the "
+        "folder that matches the stage pattern (lower-case letters, digits, '-')",
+    ("artifacts/transaction.py", "dst.parent / f'.{dst.name}.tmp-{run_id}'"):
+        "dst is a destination already confined to the work directory; the name adds a fixed "
+        "prefix and the run id, which the manifest check matched against RUN_ID_RE",
     ("artifacts/transaction.py", "self.staging / f'.{target.name}.tmp'"):
         "target is a staged output whose relative path manifests.checked_relative_path already checked",
 }

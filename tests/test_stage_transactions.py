@@ -4,8 +4,8 @@ partial runs keep the rest, and every reader validates what it reads.
 The issue's numbered cases, one test (or a few) each:
 
 1-3. kills between a stage's writes: in test_crash_consistency.py (the harness kills every stage
-     after each of its write points; ``test_case_1_...`` to ``test_case_3_...`` there check the
-     moments the issue names);
+     after each of its write points; ``test_case_1_...`` and ``test_case_2_...`` there check the
+     moments the issue names, and case 3 is checked after every kill of the sweep);
 4.   inputs re-ingested while fit-coarse runs: ``test_case_4_*``;
 5.   two fit-hybrid runs at once: ``test_case_5_*`` (the second commit is refused; the workdir lock
      of issue 21 will make the second run fail at its start);
@@ -52,6 +52,7 @@ from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECT
 from heliocal.pipeline.artifacts.schemas import SPLIT
 from heliocal.pipeline.artifacts.manifests import load_manifest
 from heliocal.pipeline.artifacts.transaction import transaction
+from conftest import copy_of
 from workdir_tools import fingerprint, recommit, sha256
 
 #: end-to-end runs of the stages: `make test` runs them, `make test-fast` skips them
@@ -87,14 +88,13 @@ def _one_line_error(result) -> str:
 
 
 @pytest.fixture(scope="module")
-def fitted(tmp_path_factory) -> Path:
-    """ingest (3 heliostats), split-knn, fit-coarse static-6 and fit-hybrid (BE36)."""
+def fitted(sample_split, tmp_path_factory) -> Path:
+    """ingest (3 heliostats) and split-knn (the session's ``sample_split``, copied), fit-coarse
+    static-6 and fit-hybrid (BE36)."""
     from typer.testing import CliRunner
 
     runner = CliRunner()
-    wd = tmp_path_factory.mktemp("txn") / "wd"
-    _ok(runner, "ingest", PAINT, "--workdir", wd)
-    _ok(runner, "split-knn", "--workdir", wd)
+    wd = copy_of(sample_split, tmp_path_factory.mktemp("txn") / "wd")
     _ok(runner, "fit-coarse", "--workdir", wd, *COARSE)
     _ok(runner, "fit-hybrid", "--workdir", wd, "--heliostat", "BE36", *HYBRID)
     return wd
@@ -372,11 +372,19 @@ def test_case_6_fit_hybrid_and_sweep_for_one_heliostat_keep_the_others(wd, runne
         pd.testing.assert_frame_equal(old, kept.reset_index(drop=True), obj=s.name)
 
 
-def test_split_knn_has_no_partial_run(runner):
+def test_split_knn_has_no_partial_run(runner, tmp_path):
     """split-knn splits every heliostat at once (it has no --heliostat option), so it has nothing
-    to merge."""
+    to merge: its help lists its options (docs/split.md) but not --heliostat, and --heliostat is
+    refused as a usage error (click's exit code 2) before anything is written."""
     result = _run(runner, "split-knn", "--help")
+    assert result.exit_code == 0, (result.exit_code, result.stdout, result.stderr)
+    for option in ("--workdir", "--method", "--n-test", "--n-val", "--n-train", "--seed"):
+        assert option in result.stdout, option
     assert "--heliostat" not in result.stdout
+    refused = _run(runner, "split-knn", "--workdir", tmp_path, "--heliostat", "BE36")
+    assert refused.exit_code == 2, (refused.exit_code, refused.stdout, refused.stderr)
+    assert "No such option: --heliostat" in refused.stderr
+    assert os.listdir(tmp_path) == []
 
 
 # ------------------------------------------------------------------------------------------------
@@ -581,7 +589,7 @@ def test_case_8_workdir_spelled_differently_keeps_models_fresh(tmp_path, monkeyp
         name: "fresh" for name in ("coarse_params.parquet", "coarse_predictions.parquet",
                                    "heliostats.parquet", "hybrid_predictions.parquet", "regimes.parquet",
                                    "regime_params.parquet", "measurements.parquet",
-                                   "rejected.parquet", "split.parquet")}
+                                   "rejected.parquet", "split.parquet", "rolling_origin.parquet")}
     result = _run(runner, "aim", "--workdir", "./a", "--heliostat", "BE36", "--model", "hybrid",
                   "--target", "0,0,50", "--time", "2023-06-21T10:00Z")
     assert result.exit_code == 0, result.stderr

@@ -46,6 +46,7 @@ def holder(tmp_path):
         proc.wait()
 
 
+@pytest.mark.alone  # "at once" is measured: under 1 s
 def test_second_writer_fails_at_once_naming_the_holder(holder):
     wd, proc = holder
     t0 = time.monotonic()

@@ -24,7 +24,7 @@ from ..errors import SchemaError, StageInputError
 from .schemas import COARSE_PARAMS, HELIOSTATS, MEASUREMENTS, SPLIT
 from .paths import artifact_path
 from .store import artifact_present, check_fresh, committed_fingerprint
-from .manifests import load_manifest, read_committed
+from .manifests import CommittedWorkdir
 
 __all__ = ["model_files", "write_model", "read_model", "fine_model_inputs",
            "check_fine_model_inputs"]
@@ -76,38 +76,42 @@ def _check_shapes(state: Mapping, cfg: dict, path: Path, hint: str) -> None:
                           f"{path.with_suffix('.json').name} describes; rerun {hint}")
 
 
-def read_model(workdir: str | os.PathLike, stage: str, mode: str, heliostat_id: str, *,
+def read_model(workdir, stage: str, mode: str, heliostat_id: str, *,
                hint: str) -> tuple[dict, dict] | None:
     """(configuration, state dict) of a committed model, or ``None`` if ``stage`` committed none.
+
+    ``workdir`` is the work directory or its :class:`CommittedWorkdir`.
 
     Raises
     ------
     StageInputError : a model file exists but no complete run of ``stage`` wrote it.
     SchemaError : a file was changed after the run, is empty or corrupt, holds something other
-        than tensors, or the weights are not the ones the configuration records. Every message
-        names the file and the command that writes it again (``hint``).
+        than tensors, the weights are not the ones the configuration records, or the
+        configuration is another heliostat's or mode's (files swapped). Every message names the
+        file and the command that writes it again (``hint``).
     """
     import torch
 
-    workdir = Path(workdir)
+    wd = CommittedWorkdir.of(workdir)
     cfg_rel, pt_rel = model_files(mode, heliostat_id)
-    m = load_manifest(workdir, stage)
+    m = wd.manifest(stage)
     listed = m is not None and cfg_rel in m.files and pt_rel in m.files
     if not listed:
         for rel in (cfg_rel, pt_rel):
             # present but not committed (and not just being removed by the last commit): refused
-            if (workdir / rel).exists() and not (m is not None and m.removes(rel)):
-                read_committed(workdir, stage, rel, hint=hint)
+            if os.path.lexists(wd.root / rel) and not (m is not None and m.removes(rel)):
+                wd.read(stage, rel, hint=hint)
         return None
-    cfg_file = read_committed(workdir, stage, cfg_rel, hint=hint)
-    pt_file = read_committed(workdir, stage, pt_rel, hint=hint)
+    cfg_file = wd.read(stage, cfg_rel, hint=hint)
+    pt_file = wd.read(stage, pt_rel, hint=hint)
     try:
         cfg = json.loads(cfg_file.data.decode("utf-8"))
         if not isinstance(cfg, dict):
             raise ValueError("not a JSON object")
-    except (UnicodeDecodeError, ValueError) as exc:
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise SchemaError(f"{cfg_file.path} is not a valid model configuration ({_short(exc)}); "
                           f"rerun {hint}") from None
+    _check_owner(cfg, cfg_file.path, heliostat_id, mode, hint)
     if cfg.get("weights_sha256") != hashlib.sha256(pt_file.data).hexdigest():
         raise SchemaError(f"{pt_file.path} is not the weights file its configuration "
                           f"{cfg_file.path.name} was written with (weights_sha256 differs); rerun "
@@ -129,6 +133,24 @@ def read_model(workdir: str | os.PathLike, stage: str, mode: str, heliostat_id: 
         raise SchemaError(f"{pt_file.path} does not hold a state dict of tensors; rerun {hint}")
     _check_shapes(state, cfg, pt_file.path, hint)
     return cfg, state
+
+
+#: Modes whose configuration names another folder than its own (the sweep's selected model is a
+#: hybrid or a pretrained-nn model; its ``mode`` says which).
+_ANY_MODE = {"selected"}
+
+
+def _check_owner(cfg: dict, path: Path, heliostat_id: str, mode: str, hint: str) -> None:
+    """The configuration is this heliostat's, of this folder's mode: a pair of model files copied
+    over another heliostat's (the manifest updated to match) is refused, not aimed with."""
+    owner = cfg.get("heliostat_id")
+    if owner != heliostat_id:
+        raise SchemaError(f"{path} is the model of heliostat {owner!r}, not {heliostat_id!r} (its "
+                          "files were replaced by another heliostat's, and the manifest with "
+                          f"them); rerun {hint}, which writes {heliostat_id}'s model again")
+    if mode not in _ANY_MODE and cfg.get("mode") != mode:
+        raise SchemaError(f"{path} is a {cfg.get('mode')!r} model, not {mode!r} (its files were "
+                          f"replaced by another mode's); rerun {hint}")
 
 
 def fine_model_inputs(workdir: Path) -> dict:

@@ -1,13 +1,22 @@
 """Where artifacts live and how they are written: safe file names from data (heliostat ids),
 paths that cannot leave their folder, atomic writes (temporary file, fsync, rename) and file
 hashes.
+
+A work directory is untrusted input (it may have been copied, unpacked or shared): every path
+heliocal takes from it (a manifest's file list, a run id) is resolved through :func:`confined`,
+which refuses a path that leaves the folder (``..``, absolute, NUL) and a symbolic link anywhere
+on the way, and every file is opened without following a final link and only if it is a regular
+file (:func:`open_regular`), so that no read blocks on a FIFO or device and no write or removal
+reaches a file outside the folder.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator
@@ -27,6 +36,13 @@ __all__ = [
     "safe_child",
     "safe_name",
     "MAX_NAME_BYTES",
+    "confined",
+    "relative_path_problem",
+    "link_message",
+    "open_regular",
+    "read_regular",
+    "is_real_dir",
+    "kind_of",
 ]
 
 
@@ -98,6 +114,117 @@ def _unsafe_name_reason(name) -> str | None:
 
 
 # --------------------------------------------------------------------------------------------
+# paths inside a work directory: confined, no links followed, regular files only
+# --------------------------------------------------------------------------------------------
+def relative_path_problem(rel) -> str | None:
+    """Why ``rel`` cannot name a file inside a folder (``None`` if it can): it must be text, a
+    relative POSIX path without empty, ``.`` or ``..`` parts, without NUL or other control
+    characters, and no part longer than :data:`MAX_NAME_BYTES` bytes."""
+    if not isinstance(rel, str):
+        return f"it is a {type(rel).__name__}, not text"
+    if not rel:
+        return "it is empty"
+    if rel.startswith("/"):
+        return "it is an absolute path"
+    if any(ord(c) < 32 or ord(c) == 127 for c in rel):
+        return "it contains NUL or another control character"
+    parts = rel.split("/")
+    if any(part in ("", ".", "..") for part in parts):
+        return "it has an empty, '.' or '..' part"
+    if any(len(part.encode("utf-8", "surrogatepass")) > MAX_NAME_BYTES for part in parts):
+        return f"a part is longer than {MAX_NAME_BYTES} bytes"
+    return None
+
+
+def link_message(path: str | os.PathLike) -> str:
+    """The one-line refusal of a symbolic link met inside a work directory."""
+    try:
+        target = f" (to {os.readlink(path)})"
+    except OSError:
+        target = ""
+    return (f"{path} is a symbolic link{target}; heliocal follows no link inside a work "
+            "directory, so that nothing outside it is read, written or removed: replace the link "
+            "by the file or folder itself (or remove it), then rerun the command")
+
+
+def kind_of(mode: int) -> str:
+    """What a file of ``mode`` is, in words (for messages)."""
+    for test, name in ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"),
+                       (stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def confined(root: str | os.PathLike, rel: str, *, replace_link: bool = False) -> Path:
+    """``root / rel`` for a path ``rel`` relative to ``root`` (a work directory, or the report's
+    folder) that stays inside it: the one helper through which every path taken from a work
+    directory's contents is resolved.
+
+    Refused with :class:`~heliocal.pipeline.errors.UnsafePathError`: a ``rel`` that
+    :func:`relative_path_problem` refuses, and a symbolic link at any part of ``rel`` (an
+    existing part is checked with ``lstat``; what does not exist yet follows nothing). ``root``
+    itself is the user's choice and may be or lie behind a link. With ``replace_link`` (a
+    destination that is renamed over or removed, which acts on a link itself, never on what it
+    points to) the last part may be a link.
+    """
+    why = relative_path_problem(rel)
+    if why is not None:
+        raise UnsafePathError(f"{rel!r} cannot name a file inside {root}: {why} (a tampered "
+                              "manifest?); rerun the stage that writes it")
+    path = Path(root)
+    parts = rel.split("/")
+    for k, part in enumerate(parts):
+        path = path / part
+        try:
+            mode = os.lstat(path).st_mode
+        except (FileNotFoundError, NotADirectoryError):
+            break  # nothing further exists, so nothing further can be a link
+        if stat.S_ISLNK(mode) and not (replace_link and k == len(parts) - 1):
+            raise UnsafePathError(link_message(path))
+    return Path(root) / rel
+
+
+def is_real_dir(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a folder itself (not a link to one)."""
+    try:
+        return stat.S_ISDIR(os.lstat(path).st_mode)
+    except OSError:
+        return False
+
+
+def open_regular(path: str | os.PathLike, what: str = "") -> int:
+    """A read-only file descriptor of ``path``, opened without following a final symbolic link
+    and without blocking; refused (:class:`UnsafePathError`) unless it is a regular file, so a
+    FIFO, socket or device named like an artifact never blocks or floods a reader.
+
+    Raises FileNotFoundError, IsADirectoryError and NotADirectoryError as :func:`open` does."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise UnsafePathError(link_message(path)) from None
+        raise
+    mode = os.fstat(fd).st_mode
+    if stat.S_ISDIR(mode):
+        os.close(fd)
+        raise IsADirectoryError(errno.EISDIR, "Is a directory", str(path))
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise UnsafePathError(f"{path} is {kind_of(mode)}, not a file{what}; remove it, then "
+                              "rerun the command")
+    return fd
+
+
+def read_regular(path: str | os.PathLike, what: str = "") -> bytes:
+    """The bytes of the regular file ``path`` (:func:`open_regular`'s rules)."""
+    with open(open_regular(path, what), "rb", closefd=True) as fh:
+        return fh.read()
+
+
+# --------------------------------------------------------------------------------------------
 # atomic writes
 # --------------------------------------------------------------------------------------------
 @contextlib.contextmanager
@@ -156,9 +283,16 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 
 def sha256_of_file(path: str | os.PathLike) -> str:
-    """SHA-256 (hex) of one file's bytes, read in 1 MiB chunks."""
+    """SHA-256 (hex) of one regular file's bytes, read in 1 MiB chunks. ``path`` may be a link
+    (sources live outside work directories); a FIFO or device is refused
+    (:class:`UnsafePathError`) instead of read without end."""
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise UnsafePathError(f"{path} is {kind_of(mode)}, not a file; give a regular file")
+    with open(fd, "rb", closefd=True) as fh:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()

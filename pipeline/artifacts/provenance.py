@@ -5,6 +5,7 @@ wrote it, and content fingerprints of tables (the basis of every freshness check
 from __future__ import annotations
 
 import hashlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +19,7 @@ __all__ = [
     "Fingerprint",
     "table_fingerprint",
     "git_revision",
+    "source_revision",
     "command_line",
     "jsonable",
 ]
@@ -26,24 +28,37 @@ __all__ = [
 _GIT_REV: str | None = None
 
 
+def source_revision(folder: str | os.PathLike) -> str:
+    """Git revision of the checkout holding ``folder`` (``-dirty`` with local changes to tracked
+    files; ``unknown`` outside a checkout or without git).
+
+    Read-only: git runs with ``--no-optional-locks`` (and ``GIT_OPTIONAL_LOCKS=0``), so
+    ``status`` compares the files without refreshing the index, and never takes
+    ``.git/index.lock``: a run writes nothing into the code's repository, and runs at once do
+    not collide there.
+    """
+    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "--no-optional-locks", *args], cwd=folder,
+                              capture_output=True, text=True, timeout=5, check=False,
+                              env=env).stdout.strip()
+
+    try:
+        rev = git("rev-parse", "HEAD") or "unknown"
+        if rev != "unknown" and git("status", "--porcelain", "--untracked-files=no"):
+            rev += "-dirty"
+    except (OSError, subprocess.SubprocessError):
+        rev = "unknown"
+    return rev
+
+
 def git_revision() -> str:
-    """Git revision of the heliocal source tree (``unknown`` outside a checkout)."""
+    """Git revision of the heliocal source tree (:func:`source_revision`), asked once per
+    process."""
     global _GIT_REV
     if _GIT_REV is None:
-        try:
-            out = subprocess.run(
-                ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent,
-                capture_output=True, text=True, timeout=5, check=False)
-            _GIT_REV = out.stdout.strip() or "unknown"
-            if _GIT_REV != "unknown":
-                dirty = subprocess.run(
-                    ["git", "status", "--porcelain", "--untracked-files=no"],
-                    cwd=Path(__file__).resolve().parent, capture_output=True, text=True,
-                    timeout=5, check=False).stdout.strip()
-                if dirty:
-                    _GIT_REV += "-dirty"
-        except (OSError, subprocess.SubprocessError):
-            _GIT_REV = "unknown"
+        _GIT_REV = source_revision(Path(__file__).resolve().parent)
     return _GIT_REV
 
 

@@ -14,11 +14,11 @@ import re
 
 from .table import ArtifactSchema, Column
 
-__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS", "REGIMES",
-           "REGIME_PARAMS",
-           "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "PLAN", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
+__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS",
+           "REGIMES", "REGIME_PARAMS", "ROLLING_ORIGIN", "HYBRID_PREDICTIONS", "SWEEP", "SELECTION",
+           "SELECTED_PREDICTIONS", "PLAN", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
-           "nomenclature_markdown"]
+           "WINDOWS_RESERVED_NAMES", "nomenclature_markdown"]
 
 #: What a heliostat id may be. Ids become file names (``hybrid/<mode>/<id>.pt``, report figures),
 #: so ingest keeps only ids that are safe and portable as such: 1 to 64 ASCII letters, digits,
@@ -29,12 +29,29 @@ HELIOSTAT_ID_RULE = ("1-64 ASCII letters, digits, '_', '-' or '.', starting with
                      "or '_'")
 
 
+#: Device names Windows reserves in every folder, in any case and also with an extension
+#: (``NUL.txt``): a file of that name cannot be made there, so they are not portable ids.
+WINDOWS_RESERVED_NAMES = frozenset(["CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(1, 10)),
+                                    *(f"LPT{i}" for i in range(1, 10))])
+
+
+def _reserved_stem(hid: str) -> str | None:
+    """The Windows device name ``hid`` is (its part before the first '.'), if any."""
+    stem = hid.split(".", 1)[0]
+    return stem if stem.upper() in WINDOWS_RESERVED_NAMES else None
+
+
 def heliostat_id_problem(hid) -> str | None:
-    """Why ``hid`` is not a valid heliostat id (see :data:`HELIOSTAT_ID_RE`), or ``None``."""
+    """Why ``hid`` is not a valid heliostat id (see :data:`HELIOSTAT_ID_RE` and
+    :data:`WINDOWS_RESERVED_NAMES`), or ``None``."""
     if not isinstance(hid, str):
         return f"it is a {type(hid).__name__}, not text"
     if HELIOSTAT_ID_RE.fullmatch(hid):
-        return None
+        stem = _reserved_stem(hid)
+        if stem is None:
+            return None
+        return (f"{stem!r} is a device name Windows reserves (CON, PRN, AUX, NUL, COM1-9, "
+                "LPT1-9), so no file can have that name there")
     if len(hid) > 64:
         return f"it has {len(hid)} characters, more than 64"
     if hid[:1] in (".", "-"):
@@ -48,6 +65,9 @@ def suggest_heliostat_id(hid: str) -> str:
     are dropped, cut to 64 characters (``"../../x/pwned"`` -> ``"x_pwned"``)."""
     text = re.sub(r"[^A-Za-z0-9_.-]+", "_", str(hid))
     text = re.sub(r"^[._-]+", "", text)[:64]
+    stem = _reserved_stem(text)
+    if stem is not None:  # CON -> CON_, NUL.txt -> NUL_.txt
+        text = (stem + "_" + text[len(stem):])[:64]
     return text or "H1"
 
 
@@ -173,8 +193,10 @@ REJECTION_REASONS = {
     "focal_spot_far_from_target": "the focal spot lies implausibly far from its target",
     "malformed_file": "the file (one PAINT measurement) cannot be parsed",
     "sun_angle_out_of_range": "a sun angle is outside its physical range",
-    "invalid_heliostat_id": "the heliostat id is not " + HELIOSTAT_ID_RULE + " (it would be "
-                            "unsafe as a file name): rename the heliostat in the source",
+    "invalid_heliostat_id": "the heliostat id is not " + HELIOSTAT_ID_RULE + ", or it is a device "
+                            "name Windows reserves (CON, PRN, AUX, NUL, COM1-9, LPT1-9, also "
+                            "with an extension such as NUL.txt; it would be unsafe or impossible "
+                            "as a file name): rename the heliostat in the source",
     # plausibility of timestamps (ingest --time-min/--time-max/--date-format)
     "implausible_timestamp": "the timestamp lies outside the plausible range of the instrument "
                              "(default 1990 to now + 1 day; ingest --time-min, --time-max)",
@@ -281,13 +303,16 @@ COARSE_PARAMS = ArtifactSchema(
           nullable=True),
         C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
           nullable=True),
-        C("time_fitted", "float64", "", "Selected preset only: the parameter fitted again, the "
-          "same way, on the time split's training rows (split.parquet `time_split`); missing "
-          "for the other presets and where the heliostat has no time split.", nullable=True),
-        C("time_val_error_mrad", "float64", "mrad", "Selected preset only: mean error of that "
-          "time-split fit on the time split's validation rows (missing: n/a).", nullable=True),
-        C("time_test_error_mrad", "float64", "mrad", "Selected preset only: its mean error on "
-          "the time split's test rows, the latest measurements (missing: n/a).", nullable=True),
+        C("time_fitted", "float64", "", "The parameter fitted again, the same way, on the time "
+          "split's training rows outside detected episodes (split.parquet `time_split`; a "
+          "regime-aware candidate with the same regimes, its latest regime's value); missing "
+          "where the heliostat has no time split.", nullable=True),
+        C("time_val_error_mrad", "float64", "mrad", "Mean error of that time-split fit on the "
+          "time split's validation rows outside detected episodes (missing: n/a); the selection "
+          "weighs it beside `val_error_mrad` (docs/split.md, \"Choosing forward-aware\").",
+          nullable=True),
+        C("time_test_error_mrad", "float64", "mrad", "Its mean error on the time split's test "
+          "rows, the latest measurements (missing: n/a).", nullable=True),
     ),
 )
 
@@ -314,11 +339,12 @@ COARSE_PREDICTIONS = ArtifactSchema(
         C("spot_offset_vertical_m", "float64", "m", "Same, vertical axis (up)."),
         C("spot_offset_m", "float64", "m", "Distance between predicted and measured spot on the "
           "target plane."),
-        C("time_error_mrad", "float64", "mrad", "The selected model only: error_mrad of the same "
-          "model (preset, or hybrid configuration) trained again on the time split's training "
-          "rows (split.parquet `time_split`), so that on the time split's validation and test "
-          "rows it is an honest forward-in-time error; missing for the other models and where "
-          "the heliostat has no time split.", nullable=True),
+        C("time_error_mrad", "float64", "mrad", "error_mrad of the same model (preset, "
+          "regime-aware candidate, or the selected hybrid configuration) trained again on the "
+          "time split's training rows (split.parquet `time_split`), so that on the time split's "
+          "validation and test rows it is an honest forward-in-time error; missing for the "
+          "nominal geometry, for hybrids other than the selected one and where the heliostat "
+          "has no time split.", nullable=True),
     ),
 )
 
@@ -405,6 +431,34 @@ REGIME_PARAMS = ArtifactSchema(
     ),
 )
 
+ROLLING_ORIGIN = ArtifactSchema(
+    name="rolling_origin",
+    filename="rolling_origin.parquet",
+    producer="fit-coarse",
+    sort_by=("heliostat_id", "measurement_id"),
+    description="The rolling-origin (prequential) evaluation of fit-coarse's selected preset: at "
+                "each origin (a calibration day with enough earlier rows; at most "
+                "`--rolling-origins` per heliostat, spread over its history) the preset is "
+                "fitted again on every row before that day (a regime-aware selection: the rows "
+                "since its latest break) and scores that day's rows: the next-day error of a "
+                "heliostat recalibrated every calibration day "
+                "(heliocal.pipeline.stages.rolling says how).",
+    columns=(
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("measurement_id", "string", "", "The row scored."),
+        C("origin_date", "timestamp", "UTC", "The calibration day (UTC midnight) whose rows are "
+          "scored by the fit on the rows before it."),
+        C("model", "string", "", "The preset fitted at the origin (the selected model's "
+          "geometry)."),
+        C("n_train", "int64", "", "Rows the origin's fit used."),
+        C("days_since_last_row", "float64", "d", "Time from the fit's last row to the row "
+          "scored [days]."),
+        C("error_mrad", "float64", "mrad", "The row's error under the origin's fit (the next-day "
+          "error)."),
+    ),
+)
+
+
 HYBRID_PREDICTIONS = dataclasses.replace(
     COARSE_PREDICTIONS,
     name="hybrid_predictions",
@@ -487,11 +541,9 @@ SELECTED_PREDICTIONS = ArtifactSchema(
 
 PLAN = ArtifactSchema(
     name="plan", filename="plan.parquet", producer="plan", sort_by=("rank",),
-    description="The measurement plan: which heliostat to measure when, on which target, in the "
-                "order of choice. Each row is chosen greedily for the largest reduction of its "
-                "heliostat's expected year-round aim error (the coarse model's posterior "
-                "covariance propagated to the aims of a year at the site), given the rows "
-                "chosen before it; one heliostat on a target at a time (docs/plan.md). "
+    description="The measurement plan in the order of choice: each row the (heliostat, time, "
+                "target) of the largest drop of its heliostat's expected year-round aim error "
+                "given the rows before it, one heliostat on a target at a time (docs/plan.md). "
                 "`plan.csv` beside it holds the same rows in time order for a plant scheduler.",
     columns=(
         C("rank", "int64", "", "Order of choice, 1 = the largest expected gain."),
@@ -526,8 +578,8 @@ PLAN = ArtifactSchema(
 def all_schemas() -> list[ArtifactSchema]:
     """Every artifact schema of heliocal, in the order of the stages that write them."""
     return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
-            REGIMES, REGIME_PARAMS, HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS,
-            PLAN]
+            REGIMES, REGIME_PARAMS, ROLLING_ORIGIN, HYBRID_PREDICTIONS, SWEEP, SELECTION,
+            SELECTED_PREDICTIONS, PLAN]
 
 
 def nomenclature_markdown() -> str:

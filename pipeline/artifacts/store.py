@@ -32,9 +32,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from .. import __version__
-from ..errors import SchemaError, StageInputError
-from .manifests import committed_entry, current_transaction, load_manifest, read_committed
-from .paths import artifact_path, file_sha256
+from ..errors import SchemaError, StageInputError, UnsafePathError
+from .manifests import CommittedWorkdir, committed_entry, current_transaction, read_committed
+from .paths import artifact_path, file_sha256, open_regular
 from .provenance import Fingerprint, command_line, git_revision, jsonable, table_fingerprint
 from .table import ArtifactSchema, to_table
 from .transaction import transaction
@@ -49,6 +49,7 @@ __all__ = [
     "artifact_writer",
     "ArtifactWriter",
     "read_artifact",
+    "artifact_columns",
     "read_provenance",
     "check_fresh",
     "artifact_present",
@@ -242,8 +243,11 @@ def artifact_writer(workdir: str | os.PathLike, schema: ArtifactSchema, *, stage
 def read_provenance(path: str | os.PathLike) -> dict:
     """The provenance dictionary stored in a heliocal Parquet artifact."""
     path = Path(path)
-    try:
-        meta = pq.read_schema(path).metadata or {}
+    try:  # the footer only, of a regular file opened without following a link
+        with open(open_regular(path), "rb", closefd=True) as fh:
+            meta = pq.read_schema(fh).metadata or {}
+    except UnsafePathError as exc:
+        raise SchemaError(f"{exc}") from None
     except (pa.ArrowInvalid, OSError) as exc:
         raise SchemaError(f"{path} is not a readable Parquet file ({exc}); rerun the stage "
                           "that writes it") from exc
@@ -290,6 +294,8 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
 
     Parameters
     ----------
+    workdir : the work directory, or its :class:`CommittedWorkdir` (its manifests and bytes are
+        then read once for all the calls that share it).
     columns : read only these columns (default all).
     heliostats : read only rows of these heliostat ids (uses Parquet row-group statistics, so a
         large field is not decoded whole).
@@ -300,11 +306,11 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
     SchemaError : it was changed after its run, was written by an incompatible schema version, or
         lacks declared columns.
     """
-    workdir = Path(workdir)
+    wd = CommittedWorkdir.of(workdir)
+    workdir = wd.root
     path = artifact_path(workdir, schema)
-    committed = read_committed(workdir, schema.producer, schema.filename,
-                               hint=_rerun(schema, workdir),
-                               missing=_missing_message(path, schema), label=schema.name)
+    committed = wd.read(schema.producer, schema.filename, hint=_rerun(schema, workdir),
+                        missing=_missing_message(path, schema), label=schema.name)
     try:
         file_schema = pq.read_schema(pa.BufferReader(committed.data))
     except (pa.ArrowInvalid, OSError) as exc:
@@ -342,12 +348,23 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
     return df
 
 
+def artifact_columns(workdir, schema: ArtifactSchema) -> list[str]:
+    """The column names of ``schema``'s committed artifact (declared and extra ones, such as
+    ``env_*``), read through its manifest like :func:`read_artifact`."""
+    wd = CommittedWorkdir.of(workdir)
+    committed = wd.read(schema.producer, schema.filename, hint=_rerun(schema, wd.root),
+                        missing=_missing_message(artifact_path(wd.root, schema), schema))
+    try:
+        return list(pq.read_schema(pa.BufferReader(committed.data)).names)
+    except (pa.ArrowInvalid, OSError) as exc:
+        raise SchemaError(f"{committed.path} is not a readable Parquet file "
+                          f"({' '.join(str(exc).split())}); rerun {_rerun(schema, wd.root)}") from exc
+
+
 def committed_fingerprint(workdir: str | os.PathLike, schema: ArtifactSchema) -> str | None:
     """The content fingerprint of ``schema``'s artifact as its producer's last run committed it
     (``None`` if it did not)."""
-    m = load_manifest(workdir, schema.producer)
-    entry = m.files.get(schema.filename) if m is not None else None
-    return None if entry is None else entry.get("fingerprint")
+    return CommittedWorkdir.of(workdir).fingerprint(schema.producer, schema.filename)
 
 
 def recorded_inputs(workdir: str | os.PathLike, schema: ArtifactSchema) -> dict:
@@ -357,12 +374,12 @@ def recorded_inputs(workdir: str | os.PathLike, schema: ArtifactSchema) -> dict:
     ------
     StageInputError : the artifact is not committed.
     """
-    workdir = Path(workdir)
-    path = artifact_path(workdir, schema)
-    m = load_manifest(workdir, schema.producer)
+    wd = CommittedWorkdir.of(workdir)
+    path = artifact_path(wd.root, schema)
+    m = wd.manifest(schema.producer)
     if m is None or schema.filename not in m.files:
-        if path.exists():
-            read_committed(workdir, schema.producer, schema.filename, hint=_rerun(schema, workdir))
+        if os.path.lexists(path):
+            wd.read(schema.producer, schema.filename, hint=_rerun(schema, wd.root))
         raise StageInputError(_missing_message(path, schema))
     return m.input_fingerprints()
 
@@ -376,15 +393,15 @@ def check_fresh(workdir: str | os.PathLike, schema: ArtifactSchema,
     the upstream artifact its producer committed last. Nothing is hashed: the manifests hold the
     fingerprints (and every read verifies the bytes against them).
     """
-    workdir = Path(workdir)
-    path = artifact_path(workdir, schema)
-    recorded = recorded_inputs(workdir, schema)
+    wd = CommittedWorkdir.of(workdir)
+    path = artifact_path(wd.root, schema)
+    recorded = recorded_inputs(wd, schema)
     for label, up in upstream.items():
-        current = committed_fingerprint(workdir, up)
-        up_path = artifact_path(workdir, up)
+        current = committed_fingerprint(wd, up)
+        up_path = artifact_path(wd.root, up)
         if current is None:
-            if up_path.exists():
-                read_committed(workdir, up.producer, up.filename, hint=_rerun(up, workdir))
+            if os.path.lexists(up_path):
+                wd.read(up.producer, up.filename, hint=_rerun(up, wd.root))
             raise StageInputError(_missing_message(up_path, up))
         if label not in recorded:
             raise StageInputError(
@@ -436,5 +453,4 @@ def merge_with_previous(workdir: str | os.PathLike, schema: ArtifactSchema, new:
 def artifact_present(workdir: str | os.PathLike, schema: ArtifactSchema) -> bool:
     """Whether ``schema``'s artifact is there to be read: committed by its producer's last run, or
     at least a file of its name (which :func:`read_artifact` then refuses with the reason)."""
-    m = load_manifest(workdir, schema.producer)
-    return (m is not None and schema.filename in m.files) or artifact_path(workdir, schema).exists()
+    return CommittedWorkdir.of(workdir).present(schema.producer, schema.filename)

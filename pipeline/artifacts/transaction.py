@@ -50,17 +50,21 @@ import functools
 import hashlib
 import inspect
 import json
+import logging
 import os
 import secrets
 import shutil
 from pathlib import Path
 from typing import Callable, Iterator, Mapping
 
-from ..errors import InputError, SchemaError, StageInputError
-from .manifests import (ACTIVE_TRANSACTION, MANIFEST_VERSION, STAGING_PREFIX, Manifest,
+from ..errors import InputError, SchemaError, StageInputError, UnsafePathError
+from .manifests import (ACTIVE_TRANSACTION, MANIFEST_VERSION, InvalidManifest, Manifest,
                         all_manifests, checked_relative_path, current_transaction, load_manifest,
                         manifest_path, staging_name)
-from .paths import sha256_of_file
+from .leftovers import (BUSY, OWNER_FILENAME, leftovers, remove_leftover, stale_staging_folders,
+                        staging_in_use, try_lock, unlock)
+from .paths import confined, is_real_dir, link_message, sha256_of_file
+from .workdir_lock import holds_workdir_lock
 
 __all__ = [
     "StageTransaction",
@@ -70,10 +74,12 @@ __all__ = [
     "stale_staging_folders",
     "pending_commits",
     "staging_in_use",
+    "leftovers",
 ]
 
+log = logging.getLogger("heliocal.artifacts")
 
-_OWNER = ".owner"
+
 
 
 def _write_point(event: str, path: Path) -> None:
@@ -99,48 +105,69 @@ def _fsync_file(path: Path) -> None:
         os.fsync(fh.fileno())
 
 
-def _try_lock(path: Path):
-    """An open file of ``path`` holding an exclusive ``flock``, or ``None`` if another process
-    holds it (a live transaction)."""
-    try:
-        fh = open(path, "a+b")
-    except FileNotFoundError:
-        return None
-    try:
-        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as exc:
-        fh.close()
-        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-            return None
-        raise
-    return fh
-
-
 # ------------------------------------------------------------------------------------------------
 # applying a commit and recovering interrupted ones
 # ------------------------------------------------------------------------------------------------
+def _move_into_place(src: Path, dst: Path, run_id: str) -> None:
+    """Rename staged ``src`` to ``dst``. Across file systems (``dst``'s folder is another mount,
+    ``EXDEV``) the bytes are copied to a hidden file beside ``dst`` (created, never followed),
+    fsynced and renamed over ``dst``, then ``src`` is removed: the same atomic replacement."""
+    try:
+        os.replace(src, dst)
+        return
+    except OSError as exc:
+        if exc.errno != errno.EXDEV:
+            raise
+    tmp = dst.parent / f".{dst.name}.tmp-{run_id}"
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(tmp)  # a copy of this same run that was killed
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
+    try:
+        with open(fd, "wb", closefd=True) as out, open(src, "rb") as inp:
+            shutil.copyfileobj(inp, out, 1 << 20)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, dst)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(dst.parent)
+    os.unlink(src)
+
+
+def _destination(root: Path, rel: str, stage: str) -> Path:
+    """Where committed file ``rel`` goes: confined to ``root`` (no link on the way) and not a
+    folder. Raises before a commit, so that a refused destination never wedges one."""
+    dst = confined(root, rel, replace_link=True)  # a link there is replaced, never followed
+    if is_real_dir(dst):  # a folder where the artifact goes: not ours to remove
+        raise SchemaError(f"{dst} is a folder; remove it and rerun `heliocal {stage} "
+                          f"--workdir {root}`")
+    return dst
+
+
 def _apply(m: Manifest) -> None:
     """Move the staged files of committed run ``m`` into place, remove the files it dropped, and
-    remove its staging folder. Idempotent: a second call (or one after a kill) finishes the job."""
+    remove its staging folder. Idempotent: a second call (or one after a kill) finishes the job.
+    Every path is confined to ``m.root`` (:func:`confined`): no link is followed."""
     staging = m.staging
     moved_dirs = set()
     for rel in sorted(m.files):
-        src = staging / rel
-        if src.is_file():
-            dst = m.root / rel
+        src = confined(staging, rel)  # a link planted in the staging folder is refused
+        if os.path.isfile(src):
+            dst = _destination(m.root, rel, m.stage)
             dst.parent.mkdir(parents=True, exist_ok=True)
-            if dst.is_dir():  # a folder where the artifact goes: not ours to remove
-                raise SchemaError(f"{dst} is a folder; remove it and rerun `heliocal {m.stage} "
-                                  f"--workdir {m.root}`")
-            os.replace(src, dst)
+            _move_into_place(src, dst, m.run_id)
             moved_dirs.add(dst.parent)
             _write_point("apply", dst)
     for d in moved_dirs:
         _fsync_dir(d)
     for rel in m.data.get("removed", []):
-        dst = m.root / rel
-        if rel not in m.files and dst.is_file():
-            dst.unlink()
+        if rel in m.files:
+            continue
+        dst = confined(m.root, rel, replace_link=True)
+        if os.path.lexists(dst) and not is_real_dir(dst):
+            dst.unlink()  # a file, or a link itself (never what it points to)
             _write_point("remove", dst)
     shutil.rmtree(staging, ignore_errors=True)
     _fsync_dir(m.root)
@@ -152,56 +179,33 @@ def pending_commits(root: str | os.PathLike) -> list[Manifest]:
     return [m for m in all_manifests(root) if m.pending()]
 
 
-def stale_staging_folders(root: str | os.PathLike) -> list[Path]:
-    """Staging folders of runs that were never committed (live or dead)."""
-    root = Path(root)
-    committed = {m.staging.name for m in all_manifests(root)}
-    return sorted(p for p in root.glob(STAGING_PREFIX + "*")
-                  if p.is_dir() and p.name not in committed)
+def recover(root: str | os.PathLike, *, leftover_files: bool = False) -> list[str]:
+    """Finish interrupted commits in ``root`` and remove dead uncommitted staging folders; with
+    ``leftover_files`` (the caller holds the work directory's lock, so no other writer is alive)
+    also ingest's spill folders and temporary files of killed runs (:func:`leftovers`).
 
-
-def staging_in_use(folder: str | os.PathLike) -> bool:
-    """Whether a live run holds the staging folder ``folder`` (read-only check)."""
-    try:
-        fh = open(Path(folder) / _OWNER, "rb")
-    except OSError:
-        return False
-    with fh:
-        try:
-            fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except OSError:
-            return True
-    return False
-
-
-def recover(root: str | os.PathLike) -> list[str]:
-    """Finish interrupted commits in ``root`` and remove dead uncommitted staging folders.
-
-    A staging folder whose owner is alive (its lock is held) is left alone. Returns what was done,
-    one line per item (logged by the caller).
+    A staging or spill folder whose owner is alive (its lock is held) is left alone. Returns what
+    was done, one short item each (the caller logs them as one line).
     """
     root = Path(root)
     done = []
     for m in pending_commits(root):
-        lock = _try_lock(m.staging / _OWNER)
-        if lock is None and (m.staging / _OWNER).exists():
+        lock = try_lock(m.staging / OWNER_FILENAME)
+        if lock is BUSY:
             continue  # its writer is still applying it
         try:
             _apply(m)
             done.append(f"completed the interrupted commit of `heliocal {m.stage}` run {m.run_id}")
         finally:
-            if lock is not None:
-                lock.close()
+            unlock(lock)
     for folder in stale_staging_folders(root):
-        lock = _try_lock(folder / _OWNER)
-        if lock is None and (folder / _OWNER).exists():
-            continue
-        try:
-            shutil.rmtree(folder, ignore_errors=True)
+        if remove_leftover(folder):
             done.append(f"removed {folder.name} (a run that stopped before its commit)")
-        finally:
-            if lock is not None:
-                lock.close()
+    if leftover_files:
+        for path in leftovers(root):
+            kind = "link" if os.path.islink(path) else "folder" if is_real_dir(path) else "file"
+            if remove_leftover(path):
+                done.append(f"removed {path.name} (a {kind} left by a killed run)")
     return done
 
 
@@ -258,20 +262,40 @@ class StageTransaction:
         self.seed: int | None = None
         self.command: str | None = None
         self.recovered: list[str] = []
+        self.replaces_invalid: InvalidManifest | None = None
         self._owner = None
         self._token = None
         self.committed = False
 
     # -- lifecycle ------------------------------------------------------------------------------
     def begin(self) -> "StageTransaction":
+        self._check_root()
         self.root.mkdir(parents=True, exist_ok=True)
-        self.recovered = recover(self.root)
-        self.previous = load_manifest(self.root, self.stage)
+        self.recovered = recover(self.root, leftover_files=holds_workdir_lock(self.root))
+        if self.recovered:
+            log.warning("%s: %s", self.root, "; ".join(self.recovered))
+        try:
+            self.previous = load_manifest(self.root, self.stage)
+        except InvalidManifest as exc:
+            if is_real_dir(exc.path):
+                raise SchemaError(f"{exc.path} is a folder, not the manifest of `heliocal "
+                                  f"{self.stage}`; move it away, then rerun `heliocal {self.stage} "
+                                  f"--workdir {self.root}`") from None
+            # its own manifest, broken: this run replaces it (its old files stay until then)
+            self.replaces_invalid = exc
+            log.warning("%s: %s; this run replaces it", exc.path, exc.why)
+            self.previous = None
         self.staging.mkdir()
-        self._owner = open(self.staging / _OWNER, "a+b")
+        self._owner = open(self.staging / OWNER_FILENAME, "a+b")
         fcntl.flock(self._owner.fileno(), fcntl.LOCK_EX)
         self._token = ACTIVE_TRANSACTION.set(self)
         return self
+
+    def _check_root(self) -> None:
+        """A root inside a work directory this process writes (the report's folder) is confined
+        to it like every other output: it may not be a symbolic link."""
+        if os.path.islink(self.root) and holds_workdir_lock(self.root.parent):
+            raise UnsafePathError(link_message(self.root))
 
     def _release(self) -> None:
         if self._token is not None:
@@ -380,13 +404,31 @@ class StageTransaction:
                         f"run read ({up} changed while `heliocal {self.stage}` ran); rerun "
                         f"`heliocal {rec['stage']} --workdir {self.root}` and then this stage")
 
+    def _check_destinations(self, data: dict) -> None:
+        """Refuse, before the commit point, what would fail after it: a destination behind a
+        symbolic link or occupied by a folder, and a manifest name taken by a folder."""
+        for rel in data["files"]:
+            _destination(self.root, rel, self.stage)
+        for rel in data["removed"]:
+            confined(self.root, rel, replace_link=True)
+        target = manifest_path(self.root, self.stage)
+        if is_real_dir(target):
+            raise SchemaError(f"{target} is a folder, not the manifest of `heliocal {self.stage}`; "
+                              f"move it away, then rerun `heliocal {self.stage} --workdir "
+                              f"{self.root}`")
+
     def commit(self) -> Manifest:
         """Check the inputs, write the manifest (the commit point), move the files into place."""
         from .. import __version__
         from .provenance import command_line, git_revision, jsonable
 
         self._check_inputs()
-        current = load_manifest(self.root, self.stage)
+        try:
+            current = load_manifest(self.root, self.stage)
+        except InvalidManifest:
+            if self.replaces_invalid is None:
+                raise
+            current = None  # the invalid manifest this run replaces
         prev_id = self.previous.run_id if self.previous else None
         if (current.run_id if current else None) != prev_id:
             # two runs of one stage at once: committing this one would silently replace the
@@ -412,6 +454,7 @@ class StageTransaction:
             "files": {k: self.files[k] for k in sorted(self.files)},
             "removed": sorted(r for r in base if r not in self.files),
         }
+        self._check_destinations(data)
         _fsync_dir(self.staging)
         text = json.dumps(data, indent=1, sort_keys=True) + "\n"
         target = manifest_path(self.root, self.stage)

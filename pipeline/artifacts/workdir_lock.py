@@ -22,12 +22,15 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import errno
 import fcntl
 import functools
 import inspect
 import json
+import logging
 import os
 import socket
+import stat
 import sys
 import threading
 import time
@@ -35,8 +38,11 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from ..errors import InputError, WorkdirBusyError
+from .paths import kind_of, read_regular
 
-__all__ = ["LOCK_FILENAME", "workdir_lock", "lock_holder", "locks_workdir"]
+__all__ = ["LOCK_FILENAME", "workdir_lock", "lock_holder", "locks_workdir", "holds_workdir_lock"]
+
+log = logging.getLogger("heliocal.artifacts")
 
 #: The lock file inside a work directory (hidden: no stage reads it as an artifact).
 LOCK_FILENAME = ".heliocal.lock"
@@ -51,11 +57,13 @@ def lock_holder(workdir: str | os.PathLike) -> dict | None:
     Does not lock; a file left behind by a killed stage is not reported (nobody holds it).
     """
     path = Path(workdir) / LOCK_FILENAME
-    try:
-        fd = os.open(path, os.O_RDONLY)
+    try:  # never follows a link, never blocks on a FIFO: a planted entry is nobody's lock
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
     except OSError:
         return None
     try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
         try:
             fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -70,7 +78,7 @@ def _read_holder(path: Path) -> dict | None:
     """The holder's JSON record (retried briefly: a new holder writes it just after locking)."""
     for _ in range(20):
         try:
-            data = json.loads(path.read_text(encoding="utf-8"))
+            data = json.loads(read_regular(path).decode("utf-8"))
             if isinstance(data, dict) and data.get("pid"):
                 return data
         except (OSError, ValueError):
@@ -138,9 +146,49 @@ def workdir_lock(workdir: str | os.PathLike, stage: str) -> Iterator[Path]:
                 break
 
 
+def holds_workdir_lock(folder: str | os.PathLike) -> bool:
+    """Whether this thread holds :func:`workdir_lock` of ``folder`` (so no other writer is alive
+    there)."""
+    try:
+        key = str(Path(folder).resolve())
+    except OSError:
+        return False
+    with _held_guard:
+        held = _held.get(key)
+    return held is not None and held[1] == threading.get_ident()
+
+
+def _open_lock_file(path: Path) -> int:
+    """The lock file's descriptor, created if missing, never through a link. A link, FIFO or
+    other non-file planted under its name is removed (it cannot be anyone's lock: heliocal
+    makes a regular file) with a warning; a folder there is refused."""
+    for _ in range(3):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK
+                         | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            if exc.errno == errno.EISDIR:
+                raise InputError(f"{path} is a folder, not heliocal's lock file; move it away, "
+                                 "then rerun the command") from None
+            if exc.errno not in (errno.ELOOP, errno.ENXIO):
+                raise
+            mode = stat.S_IFLNK if exc.errno == errno.ELOOP else os.lstat(path).st_mode
+        else:
+            mode = os.fstat(fd).st_mode
+            if stat.S_ISREG(mode):
+                return fd
+            os.close(fd)
+        log.warning("removed %s: it was %s, not heliocal's lock file (which is made anew)", path,
+                    kind_of(mode))
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+    raise InputError(f"{path} keeps being replaced by something other than a file; stop whatever "
+                     "writes it, then rerun the command")
+
+
 def _acquire(folder: Path, path: Path, stage: str) -> int:
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        fd = _open_lock_file(path)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

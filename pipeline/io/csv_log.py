@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from ..errors import InputError
+from ..errors import HeliocalError, InputError, resource_error_message
 from ..physics.geodesy import wgs84_to_enu
 from .paint import read_paint_properties, read_properties_table
 from .sources import TOWER_FILENAME, find_tower_file, read_tower
@@ -189,10 +189,27 @@ def _numeric_stats(values: pd.Series) -> tuple[int, int, bool]:
 def read_log_rows(path: Path, kind: str, batch_rows: int | None, spill_dir: Path | None) -> _LogRows:
     """Read a CSV or Parquet log in batches of ``batch_rows`` rows (all at once with ``None``),
     keyed by heliostat; with a ``spill_dir`` and more rows than one batch, every batch is sorted
-    by heliostat and spilled there as a run, so memory holds one batch."""
+    by heliostat and spilled there as a run, so memory holds one batch.
+
+    Errors name their cause: a file pyarrow cannot read is "not a readable Parquet file"; a full
+    disk or a forbidden folder while spilling is the OSError it is (the CLI says what to free); a
+    MemoryError while reading or spilling is one line naming the batch size to lower."""
+    try:
+        return _read_log_rows(path, kind, batch_rows, spill_dir)
+    except MemoryError:
+        size = f"batches of {batch_rows} rows" if batch_rows is not None else "one batch"
+        raise HeliocalError(f"{path}: out of memory while reading the log in {size}; give a "
+                            "smaller --batch-rows or free memory, then rerun the command") from None
+
+
+def _id_column(header: Sequence[str]) -> str | None:
+    return next((c for c in header if str(c).strip() == "heliostat_id"), None)
+
+
+def _read_log_rows(path: Path, kind: str, batch_rows: int | None,
+                   spill_dir: Path | None) -> _LogRows:
     rows = _LogRows(path, [], 0, None, set(), {}, [], None)
     extra: list[str] = []
-    is_parquet = path.suffix.lower() in (".parquet", ".pq")
 
     def add(table: pa.Table, frame: pd.DataFrame) -> None:
         key = (_heliostat_key(frame[_KEY]) if _KEY in frame.columns
@@ -216,39 +233,13 @@ def read_log_rows(path: Path, kind: str, batch_rows: int | None, spill_dir: Path
             rows.spill.add(pa.concat_tables(rows.tables))
             rows.tables = []
 
-    def id_column(header: Sequence[str]) -> str | None:
-        return next((c for c in header if str(c).strip() == "heliostat_id"), None)
-
-    if is_parquet:
-        import pyarrow.parquet as pq
-
-        try:
-            pf = pq.ParquetFile(path)
-            schema = pf.schema_arrow
-            index_cols = {c for c in ((schema.pandas_metadata or {}).get("index_columns") or [])
-                          if isinstance(c, str)}
-            names = [n for n in schema.names if n not in index_cols]
-            rows.parquet_schema = schema
-            rows.header = [str(n) for n in names]
-            extra = [n for n in rows.header if n not in _log_column_usage(rows.header, kind)]
-            nulls: dict[str, int] = {}
-            block = batch_rows or (1 << 16)
-            for batch in pf.iter_batches(batch_size=min(block, 1 << 16)):
-                table = pa.Table.from_batches([batch], schema=schema)
-                for n in names:
-                    nulls[n] = nulls.get(n, 0) + table.column(n).null_count
-                hcol = id_column(names)
-                frame = (table.select([hcol, *extra] if hcol else extra)
-                         .replace_schema_metadata(None).to_pandas())
-                frame = frame.astype(object).where(frame.notna(), "")
-                if hcol:
-                    frame[_KEY] = frame.pop(hcol) if hcol not in extra else frame[hcol]
-                add(table, frame)
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - pyarrow raises several types
-            raise InputError(f"{path}: not a readable Parquet file ({shorten(exc)}); export the log "
-                             "again") from exc
+    if path.suffix.lower() in (".parquet", ".pq"):
+        parquet = _open_parquet(path, rows)
+        extra += [n for n in rows.header if n not in _log_column_usage(rows.header, kind)]
+        nulls: dict[str, int] = {}
+        for table, frame in _parquet_batches(parquet, path, extra, batch_rows, nulls):
+            add(table, frame)   # outside the reader's error handling: spilling has its own
+        names, schema = parquet.names, rows.parquet_schema
         rows.float_columns = {n for n in names if nulls.get(n) and pa.types.is_integer(schema.field(n).type)}
     else:
         header: list[str] = []
@@ -263,7 +254,7 @@ def read_log_rows(path: Path, kind: str, batch_rows: int | None, spill_dir: Path
             table = pa.table({n: pa.array(columns[header.index(n)], pa.string()) for n in names})
             frame = pd.DataFrame({n: columns[header.index(n)] for n in extra if n in names},
                                  index=range(len(block)), dtype=object)
-            hcol = id_column(names)
+            hcol = _id_column(names)
             if hcol:
                 frame[_KEY] = pd.Series(columns[header.index(hcol)], dtype=object)
             add(table, frame)
@@ -276,6 +267,67 @@ def read_log_rows(path: Path, kind: str, batch_rows: int | None, spill_dir: Path
         rows.spill.add(pa.concat_tables(rows.tables))
         rows.tables = []
     return rows
+
+
+@dataclass
+class _ParquetLog:
+    """An open Parquet log: the file and its data columns (the pandas index columns left out)."""
+
+    file: object                # pyarrow.parquet.ParquetFile
+    names: list[str]
+
+
+def _reader_error(path: Path, exc: Exception) -> Exception:
+    """What to raise for an exception of pyarrow's reader: the machine's own trouble (memory, a
+    resource the CLI explains) as it is, anything else as an unreadable file."""
+    if isinstance(exc, (InputError, MemoryError)) or resource_error_message(exc) is not None:
+        return exc
+    return InputError(f"{path}: not a readable Parquet file ({shorten(exc)}); export the log "
+                      "again")
+
+
+def _open_parquet(path: Path, rows: _LogRows) -> _ParquetLog:
+    """Open a Parquet log; its schema and header go to ``rows``."""
+    import pyarrow.parquet as pq
+
+    try:
+        pf = pq.ParquetFile(path)
+        schema = pf.schema_arrow
+    except Exception as exc:  # noqa: BLE001 - pyarrow raises several types
+        raise _reader_error(path, exc) from exc
+    index_cols = {c for c in ((schema.pandas_metadata or {}).get("index_columns") or [])
+                  if isinstance(c, str)}
+    names = [n for n in schema.names if n not in index_cols]
+    rows.parquet_schema = schema
+    rows.header = [str(n) for n in names]
+    return _ParquetLog(pf, names)
+
+
+def _parquet_batches(log: _ParquetLog, path: Path, extra: Sequence[str], batch_rows: int | None,
+                     nulls: dict[str, int]) -> Iterator[tuple[pa.Table, pd.DataFrame]]:
+    """The log's batches as (table, frame of its heliostat key and ``extra`` columns), counting
+    each column's nulls in ``nulls``. Only the reading is judged here (:func:`_reader_error`):
+    what the caller does with a batch raises its own errors."""
+    schema = log.file.schema_arrow
+    block = batch_rows or (1 << 16)
+    hcol = _id_column(log.names)
+    batches = log.file.iter_batches(batch_size=min(block, 1 << 16))
+    while True:
+        try:
+            batch = next(batches, None)
+            if batch is None:
+                return
+            table = pa.Table.from_batches([batch], schema=schema)
+            for n in log.names:
+                nulls[n] = nulls.get(n, 0) + table.column(n).null_count
+            frame = (table.select([hcol, *extra] if hcol else list(extra))
+                     .replace_schema_metadata(None).to_pandas())
+            frame = frame.astype(object).where(frame.notna(), "")
+            if hcol:
+                frame[_KEY] = frame.pop(hcol) if hcol not in extra else frame[hcol]
+        except Exception as exc:  # noqa: BLE001 - pyarrow raises several types
+            raise _reader_error(path, exc) from exc
+        yield table, frame
 
 
 @dataclass

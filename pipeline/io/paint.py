@@ -8,12 +8,14 @@ import json
 import logging
 import math
 import re
+import stat
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import tomllib
 
+from ..artifacts.paths import kind_of
 from ..artifacts.schemas import HELIOSTATS
 from ..errors import InputError
 from ..physics.geodesy import wgs84_to_enu
@@ -253,12 +255,17 @@ def stage_paint(folder: Path, opts: IngestOptions) -> Staged:
             break
     helio_dirs = [folder] if (folder / "calibration").is_dir() or any(
         folder.glob("*-heliostat-properties.json")) else sorted(p for p in folder.iterdir() if p.is_dir())
+    inside = folder.resolve()
     records, heliostats = [], {}
     for hdir in helio_dirs:
         hid = hdir.name
         prop = hdir / f"{hid}-heliostat-properties.json"
         props_ok = prop.is_file()
         if props_ok:
+            outside = _outside_reason(prop, inside)
+            if outside is not None:
+                raise InputError(f"{prop}: {outside}; copy the file into {folder} or give the "
+                                 "folder it is in as its own source")
             heliostats[hid] = read_paint_properties(prop, tower.reference)
         calib = hdir / "calibration"
         files = sorted(calib.glob("*.json")) if calib.is_dir() else []
@@ -270,6 +277,11 @@ def stage_paint(folder: Path, opts: IngestOptions) -> Staged:
                 rec["_reject"] = ("malformed_file", f"file name {f.name!r} is not "
                                   "<id>-calibration-properties.json")
                 rec["raw"] = f.name
+                records.append(rec)
+                continue
+            why = _not_readable_reason(f, inside)
+            if why is not None:  # never opened: a FIFO would block, a link leads outside
+                rec["_reject"] = ("malformed_file", why)
                 records.append(rec)
                 continue
             try:
@@ -331,6 +343,30 @@ def stage_paint(folder: Path, opts: IngestOptions) -> Staged:
         for a in "enu":
             frame.loc[sel, f"heliostat_{a}_m"] = row[f"heliostat_{a}_m"]
     return Staged(frame, heliostats, tower.targets, tower.reference, "paint")
+
+
+def _outside_reason(path: Path, inside: Path) -> str | None:
+    """Why ``path`` (found in the PAINT folder ``inside``, resolved) lies outside it: a symbolic
+    link (of the file or a folder on the way) to elsewhere; ``None`` if it is inside."""
+    target = path.resolve()
+    if target == inside or inside in target.parents:
+        return None
+    return (f"a symbolic link to {target}, outside the PAINT folder {inside}; heliocal reads only "
+            "files inside the source folder")
+
+
+def _not_readable_reason(path: Path, inside: Path) -> str | None:
+    """Why a calibration file is not read (``None``: it is a regular file inside the folder)."""
+    why = _outside_reason(path, inside)
+    if why is not None:
+        return why
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if not stat.S_ISREG(mode):
+        return f"{kind_of(mode)}, not a file; heliocal reads only regular files"
+    return None
 
 
 def _valid_triplet(v) -> bool:

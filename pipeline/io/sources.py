@@ -16,6 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..artifacts.paths import kind_of
 from ..errors import InputError
 from ..physics.geodesy import wgs84_to_enu
 from .staged import IngestOptions, Target
@@ -92,6 +93,9 @@ def detect_source(path: str | os.PathLike) -> str:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such file or folder; check the path")
+    if not path.is_dir() and not path.is_file():  # a FIFO or device: never opened, it could block
+        raise InputError(f"{path} is {kind_of(path.stat().st_mode)}, not a file or folder; save "
+                         "the log to a file and give that")
     if path.is_dir():
         if _is_simulate_folder(path):
             return "simulate"

@@ -11,7 +11,9 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ParameterError, check_choice, check_float
-from ..vocabulary import DEFAULT_TIME_MIN
+from ..vocabulary import (DEFAULT_MAX_SPOT_DISTANCE_M, DEFAULT_SUN_TOLERANCE_DEG,
+                          DEFAULT_TIME_MAX_MARGIN_DAYS, DEFAULT_TIME_MIN, AzimuthConvention,
+                          FocalSpotDetector)
 
 __all__ = [
     "IngestOptions",
@@ -30,9 +32,9 @@ __all__ = [
 # ------------------------------------------------------------------------------------------------
 
 
-#: The latest plausible time is now plus this margin (``--time-max`` overrides it): a calibration
-#: cannot have been measured in the future; the margin covers clocks and time zones set wrong.
-TIME_MAX_MARGIN = pd.Timedelta(days=1)
+#: The latest plausible time is now plus this margin (``--time-max`` overrides it; see
+#: :data:`~heliocal.pipeline.vocabulary.DEFAULT_TIME_MAX_MARGIN_DAYS`).
+TIME_MAX_MARGIN = pd.Timedelta(days=DEFAULT_TIME_MAX_MARGIN_DAYS)
 
 
 #: An env value beyond this magnitude is blanked (``qa_env_blanked``): the fine model standardises
@@ -62,16 +64,25 @@ def time_bounds(opts: "IngestOptions") -> tuple[pd.Timestamp, pd.Timestamp]:
     return lo, hi
 
 
+def _is_time_zone(name: str) -> bool:
+    """Whether pandas knows ``name`` as a time zone (what localising a naive timestamp needs)."""
+    try:
+        pd.Timestamp("2000-01-01").tz_localize(name)
+    except Exception:  # noqa: BLE001 - zoneinfo, pytz and dateutil raise different types
+        return False
+    return True
+
+
 @dataclass
 class IngestOptions:
     """Resolved options of ``ingest`` (see the CLI's help for each)."""
 
     tower: Path | None = None
     properties: Path | None = None
-    focal_spot: str = "utis"
-    max_spot_distance_m: float = 25.0
-    sun_tolerance_deg: float = 0.1
-    azimuth_convention: str = "south"  # or "north-clockwise"
+    focal_spot: str = FocalSpotDetector.utis.value
+    max_spot_distance_m: float = DEFAULT_MAX_SPOT_DISTANCE_M
+    sun_tolerance_deg: float = DEFAULT_SUN_TOLERANCE_DEG
+    azimuth_convention: str = AzimuthConvention.south.value
     timezone: str | None = None
     location: tuple[float, float, float] | None = None
     date_format: str | None = None  # strptime format of every timestamp (e.g. "%d.%m.%Y %H:%M:%S%z")
@@ -89,9 +100,12 @@ class IngestOptions:
             raise ParameterError(f"The 'date_format' parameter of ingest must be a strptime "
                                  f"format such as '%d.%m.%Y %H:%M:%S%z'. Got {self.date_format!r} "
                                  "instead.")
-        check_choice(self.focal_spot, "focal_spot", "ingest", ("utis", "helios"))
+        if self.timezone is not None and not _is_time_zone(self.timezone):
+            raise ParameterError(f"The 'timezone' parameter of ingest must be an IANA time zone "
+                                 f"such as Europe/Berlin or UTC. Got {self.timezone!r} instead.")
+        check_choice(self.focal_spot, "focal_spot", "ingest", FocalSpotDetector.values())
         check_choice(self.azimuth_convention, "azimuth_convention", "ingest",
-                     ("south", "north-clockwise"))
+                     AzimuthConvention.values())
         check_float(self.max_spot_distance_m, "max_spot_distance_m", "ingest", 0.0, None, False)
         check_float(self.sun_tolerance_deg, "sun_tolerance_deg", "ingest", 0.0, None, False)
         return self

@@ -8,6 +8,7 @@ import datetime
 import logging
 import math
 import re
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -18,6 +19,7 @@ from ..artifacts.schemas import (HELIOSTAT_ID_RULE, MEASUREMENTS, heliostat_id_p
 from ..errors import InputError
 from ..physics.sun import spa_sun_position, sun_vector_enu, wrap_deg
 from .paint import default_properties_row
+from ..vocabulary import AzimuthConvention
 from .staged import ENV_ABS_MAX, IngestOptions, Staged, Target, time_bounds
 
 __all__ = [
@@ -47,62 +49,128 @@ def _to_float(series: pd.Series) -> pd.Series:
 # ------------------------------------------------------------------------------------------------
 # validation: one reason per rejected row, in a fixed order
 # ------------------------------------------------------------------------------------------------
+class _Rejections:
+    """The first rejection reason and detail of each row: a check rejects only rows no earlier
+    check rejected (the readers' own rejections, ``_reject``, come first)."""
+
+    def __init__(self, df: pd.DataFrame):
+        self.reason = pd.Series([r[0] if r else None for r in df["_reject"]], index=df.index,
+                                dtype=object)
+        self.detail = pd.Series([r[1] if r else None for r in df["_reject"]], index=df.index,
+                                dtype=object)
+
+    def __call__(self, mask, code: str, text) -> None:
+        """Reject the rows ``mask`` not yet rejected with reason ``code`` and ``text`` (one text,
+        or a Series of texts per row)."""
+        mask = mask & self.reason.isna()
+        if mask.any():
+            self.reason[mask] = code
+            self.detail[mask] = text[mask] if isinstance(text, pd.Series) else text
+
+    @property
+    def open(self) -> pd.Series:
+        """Rows no check has rejected so far."""
+        return self.reason.isna()
+
+
+def _blank(df: pd.DataFrame, col: str) -> pd.Series:
+    """Rows whose ``col`` is empty (None, NaN, blank text; every row if there is no column)."""
+    if col not in df:
+        return pd.Series(True, index=df.index)
+    return df[col].map(lambda v: v is None or (isinstance(v, float) and math.isnan(v))
+                       or (isinstance(v, str) and v.strip() == ""))
+
+
 def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
     """Kept rows, rejected rows and heliostat rows of staged rows (a whole source or a chunk
     holding every row of its heliostats: nothing here looks beyond one heliostat's rows, except
-    what goes to ``checks``, which judges the whole source once all its chunks were seen)."""
+    what goes to ``checks``, which judges the whole source once all its chunks were seen).
+
+    One check per step, in a fixed order; a row carries the first reason that rejects it."""
     df = st.frame.copy()
-    reason = pd.Series([r[0] if r else None for r in df["_reject"]], index=df.index, dtype=object)
-    detail = pd.Series([r[1] if r else None for r in df["_reject"]], index=df.index, dtype=object)
-
-    def reject(mask, code: str, text):
-        mask = mask & reason.isna()
-        if mask.any():
-            reason[mask] = code
-            detail[mask] = text[mask] if isinstance(text, pd.Series) else text
-
-    def blank(col):
-        if col not in df:
-            return pd.Series(True, index=df.index)
-        return df[col].map(lambda v: v is None or (isinstance(v, float) and math.isnan(v))
-                           or (isinstance(v, str) and v.strip() == ""))
-
+    reject = _Rejections(df)
     for col in ("heliostat_id", "measurement_id", "target_name"):
         df[col] = df[col].map(lambda v: v.strip() if isinstance(v, str) else v)
     df["heliostat_id"] = df["heliostat_id"].map(_id_text)
-    # heliostat position: a log row without one inherits its heliostat's (properties or other rows)
-    heliostats = dict(st.heliostats)
-    if st.kind in ("wgs84-log", "enu-log"):
-        pos = to_float_frame(df, ["heliostat_e_m", "heliostat_n_m", "heliostat_u_m"])
-        for hid, grp in pos.groupby(df["heliostat_id"], sort=False):
-            if hid in heliostats or not isinstance(hid, str) or not hid:
-                continue
-            good = grp.dropna()
-            if st.kind == "enu-log" or good.empty:
-                continue
-            med = good.median().to_numpy()
-            wgs = (np.nan, np.nan, np.nan)
-            if "_hpos_wgs84" in df:
-                w = pd.DataFrame(df.loc[good.index, "_hpos_wgs84"].tolist(), columns=list("abc"))
-                wgs = tuple(float(x) for x in w.median())
-            heliostats[hid] = default_properties_row(hid, med, wgs)
-        for a in "enu":
-            df[f"heliostat_{a}_m"] = df["heliostat_id"].map(
-                {h: r[f"heliostat_{a}_m"] for h, r in heliostats.items()})
+    heliostats = _inherit_positions(st, df)
+    spot_raw = _check_required(st, df, reject)
+    _check_numbers(st, df, reject, spot_raw)
+    env_cols = _blank_faulty_env(df)
+    _check_timestamps(df, opts, checks, reject)
+    known_h = df["heliostat_id"].isin(list(heliostats))
+    reject(~known_h, "unknown_heliostat",
+           df["heliostat_id"].map(lambda h: f"no properties or position for heliostat {h!r}"))
+    tgt = _resolve_targets(df, st.targets)
+    reject(~tgt, "unknown_target",
+           df["target_name"].map(lambda t: f"target {t!r} is not in the tower/targets file"))
+    _check_sun(st, df, opts, checks, reject, heliostats)
+    _check_steps(df, heliostats, known_h, reject)
+    _check_spot(df, opts, tgt, reject)
+    _check_duplicates(df, reject)
 
-    # a WGS84 log's focal spot is judged on its logged lat/lon/alt (the ENU columns derive from them)
+    kept = df.loc[reject.open].copy()
+    rejected = pd.DataFrame({
+        "source_file": df["source_file"], "source_row": df["source_row"],
+        "heliostat_id": df["heliostat_id"].map(lambda v: v if isinstance(v, str) and v else None),
+        "measurement_id": df["measurement_id"].map(
+            lambda v: v if isinstance(v, str) and v else None),
+        "reason": reject.reason, "detail": reject.detail, "raw": df["raw"]}).loc[~reject.open]
+    cols = MEASUREMENTS.column_names()
+    kept = kept[cols + env_cols + (["qa_env_blanked"] if env_cols else [])]
+    return kept, rejected, heliostats
+
+
+def _inherit_positions(st: Staged, df: pd.DataFrame) -> dict:
+    """The heliostats' property rows: the source's, plus for a WGS84 log a default row at the
+    median logged position of each heliostat without properties; a log row without a position
+    inherits its heliostat's (in ``df``)."""
+    heliostats = dict(st.heliostats)
+    if st.kind not in ("wgs84-log", "enu-log"):
+        return heliostats
+    pos = to_float_frame(df, ["heliostat_e_m", "heliostat_n_m", "heliostat_u_m"])
+    for hid, grp in pos.groupby(df["heliostat_id"], sort=False):
+        if hid in heliostats or not isinstance(hid, str) or not hid:
+            continue
+        good = grp.dropna()
+        if st.kind == "enu-log" or good.empty:
+            continue
+        med = good.median().to_numpy()
+        wgs = (np.nan, np.nan, np.nan)
+        if "_hpos_wgs84" in df:
+            w = pd.DataFrame(df.loc[good.index, "_hpos_wgs84"].tolist(), columns=list("abc"))
+            wgs = tuple(float(x) for x in w.median())
+        heliostats[hid] = default_properties_row(hid, med, wgs)
+    for a in "enu":
+        df[f"heliostat_{a}_m"] = df["heliostat_id"].map(
+            {h: r[f"heliostat_{a}_m"] for h, r in heliostats.items()})
+    return heliostats
+
+
+def _check_required(st: Staged, df: pd.DataFrame, reject: _Rejections) -> list[str]:
+    """Empty required values, invalid heliostat ids, rows with neither sun angles nor a time;
+    returns the focal-spot columns the source is judged on (a WGS84 log's logged lat/lon/alt,
+    from which the ENU columns derive)."""
     spot_raw = (["focal_spot_lat", "focal_spot_lon", "focal_spot_alt"] if st.kind == "wgs84-log"
                 else ["focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"])
     required = ["heliostat_id", "measurement_id", "axis_1_steps", "axis_2_steps", "target_name",
                 *spot_raw]
     for col in required:
-        reject(blank(col), "missing_value", f"{col} is empty")
+        reject(_blank(df, col), "missing_value", f"{col} is empty")
     _reject_invalid_ids(df["heliostat_id"], reject)
-    sun_given = ~blank("sun_azimuth_deg") & ~blank("sun_elevation_deg")
-    ts_given = ~blank("timestamp") if "timestamp" in df else pd.Series(False, index=df.index)
-    reject(~sun_given & ~ts_given, "missing_value", "sun angles and timestamp are empty")
+    sun_given = ~_blank(df, "sun_azimuth_deg") & ~_blank(df, "sun_elevation_deg")
+    reject(~sun_given & ~_timestamp_given(df), "missing_value",
+           "sun angles and timestamp are empty")
+    return spot_raw
 
-    # numbers
+
+def _timestamp_given(df: pd.DataFrame) -> pd.Series:
+    return ~_blank(df, "timestamp") if "timestamp" in df else pd.Series(False, index=df.index)
+
+
+def _check_numbers(st: Staged, df: pd.DataFrame, reject: _Rejections,
+                   spot_raw: Sequence[str]) -> None:
+    """Steps, sun angles and focal spot as finite numbers (converted in ``df``); a WGS84 spot
+    within [-90, 90] / [-180, 180] deg and convertible to ENU."""
     numeric = {}
     for col in ("axis_1_steps", "axis_2_steps", "sun_azimuth_deg", "sun_elevation_deg", *spot_raw):
         if col not in df:
@@ -110,7 +178,7 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
         raw_col = df[col]
         val = _to_float(raw_col.astype(object))
         numeric[col] = val
-        bad = val.isna() & ~blank(col)
+        bad = val.isna() & ~_blank(df, col)
         reject(bad, "unparsable_number", raw_col.map(lambda v, c=col: f"{c}={v!r} is not a finite number"))
     if st.kind == "wgs84-log":
         for col, limit in (("focal_spot_lat", 90.0), ("focal_spot_lon", 180.0)):
@@ -122,9 +190,12 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
                "focal spot lat/lon/alt cannot be converted to ENU (not a point near the plant)")
     for col, val in numeric.items():
         df[col] = val
-    env_cols = [c for c in df.columns if c.startswith("env_")]
 
-    # env values: non-finite or overflowing cells are blanked (the row is kept), and flagged
+
+def _blank_faulty_env(df: pd.DataFrame) -> list[str]:
+    """Env values: non-finite or overflowing cells are blanked (the row is kept) and listed in
+    ``qa_env_blanked``; returns the env columns."""
+    env_cols = [c for c in df.columns if c.startswith("env_")]
     if env_cols:
         blanked = pd.Series("", index=df.index, dtype=object)
         for col in env_cols:
@@ -134,43 +205,52 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
                 blanked[faulty] = blanked[faulty] + [f"{col}={x:g}; " for x in v[faulty]]
                 df[col] = v.where(~faulty)
         df["qa_env_blanked"] = blanked.str.rstrip("; ")
+    return env_cols
 
-    # timestamps
+
+def _check_timestamps(df: pd.DataFrame, opts: IngestOptions, checks: "SourceChecks",
+                      reject: _Rejections) -> None:
+    """Timestamps parsed to UTC in ``df`` (NaT where missing or refused): unreadable, a local
+    time the zone skips or repeats, ambiguous day and month, no zone, implausible."""
     ts = pd.Series(pd.NaT, index=df.index, dtype="datetime64[us, UTC]")
     if "timestamp" in df:
-        ts, bad_ts, naive, ambiguous, implausible = _parse_timestamps(
-            df["timestamp"], opts.timezone, opts.date_format, time_bounds(opts))
-        checks.add_timestamps(df, ts_given, naive, ambiguous)  # all naive/ambiguous: refused
-        reject(bad_ts & ts_given, "unparsable_timestamp",
+        ts_given = _timestamp_given(df)
+        parsed = _parse_timestamps(df["timestamp"], opts.timezone, opts.date_format,
+                                   time_bounds(opts))
+        ts = parsed.utc
+        # a source whose timestamps are all naive or all ambiguous is refused (checks.finish)
+        checks.add_timestamps(df, ts_given, parsed.naive, parsed.ambiguous)
+        reject(parsed.unparsable & ts_given, "unparsable_timestamp",
                df["timestamp"].map(lambda v: f"timestamp {v!r} does not match --date-format "
                                              f"{opts.date_format!r}" if opts.date_format else
                                    f"timestamp {v!r} is not a UTC time"))
-        reject(ambiguous & ts_given, "ambiguous_timestamp",
+        reject(parsed.local_problem.notna() & ts_given, "unparsable_timestamp",
+               parsed.local_problem)
+        reject(parsed.ambiguous & ts_given, "ambiguous_timestamp",
                df["timestamp"].map(lambda v: f"timestamp {v!r} has day and month as numbers, "
                                              "which heliocal cannot tell apart: give "
                                              "--date-format (e.g. '%d.%m.%Y %H:%M:%S%z')"))
-        reject(naive & ts_given, "unparsable_timestamp",
+        reject(parsed.naive & ts_given, "unparsable_timestamp",
                df["timestamp"].map(lambda v: f"timestamp {v!r} has no time zone"))
-        reject(implausible.notna() & ts_given, "implausible_timestamp", implausible)
+        reject(parsed.implausible.notna() & ts_given, "implausible_timestamp", parsed.implausible)
     df["timestamp"] = ts
 
-    # heliostat and target known
-    known_h = df["heliostat_id"].isin(list(heliostats))
-    reject(~known_h, "unknown_heliostat",
-           df["heliostat_id"].map(lambda h: f"no properties or position for heliostat {h!r}"))
-    tgt = _resolve_targets(df, st.targets)
-    reject(~tgt, "unknown_target",
-           df["target_name"].map(lambda t: f"target {t!r} is not in the tower/targets file"))
 
-    # sun: SPA where missing, comparison where present
-    az = df["sun_azimuth_deg"].astype(float) if "sun_azimuth_deg" in df else pd.Series(np.nan, index=df.index)
-    el = df["sun_elevation_deg"].astype(float) if "sun_elevation_deg" in df else pd.Series(np.nan, index=df.index)
-    if opts.azimuth_convention == "north-clockwise":
+def _check_sun(st: Staged, df: pd.DataFrame, opts: IngestOptions, checks: "SourceChecks",
+               reject: _Rejections, heliostats: dict) -> None:
+    """Sun angles: NREL SPA where the log has none, compared with SPA where it has them
+    (``qa_sun_spa_diff_deg``, ``qa_sun_mismatch``); out of range or below the horizon rejected;
+    the sun vector columns written."""
+    ts = df["timestamp"]
+    missing = pd.Series(np.nan, index=df.index)
+    az = df["sun_azimuth_deg"].astype(float) if "sun_azimuth_deg" in df else missing
+    el = df["sun_elevation_deg"].astype(float) if "sun_elevation_deg" in df else missing
+    if opts.azimuth_convention == AzimuthConvention.north_clockwise:
         az = pd.Series(wrap_deg(180.0 - az.to_numpy()), index=df.index)
     df["sun_source"] = np.where(az.notna() & el.notna(), "log", "spa")
     df["qa_sun_spa_diff_deg"] = np.nan
     location = _location(st, heliostats)
-    can_spa = ts.notna() & reason.isna()
+    can_spa = ts.notna() & reject.open
     if location is not None and can_spa.any():
         spa_az, spa_el = spa_sun_position(ts[can_spa], *location)
         spa_az = pd.Series(spa_az, index=ts[can_spa].index)
@@ -200,7 +280,10 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
     df["sun_e"], df["sun_n"], df["sun_u"] = vec[:, 0], vec[:, 1], vec[:, 2]
     df["qa_sun_mismatch"] = df["qa_sun_spa_diff_deg"].fillna(0.0) > opts.sun_tolerance_deg
 
-    # actuator range
+
+def _check_steps(df: pd.DataFrame, heliostats: dict, known_h: pd.Series,
+                 reject: _Rejections) -> None:
+    """Motor steps within each axis' range of the heliostat's properties."""
     for i in (1, 2):
         lo = df["heliostat_id"].map({h: r[f"axis_{i}_min_steps"] for h, r in heliostats.items()})
         hi = df["heliostat_id"].map({h: r[f"axis_{i}_max_steps"] for h, r in heliostats.items()})
@@ -210,7 +293,10 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
             [f"axis_{i}_steps={s:g} outside [{a:g}, {b:g}]" for s, a, b in zip(steps, lo, hi)],
             index=df.index))
 
-    # focal spot near its target
+
+def _check_spot(df: pd.DataFrame, opts: IngestOptions, tgt: pd.Series,
+                reject: _Rejections) -> None:
+    """The focal spot within --max-spot-distance of its (known) target's centre."""
     spot = df[["focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"]].astype(float).to_numpy()
     center = df[["target_e_m", "target_n_m", "target_u_m"]].astype(float).to_numpy()
     dist = np.linalg.norm(spot - center, axis=1)
@@ -219,25 +305,17 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
         [f"focal spot {d:.1f} m from the target centre (limit {opts.max_spot_distance_m:g} m)"
          for d in dist], index=df.index))
 
-    # duplicates (first occurrence kept)
+
+def _check_duplicates(df: pd.DataFrame, reject: _Rejections) -> None:
+    """A measurement id seen before for the same heliostat (the first occurrence is kept)."""
     key = df["heliostat_id"].astype(str) + "\0" + df["measurement_id"].astype(str)
-    ok_so_far = reason.isna()
+    ok_so_far = reject.open
     first_row = df.loc[ok_so_far].groupby(key[ok_so_far])["source_row"].transform("first")
     dup = key[ok_so_far].duplicated(keep="first")
     dup = dup.reindex(df.index, fill_value=False)
     reject(dup, "duplicate_measurement_id", pd.Series(
         [f"measurement id {m!r} already seen in source row {r}" for m, r in
          zip(df["measurement_id"], first_row.reindex(df.index))], index=df.index))
-
-    kept = df.loc[reason.isna()].copy()
-    rejected = pd.DataFrame({
-        "source_file": df["source_file"], "source_row": df["source_row"],
-        "heliostat_id": df["heliostat_id"].map(lambda v: v if isinstance(v, str) and v else None),
-        "measurement_id": df["measurement_id"].map(lambda v: v if isinstance(v, str) and v else None),
-        "reason": reason, "detail": detail, "raw": df["raw"]}).loc[reason.notna()]
-    cols = MEASUREMENTS.column_names()
-    kept = kept[cols + env_cols + (["qa_env_blanked"] if env_cols else [])]
-    return kept, rejected, heliostats
 
 
 def _id_text(value):
@@ -287,10 +365,32 @@ def _parse_one(t: str, date_format: str | None):
     return None if stamp is pd.NaT else stamp
 
 
+@dataclass
+class _ParsedTimes:
+    """Timestamps parsed to UTC, and per row why one could not be (masks, or reasons: ``None``
+    for a good or missing time)."""
+
+    utc: pd.Series              # datetime64[us, UTC]; NaT where missing or refused
+    unparsable: pd.Series       # text that is no time (or does not match --date-format)
+    naive: pd.Series            # a time without zone and no --timezone
+    ambiguous: pd.Series        # day and month as numbers in an order that cannot be told
+    local_problem: pd.Series    # a local time --timezone skips or repeats: the reason
+    implausible: pd.Series      # outside --time-min / --time-max: the reason
+
+
+def _local_time_problem(text: str, stamp: pd.Timestamp, timezone: str) -> str:
+    """Why the naive ``stamp`` is no single instant in ``timezone`` (a clock change skips or
+    repeats it; tz_localize refused it)."""
+    skipped = stamp.tz_localize(timezone, nonexistent="NaT", ambiguous=True) is pd.NaT
+    what = ("does not exist in time zone {} (a clock change skips it)" if skipped
+            else "occurs twice in time zone {} (a clock change repeats it)").format(timezone)
+    return (f"timestamp {text!r} {what}; write it with its UTC offset, e.g. "
+            "2024-06-01T12:00:00+02:00")
+
+
 def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str | None = None,
-                      bounds: tuple[pd.Timestamp, pd.Timestamp] | None = None):
-    """Parse to UTC; returns (timestamps, unparsable, no-zone, ambiguous, implausible) where the
-    last is a Series of reasons (``None`` for a plausible or missing time).
+                      bounds: tuple[pd.Timestamp, pd.Timestamp] | None = None) -> _ParsedTimes:
+    """Parse to UTC (:class:`_ParsedTimes`).
 
     A time outside ``bounds`` is reported as implausible and left missing; each time is converted
     to microseconds on its own, so a year outside pandas' nanosecond range never fails the whole
@@ -301,6 +401,7 @@ def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str 
     naive = np.zeros(len(text), bool)
     ambiguous = np.zeros(len(text), bool)
     implausible = [None] * len(text)
+    local_problem = [None] * len(text)
     for i, t in enumerate(text):
         if not t or t.lower() in ("nan", "nat", "none"):
             continue
@@ -317,8 +418,8 @@ def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str 
                 continue
             try:
                 stamp = stamp.tz_localize(timezone)
-            except Exception:  # noqa: BLE001 - invalid/ambiguous local time
-                bad[i] = True
+            except ValueError:  # pandas: a nonexistent or ambiguous local time
+                local_problem[i] = _local_time_problem(t, stamp, timezone)
                 continue
         stamp = stamp.tz_convert("UTC")
         if bounds is not None and not bounds[0] <= stamp <= bounds[1]:
@@ -330,10 +431,12 @@ def _parse_timestamps(values: pd.Series, timezone: str | None, date_format: str 
         stamps[i] = stamp.to_datetime64().astype("datetime64[us]")
     micro = np.array([np.datetime64("NaT", "us") if s is None else s for s in stamps],
                      dtype="datetime64[us]")
-    ts = pd.Series(pd.DatetimeIndex(micro).tz_localize("UTC"), index=values.index)
-    return (ts, pd.Series(bad, index=values.index), pd.Series(naive, index=values.index),
-            pd.Series(ambiguous, index=values.index), pd.Series(implausible, index=values.index,
-                                                                dtype=object))
+    index = values.index
+    return _ParsedTimes(pd.Series(pd.DatetimeIndex(micro).tz_localize("UTC"), index=index),
+                        pd.Series(bad, index=index), pd.Series(naive, index=index),
+                        pd.Series(ambiguous, index=index),
+                        pd.Series(local_problem, index=index, dtype=object),
+                        pd.Series(implausible, index=index, dtype=object))
 
 
 def _resolve_targets(df: pd.DataFrame, targets: dict[str, Target]) -> pd.Series:

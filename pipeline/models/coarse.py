@@ -22,8 +22,9 @@ are fitted on its training rows with :func:`scipy.optimize.least_squares`:
   :data:`PLAUSIBLE_CORRECTION` is reported.
 
 Standard errors come from the Jacobian at the solution: ``cov = s^2 (J^T J)^-1`` with ``s^2`` the
-data residual variance. A parameter whose standard error exceeds half its prior sigma is reported
-as *not determined by the data* (the prior, not the data, fixes it).
+data residual variance (:mod:`.fit_diagnostics`; a singular ``J^T J`` is flagged in the fit's
+status). A parameter whose standard error exceeds half its prior sigma is reported as *not
+determined by the data* (the prior, not the data, fixes it).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from ..physics.metrics import beam_error_mrad, error_mrad, measured_normal, spot
 from ..physics.parameters import (PARAMETER_INDEX, PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES,
                                   HeliostatSpec, preset_mask)
 from ..vocabulary import CoarseLoss, CoarseSolver
+from .fit_diagnostics import fit_diagnostics
 
 __all__ = [
     "AUTO_PRESETS",
@@ -127,8 +129,9 @@ class MeasurementBatch:
         )
 
     def subset(self, mask: np.ndarray) -> "MeasurementBatch":
-        m = torch.as_tensor(np.asarray(mask, bool))
-        return MeasurementBatch(self.measurement_id[np.asarray(mask, bool)], self.steps[m],
+        keep = np.array(mask, dtype=bool)  # a writable copy: torch refuses read-only arrays
+        m = torch.from_numpy(keep)
+        return MeasurementBatch(self.measurement_id[keep], self.steps[m],
                                 self.sun[m], self.focal_spot[m], self.target_center[m],
                                 self.target_normal[m])
 
@@ -393,11 +396,11 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         J = jac(res_x)
     fitted = full(torch.as_tensor(res_x, dtype=torch.float64)).detach()
 
-    std, determined, cond = _fit_diagnostics(J, fun(res_x) if J is not None else None, n_data,
-                                             free_idx, sigma)
+    d = fit_diagnostics(J, fun(res_x) if J is not None else None, n_data, free_idx, sigma)
     implausible = _implausible(fitted, nominal, free_idx)
-    return CoarseFit(preset, fitted, nominal, free, std, determined, nfev, cost, cond, status,
-                     implausible, time.perf_counter() - t0)
+    return CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined, nfev, cost,
+                     d.condition_number, d.flag_status(status), implausible,
+                     time.perf_counter() - t0)
 
 
 def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
@@ -405,8 +408,14 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
                            loss: str = "linear", f_scale_mrad: float = 1.0,
                            robust_start: bool | str = True, max_nfev: int = 200,
                            prior_weight: float = 1.0, tolerance: float = 1e-10,
-                           start_caches: Sequence[dict] | None = None) -> list[CoarseFit]:
+                           start_caches: Sequence[dict] | None = None,
+                           starts: Sequence[torch.Tensor | None] | None = None) -> list[CoarseFit]:
     """:func:`fit_heliostat` for many heliostats of one kinematic and actuator type at once.
+
+    ``starts`` (per heliostat (28,) or None) warm-starts Levenberg-Marquardt there (e.g. the fit
+    of the same heliostat on fewer rows) without changing the objective: the prior stays
+    centred where a cold fit centres it (the nominal geometry, or the robust start of
+    ``start_caches``, which the caller keeps across such fits).
 
     The objective (data rows, prior rows, loss) and the start (including the robust start, per
     heliostat) are those of :func:`fit_heliostat`; the minimisation is one batched
@@ -461,7 +470,11 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
         prior_mean=base[:, free_idx_t],
         prior_scale=(1.0 / torch.stack([sf for *_, sf in setups])) if prior_weight > 0 else None,
         x_scale=torch.as_tensor(sigma[:, free_idx]))
-    sol = solve_batched(problem, base[:, free_idx_t], loss=loss, f_scale=f_scale_mrad,
+    x0 = base[:, free_idx_t].clone()
+    for j, k in enumerate(batch):
+        if starts is not None and starts[k] is not None:
+            x0[j] = starts[k].to(torch.float64)[free_idx_t]
+    sol = solve_batched(problem, x0, loss=loss, f_scale=f_scale_mrad,
                         max_nfev=max_nfev, tolerance=tolerance)
     wall = (time.perf_counter() - t0) / len(batch)
     data_rows = 3 * n_max
@@ -472,53 +485,12 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
         J = sol.jacobian[j].numpy()[keep]
         r = sol.residual[j].numpy()[keep]
         fitted = x0_full.index_put((free_idx_t,), sol.x[j])
-        std, determined, cond = _fit_diagnostics(J, r, n_data, free_idx, sig)
-        fits[k] = CoarseFit(preset, fitted, nominal, free, std, determined, int(sol.njev[j]),
-                            float(sol.cost[j]), cond, f"batched LM: {sol.status[j]}",
+        d = fit_diagnostics(J, r, n_data, free_idx, sig)
+        fits[k] = CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined,
+                            int(sol.njev[j]), float(sol.cost[j]), d.condition_number,
+                            d.flag_status(f"batched LM: {sol.status[j]}"),
                             _implausible(fitted, nominal, free_idx), wall)
     return fits
-
-
-def _fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
-                     free_idx: np.ndarray, sigma: np.ndarray):
-    """Standard errors (28,), the 'determined' flags (28,) and the condition number from the
-    Jacobian ``J`` (data rows, then prior rows) and residuals ``r`` at the solution."""
-    std = np.full(len(PARAMETER_NAMES), np.nan)
-    determined = np.ones(len(PARAMETER_NAMES), bool)
-    cond = float("nan")
-    if J is not None:
-        dof = max(n_data - len(free_idx), 1)
-        s2 = float((r[:n_data] ** 2).sum() / dof)
-        scale = sigma[free_idx]
-        Js = J * scale  # scaled columns: comparable units
-        # singular values of the scaled data Jacobian from the small normal matrix (a tall SVD
-        # is slow with a multithreaded BLAS under load)
-        try:
-            ev = np.linalg.eigvalsh(Js[:n_data].T @ Js[:n_data])
-            cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
-        except np.linalg.LinAlgError:
-            cond = float("inf")
-        JtJ = Js.T @ Js
-        try:
-            cov_scaled = np.linalg.inv(JtJ)
-        except np.linalg.LinAlgError:
-            cov_scaled = np.linalg.pinv(JtJ)
-        # data-noise covariance; the prior rows stay in (they keep it invertible)
-        std_free = np.sqrt(np.clip(np.diag(cov_scaled), 0, None) * max(s2, 1e-300)) * scale
-        std[free_idx] = std_free
-        # "determined": the data alone pin the parameter to well within its prior sigma, for a
-        # unit (1 mrad) measurement noise; otherwise the prior, not the data, fixes it.
-        Jd = Js[:n_data]
-        try:
-            eig, vec = np.linalg.eigh(Jd.T @ Jd)
-            tol = max(eig.max(), 1e-300) * 1e-12
-            inv = (vec / np.where(eig > tol, eig, np.inf)) @ vec.T
-            data_only = np.sqrt(np.clip(np.diag(inv), 0, None))
-            null = (vec[:, eig <= tol] ** 2).sum(axis=1) > 1e-6
-        except np.linalg.LinAlgError:  # pragma: no cover
-            data_only, null = np.full(len(free_idx), np.inf), np.ones(len(free_idx), bool)
-        determined[free_idx] = (data_only < 0.5) & ~null
-    return std, determined, cond
 
 
 #: The simplest preset. Training rows that cannot determine its parameters are degenerate (all
@@ -532,7 +504,7 @@ def data_degeneracy(spec: HeliostatSpec, params: torch.Tensor, nominal: torch.Te
     """Why ``train`` cannot determine the parameters of :data:`IDENTIFIABILITY_PRESET` (``""`` if
     it can), judged with the data-only Jacobian at ``params`` (``jacobian``: residual_and_jacobian
     there, if computed) and the same 'determined' rule as the fit's (a parameter is determined
-    when 1 mrad noise leaves it less than half its prior sigma uncertain, :func:`_fit_diagnostics`)."""
+    when 1 mrad noise leaves it less than half its prior sigma uncertain, :func:`fit_diagnostics`)."""
     n = len(train)
     if n == 0:
         return "no training rows"
@@ -550,7 +522,7 @@ def data_degeneracy(spec: HeliostatSpec, params: torch.Tensor, nominal: torch.Te
     J = torch.nan_to_num(jac[:, :, torch.as_tensor(free_idx)].reshape(-1, len(free_idx)),
                          nan=0.0, posinf=0.0, neginf=0.0).numpy()
     r = torch.nan_to_num(r.reshape(-1), nan=0.0).numpy()
-    _, determined, _ = _fit_diagnostics(J, r, len(r), free_idx, prior_sigma(nominal))
+    determined = fit_diagnostics(J, r, len(r), free_idx, prior_sigma(nominal)).determined
     n_det = int(determined[free_idx].sum())
     if n_det == len(free_idx):
         return ""

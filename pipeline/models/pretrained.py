@@ -37,6 +37,7 @@ from ..errors import FitError
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, measured_normal
 from ..physics.parameters import HeliostatSpec
+from ..physics.vectors import unit_vector
 from ..runtime.process_state import single_threaded
 from ..vocabulary import PretrainVariant
 from .coarse import MeasurementBatch
@@ -54,10 +55,6 @@ __all__ = [
 # ------------------------------------------------------------------------------------------------
 # pretrained-nn (paper 002)
 # ------------------------------------------------------------------------------------------------
-def _unit(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-
-
 @dataclass(frozen=True)
 class PretrainConfig:
     """Settings of the pre-trained network (``pretrained-nn``).
@@ -152,7 +149,7 @@ class PretrainedModel:
 
     def inputs(self, sun: torch.Tensor, spot: torch.Tensor) -> torch.Tensor:
         off = spot - torch.as_tensor(self.reference_m, dtype=torch.float64)
-        x = torch.cat([_unit(sun), off[..., 0:1], off[..., 2:3]], dim=-1)
+        x = torch.cat([unit_vector(sun), off[..., 0:1], off[..., 2:3]], dim=-1)
         return (x - torch.as_tensor(self.in_mean)) / torch.as_tensor(self.in_std)
 
     def steps(self, sun: torch.Tensor, spot: torch.Tensor, layers: Layers | None = None, *,
@@ -286,7 +283,7 @@ def _fit_residual(coarse: torch.Tensor, spec: HeliostatSpec, data: MeasurementBa
         raise FitError(f"{spec.heliostat_id}: the coarse model reaches none of the training rows' "
                        "focal spots; check the coarse fit")
     reference = data.focal_spot[train].mean(0)
-    x_raw = torch.cat([_unit(data.sun), (data.focal_spot - reference)[:, 0:1],
+    x_raw = torch.cat([unit_vector(data.sun), (data.focal_spot - reference)[:, 0:1],
                        (data.focal_spot - reference)[:, 2:3]], -1)
     in_mean, in_std = x_raw[train].mean(0), x_raw[train].std(0).nan_to_num(1.0).clamp_min(1e-9)
     resid = data.steps - base                        # what the coarse inverse kinematics misses
@@ -347,7 +344,7 @@ def _fit_paper(coarse: torch.Tensor, spec: HeliostatSpec, hrow, rows: pd.DataFra
     val = labels == "validation"
     sun, spot, steps = simulate_pretraining(coarse, spec, hrow, rows, train, config.n_samples, rng)
     reference = data.focal_spot[torch.as_tensor(train)].mean(0)
-    x_raw = torch.cat([_unit(sun), (spot - reference)[:, 0:1], (spot - reference)[:, 2:3]], -1)
+    x_raw = torch.cat([unit_vector(sun), (spot - reference)[:, 0:1], (spot - reference)[:, 2:3]], -1)
     model = PretrainedModel(None, reference.tolist(), x_raw.mean(0).tolist(),
                             x_raw.std(0).clamp_min(1e-9).tolist(), steps.mean(0).tolist(),
                             steps.std(0).clamp_min(1e-9).tolist())

@@ -26,6 +26,8 @@ Agreement with autodiff is a test (``tests/test_jacobian.py``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from .parameters import PARAMETER_INDEX, HeliostatSpec, JOINT_AXES
@@ -33,13 +35,6 @@ from .kinematics import JOINT_SENSES, base_frame, rotation_chain, tilt_matrices,
 from .metrics import measured_normal
 
 __all__ = ["residual_and_jacobian", "forward_state"]
-
-_E = torch.eye(3, dtype=torch.float64)
-
-
-def _unit(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-
 
 def forward_state(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor):
     """Joint angles (N, 2), mirror normals (N, 3) and centres (N, 3): the forward pass that
@@ -71,12 +66,6 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     jacobian : (*S, N, 3, 28) [mrad per parameter unit], columns in PARAMETER_NAMES order.
     """
     params = params.detach()
-    batch = params.shape[:-1]
-    n_meas = steps.shape[-2]
-    kt = spec.kinematic_type
-    (ax1, _), (ax2, _) = JOINT_AXES[kt]
-    senses = JOINT_SENSES[kt]
-
     # joint angles and their derivatives w.r.t. the actuator parameters (closed form)
     angles, normal, position = state if state is not None else forward_state(params, spec, steps)
     dtheta = _actuator_derivatives(params, spec, steps)
@@ -84,91 +73,148 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     meas = measured_normal(sun, position, focal_spot)
     residual = 1000.0 * (normal - meas)
 
+    chain = _chain_frames(params, spec, angles)
+    dn, dp = _body_columns(params, chain, normal, position)
+    dn, dp = _joint_columns(dn, dp, chain, dtheta, normal, position)
+    jac = 1000.0 * (dn - _measured_normal_by_centre(sun, position, focal_spot, meas) @ dp)
+    return residual, jac
+
+
+#: Parameter indices of each body's (joint 1, joint 2, concentrator) translation e/n/u [m] and
+#: tilt e/n/u [rad].
+_TRANSLATION_INDEX = [[PARAMETER_INDEX[f"{b}_translation_{d}_m"] for d in "enu"]
+                      for b in ("joint_1", "joint_2", "concentrator")]
+_TILT_INDEX = [[PARAMETER_INDEX[f"{b}_tilt_{d}_rad"] for d in "enu"]
+               for b in ("joint_1", "joint_2", "concentrator")]
+
+
+@dataclass
+class _Chain:
+    """The chain's frames in world coordinates: ``a0`` the base frame, ``a1 = a0 Tilt1``,
+    ``a2 = a1 R1``, ``a3 = a2 Tilt2``, ``a4 = a3 R2`` (a0, a1: (*S, 3, 3); the others per
+    measurement (*S, N, 3, 3)); the pivots ``pos0`` (heliostat position), ``o1`` (joint 1 and
+    the joint-2 tilts, (*S, 3)), ``o2`` (joint 2, (*S, N, 3)); ``tilts`` (*S, 3 bodies, 3, 3)."""
+
+    spec: HeliostatSpec
+    batch: tuple                # the leading batch shape S
+    n_meas: int
+    tilts: torch.Tensor
+    a0: torch.Tensor
+    a1: torch.Tensor
+    a2: torch.Tensor
+    a3: torch.Tensor
+    a4: torch.Tensor
+    pos0: torch.Tensor
+    o1: torch.Tensor
+    o2: torch.Tensor
+
+    def per_measurement(self, v: torch.Tensor) -> torch.Tensor:
+        """(*S, 3) or (*S, N, 3) -> (*S, N, 3)."""
+        if v.dim() == len(self.batch) + 1:
+            v = v.unsqueeze(-2)
+        return v.expand(*self.batch, self.n_meas, 3)
+
+
+def _chain_frames(params: torch.Tensor, spec: HeliostatSpec, angles: torch.Tensor) -> _Chain:
+    batch = params.shape[:-1]
+    kt = spec.kinematic_type
+    (ax1, _), (ax2, _) = JOINT_AXES[kt]
     tilts = tilt_matrices(params)  # (*S, 3 bodies, 3, 3)
     tilt_1, tilt_2, _ = tilts.unbind(-3)
-    t_idx = [[PARAMETER_INDEX[f"{b}_translation_{d}_m"] for d in "enu"]
-             for b in ("joint_1", "joint_2", "concentrator")]
-    r_idx = [[PARAMETER_INDEX[f"{b}_tilt_{d}_rad"] for d in "enu"]
-             for b in ("joint_1", "joint_2", "concentrator")]
-    t1, t2 = params[..., t_idx[0]], params[..., t_idx[1]]  # (*S, 3)
-
+    t1, t2 = params[..., _TRANSLATION_INDEX[0]], params[..., _TRANSLATION_INDEX[1]]  # (*S, 3)
     frame = base_frame(spec)
     a0 = torch.eye(3, dtype=torch.float64) if frame is None else frame
     a1 = a0 @ tilt_1  # (*S, 3, 3), same for all measurements
-    phi = angles * senses  # (*S, N, 2)
+    phi = angles * JOINT_SENSES[kt]  # (*S, N, 2)
     r1 = _axis_rotation(ax1, phi[..., 0])  # (*S, N, 3, 3)
     r2 = _axis_rotation(ax2, phi[..., 1])
     a2 = a1.unsqueeze(-3) @ r1  # (*S, N, 3, 3)
     a3 = a2 @ tilt_2.unsqueeze(-3)
     a4 = a3 @ r2
-
     pos0 = spec.position_enu.expand(*batch, 3)
     o1 = pos0 + (a1 @ t1.unsqueeze(-1)).squeeze(-1)  # (*S, 3) pivot of joint 1 and of joint-2 tilts
     o2 = o1.unsqueeze(-2) + (a3 @ t2[..., None, :, None]).squeeze(-1)  # (*S, N, 3) pivot of joint 2
+    return _Chain(spec, batch, angles.shape[-2], tilts, a0, a1, a2, a3, a4, pos0, o1, o2)
 
-    def per_measurement(v: torch.Tensor) -> torch.Tensor:
-        """(*S, 3) or (*S, N, 3) -> (*S, N, 3)."""
-        if v.dim() == len(batch) + 1:
-            v = v.unsqueeze(-2)
-        return v.expand(*batch, n_meas, 3)
 
-    # every rotation parameter: (index, world axis, pivot or None); every translation: (index,
-    # world direction); evaluated together with one batched cross product
+def _tilt_axes(prefix: torch.Tensor, tilt: torch.Tensor, angle_e: torch.Tensor, batch: tuple):
+    """The world axes of Tilt(x) = R_e(x_e) R_n(x_n) R_u(x_u) after a prefix P: P e,
+    P R_e(x_e) n = P (0, cos x_e, sin x_e) and P Tilt u (R_u keeps u)."""
+    rolled_n = torch.stack([torch.zeros_like(angle_e), torch.cos(angle_e), torch.sin(angle_e)],
+                           dim=-1)  # (*S, 3)
+    per_row = prefix.dim() == len(batch) + 3  # prefix (*S, N, 3, 3)
+    if per_row:
+        rolled_n, tilt = rolled_n.unsqueeze(-2), tilt.unsqueeze(-3)
+    return (prefix[..., 0], (prefix @ rolled_n.unsqueeze(-1)).squeeze(-1),
+            (prefix @ tilt)[..., 2])
+
+
+def _body_columns(params: torch.Tensor, c: _Chain, normal: torch.Tensor,
+                  position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """d(normal)/d(parameters) and d(centre)/d(parameters), (*S, N, 3, 28) each, with the
+    columns of the bodies' tilts and translations filled (the joints' come later)."""
+    batch, n_meas = c.batch, c.n_meas
+    # every rotation parameter: (index, world axis, pivot or None), evaluated together with one
+    # batched cross product
     rot_idx, rot_axes, rot_pivots, rot_moves = [], [], [], []
 
     def rotation(idx: int, axis: torch.Tensor, pivot: torch.Tensor | None) -> None:
         rot_idx.append(idx)
-        rot_axes.append(per_measurement(axis))
-        rot_pivots.append(per_measurement(pivot if pivot is not None else pos0))
+        rot_axes.append(c.per_measurement(axis))
+        rot_pivots.append(c.per_measurement(pivot if pivot is not None else c.pos0))
         rot_moves.append(pivot is not None)
 
-    # Tilt(x) = R_e(x_e) R_n(x_n) R_u(x_u) after a prefix P: the three rotation axes in world
-    # coordinates are P e, P R_e(x_e) n = P (0, cos x_e, sin x_e) and P Tilt u (R_u keeps u)
-    def tilt_axes(prefix, tilt, angle_e):
-        rolled_n = torch.stack([torch.zeros_like(angle_e), torch.cos(angle_e), torch.sin(angle_e)],
-                               dim=-1)  # (*S, 3)
-        per_row = prefix.dim() == len(batch) + 3  # prefix (*S, N, 3, 3)
-        if per_row:
-            rolled_n, tilt = rolled_n.unsqueeze(-2), tilt.unsqueeze(-3)
-        return (prefix[..., 0], (prefix @ rolled_n.unsqueeze(-1)).squeeze(-1),
-                (prefix @ tilt)[..., 2])
-
+    tilt_1, tilt_2, tilt_c = c.tilts.unbind(-3)
     # joint-1 tilts: rotate everything about the heliostat position
-    for k, ax in enumerate(tilt_axes(a0, tilt_1, params[..., r_idx[0][0]])):
-        rotation(r_idx[0][k], ax, pos0)
+    for k, ax in enumerate(_tilt_axes(c.a0, tilt_1, params[..., _TILT_INDEX[0][0]], batch)):
+        rotation(_TILT_INDEX[0][k], ax, c.pos0)
     # joint-2 tilts: about o1, axes after joint 1's rotation
-    for k, ax in enumerate(tilt_axes(a2, tilt_2, params[..., r_idx[1][0]])):
-        rotation(r_idx[1][k], ax, o1)
+    for k, ax in enumerate(_tilt_axes(c.a2, tilt_2, params[..., _TILT_INDEX[1][0]], batch)):
+        rotation(_TILT_INDEX[1][k], ax, c.o1)
     # concentrator tilts: turn the mirror about its centre (normal only)
-    for k, ax in enumerate(tilt_axes(a4, tilts[..., 2, :, :], params[..., r_idx[2][0]])):
-        rotation(r_idx[2][k], ax, None)
+    for k, ax in enumerate(_tilt_axes(c.a4, tilt_c, params[..., _TILT_INDEX[2][0]], batch)):
+        rotation(_TILT_INDEX[2][k], ax, None)
     axes = torch.stack(rot_axes)  # (K, *S, N, 3)
     pivots = torch.stack(rot_pivots)
     moves = torch.tensor(rot_moves, dtype=torch.float64).view(-1, *([1] * (len(batch) + 2)))
     dn_rot = torch.linalg.cross(axes, normal.expand_as(axes), dim=-1)
     dp_rot = torch.linalg.cross(axes, position - pivots, dim=-1) * moves
     # translations: joint 1 (frame a1), joint 2 (frame a3), concentrator (frame a4)
-    trans_idx = t_idx[0] + t_idx[1] + t_idx[2]
-    dirs = torch.cat([a1.movedim(-1, 0).unsqueeze(-2).expand(3, *batch, n_meas, 3),
-                      a3.movedim(-1, 0), a4.movedim(-1, 0)])  # (9, *S, N, 3): column k of each frame
+    trans_idx = _TRANSLATION_INDEX[0] + _TRANSLATION_INDEX[1] + _TRANSLATION_INDEX[2]
+    dirs = torch.cat([c.a1.movedim(-1, 0).unsqueeze(-2).expand(3, *batch, n_meas, 3),
+                      c.a3.movedim(-1, 0), c.a4.movedim(-1, 0)])  # (9, *S, N, 3): column k of each frame
     dn = torch.zeros(*batch, n_meas, 3, 28, dtype=torch.float64)
     dp = torch.zeros(*batch, n_meas, 3, 28, dtype=torch.float64)
     dn[..., rot_idx] = dn_rot.movedim(0, -1)
     dp[..., rot_idx] = dp_rot.movedim(0, -1)
     dp[..., trans_idx] = dirs.movedim(0, -1)
-    # joints: through the actuator laws
-    w1 = per_measurement(a1[..., ax1])
-    w2 = a3[..., ax2]
+    return dn, dp
+
+
+def _joint_columns(dn: torch.Tensor, dp: torch.Tensor, c: _Chain, dtheta, normal: torch.Tensor,
+                   position: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``dn``, ``dp`` plus what every parameter moves through the joint angles (the actuator
+    laws' derivatives ``dtheta``)."""
+    kt = c.spec.kinematic_type
+    (ax1, _), (ax2, _) = JOINT_AXES[kt]
+    senses = JOINT_SENSES[kt]
+    w1 = c.per_measurement(c.a1[..., ax1])
+    w2 = c.a3[..., ax2]
     dn_dphi1 = torch.linalg.cross(w1, normal, dim=-1)
-    dp_dphi1 = torch.linalg.cross(w1, position - o1.unsqueeze(-2), dim=-1)
+    dp_dphi1 = torch.linalg.cross(w1, position - c.o1.unsqueeze(-2), dim=-1)
     dn_dphi2 = torch.linalg.cross(w2, normal, dim=-1)
-    dp_dphi2 = torch.linalg.cross(w2, position - o2, dim=-1)
+    dp_dphi2 = torch.linalg.cross(w2, position - c.o2, dim=-1)
     g1 = dtheta[0] * senses[0]  # (*S, N, 28) dphi1/dq
     g2 = dtheta[1] * senses[1]
     dn = dn + dn_dphi1.unsqueeze(-1) * g1.unsqueeze(-2) + dn_dphi2.unsqueeze(-1) * g2.unsqueeze(-2)
     dp = dp + dp_dphi1.unsqueeze(-1) * g1.unsqueeze(-2) + dp_dphi2.unsqueeze(-1) * g2.unsqueeze(-2)
+    return dn, dp
 
-    # measured normal's dependence on the mirror centre
+
+def _measured_normal_by_centre(sun: torch.Tensor, position: torch.Tensor,
+                               focal_spot: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
+    """d(measured normal)/d(mirror centre) (*S, N, 3, 3):
+    ``-(I - m m^T)(I - u u^T) / (|s + u| |f - P|)`` with ``u = unit(f - P)``."""
     v = focal_spot - position
     dist = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
     u = v / dist
@@ -177,9 +223,7 @@ def residual_and_jacobian(params: torch.Tensor, spec: HeliostatSpec, steps: torc
     eye = torch.eye(3, dtype=torch.float64)
     proj_u = eye - u.unsqueeze(-1) * u.unsqueeze(-2)
     proj_m = eye - meas.unsqueeze(-1) * meas.unsqueeze(-2)
-    dm_dp = -(proj_m @ proj_u) / (norm_su * dist).unsqueeze(-1)  # (*S, N, 3, 3)
-    jac = 1000.0 * (dn - dm_dp @ dp)
-    return residual, jac
+    return -(proj_m @ proj_u) / (norm_su * dist).unsqueeze(-1)
 
 
 def _actuator_derivatives(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor):

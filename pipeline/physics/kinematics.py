@@ -58,6 +58,7 @@ from ..errors import ParameterError
 from .actuators import (ideal_angle_to_steps, ideal_steps_to_angle, linear_angle_to_steps,
                         linear_steps_to_angle, real_tensor)
 from .parameters import JOINT_AXES, PARAMETER_NAMES, REFERENCE_NORMALS, HeliostatSpec
+from .vectors import unit_vector
 
 __all__ = [
     "ParameterComponents",
@@ -126,18 +127,13 @@ def _rotate_columns(m: torch.Tensor, axis: int, c: torch.Tensor, s: torch.Tensor
     return torch.stack(torch.broadcast_tensors(*rows), dim=-2)
 
 
-def _translations(params: torch.Tensor) -> torch.Tensor:
-    """Translations of joint_1, joint_2, concentrator as a view (..., body, e/n/u) [m].
+def _tilt_angles(params: torch.Tensor) -> torch.Tensor:
+    """Tilt angles of joint_1, joint_2, concentrator as a view (..., body, e/n/u) [rad].
 
     The parameter order (:data:`PARAMETER_NAMES`) keeps each body's translation and tilt in
     six consecutive slots, so the per-body blocks are strided *views* of ``params`` (no gather:
     gathers and their scatter backward dominate batched training).
     """
-    return params[..., :18].unflatten(-1, (3, 6))[..., :3]
-
-
-def _tilt_angles(params: torch.Tensor) -> torch.Tensor:
-    """Tilt angles of joint_1, joint_2, concentrator as a view (..., body, e/n/u) [rad]."""
     return params[..., :18].unflatten(-1, (3, 6))[..., 3:]
 
 
@@ -373,10 +369,6 @@ def orientation_matrices(params, spec: HeliostatSpec, steps) -> tuple[torch.Tens
     return rotation_chain(params, spec, angles, directions=torch.eye(3, dtype=torch.float64))
 
 
-def _unit(v):
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-
-
 def solve_angles(params, spec: HeliostatSpec, normal_enu, branch: int) -> torch.Tensor:
     """Closed-form joint angles (..., N, 2) that turn the reference normal onto ``normal_enu``.
 
@@ -452,7 +444,7 @@ def inverse_kinematics(params, spec: HeliostatSpec, sun_vector_enu, aim_point_en
     params = _check_params(params)
     with torch.no_grad():
         params = params.detach()
-        sun = _unit(torch.as_tensor(sun_vector_enu, dtype=torch.float64))
+        sun = unit_vector(torch.as_tensor(sun_vector_enu, dtype=torch.float64))
         aim = torch.as_tensor(aim_point_enu, dtype=torch.float64)
         sun, aim = torch.broadcast_tensors(sun, aim)
         low = torch.nan_to_num(spec.min_steps, nan=-math.inf)
@@ -469,7 +461,7 @@ def inverse_kinematics(params, spec: HeliostatSpec, sun_vector_enu, aim_point_en
             position = start
             angles = None
             for _ in range(max_iterations):
-                wanted = _unit(sun + _unit(aim - position))
+                wanted = unit_vector(sun + unit_vector(aim - position))
                 angles = solve_angles(params, spec, wanted, branch)
                 _, new_position = rotation_chain(params, spec, angles)
                 step = torch.linalg.vector_norm(new_position - position, dim=-1)

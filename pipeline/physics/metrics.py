@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from .actuators import real_tensor
+from .vectors import unit_vector
 
 __all__ = [
     "reflect",
@@ -55,10 +56,6 @@ def _numpy_friendly(func):
     return wrapper
 
 
-def _unit(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-
-
 def _unit_components(x, y, z):
     """Unit vector of (x, y, z) given as separate tensors (cheaper than (..., 3) reductions
     when the batch is large and the vectors are views of other stacks)."""
@@ -84,7 +81,7 @@ def reflect(incoming, normal):
     -------
     (..., 3) propagation direction of the reflected ray.
     """
-    n = _unit(normal)
+    n = unit_vector(normal)
     return incoming - 2.0 * _dot(incoming, n).unsqueeze(-1) * n
 
 
@@ -180,14 +177,14 @@ def spot_offset_m(sun_vector, predicted_normal, concentrator_position, focal_spo
     (horizontal_m, vertical_m, magnitude_m) : three (...) tensors [m]. Beams parallel to the
     plane or pointing away from it give inf/NaN or a hit behind the mirror (not clipped).
     """
-    nt = _unit(target_normal)
+    nt = unit_vector(target_normal)
     beam = reflect(-sun_vector, predicted_normal)
     distance = _dot(target_center - concentrator_position, nt) / _dot(beam, nt)
     hit = concentrator_position + distance.unsqueeze(-1) * beam
     diff = hit - focal_spot
     diff = diff - _dot(diff, nt).unsqueeze(-1) * nt
     up = torch.zeros_like(nt) + torch.tensor([0.0, 0.0, 1.0], dtype=nt.dtype)
-    horizontal_axis = _unit(torch.linalg.cross(nt, up, dim=-1))
+    horizontal_axis = unit_vector(torch.linalg.cross(nt, up, dim=-1))
     vertical_axis = torch.linalg.cross(horizontal_axis, nt, dim=-1)
     horizontal = _dot(diff, horizontal_axis)
     vertical = _dot(diff, vertical_axis)

@@ -16,6 +16,7 @@ import urllib.parse
 import numpy as np
 import pandas as pd
 
+from .forward import next_day_mean
 from ..vocabulary import DEFAULT_ALERT_MRAD
 from .inputs import ReportInputs
 from .site import model_label
@@ -66,7 +67,9 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
     and ``test_error_mrad`` (mean, of the model aim uses, from ``choices``),
     ``time_test_error_mrad`` (forward in time: the final model trained on the time split's
     training rows, mean on its test rows; NaN: n/a), ``n_measurements``,
-    ``n_test``, ``alerts`` (list of texts, empty when none), ``page`` (file name of its page).
+    ``n_test``, ``alerts`` (list of texts, empty when none), ``degenerate`` (its training data
+    cannot determine its model: :func:`field_summary` leaves it out of the field's figures),
+    ``page`` (file name of its page).
 
     Alerts: no model (fit-coarse has not run for it), no test rows, test error above
     ``alert_mrad``, degenerate training data, implausible corrections of the geometry, and
@@ -111,13 +114,16 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
                      "weight_decay": c["weight_decay"] if c else None,
                      "val_error_mrad": val, "test_error_mrad": test,
                      "time_test_error_mrad": _forward_test(h),
+                     "next_day_error_mrad": next_day_mean(h),
                      "n_measurements": int(h["n_measurements"]),
                      "n_test": int(h["split_counts"].get("test", 0)), "alerts": alerts,
+                     "degenerate": isinstance(why, str) and bool(why),
                      "page": heliostat_page_name(hid)})
     return pd.DataFrame(rows, columns=["heliostat_id", "e_m", "n_m", "model", "variant", "preset",
                                        "source", "weight_decay", "val_error_mrad",
                                        "test_error_mrad", "time_test_error_mrad",
-                                       "n_measurements", "n_test", "alerts", "page"])
+                                       "next_day_error_mrad",
+                                       "n_measurements", "n_test", "alerts", "degenerate", "page"])
 
 
 def _forward_test(h: dict) -> float:
@@ -128,12 +134,24 @@ def _forward_test(h: dict) -> float:
     return float("nan") if v is None else float(v)
 
 
+def _median_or_none(values: np.ndarray) -> float | None:
+    v = values[np.isfinite(values)]
+    return float(np.median(v)) if len(v) else None
+
+
 def field_summary(table: pd.DataFrame, *, alert_mrad: float = ALERT_MRAD) -> dict:
     """The field's numbers: heliostats, calibrated (with a model), coarse and hybrid counts,
     presets chosen, median and 95th percentile (numpy's linear) of the per-heliostat test error,
-    heliostats above ``alert_mrad`` and on alert."""
+    heliostats above ``alert_mrad`` and on alert.
+
+    A heliostat flagged degenerate (``degenerate``: its training rows cannot determine its model,
+    e.g. one measurement repeated, so its test error of ~0 says nothing) is counted in
+    ``n_degenerate`` and left out of the error figures (``n_with_test_error``, the median, the
+    95th percentile and ``n_above_alert``); it stays on alert."""
     err = table["test_error_mrad"].to_numpy(float)
-    ok = np.isfinite(err)
+    degenerate = (table["degenerate"].to_numpy(bool) if "degenerate" in table.columns
+                  else np.zeros(len(table), bool))
+    ok = np.isfinite(err) & ~degenerate
     return {
         "n_heliostats": int(len(table)),
         "n_calibrated": int(table["model"].notna().sum()),
@@ -143,8 +161,12 @@ def field_summary(table: pd.DataFrame, *, alert_mrad: float = ALERT_MRAD) -> dic
         "presets": {str(k): int(v) for k, v in table["preset"].dropna().value_counts()
                     .sort_index().items()},
         "n_with_test_error": int(ok.sum()),
+        "n_degenerate": int(degenerate.sum()),
         "median_test_error_mrad": float(np.median(err[ok])) if ok.any() else None,
         "p95_test_error_mrad": float(np.percentile(err[ok], 95)) if ok.any() else None,
+        "median_next_day_error_mrad": _median_or_none(
+            table["next_day_error_mrad"].to_numpy(float)[~degenerate]
+            if "next_day_error_mrad" in table.columns else np.array([])),
         "alert_mrad": float(alert_mrad),
         "n_above_alert": int((err[ok] > alert_mrad).sum()),
         "n_on_alert": int(table["alerts"].map(bool).sum()),

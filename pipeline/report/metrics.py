@@ -28,6 +28,7 @@ __all__ = [
     "SPLIT_ORDER",
     "error_statistics",
     "compute_metrics",
+    "degenerate_heliostats",
     "metrics_json",
 ]
 
@@ -200,7 +201,8 @@ def compute_metrics(inp: ReportInputs) -> dict:
     split_by = ({h: g for h, g in inp.split.groupby("heliostat_id", sort=False)}
                 if inp.split is not None else {})
     models_of = _model_statistics(inp.predictions) if inp.predictions is not None else {}
-    forward = _forward_in_time(inp, finals)
+    degenerate = degenerate_heliostats(inp)
+    forward = _forward_in_time(inp, finals, degenerate)
     for hid in hids:
         t = ts_by[hid]
         h: dict[str, Any] = {
@@ -241,7 +243,7 @@ def compute_metrics(inp: ReportInputs) -> dict:
         "inputs": {name: _committed_sha256(inp.workdir, name) for name in sorted(inp.paths)},
         "data": data,
         "heliostats": helios,
-        "field": {"forward_in_time": forward[1]},
+        "field": {"forward_in_time": forward[1], "degenerate_heliostats": sorted(degenerate)},
     }
 
 
@@ -257,12 +259,25 @@ def _empty_forward(final: dict) -> dict:
                       "knn_test": none, "time_test": none} for role in FORWARD_ROLES}}
 
 
-def _forward_in_time(inp: ReportInputs, finals: dict) -> tuple[dict, dict]:
+def degenerate_heliostats(inp: ReportInputs) -> set[str]:
+    """The heliostats whose training rows cannot determine their model (coarse_params.parquet's
+    ``fit_degenerate`` is set, e.g. one measurement repeated): their errors say nothing about
+    accuracy, so the field's pooled figures leave them out."""
+    cp = inp.coarse_params
+    if cp is None or "fit_degenerate" not in cp.columns:
+        return set()
+    why = cp.groupby(cp["heliostat_id"].astype(str), sort=False)["fit_degenerate"].first()
+    return {h for h, w in why.items() if isinstance(w, str) and w}
+
+
+def _forward_in_time(inp: ReportInputs, finals: dict,
+                     degenerate: set[str] = frozenset()) -> tuple[dict, dict]:
     """Per heliostat and pooled over the field: the kNN test error (``error_mrad`` on the split's
     test rows) and the forward-in-time test error (``time_error_mrad``: the same model trained
     on the time split's training rows, on the time split's test rows) of the selected coarse
     preset and of the final model. A heliostat without time split has empty ``time_test``
-    statistics (n = 0): "n/a"."""
+    statistics (n = 0): "n/a". The pooled figures leave out the ``degenerate`` heliostats (they
+    keep their own)."""
     p, split = inp.predictions, inp.split
     per: dict[str, dict] = {}
     pooled = {role: {"knn_test": [], "time_test": []} for role in FORWARD_ROLES}
@@ -296,15 +311,47 @@ def _forward_in_time(inp: ReportInputs, finals: dict) -> tuple[dict, dict]:
             k_idx, t_idx = idx[knn[idx]], idx[tt[idx]]
             entry[role]["knn_test"] = _statistics(err[k_idx], None, None)
             entry[role]["time_test"] = _statistics(terr[t_idx], None, None)
+            if hid in degenerate:
+                continue
             pooled[role]["knn_test"].append(err[k_idx])
             pooled[role]["time_test"].append(terr[t_idx])
-    field = {"n_heliostats_time_split": sum(1 for e in per.values()
-                                            if e["final"]["time_test"]["n_finite"]
-                                            or e["coarse"]["time_test"]["n_finite"])}
+    field = {"n_heliostats_time_split": sum(1 for h, e in per.items() if h not in degenerate
+                                            and (e["final"]["time_test"]["n_finite"]
+                                                 or e["coarse"]["time_test"]["n_finite"]))}
     for role in FORWARD_ROLES:
         field[role] = {k: _statistics(np.concatenate(v) if v else np.array([]), None, None)
                        for k, v in pooled[role].items()}
+    _next_day(inp, finals, per, field, degenerate)
     return per, field
+
+
+def _next_day(inp: ReportInputs, finals: dict, per: dict, field: dict,
+              degenerate: set[str]) -> None:
+    """Each heliostat's ``next_day`` (the rolling-origin evaluation's errors of fit-coarse's
+    selected preset: statistics, origins, median days since the fit's last row) and the field's
+    pooled over the heliostats that are not ``degenerate`` (in place)."""
+    r = inp.rolling
+    empty = {**_statistics(np.array([]), None, None), "origins": 0,
+             "median_days_since_last_row": None}
+    pooled = []
+    groups = dict(tuple(r.groupby(r["heliostat_id"].astype(str), sort=True))) if (
+        r is not None and len(r)) else {}
+    for hid in set(per) | set(finals):
+        entry = per.setdefault(hid, _empty_forward(finals.get(hid, {})))
+        g = groups.get(hid)
+        if g is None:
+            entry["next_day"] = dict(empty)
+            continue
+        err = g["error_mrad"].to_numpy(float)
+        entry["next_day"] = {**_statistics(err, None, None),
+                             "origins": int(g["origin_date"].nunique()),
+                             "median_days_since_last_row": _r(
+                                 np.median(g["days_since_last_row"].to_numpy(float)))}
+        if hid not in degenerate:
+            pooled.append(err)
+    field["next_day"] = {**_statistics(np.concatenate(pooled) if pooled else np.array([]),
+                                       None, None),
+                         "n_heliostats": len(pooled)}
 
 
 def _model_statistics(p: pd.DataFrame) -> dict:

@@ -9,15 +9,16 @@ import html
 import math
 import re
 import urllib.parse
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 
 from ..artifacts.schemas import REJECTION_REASONS
+from ..vocabulary import STD_ERROR_PSEUDO_INVERSE
 from .inputs import ReportInputs
 from .metrics import final_models, split_sort_key
-from .render import FigureTask, ReportFigure, heliostat_figure_plan
+from .render import (FigureTask, ReportFigure, heliostat_figure_plan, sweep_choices,
+                     sweep_weight_decays)
 
 __all__ = [
     "build_report",
@@ -101,21 +102,30 @@ def parameter_tables(coarse_params) -> dict[str, list[list]]:
 def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
     """The report as blocks: ``("h1"|"h2"|"h3"|"p"|"note", text)``, ``("table", headers, rows)``
     and ``("task", FigureTask)`` (figures still to draw: :func:`figure_tasks` lists them,
-    :func:`resolve_figures` puts the drawn figures in their place)."""
-    blocks: list[tuple] = []
-    wd = inp.workdir
+    :func:`resolve_figures` puts the drawn figures in their place). A note about one heliostat
+    carries its id third (its page shows it too)."""
     data = metrics["data"]
     helios = metrics["heliostats"]
-    finals = final_models(inp)
-    blocks.append(("h1", f"heliocal report: {wd}"))
+    blocks: list[tuple] = [("h1", f"heliocal report: {inp.workdir}")]
     blocks.append(("p", f"heliocal {metrics['heliocal_version']}, git {metrics['git_revision']}. "
                         f"Artifacts: {', '.join(data['artifacts'])}. Errors are angles between "
                         "predicted and measured mirror normal in mrad (error_mrad); the "
                         "numbers are also in metrics.json."))
     for note in inp.notes:
         blocks.append(("note", note))
+    blocks += _data_blocks(inp, data, helios)
+    blocks += _accuracy_blocks(inp, helios)
+    if any(h["selection"]["model"] for h in helios.values()):
+        blocks += _selection_blocks(inp, helios)
+    blocks += _parameter_blocks(inp)
+    blocks.append(("h2", "Figures"))
+    blocks += heliostat_figure_plan(inp, metrics, final_models(inp))
+    return blocks
 
-    # --- data summary
+
+def _data_blocks(inp: ReportInputs, data: dict, helios: dict) -> list[tuple]:
+    """The data summary: measurements, split counts per heliostat, rejected rows."""
+    blocks: list[tuple] = []
     blocks.append(("h2", "Data"))
     blocks.append(("p", f"{data['n_measurements']} measurements of {data['n_heliostats']} "
                         f"heliostats from {data['first_timestamp'] or '?'} to "
@@ -141,8 +151,12 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                         for k, v in data["rejected_by_reason"].items()]))
     else:
         blocks.append(("p", "No input rows were rejected."))
+    return blocks
 
-    # --- accuracy tables
+
+def _accuracy_blocks(inp: ReportInputs, helios: dict) -> list[tuple]:
+    """Per heliostat, model and split: the error statistics; degenerate training data noted."""
+    blocks: list[tuple] = []
     blocks.append(("h2", "Accuracy"))
     degenerate = _degenerate(inp)
     for hid, why in degenerate.items():
@@ -169,50 +183,47 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
                                  fmt(st["median_error_mrad"]), fmt(st["p95_error_mrad"]),
                                  fmt(st["mean_beam_error_mrad"]), fmt(st["mean_spot_offset_m"])])
         blocks.append(("table", headers, rows))
+    return blocks
 
-    # --- selection
-    if any(h["selection"]["model"] for h in helios.values()):
-        blocks.append(("h3", "Selection"))
-        headers = ["heliostat", "coarse preset", "final model", "weight decay",
-                   "validation [mrad]", "test [mrad]", "coarse validation [mrad]",
-                   "coarse test [mrad]", "test forward in time [mrad]",
-                   "coarse test forward in time [mrad]"]
-        rows = []
-        # the sweep's choice (hybrid, hybrid-octaves or coarse) behind the "selected" rows
-        choice = {}
-        if inp.selection is not None and {"heliostat_id", "model"} <= set(inp.selection.columns):
-            choice = dict(zip(inp.selection["heliostat_id"].astype(str),
-                              inp.selection["model"].astype(str)))
-        # the selected weight decay unrounded (metrics.json keeps 4 decimals: 1e-5 would show 0)
-        wd_of = {}
-        if inp.selection is not None and "weight_decay" in inp.selection.columns:
-            wd_of = dict(zip(inp.selection["heliostat_id"].astype(str),
-                             inp.selection["weight_decay"].astype(float)))
-        for hid, h in helios.items():
-            s = dict(h["selection"])
-            model = h["models"].get(s["model"] or "", {}).get("splits", {})
-            coarse = h["models"].get(s["coarse_preset"] or "", {}).get("splits", {})
-            pick = lambda key, splits, sp: s[key] if s[key] is not None else (
-                splits.get(sp, {}).get("mean_error_mrad"))
-            shown = s["model"] or "–"
-            if shown == "selected" and hid in choice:
-                shown = f"selected ({choice[hid]})"
-            rows.append([hid, s["coarse_preset"] or "–", shown,
-                         fmt_g(wd_of.get(hid, s["weight_decay"])),
-                         fmt(pick("val_error_mrad", model, "validation")),
-                         fmt(pick("test_error_mrad", model, "test")),
-                         fmt(pick("coarse_val_error_mrad", coarse, "validation")),
-                         fmt(pick("coarse_test_error_mrad", coarse, "test")),
-                         *(_forward_cell(h, role) for role in ("final", "coarse"))])
-        blocks.append(("table", headers, rows))
-        blocks.append(("p", "Test: the split that selects (split.parquet `split`, kNN by "
-                            "default). Forward in time: the same model trained again on the "
-                            "time split's training rows only, its mean error on the time "
-                            "split's test rows (the latest measurements); n/a: the heliostat "
-                            "has no time split (too few timestamps), or its selected hybrid "
-                            "was not trained again (`heliocal sweep --time-split`)."))
 
-    # --- coarse parameters
+def _selection_blocks(inp: ReportInputs, helios: dict) -> list[tuple]:
+    """The sweep's (or fit-coarse's) final model per heliostat and its errors."""
+    blocks: list[tuple] = [("h3", "Selection")]
+    headers = ["heliostat", "coarse preset", "final model", "weight decay",
+               "validation [mrad]", "test [mrad]", "coarse validation [mrad]",
+               "coarse test [mrad]", "test forward in time [mrad]",
+               "coarse test forward in time [mrad]"]
+    rows = []
+    choice, wd_of = sweep_choices(inp), sweep_weight_decays(inp)
+    for hid, h in helios.items():
+        s = dict(h["selection"])
+        model = h["models"].get(s["model"] or "", {}).get("splits", {})
+        coarse = h["models"].get(s["coarse_preset"] or "", {}).get("splits", {})
+        pick = lambda key, splits, sp: s[key] if s[key] is not None else (
+            splits.get(sp, {}).get("mean_error_mrad"))
+        shown = s["model"] or "–"
+        if shown == "selected" and hid in choice:
+            shown = f"selected ({choice[hid]})"
+        rows.append([hid, s["coarse_preset"] or "–", shown,
+                     fmt_g(wd_of.get(hid, s["weight_decay"])),
+                     fmt(pick("val_error_mrad", model, "validation")),
+                     fmt(pick("test_error_mrad", model, "test")),
+                     fmt(pick("coarse_val_error_mrad", coarse, "validation")),
+                     fmt(pick("coarse_test_error_mrad", coarse, "test")),
+                     *(_forward_cell(h, role) for role in ("final", "coarse"))])
+    blocks.append(("table", headers, rows))
+    blocks.append(("p", "Test: the split that selects (split.parquet `split`, kNN by "
+                        "default). Forward in time: the same model trained again on the "
+                        "time split's training rows only, its mean error on the time "
+                        "split's test rows (the latest measurements); n/a: the heliostat "
+                        "has no time split (too few timestamps), or its selected hybrid "
+                        "was not trained again (`heliocal sweep --time-split`)."))
+    return blocks
+
+
+def _parameter_blocks(inp: ReportInputs) -> list[tuple]:
+    """The selected coarse fit's parameters per heliostat, with its diagnostics and warnings."""
+    blocks: list[tuple] = []
     blocks.append(("h2", "Coarse parameters"))
     cp = inp.coarse_params
     if cp is None:
@@ -236,12 +247,11 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
             if str(first.get("fit_implausible") or ""):
                 blocks.append(("note", f"Large corrections of the nominal geometry: "
                                        f"{first['fit_implausible']}."))
+            if STD_ERROR_PSEUDO_INVERSE in str(first.get("fit_status") or ""):
+                blocks.append(("note", f"{hid}: {STD_ERROR_PSEUDO_INVERSE} (the data and the "
+                                       "prior leave a direction of the parameters free).", hid))
             blocks.append(("table", ["parameter", "unit", "nominal", "fitted", "std error",
                                      "determined"], tables.get(hid, [])))
-
-    # --- figures
-    blocks.append(("h2", "Figures"))
-    blocks += heliostat_figure_plan(inp, metrics, finals)
     return blocks
 
 

@@ -25,6 +25,8 @@ __all__ = [
     "by_heliostat",
     "heliostat_figure_plan",
     "render_task",
+    "sweep_choices",
+    "sweep_weight_decays",
 ]
 
 
@@ -97,108 +99,155 @@ def by_heliostat(df: pd.DataFrame | None) -> dict[str, pd.DataFrame]:
     return {str(h): g for h, g in df.groupby(df["heliostat_id"].astype(str), sort=False)}
 
 
+def sweep_choices(inp: ReportInputs) -> dict[str, str]:
+    """The sweep's choice per heliostat behind the predictions of model "selected" (hybrid,
+    hybrid-octaves, coarse, ...; selection.parquet ``model``)."""
+    sel = inp.selection
+    if sel is None or not {"heliostat_id", "model"} <= set(sel.columns):
+        return {}
+    return dict(zip(sel["heliostat_id"].astype(str), sel["model"].astype(str)))
+
+
+def sweep_weight_decays(inp: ReportInputs) -> dict[str, float]:
+    """The selected weight decay per heliostat as the sweep wrote it (metrics.json rounds to 4
+    decimals: 1e-5 would show 0)."""
+    sel = inp.selection
+    if sel is None or not {"heliostat_id", "weight_decay"} <= set(sel.columns):
+        return {}
+    return dict(zip(sel["heliostat_id"].astype(str), sel["weight_decay"].astype(float)))
+
+
+@dataclass
+class _Plan:
+    """What the per-heliostat figure plans share: the inputs grouped by heliostat."""
+
+    inp: ReportInputs
+    helios: dict                # metrics.json's heliostats
+    meas: dict                  # heliostat -> its measurements
+    split: dict                 # heliostat -> its split.parquet rows
+    preds: dict                 # heliostat -> its predictions
+    sweep: dict                 # heliostat -> its sweep.parquet rows
+    choice: dict                # heliostat -> the sweep's choice (sweep_choices)
+
+    @property
+    def hids(self) -> list[str]:
+        return list(self.helios)
+
+    @property
+    def empty_sweep(self):
+        return self.inp.sweep.iloc[:0] if self.inp.sweep is not None else None
+
+    @property
+    def sweep_hint(self) -> str:
+        return self.inp.run_hint("sweep.parquet")
+
+    def label(self, hid: str, model: str | None) -> str | None:
+        """How a caption names ``model`` of ``hid`` (the selected model with the sweep's choice)."""
+        if model == "selected" and hid in self.choice:
+            return f"the selected model ({self.choice[hid]})"
+        return model
+
+
 def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> list[tuple]:
     """The per-heliostat figures (paper 000 figs. 6, 7, 9a, error over time) and fig. 8, in the
     order of the report, as blocks: ``("h3", text)``, ``("note", text)``, ``("hnote", text,
     heliostat)`` (a note for that heliostat's page only) and ``("task", FigureTask)`` (a task
     whose figure cannot be drawn becomes a note naming why)."""
-    out: list[tuple] = []
-    helios = metrics["heliostats"]
-    hids = list(helios)
-    meas = by_heliostat(inp.measurements)
-    split = by_heliostat(inp.split)
-    preds = by_heliostat(inp.predictions)
-    sweep = by_heliostat(inp.sweep)
-    empty_sweep = inp.sweep.iloc[:0] if inp.sweep is not None else None
-    sweep_hint = inp.run_hint("sweep.parquet")
-    # the sweep's choice behind the predictions of model "selected" (hybrid, hybrid-octaves, coarse)
-    choice = {}
-    if inp.selection is not None and {"heliostat_id", "model"} <= set(inp.selection.columns):
-        choice = dict(zip(inp.selection["heliostat_id"].astype(str),
-                          inp.selection["model"].astype(str)))
+    plan = _Plan(inp, metrics["heliostats"], by_heliostat(inp.measurements),
+                 by_heliostat(inp.split), by_heliostat(inp.predictions), by_heliostat(inp.sweep),
+                 sweep_choices(inp))
+    return (_training_size_plan(plan) + _sky_map_plan(plan, finals) + _weight_decay_plan(plan)
+            + _hybrid_vs_coarse_plan(plan) + _regime_plan(inp, plan.hids, plan.meas, plan.preds)
+            + _error_over_time_plan(plan, finals))
 
-    # the selected weight decay as the sweep wrote it (metrics.json rounds to 4 decimals: 1e-5 -> 0)
-    chosen_wd = {}
-    if inp.selection is not None and {"heliostat_id", "weight_decay"} <= set(inp.selection.columns):
-        chosen_wd = dict(zip(inp.selection["heliostat_id"].astype(str),
-                             inp.selection["weight_decay"].astype(float)))
 
-    def label(hid: str, model: str | None) -> str | None:
-        if model == "selected" and hid in choice:
-            return f"the selected model ({choice[hid]})"
-        return model
+def _training_size_plan(plan: _Plan) -> list[tuple]:
+    """Paper 000 fig. 6 per heliostat of the sweep's training-size study."""
+    out: list[tuple] = [("h3", "Error against training size (paper 000, fig. 6)")]
+    if plan.inp.sweep is None:
+        return out + [("note", f"Omitted: needs sweep.parquet; run {plan.sweep_hint}.")]
+    outside = []
+    for hid in plan.hids:
+        sel = plan.helios[hid]["selection"]
+        coarse = plan.helios[hid]["models"].get(sel["coarse_preset"] or "")
+        level = coarse["splits"].get("test", {}).get("mean_error_mrad") if coarse else None
+        g = plan.sweep.get(hid)
+        if g is not None and "n_train" in g.columns and g["n_train"].nunique() < 2:
+            # not in the training-size study: said once below, and on its own page
+            outside.append(hid)
+            out.append(("hnote", f"{hid} is not in the sweep's training-size study "
+                                 "(`heliocal sweep --study N` samples N heliostats): no "
+                                 "training-size figure.", hid))
+            continue
+        out.append(("task", FigureTask(
+            "training_size", f"training_size_{hid}.png",
+            f"{hid}: mean test error against the number of training measurements per model "
+            "(weight decay chosen on validation; band: spread over seeds). Below: mean "
+            "distance in sun position from the test set to the training set.", hid,
+            {"sweep": plan.sweep.get(hid, plan.empty_sweep), "level": level,
+             "label": f"coarse {sel['coarse_preset']}"})))
+    if outside:
+        out.append(("note", f"{len(outside)} of {len(plan.hids)} heliostats are not in the "
+                            "sweep's training-size study (`heliocal sweep --study N` samples "
+                            "N heliostats): no training-size figure for them."))
+    return out
 
-    out.append(("h3", "Error against training size (paper 000, fig. 6)"))
-    if inp.sweep is None:
-        out.append(("note", f"Omitted: needs sweep.parquet; run {sweep_hint}."))
-    else:
-        outside = []
-        for hid in hids:
-            sel = helios[hid]["selection"]
-            coarse = helios[hid]["models"].get(sel["coarse_preset"] or "")
-            level = coarse["splits"].get("test", {}).get("mean_error_mrad") if coarse else None
-            g = sweep.get(hid)
-            if g is not None and "n_train" in g.columns and g["n_train"].nunique() < 2:
-                # not in the training-size study: said once below, and on its own page
-                outside.append(hid)
-                out.append(("hnote", f"{hid} is not in the sweep's training-size study "
-                                     "(`heliocal sweep --study N` samples N heliostats): no "
-                                     "training-size figure.", hid))
-                continue
-            out.append(("task", FigureTask(
-                "training_size", f"training_size_{hid}.png",
-                f"{hid}: mean test error against the number of training measurements per model "
-                "(weight decay chosen on validation; band: spread over seeds). Below: mean "
-                "distance in sun position from the test set to the training set.", hid,
-                {"sweep": sweep.get(hid, empty_sweep), "level": level,
-                 "label": f"coarse {sel['coarse_preset']}"})))
-        if outside:
-            out.append(("note", f"{len(outside)} of {len(hids)} heliostats are not in the "
-                                "sweep's training-size study (`heliocal sweep --study N` samples "
-                                "N heliostats): no training-size figure for them."))
 
-    out.append(("h3", "Sky map (paper 000, fig. 7)"))
-    for hid in hids:
+def _sky_map_plan(plan: _Plan, finals: dict) -> list[tuple]:
+    """Paper 000 fig. 7 per heliostat: its measurements on the sky, errors as circles."""
+    out: list[tuple] = [("h3", "Sky map (paper 000, fig. 7)")]
+    for hid in plan.hids:
         model = finals.get(hid, {}).get("model")
         cap = (f"{hid}: measurements over sun azimuth and elevation; dots are training points. "
                f"Validation and test points are circles whose radius grows linearly with the "
-               f"error of {label(hid, model)} ({SKY_POINTS_PER_MRAD:g} pt per mrad); the grey "
-               "ring is 1 mrad.")
+               f"error of {plan.label(hid, model)} ({SKY_POINTS_PER_MRAD:g} pt per mrad); the "
+               "grey ring is 1 mrad.")
         if model is None:
             cap = f"{hid}: measurements over sun azimuth and elevation (no predictions yet)."
         out.append(("task", FigureTask(
             "sky_map", f"sky_map_{hid}.png", cap, hid,
-            {"measurements": meas[hid], "split": split.get(hid), "predictions": preds.get(hid),
-             "model": model, "label": label(hid, model)})))
+            {"measurements": plan.meas[hid], "split": plan.split.get(hid),
+             "predictions": plan.preds.get(hid), "model": model,
+             "label": plan.label(hid, model)})))
+    return out
 
-    out.append(("h3", "Error against weight decay (paper 000, fig. 9a)"))
-    if inp.sweep is None:
-        out.append(("note", f"Omitted: needs sweep.parquet; run {sweep_hint}."))
-    else:
-        for hid in hids:
-            h = helios[hid]
-            sel = h["selection"]
-            coarse = h["models"].get(sel["coarse_preset"] or "", {}).get("splits", {})
-            cval, ctest = sel["coarse_val_error_mrad"], sel["coarse_test_error_mrad"]
-            cval = cval if cval is not None else coarse.get("validation", {}).get("mean_error_mrad")
-            ctest = ctest if ctest is not None else coarse.get("test", {}).get("mean_error_mrad")
-            out.append(("task", FigureTask(
-                "weight_decay", f"weight_decay_{hid}.png",
-                f"{hid}: mean validation and test error against weight decay at the largest "
-                "training size (band: spread over seeds); dashed lines: the selected coarse "
-                "model's validation and test error; dotted: the selected weight decay.", hid,
-                {"sweep": sweep.get(hid, empty_sweep),
-                 "model": choice.get(hid, sel["model"]) if sel["model"] == "selected"
-                 else sel["model"], "cval": cval,
-                 "ctest": ctest, "weight_decay": chosen_wd.get(hid, sel["weight_decay"])})))
 
+def _weight_decay_plan(plan: _Plan) -> list[tuple]:
+    """Paper 000 fig. 9a per heliostat: errors against weight decay at the full size."""
+    out: list[tuple] = [("h3", "Error against weight decay (paper 000, fig. 9a)")]
+    if plan.inp.sweep is None:
+        return out + [("note", f"Omitted: needs sweep.parquet; run {plan.sweep_hint}.")]
+    chosen_wd = sweep_weight_decays(plan.inp)
+    for hid in plan.hids:
+        h = plan.helios[hid]
+        sel = h["selection"]
+        coarse = h["models"].get(sel["coarse_preset"] or "", {}).get("splits", {})
+        cval, ctest = sel["coarse_val_error_mrad"], sel["coarse_test_error_mrad"]
+        cval = cval if cval is not None else coarse.get("validation", {}).get("mean_error_mrad")
+        ctest = ctest if ctest is not None else coarse.get("test", {}).get("mean_error_mrad")
+        out.append(("task", FigureTask(
+            "weight_decay", f"weight_decay_{hid}.png",
+            f"{hid}: mean validation and test error against weight decay at the largest "
+            "training size (band: spread over seeds); dashed lines: the selected coarse "
+            "model's validation and test error; dotted: the selected weight decay.", hid,
+            {"sweep": plan.sweep.get(hid, plan.empty_sweep),
+             "model": plan.choice.get(hid, sel["model"]) if sel["model"] == "selected"
+             else sel["model"], "cval": cval,
+             "ctest": ctest, "weight_decay": chosen_wd.get(hid, sel["weight_decay"])})))
+    return out
+
+
+def _hybrid_vs_coarse_plan(plan: _Plan) -> list[tuple]:
+    """Paper 000 fig. 8: the selected hybrid against the selected coarse preset, per heliostat
+    (a field page scatter plot instead beyond a few dozen heliostats)."""
     from .figures import hybrid_vs_coarse_table
 
-    out.append(("h3", "Hybrid against coarse (paper 000, fig. 8)"))
-    table = hybrid_vs_coarse_table(inp)
+    out: list[tuple] = [("h3", "Hybrid against coarse (paper 000, fig. 8)")]
+    table = hybrid_vs_coarse_table(plan.inp)
     if table is None:
         out.append(("note", "Omitted: needs selection.parquet or hybrid_predictions.parquet; run "
-                            f"{inp.run_hint('hybrid_predictions.parquet')} and {sweep_hint}."))
+                            f"{plan.inp.run_hint('hybrid_predictions.parquet')} and "
+                            f"{plan.sweep_hint}."))
     elif len(table) > 40:
         out.append(("note", f"Per-heliostat bars omitted for {len(table)} heliostats (unreadable "
                             "beyond a few dozen): the field page shows hybrid against coarse "
@@ -208,25 +257,26 @@ def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> lis
             "hybrid_vs_coarse", "hybrid_vs_coarse.png",
             "Mean validation and test error of the selected hybrid model and the selected coarse "
             "preset per heliostat.", None, {"table": table})))
+    return out
 
-    out += _regime_plan(inp, hids, meas, preds)
 
-    out.append(("h3", "Error over time"))
-    if inp.predictions is None:
-        out.append(("note", "Omitted: needs predictions; run "
-                            f"{inp.run_hint('coarse_predictions.parquet')}."))
-    else:
-        for hid in hids:
-            f = finals.get(hid, {})
-            if f.get("model") is None or hid not in preds:
-                continue
-            out.append(("task", FigureTask(
-                "error_over_time", f"error_over_time_{hid}.png",
-                f"{hid}: error of {label(hid, f['model'])} per measurement over the date, "
-                "coloured by split, with a centred 30-day rolling median (drift and seasonal "
-                "patterns).", hid,
-                {"measurements": meas[hid], "predictions": preds[hid], "model": f["model"],
-                 "coarse": f.get("coarse_preset"), "label": label(hid, f["model"])})))
+def _error_over_time_plan(plan: _Plan, finals: dict) -> list[tuple]:
+    """Each heliostat's final model's error per measurement over the date."""
+    out: list[tuple] = [("h3", "Error over time")]
+    if plan.inp.predictions is None:
+        return out + [("note", "Omitted: needs predictions; run "
+                               f"{plan.inp.run_hint('coarse_predictions.parquet')}.")]
+    for hid in plan.hids:
+        f = finals.get(hid, {})
+        if f.get("model") is None or hid not in plan.preds:
+            continue
+        out.append(("task", FigureTask(
+            "error_over_time", f"error_over_time_{hid}.png",
+            f"{hid}: error of {plan.label(hid, f['model'])} per measurement over the date, "
+            "coloured by split, with a centred 30-day rolling median (drift and seasonal "
+            "patterns).", hid,
+            {"measurements": plan.meas[hid], "predictions": plan.preds[hid], "model": f["model"],
+             "coarse": f.get("coarse_preset"), "label": plan.label(hid, f["model"])})))
     return out
 
 

@@ -43,7 +43,7 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Sequence
 
-from ..errors import ParameterError, check_choice, check_int
+from ..errors import ClusterError, ParameterError, check_choice, check_int
 from .process_state import one_thread
 from ..vocabulary import Scheduler
 
@@ -203,8 +203,9 @@ def warm_up(modules: Sequence[str], *, workers: int | None = None, scheduler: st
             dask_address: str | None = None) -> None:
     """Start the local workers' fork server now and import ``modules`` there while the caller
     reads its inputs: the workers that :func:`map_tasks` forks from it later start with them
-    imported instead of each importing them on its first task (torch and heliocal cost about a
-    second of CPU per worker, ``ruptures`` with scipy.stats 0.7 s). A stage calls this first.
+    imported instead of each importing them on its first task, which costs every worker its own
+    CPU time for the heavy imports (torch, heliocal, ``ruptures`` with scipy.stats; measured in
+    docs/experiments/regimes-cost.md). A stage calls this first.
     Nothing happens for one worker, a Dask run, without the forkserver start method, or when the
     server already runs (its modules are those of its first start)."""
     import multiprocessing as mp
@@ -299,9 +300,9 @@ def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
 def _loads(data: bytes):
     """``pickle.loads`` of a chunk's results with the collector paused: they are many new
     container objects (row dicts, frames) without cycles, and the collections their allocation
-    triggers would walk the caller's whole heap again and again (fit-coarse's 180 MB of results
-    at 2,000 heliostats: 1.33 s to unpickle beside a loaded heap, 0.42 s paused; the stage's own
-    CPU during its map_tasks 2.27 -> 1.84 s)."""
+    triggers would walk the caller's whole heap again and again, on the core the workers need
+    (the measurements: docs/experiments/regimes-cost.md, "The stage's process unpickles results
+    with the collector paused")."""
     enabled = gc.isenabled()
     gc.disable()
     try:
@@ -330,26 +331,80 @@ def _stop_pool(pool: ProcessPoolExecutor, grace_seconds: float = 2.0) -> None:
                 p.join(1.0)
 
 
+#: How long a stage waits for a Dask scheduler to answer before it stops [s]: a scheduler that
+#: is up answers within a second; an address where none listens should fail at once.
+DASK_CONNECT_TIMEOUT_S = 5.0
+
+
+def _checked_dask_address(address: str) -> str:
+    """``address`` if it reads as a Dask scheduler address (``tcp://HOST:PORT``, ``HOST:PORT``,
+    ``tls://...``, ``inproc://...``), else :class:`ParameterError`."""
+    from distributed.comm import parse_address, parse_host_port
+
+    why = None
+    try:
+        scheme, location = parse_address(address)
+        if scheme in ("tcp", "tls"):
+            host, port = parse_host_port(location)
+            if not host or not 0 < int(port) < 65536:
+                why = f"port {port} is not in 1..65535" if host else "no host"
+    except (ValueError, TypeError) as exc:
+        why = " ".join(str(exc).split())
+    if why is not None:
+        raise ParameterError(f"--dask-address must be a Dask scheduler address such as "
+                             f"tcp://HOST:8786. Got {address!r} instead ({why}).")
+    return address
+
+
+def _connect(address: str, cluster):
+    """A Dask client of the scheduler at ``address``; a scheduler that does not answer within
+    :data:`DASK_CONNECT_TIMEOUT_S` is a :class:`ClusterError` that says so."""
+    from distributed import Client
+
+    try:
+        return Client(address, timeout=f"{DASK_CONNECT_TIMEOUT_S:g}s")
+    except (OSError, TimeoutError) as exc:
+        if cluster is not None:
+            raise  # our own local cluster: not the user's address to check
+        why = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise ClusterError(f"could not reach a Dask scheduler at {address} within "
+                           f"{DASK_CONNECT_TIMEOUT_S:g} s ({why}); start one there (`dask "
+                           "scheduler`) or check --dask-address") from None
+
+
+def _start_local_cluster(workers: int):
+    """A :class:`distributed.LocalCluster` of ``workers`` single-threaded processes. Interrupted
+    (or failed) while it starts, its worker processes exist without a cluster object to close
+    them: the processes it started, and only those, are killed before the exception goes on."""
+    import multiprocessing as mp
+
+    from distributed import LocalCluster
+
+    before = set(mp.active_children())
+    try:
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                            dashboard_address=None, host="127.0.0.1")
+    except BaseException:
+        _kill_child_processes(exclude=before)
+        raise
+
+
 def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> list:
     try:
-        from distributed import Client, LocalCluster, as_completed
+        from distributed import as_completed
+        from distributed.comm import CommClosedError
     except ImportError as exc:  # pragma: no cover - dask is a dependency
         raise ParameterError("The 'scheduler' parameter of map_tasks must be 'local' when Dask "
                              "distributed is not installed. Got 'dask' instead.") from exc
     cluster = None
     interrupted = False
     if address is None:
-        try:
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, host="127.0.0.1")
-        except BaseException:
-            # interrupted (or failed) while the cluster starts: its worker processes exist, but
-            # there is no cluster object to close them; they must not outlive the call
-            _kill_child_processes()
-            raise
+        cluster = _start_local_cluster(workers)
         address = cluster.scheduler_address
+    else:
+        address = _checked_dask_address(address)
     try:
-        with Client(address, timeout="30s") as client:
+        with _connect(address, cluster) as client:
             n = max(len(client.scheduler_info().get("workers", {})), 1)
             chunks = _chunks(tasks, n * chunks_per_worker)
             futures = [client.submit(_run_chunk, func, c, pure=False) for c in chunks]
@@ -359,10 +414,15 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
                 done = 0
                 for fut in as_completed(futures):
                     i = index[fut.key]
-                    results[i] = fut.result()
+                    results[i] = fut.result()  # a task's own exception is raised as it is
                     done += len(chunks[i])
                     if progress:
                         progress(done, len(tasks))
+            except CommClosedError as exc:
+                interrupted = True
+                raise ClusterError(f"lost the connection to the Dask scheduler at {address} while "
+                                   f"its tasks ran ({exc}); check the scheduler and rerun the "
+                                   "command") from None
             except BaseException:
                 # an interrupted or failed call leaves nothing queued or running on the cluster
                 interrupted = True
@@ -373,9 +433,6 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
                     with contextlib.suppress(Exception):
                         client.cancel(futures, force=True)
                 raise
-    except OSError as exc:
-        raise ParameterError(f"The 'dask_address' parameter of map_tasks must reach a running Dask "
-                             f"scheduler. Got {address!r} instead ({exc}).") from exc
     finally:
         if cluster is not None:
             # interrupted: its workers are dead already, so closing only tidies up; bounded so
@@ -385,12 +442,15 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
     return [r for chunk in results for r in chunk]
 
 
-def _kill_child_processes() -> None:
-    """SIGKILL every process this process started with multiprocessing (not reaped here: their
-    owners, Dask's nannies, read their exit status as they close)."""
+def _kill_child_processes(exclude=()) -> None:
+    """SIGKILL the processes this process started with multiprocessing, except those in
+    ``exclude`` (the children that were there before: another pool's workers, the caller's own).
+    Not reaped here: their owners, Dask's nannies, read their exit status as they close."""
     import multiprocessing as mp
 
     for p in mp.active_children():
+        if p in exclude:
+            continue
         with contextlib.suppress(Exception):
             p.kill()
 

@@ -1,19 +1,28 @@
 """``aim``: the motor steps that reflect the sun onto an aim point, through each heliostat's
 selected model (the hybrid where the sweep chose it, else the coarse model).
+
+:func:`aim_steps` opens the work directory once (:class:`CommittedWorkdir`: every manifest loaded
+and checked once, every file read once and checked against its manifest) and reads everything it
+needs through it, in small steps: the heliostat and its coarse fit, the sun, the model, the steps
+(a fixed point for the hybrid, reported when it does not converge), and the warnings of an aim far
+from the heliostat's data.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
+import logging
+import math
+from dataclasses import dataclass, field
 from typing import Mapping
 
 import numpy as np
 import pandas as pd
 import torch
 
+from ..artifacts.manifests import CommittedWorkdir
 from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs, read_model
-from ..artifacts.schemas import HELIOSTATS, REGIME_PARAMS, REGIMES
-from ..artifacts.store import artifact_present, read_artifact
+from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REGIME_PARAMS, REGIMES
+from ..artifacts.store import artifact_columns, artifact_present, read_artifact
 from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
 from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
 from ..models.pretrained import PretrainedModel
@@ -21,6 +30,7 @@ from ..models.training import FineProblem, grouped_components
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
+from ..physics.vectors import unit_vector as _unit
 from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
 from .fit_coarse import load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
@@ -30,31 +40,70 @@ __all__ = [
     "aim_models",
     "aim_steps",
     "latest_regime",
+    "utc_time",
+    "FAR_FROM_DATA_DAYS",
 ]
 
-# ------------------------------------------------------------------------------------------------
-# pretrained-nn (paper 002)
-# ------------------------------------------------------------------------------------------------
-def _unit(v: torch.Tensor) -> torch.Tensor:
-    return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+log = logging.getLogger("heliocal.aim")
+
+#: An aim time more than this many days after the heliostat's last measurement (or before its
+#: first) is far from the data its model rests on: ``aim`` answers, with a warning on stderr and
+#: in the result's ``warnings`` (docs/reliability.md, "Aiming far from the data").
+FAR_FROM_DATA_DAYS = 365.0
 
 
 # ------------------------------------------------------------------------------------------------
-# loading a fitted model and aiming
+# what a user types: times, points, env values
 # ------------------------------------------------------------------------------------------------
-def load_model(workdir: str | Path, mode: str, heliostat_id: str) -> tuple[dict, Layers] | None:
+def utc_time(value, name: str = "time_utc", func: str = "aim") -> pd.Timestamp | None:
+    """``value`` (a time as text or a timestamp; no zone means UTC, an offset is converted) as a
+    UTC :class:`pandas.Timestamp`; ``None`` stays ``None``. Anything that is not a time (``noon``,
+    ``2023-02-30``, ``NaT``, beyond year 2262) is a :class:`ParameterError` naming ``name``."""
+    if value is None:
+        return None
+    try:
+        ts = pd.Timestamp(value)
+    except (ValueError, TypeError, OverflowError) as exc:
+        why = " ".join(str(exc).split())[:100]
+        raise ParameterError(f"The '{name}' parameter of {func} must be a UTC time such as "
+                             f"2023-06-21T12:00:00Z. Got {value!r} instead ({why}).") from None
+    if ts is pd.NaT or pd.isna(ts):
+        raise ParameterError(f"The '{name}' parameter of {func} must be a UTC time such as "
+                             f"2023-06-21T12:00:00Z. Got {value!r} instead.")
+    return ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
+
+
+def _finite_vector(value, name: str, what: str) -> np.ndarray:
+    vec = np.asarray(value, np.float64).reshape(-1)
+    if vec.shape != (3,) or not np.isfinite(vec).all():
+        raise ParameterError(f"The '{name}' parameter of aim must be {what}: three finite "
+                             f"numbers. Got {list(vec)} instead (not finite).")
+    return vec
+
+
+def _unreachable(heliostat_id: str) -> FitError:
+    """The one error of an aim point the heliostat's model cannot reach."""
+    return FitError(f"the aim point is not reachable by {heliostat_id} within its actuator limits "
+                    "for this sun position")
+
+
+# ------------------------------------------------------------------------------------------------
+# loading a fitted model
+# ------------------------------------------------------------------------------------------------
+def load_model(workdir, mode: str, heliostat_id: str) -> tuple[dict, Layers] | None:
     """Config dict and weights of a fitted mode for one heliostat (``None`` if not fitted).
 
     ``mode`` ``selected`` is the sweep's selected model (``DIR/hybrid/selected/``). The files are
     read through their stage's manifest and checked (:func:`heliocal.pipeline.artifacts.modelfiles.read_model`):
-    a changed, corrupt or foreign file gives a one-line error naming it and the command to rerun.
+    a changed, corrupt, foreign or swapped file gives a one-line error naming it and the command to
+    rerun. ``workdir`` is the work directory or its :class:`CommittedWorkdir`.
     """
-    workdir = Path(workdir)
+    wd = CommittedWorkdir.of(workdir)
     if mode == "selected":
-        stage, hint = "sweep", f"`heliocal sweep --workdir {workdir}`"
+        stage, hint = "sweep", f"`heliocal sweep --workdir {wd}`"
     else:
-        stage, hint = "fit-hybrid", f"`heliocal fit-hybrid --workdir {workdir} --mode {mode}`"
-    found = read_model(workdir, stage, mode, heliostat_id, hint=hint)
+        stage, hint = "fit-hybrid", f"`heliocal fit-hybrid --workdir {wd} --mode {mode}`"
+    found = read_model(wd, stage, mode, heliostat_id, hint=hint)
     if found is None:
         return None
     cfg, state = found
@@ -70,7 +119,7 @@ def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Ten
 
 @restores_process_state
 @single_threaded
-def latest_regime(workdir: str | Path, heliostat_id: str) -> dict | None:
+def latest_regime(workdir, heliostat_id: str) -> dict | None:
     """The heliostat's latest regime in regimes.parquet (fit-coarse): number, start, the rows
     that support it and the breaks before it; ``None`` without regimes.parquet or rows.
 
@@ -79,9 +128,10 @@ def latest_regime(workdir: str | Path, heliostat_id: str) -> dict | None:
     and the training rows those parameters rest on (the latest regime's own when it has enough,
     else the regime before it); all three are ``None`` when the plain fit is selected: its
     geometry is one for all regimes, and ``rows`` tells how much of the recent data agrees."""
-    if not artifact_present(workdir, REGIMES):
+    wd = CommittedWorkdir.of(workdir)
+    if not artifact_present(wd, REGIMES):
         return None
-    r = read_artifact(workdir, REGIMES, heliostats=[heliostat_id])
+    r = read_artifact(wd, REGIMES, heliostats=[heliostat_id])
     seg = r[(r["heliostat_id"] == heliostat_id) & (r["kind"] == "regime")].sort_values("start")
     if seg.empty:
         return None
@@ -92,8 +142,8 @@ def latest_regime(workdir: str | Path, heliostat_id: str) -> dict | None:
            "breaks": int(r["cause"].isin(["detected", "renovation"]).sum()),
            "episodes": int((r["kind"] == "episode").sum()),
            "coarse_model": None, "fitted_regime": None, "fitted_rows": None}
-    if artifact_present(workdir, REGIME_PARAMS):
-        p = read_artifact(workdir, REGIME_PARAMS, heliostats=[heliostat_id])
+    if artifact_present(wd, REGIME_PARAMS):
+        p = read_artifact(wd, REGIME_PARAMS, heliostats=[heliostat_id])
         p = p[(p["heliostat_id"] == heliostat_id) & p["selected"] & p["latest"]]
         if len(p):
             out.update(coarse_model=str(p["model"].iloc[0]),
@@ -102,134 +152,253 @@ def latest_regime(workdir: str | Path, heliostat_id: str) -> dict | None:
     return out
 
 
-def aim_steps(workdir: str | Path, heliostat_id: str, *, aim_point_enu, sun_vector_enu=None,
-              time_utc=None, env: Mapping[str, float] | None = None, model: str = "auto",
-              max_iterations: int = 50, tolerance_steps: float = 1e-6) -> dict:
+# ------------------------------------------------------------------------------------------------
+# the steps of an aim
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class _Heliostat:
+    """What aim reads of one heliostat: its heliostats.parquet row, kinematic spec and selected
+    coarse parameters (the latest regime's, for a regime-aware model)."""
+
+    id: str
+    row: pd.Series
+    spec: HeliostatSpec
+    coarse: torch.Tensor
+    warnings: list[str] = field(default_factory=list)
+
+
+def _read_heliostat(wd: CommittedWorkdir, heliostat_id: str) -> _Heliostat:
+    check_fine_model_inputs(wd)
+    helio = read_artifact(wd, HELIOSTATS, heliostats=[heliostat_id])
+    if helio.empty:
+        raise InputError(f"heliostat {heliostat_id!r} is not in {wd}/heliostats.parquet")
+    row = helio.iloc[0]
+    selected = load_selected_parameters(wd, [heliostat_id])
+    if heliostat_id not in selected:
+        raise StageInputError(f"heliostat {heliostat_id!r} has no coarse fit: run `heliocal "
+                              f"fit-coarse --workdir {wd}` first")
+    return _Heliostat(heliostat_id, row, HeliostatSpec.from_row(row),
+                      selected[heliostat_id]["params"])
+
+
+def _target_point(wd: CommittedWorkdir, name: str) -> np.ndarray:
+    """The median centre [m] ENU of the calibration target ``name`` in the measurements."""
+    m = read_artifact(wd, MEASUREMENTS, columns=["target_name", "target_e_m", "target_n_m",
+                                                 "target_u_m"])
+    rows = m[m["target_name"] == name]
+    if rows.empty:
+        names = sorted(m["target_name"].dropna().unique())
+        raise InputError(f"unknown target {name!r}: give E,N,U in metres or one of {names}")
+    return rows[["target_e_m", "target_n_m", "target_u_m"]].median().to_numpy(np.float64)
+
+
+def _sun(h: _Heliostat, sun_vector_enu, time_utc: pd.Timestamp | None) -> torch.Tensor:
+    """Unit vector toward the sun (1, 3): the one given, or NREL SPA's at the heliostat."""
+    from ..physics.sun import spa_sun_position
+    from ..physics.sun import sun_vector_enu as _sunvec
+
+    if sun_vector_enu is None:
+        if time_utc is None:
+            raise ParameterError("aim needs the sun: give a time or a sun azimuth and elevation")
+        lat, lon, alt = h.row["latitude_deg"], h.row["longitude_deg"], h.row["altitude_m"]
+        if lat is None or not np.isfinite(lat):
+            raise InputError(f"heliostat {h.id!r} has no WGS84 location, so the sun cannot "
+                             "be computed from the time: give --sun-azimuth and --sun-elevation")
+        alt = alt if alt is not None and np.isfinite(alt) else 0.0
+        az, el = spa_sun_position([time_utc], float(lat), float(lon), float(alt))
+        sun_vector_enu = _sunvec(az[0], el[0])
+    vec = _finite_vector(sun_vector_enu, "sun_vector_enu", "a direction")
+    if not np.linalg.norm(vec) > 0:
+        raise ParameterError("The 'sun_vector_enu' parameter of aim must be a direction. Got "
+                             "[0, 0, 0] instead.")
+    sun = _unit(torch.tensor(vec, dtype=torch.float64).reshape(1, 3))
+    if float(sun[0, 2]) <= 0:
+        raise InputError("the sun is below the horizon at that time")
+    return sun
+
+
+def _choose_model(wd: CommittedWorkdir, h: _Heliostat, model: str) -> tuple[str, tuple | None]:
+    """(the model used, its (config, layers) or None for coarse), checked fresh."""
+    chosen, fitted, rerun = model, None, None
+    if model == "auto":
+        choice = aim_models(wd, [h.id], strict=True).get(h.id, {})
+        if choice.get("model") in ("hybrid", "pretrained-nn"):
+            fitted = load_model(wd, choice["model_dir"], h.id)
+            if choice["source"] == "sweep":
+                rerun = f"`heliocal sweep --workdir {wd}`"
+        chosen = choice["model"] if fitted is not None else "coarse"
+    elif model != "coarse":
+        fitted = load_model(wd, model, h.id)
+        if fitted is None:
+            raise StageInputError(f"no {model} model for {h.id}: run `heliocal fit-hybrid "
+                                  f"--workdir {wd} --mode {model}` first")
+    if fitted is not None:
+        current = fine_model_inputs(wd)
+        if any(fitted[0].get("inputs", {}).get(k) != v for k, v in current.items()):
+            rerun = rerun or f"`heliocal fit-hybrid --workdir {wd} --mode {chosen}`"
+            raise StageInputError(f"the {chosen} model of {h.id} is stale (its inputs "
+                                  f"changed): rerun {rerun} first")
+    return chosen, fitted
+
+
+def _check_env(wd: CommittedWorkdir, env: Mapping[str, float]) -> dict[str, float]:
+    """``env`` (name without ``env_`` -> value), every name an env column of the measurements and
+    every value finite."""
+    env = dict(env or {})
+    if not env:
+        return env
+    known = sorted(c[4:] for c in artifact_columns(wd, MEASUREMENTS) if c.startswith("env_"))
+    unknown = sorted(set(env) - set(known))
+    if unknown:
+        raise ParameterError(f"unknown env input(s) {unknown}: the env columns of "
+                             f"{wd}/measurements.parquet are {known or 'none'}; give --env "
+                             "NAME=VALUE with one of them")
+    bad = {k: v for k, v in env.items() if not math.isfinite(float(v))}
+    if bad:
+        raise ParameterError(f"--env values must be finite numbers. Got {bad} instead.")
+    return env
+
+
+def _time_warnings(wd: CommittedWorkdir, h: _Heliostat, time_utc: pd.Timestamp | None
+                   ) -> float | None:
+    """Days from the heliostat's last measurement to ``time_utc`` (negative: before it), and a
+    warning in ``h.warnings`` (logged) when the time is more than :data:`FAR_FROM_DATA_DAYS`
+    after the last or before the first measurement."""
+    if time_utc is None:
+        return None
+    t = read_artifact(wd, MEASUREMENTS, columns=["heliostat_id", "timestamp"],
+                      heliostats=[h.id])
+    t = pd.to_datetime(t.loc[t["heliostat_id"] == h.id, "timestamp"], utc=True).dropna()
+    if t.empty:
+        return None
+    day = pd.Timedelta(days=1)
+    after, before = (time_utc - t.max()) / day, (t.min() - time_utc) / day
+    if after > FAR_FROM_DATA_DAYS or before > FAR_FROM_DATA_DAYS:
+        where = (f"{after:.0f} days after its last measurement ({t.max():%Y-%m-%d})"
+                 if after > 0 else f"{before:.0f} days before its first ({t.min():%Y-%m-%d})")
+        h.warnings.append(f"{time_utc:%Y-%m-%dT%H:%M:%SZ} is {where}: the model of {h.id} is "
+                          "extrapolated that far (more than "
+                          f"{FAR_FROM_DATA_DAYS:g} days from its data); check the steps")
+        log.warning("%s", h.warnings[-1])
+    return float(after)
+
+
+def _fixed_point(h: _Heliostat, chosen: str, fitted: tuple, sun, aim, steps, time_utc, env,
+                 max_iterations: int, tolerance_steps: float):
+    """(steps, parameters, iterations) of the hybrid: the steps whose parameters (the network's
+    deviations at those steps) aim at the point, found by fixed-point iteration from the coarse
+    steps until the steps change by less than ``tolerance_steps``. A loop that does not get there
+    in ``max_iterations`` raises :class:`FitError` with the last change."""
+    cfg, layers = fitted
+    problem = _fine_problem_from_config(cfg, h.spec, nominal_parameters(h.row))
+    enc = problem.encoder
+    missing = [e for e in enc.env if e not in env]
+    if missing:
+        raise ParameterError(f"the {chosen} model of {h.id} uses env inputs {missing}: give them "
+                             "with --env NAME=VALUE")
+    if time_utc is None:
+        raise ParameterError(f"the {chosen} model of {h.id} uses the date as input: give --time")
+    context = enc.context([time_utc], np.array([[float(env[e]) for e in enc.env]])
+                          if enc.env else None)
+
+    def params_at(s):
+        with torch.no_grad():
+            return grouped_components(problem, layers, enc.encode(s, context), None).stacked()[0, 0]
+
+    delta = float("inf")
+    for iterations in range(1, max_iterations + 1):
+        new = inverse_kinematics(params_at(steps), h.spec, sun, aim)
+        if not bool(torch.isfinite(new).all()):
+            raise _unreachable(h.id)
+        delta = float((new - steps).abs().max())
+        steps = new
+        if delta < tolerance_steps:
+            return steps, params_at(steps), iterations
+    raise FitError(f"the {chosen} model of {h.id} did not converge to the aim steps: after "
+                   f"{max_iterations} fixed-point iterations the steps still changed by "
+                   f"{delta:.3g} steps (tolerance {tolerance_steps:g}); aim with --model coarse, "
+                   "or refit the heliostat")
+
+
+def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iterations: int,
+           tolerance_steps: float):
+    """(steps, parameters, iterations) that aim the chosen model's beam at ``aim``."""
+    steps = inverse_kinematics(h.coarse, h.spec, sun, aim)
+    if not bool(torch.isfinite(steps).all()):
+        raise _unreachable(h.id)
+    if chosen == "coarse":
+        return steps, h.coarse, 0
+    if chosen == "pretrained-nn":
+        cfg, layers = fitted
+        with torch.no_grad():
+            steps = PretrainedModel.from_dict(cfg, layers).steps(sun, aim, spec=h.spec)
+        if not bool(torch.isfinite(steps).all()):
+            raise _unreachable(h.id)
+        return steps, h.coarse, 0
+    return _fixed_point(h, chosen, fitted, sun, aim, steps, time_utc, env, max_iterations,
+                        tolerance_steps)
+
+
+def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | None = None,
+              sun_vector_enu=None, time_utc=None, env: Mapping[str, float] | None = None,
+              model: str = "auto", max_iterations: int = 50,
+              tolerance_steps: float = 1e-6) -> dict:
     """Motor steps that reflect the sun onto ``aim_point_enu`` with the best fitted model.
 
     Parameters
     ----------
-    aim_point_enu : (3,) aim point [m] ENU.
+    workdir : the work directory (or its open :class:`CommittedWorkdir`).
+    aim_point_enu : (3,) aim point [m] ENU; or
+    target : the name of a calibration target of the measurements (its median centre).
     sun_vector_enu : (3,) direction toward the sun; default from NREL SPA at ``time_utc``.
-    time_utc : time of the aim (needed by models with time inputs, and for the sun by default).
-    env : values of the model's env inputs (name without ``env_`` -> value).
+    time_utc : time of the aim (needed by models with time inputs, and for the sun by default);
+        text or a timestamp, no zone meaning UTC (:func:`utc_time`).
+    env : values of the model's env inputs (name without ``env_`` -> value); every name must be
+        an env column of the measurements.
     model : ``auto`` (the sweep's selection where ``sweep`` ran, else the fit-hybrid hybrid where
-        fitted, else coarse), ``coarse``, ``hybrid``, ``nn-only`` or
-        ``pretrained-nn``.
+        fitted, else coarse), ``coarse``, ``hybrid``, ``nn-only`` or ``pretrained-nn``.
+    max_iterations, tolerance_steps : the hybrid's fixed-point iteration stops when the steps
+        change by less than ``tolerance_steps`` [steps]; without that in ``max_iterations`` it
+        raises :class:`FitError`.
 
     Returns
     -------
     dict with ``axis_1_steps``, ``axis_2_steps``, ``model``, ``iterations``, ``aim_error_mrad``
     (angle between the forward model's reflected beam at those steps and the direction to the aim
-    point), ``sun_azimuth_deg``, ``sun_elevation_deg``.
+    point), ``sun_azimuth_deg``, ``sun_elevation_deg``, ``regime``, ``days_after_last_measurement``
+    (None without a time) and ``warnings`` (texts, also logged: an aim far from the data).
     """
-    from ..physics.sun import spa_sun_position, sun_angles_from_vector
-    from ..physics.sun import sun_vector_enu as _sunvec
+    from ..physics.sun import sun_angles_from_vector
 
     check_choice(model, "model", "aim", ("auto", "coarse") + MODES)
-    workdir = Path(workdir)
-    check_fine_model_inputs(workdir)
-    helio = read_artifact(workdir, HELIOSTATS, heliostats=[heliostat_id])
-    if helio.empty:
-        raise InputError(f"heliostat {heliostat_id!r} is not in {workdir}/heliostats.parquet")
-    hrow = helio.iloc[0]
-    selected = load_selected_parameters(workdir, [heliostat_id])
-    if heliostat_id not in selected:
-        raise StageInputError(f"heliostat {heliostat_id!r} has no coarse fit: run `heliocal "
-                              f"fit-coarse --workdir {workdir}` first")
-    spec = HeliostatSpec.from_row(hrow)
-    if sun_vector_enu is None:
-        if time_utc is None:
-            raise ParameterError("aim needs the sun: give a time or a sun azimuth and elevation")
-        lat, lon = hrow["latitude_deg"], hrow["longitude_deg"]
-        if lat is None or not np.isfinite(lat):
-            raise InputError(f"heliostat {heliostat_id!r} has no WGS84 location, so the sun cannot "
-                             "be computed from the time: give --sun-azimuth and --sun-elevation")
-        alt = hrow["altitude_m"] if hrow["altitude_m"] is not None and np.isfinite(hrow["altitude_m"]) else 0.0
-        az, el = spa_sun_position([time_utc], float(lat), float(lon), float(alt))
-        sun_vector_enu = _sunvec(az[0], el[0])
-    sun = _unit(torch.as_tensor(np.asarray(sun_vector_enu, np.float64)).reshape(1, 3))
-    if float(sun[0, 2]) <= 0:
-        raise InputError("the sun is below the horizon at that time")
-    aim = torch.as_tensor(np.asarray(aim_point_enu, np.float64)).reshape(1, 3)
-    coarse = selected[heliostat_id]["params"]
-    chosen = model
-    fitted = None
-    rerun = None
-    if model == "auto":
-        choice = aim_models(workdir, [heliostat_id], strict=True).get(heliostat_id, {})
-        if choice.get("model") in ("hybrid", "pretrained-nn"):
-            fitted = load_model(workdir, choice["model_dir"], heliostat_id)
-            if choice["source"] == "sweep":
-                rerun = f"`heliocal sweep --workdir {workdir}`"
-        chosen = choice["model"] if fitted is not None else "coarse"
-    elif model != "coarse":
-        fitted = load_model(workdir, model, heliostat_id)
-        if fitted is None:
-            raise StageInputError(f"no {model} model for {heliostat_id}: run `heliocal fit-hybrid "
-                                  f"--workdir {workdir} --mode {model}` first")
-    if fitted is not None:
-        cfg = fitted[0]
-        current = fine_model_inputs(workdir)
-        if any(cfg.get("inputs", {}).get(k) != v for k, v in current.items()):
-            rerun = rerun or f"`heliocal fit-hybrid --workdir {workdir} --mode {chosen}`"
-            raise StageInputError(f"the {chosen} model of {heliostat_id} is stale (its inputs "
-                                  f"changed): rerun {rerun} first")
-    steps = inverse_kinematics(coarse, spec, sun, aim)
-    iterations = 0
-    if not bool(torch.isfinite(steps).all()):
-        raise FitError(f"the aim point is not reachable by {heliostat_id} within its actuator "
-                       "limits for this sun position")
-    if chosen == "coarse":
-        params = coarse
-    elif chosen == "pretrained-nn":
-        cfg, layers = fitted
-        pm = PretrainedModel.from_dict(cfg, layers)
-        with torch.no_grad():
-            steps = pm.steps(sun, aim, spec=spec)
-        if not bool(torch.isfinite(steps).all()):
-            raise FitError(f"the aim point is not reachable by {heliostat_id} within its "
-                           "actuator limits for this sun position")
-        params = coarse
-    else:
-        cfg, layers = fitted
-        problem = _fine_problem_from_config(cfg, spec, nominal_parameters(hrow))
-        enc = problem.encoder
-        if enc.env:
-            env = env or {}
-            missing = [e for e in enc.env if e not in env]
-            if missing:
-                raise ParameterError(f"the {chosen} model of {heliostat_id} uses env inputs "
-                                     f"{missing}: give them with --env NAME=VALUE")
-        if time_utc is None:
-            raise ParameterError(f"the {chosen} model of {heliostat_id} uses the date as input: "
-                                 "give --time")
-        context = enc.context([time_utc], np.array([[float((env or {})[e]) for e in enc.env]])
-                              if enc.env else None)
-
-        def params_at(s):
-            with torch.no_grad():
-                return grouped_components(problem, layers, enc.encode(s, context), None).stacked()[0, 0]
-
-        for iterations in range(1, max_iterations + 1):
-            params = params_at(steps)
-            new = inverse_kinematics(params, spec, sun, aim)
-            if not bool(torch.isfinite(new).all()):
-                raise FitError(f"the aim point is not reachable by {heliostat_id} within its "
-                               "actuator limits for this sun position")
-            delta = float((new - steps).abs().max())
-            steps = new
-            if delta < tolerance_steps:
-                break
-        params = params_at(steps)
+    if (aim_point_enu is None) == (target is None):
+        raise ParameterError("aim needs one aim point: give aim_point_enu or target")
+    time_utc = utc_time(time_utc)
+    wd = CommittedWorkdir.of(workdir)
+    env = _check_env(wd, env)
+    point = (_target_point(wd, target) if target is not None
+             else _finite_vector(aim_point_enu, "aim_point_enu", "a point [m] ENU"))
+    h = _read_heliostat(wd, heliostat_id)
+    sun = _sun(h, sun_vector_enu, time_utc)
+    aim = torch.tensor(point, dtype=torch.float64).reshape(1, 3)
+    chosen, fitted = _choose_model(wd, h, model)
+    days = _time_warnings(wd, h, time_utc)
+    steps, params, iterations = _solve(h, chosen, fitted, sun, aim, time_utc, env,
+                                       max_iterations, tolerance_steps)
     with torch.no_grad():
-        normal, position = forward_kinematics(params, spec, steps)
-        beam = reflect(-sun, normal)
-        aim_err = float(error_mrad(beam, aim - position)[0])
+        normal, position = forward_kinematics(params, h.spec, steps)
+        aim_err = float(error_mrad(reflect(-sun, normal), aim - position)[0])
+    if not math.isfinite(aim_err):
+        raise _unreachable(h.id)
     az, el = sun_angles_from_vector(sun.numpy())
-    return {"heliostat_id": heliostat_id, "model": chosen,
-            "time_utc": None if time_utc is None else str(pd.Timestamp(time_utc)),
-            "sun_azimuth_deg": float(az[0]), "sun_elevation_deg": float(el[0]),
-            "aim_point_enu_m": aim[0].tolist(), "axis_1_steps": float(steps[0, 0]),
-            "axis_2_steps": float(steps[0, 1]), "iterations": iterations,
-            "aim_error_mrad": aim_err, "regime": latest_regime(workdir, heliostat_id)}
+    out = {"heliostat_id": heliostat_id, "model": chosen,
+           "time_utc": None if time_utc is None else str(time_utc),
+           "sun_azimuth_deg": float(az[0]), "sun_elevation_deg": float(el[0]),
+           "aim_point_enu_m": aim[0].tolist(), "axis_1_steps": float(steps[0, 0]),
+           "axis_2_steps": float(steps[0, 1]), "iterations": iterations,
+           "aim_error_mrad": aim_err, "regime": latest_regime(wd, heliostat_id),
+           "days_after_last_measurement": days, "warnings": h.warnings}
+    if target is not None:
+        out["target"] = target
+    return out
+

@@ -6,10 +6,9 @@ ask the same question as ``aim`` cheaply. :mod:`.aim` re-exports it.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Sequence
 
-from ..artifacts.manifests import load_manifest, read_committed
+from ..artifacts.manifests import CommittedWorkdir
 from ..artifacts.modelfiles import model_files
 from ..artifacts.schemas import COARSE_PARAMS, HELIOSTATS, HYBRID_PREDICTIONS, MEASUREMENTS
 from ..artifacts.store import artifact_present, check_fresh, read_artifact
@@ -21,16 +20,15 @@ __all__ = [
 ]
 
 
-def _model_committed(workdir: Path, mode: str, heliostat_id: str) -> bool:
+def _model_committed(wd: CommittedWorkdir, mode: str, heliostat_id: str) -> bool:
     """Whether the stage that writes ``mode``'s models committed one for the heliostat (both its
     files listed in the stage's manifest; :func:`load_model` checks their content)."""
-    cfg_rel, pt_rel = model_files(mode, heliostat_id)
-    m = load_manifest(workdir, "sweep" if mode == "selected" else "fit-hybrid")
-    return m is not None and cfg_rel in m.files and pt_rel in m.files
+    stage = "sweep" if mode == "selected" else "fit-hybrid"
+    return all(wd.listed(stage, rel) for rel in model_files(mode, heliostat_id))
 
 
 @restores_process_state
-def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
+def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
                strict: bool = False) -> dict:
     """Per heliostat the model ``aim --model auto`` uses, and its mean validation and test error.
 
@@ -39,7 +37,8 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
     ensemble (``hybrid/selected/``) if that was written; without a selection row for the
     heliostat, the ``fit-hybrid`` hybrid (``hybrid/hybrid/``) where fitted; otherwise (and when a
     selected hybrid's files are missing) the coarse model, ``fit-coarse``'s selected preset.
-    Every artifact and model is read through its stage's manifest. With ``strict`` (``aim``),
+    Every artifact and model is read through its stage's manifest (``workdir``: the work
+    directory or its :class:`CommittedWorkdir`, whose reads ``aim`` shares). With ``strict`` (``aim``),
     selection.parquet must also be fresh and a selected hybrid's model committed, else a
     one-line :class:`StageInputError` says what to rerun (``info`` shows what is there).
 
@@ -49,17 +48,19 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
     (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
     ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
     ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
-    such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
-    empty without coarse_params.parquet.
+    such rows), ``forward_error_mrad`` (the same model fitted on the time split's training rows,
+    on its test rows; NaN: n/a), ``next_day_error_mrad`` (the mean next-day error of fit-coarse's
+    rolling-origin evaluation; NaN without one), ``model_dir`` (the folder under ``hybrid/``
+    with its weights; None for coarse)}; empty without coarse_params.parquet.
     """
     from ..artifacts.schemas import SELECTION, SPLIT
 
-    workdir = Path(workdir)
+    workdir = CommittedWorkdir.of(workdir)
     if not artifact_present(workdir, COARSE_PARAMS):
         return {}
     params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
                            columns=["heliostat_id", "preset", "selected", "val_error_mrad",
-                                    "test_error_mrad"])
+                                    "test_error_mrad", "time_test_error_mrad"])
     coarse = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
     selection = None
     if artifact_present(workdir, SELECTION):
@@ -69,13 +70,16 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
                                              "split": SPLIT, "coarse_params": COARSE_PARAMS})
         selection = selection.drop_duplicates("heliostat_id").set_index("heliostat_id")
     fit_hybrid_errors = None
+    next_day = _next_day_errors(workdir, heliostats)
     out = {}
     for hid in sorted(coarse.index):
         c = coarse.loc[hid]
         entry = {"heliostat_id": hid, "model": "coarse", "variant": None, "source": "fit-coarse",
                  "preset": str(c["preset"]), "weight_decay": None,
                  "val_error_mrad": float(c["val_error_mrad"]),
-                 "test_error_mrad": float(c["test_error_mrad"]), "model_dir": None}
+                 "test_error_mrad": float(c["test_error_mrad"]),
+                 "forward_error_mrad": float(c["time_test_error_mrad"]),
+                 "next_day_error_mrad": next_day.get(hid, float("nan")), "model_dir": None}
         choice = (str(selection.loc[hid, "model"])
                   if selection is not None and hid in selection.index else None)
         if choice == "coarse":
@@ -90,27 +94,59 @@ def aim_models(workdir: str | Path, heliostats: Sequence[str] | None = None, *,
                              weight_decay=(None if choice == "pretrained-nn"
                                            else float(row["weight_decay"])),
                              val_error_mrad=float(row["val_error_mrad"]),
-                             test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
+                             test_error_mrad=float(row["test_error_mrad"]),
+                             forward_error_mrad=_number(row.get("time_test_error_mrad")),
+                             model_dir="selected")
             elif strict:
                 raise StageInputError(f"{workdir}/selection.parquet selects {choice} for {hid}, "
                                       f"but the sweep committed no model for it; rerun `heliocal "
                                       f"sweep --workdir {workdir}`")
         elif _model_committed(workdir, "hybrid", hid):
             cfg_rel = model_files("hybrid", hid)[0]
-            cfg = json.loads(read_committed(
-                workdir, "fit-hybrid", cfg_rel,
+            cfg = _config(workdir.read(
+                "fit-hybrid", cfg_rel,
                 hint=f"`heliocal fit-hybrid --workdir {workdir} --mode hybrid`").data)
             if fit_hybrid_errors is None:
                 fit_hybrid_errors = _fit_hybrid_errors(workdir)
             val, test = fit_hybrid_errors.get(hid, (float("nan"), float("nan")))
             entry.update(model="hybrid", variant="hybrid", source="fit-hybrid",
-                         weight_decay=float(cfg.get("weight_decay", float("nan"))),
-                         val_error_mrad=val, test_error_mrad=test, model_dir="hybrid")
+                         weight_decay=_number(cfg.get("weight_decay")),
+                         val_error_mrad=val, test_error_mrad=test,
+                         forward_error_mrad=float("nan"), model_dir="hybrid")
         out[hid] = entry
     return out
 
 
-def _fit_hybrid_errors(workdir: Path) -> dict:
+def _next_day_errors(workdir: CommittedWorkdir, heliostats) -> dict:
+    """heliostat -> its mean next-day error (rolling_origin.parquet; empty without it)."""
+    from ..artifacts.schemas import ROLLING_ORIGIN
+
+    if not artifact_present(workdir, ROLLING_ORIGIN):
+        return {}
+    r = read_artifact(workdir, ROLLING_ORIGIN, heliostats=heliostats,
+                      columns=["heliostat_id", "error_mrad"])
+    return {str(h): float(v) for h, v in r.groupby("heliostat_id")["error_mrad"].mean().items()}
+
+
+def _config(data: bytes) -> dict:
+    """A model configuration's JSON object, or ``{}`` if it is not one (loading the model says
+    why: :func:`heliocal.pipeline.artifacts.modelfiles.read_model`)."""
+    try:
+        cfg = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError):
+        return {}
+    return cfg if isinstance(cfg, dict) else {}
+
+
+def _number(value) -> float:
+    """``value`` as a float, NaN if it is not a number."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def _fit_hybrid_errors(workdir: CommittedWorkdir) -> dict:
     """Mean validation and test error_mrad of fit-hybrid's ``hybrid`` mode per heliostat."""
     if not artifact_present(workdir, HYBRID_PREDICTIONS):
         return {}

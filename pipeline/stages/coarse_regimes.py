@@ -8,8 +8,9 @@ validation; then each regime's error under the final model. :mod:`.fit_coarse` r
 
 from __future__ import annotations
 
-from dataclasses import fields
-from typing import Mapping, Sequence
+import dataclasses
+from dataclasses import dataclass, field, fields
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -17,15 +18,19 @@ import pandas as pd
 from ..artifacts.schemas import REGIMES
 from ..models.coarse import MeasurementBatch
 from ..models.regime_batch import fit_candidates_batched
-from ..models.regime_fit import candidate_setup, predict_candidates, regime_candidates
+from ..models.regime_candidates import (CandidateSetup, TimeCandidates, candidate_setup,
+                                        predict_candidates, regime_candidates)
+from ..models.regime_fit import MIN_VALIDATION_DAYS, REGIME_MODELS, fit_regime_model
 from ..models.regimes import (detect_field, detect_records, regime_of_rows,
                               residual_components_mrad, utc_values)
 from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import HeliostatSpec
 from ..runtime.process_state import one_thread
+from ..vocabulary import MIN_IMPROVEMENT
+from .forward import time_labels_of, time_rows
 
 __all__ = ["detect_coarse_regimes", "follow_regimes", "REGIME_STEPS", "MAX_EPISODE_SHARE",
-           "EPISODE_REFIT_MIN_IMPROVEMENT"]
+           "EPISODE_REFIT_MIN_IMPROVEMENT", "CoarseChunk", "HeliostatResult", "ChunkResult"]
 
 
 def detect_coarse_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame,
@@ -100,11 +105,11 @@ def _chunk_regimes(hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
 MAX_EPISODE_SHARE = 0.25
 
 #: Relative validation improvement (outside episodes) the fit without a heliostat's episodes
-#: needs to replace its first fit: the sweep's margin rule (stages.sweep.MIN_IMPROVEMENT). With
+#: needs to replace its first fit: the sweep's margin rule, the one constant MIN_IMPROVEMENT. With
 #: the default robust loss episodes pull a fit little, and a refit without them that is only a
 #: few per cent better on 20 validation rows was as often worse on test (sample_data's BH35:
 #: validation -7 %, test +11 %), so a small gain is not taken.
-EPISODE_REFIT_MIN_IMPROVEMENT = 0.20
+EPISODE_REFIT_MIN_IMPROVEMENT = MIN_IMPROVEMENT
 
 
 def _selected_error(predictions: pd.DataFrame, mask: np.ndarray) -> float:
@@ -118,8 +123,9 @@ def _segment_errors(regimes: pd.DataFrame, ids: Sequence[str], rows: Sequence[pd
                     results: Sequence[tuple]) -> pd.DataFrame:
     """One chunk's regimes with ``error_mrad``: the final selected model's mean error (per
     heliostat its rows and outputs) on the rows of every split between the segment's start and
-    end (an outlier: its own row). In the chunk's task: in the stage's process a merge of the
-    field's predictions with the measurements' times took 0.8 s at 2,000 heliostats."""
+    end (an outlier: its own row). Computed in the chunk's task, where each heliostat's rows and
+    predictions are at hand in the same order (the stage's process would have to merge the
+    field's predictions with the measurements' times)."""
     by_h = {}
     for hid, r, (_, pred, _) in zip(ids, rows, results):
         sel, mids, in_order = _selected_rows(pred, r)
@@ -140,9 +146,41 @@ def _segment_errors(regimes: pd.DataFrame, ids: Sequence[str], rows: Sequence[pd
 
 #: What ``fit-coarse`` does about regimes (``run_fit_coarse(regime_steps=...)``):
 #: ``candidates`` (the default: detection, the refit without episodes, the regime-aware
-#: candidates), ``detect`` (detection and the refit only) or ``off`` (the stage before issue
-#: 17; for benchmarks).
-REGIME_STEPS = ("candidates", "detect", "off")
+#: candidates) or ``detect`` (detection and the refit only).
+REGIME_STEPS = ("candidates", "detect")
+
+
+@dataclass
+class CoarseChunk:
+    """One task of ``fit-coarse``: heliostats of one kinematic and actuator type whose presets
+    are fitted together (scipy: one heliostat), then what follows from their regimes."""
+
+    solver: str                       # CoarseSolver: batched or scipy
+    heliostats: list[dict]            # their heliostats.parquet rows
+    rows: list[pd.DataFrame]          # each one's measurements with the split label
+    presets: tuple[str, ...]          # the presets to fit
+    options: dict                     # loss, f_scale_mrad, robust_start (fit_presets' keywords)
+    regime_steps: str | None          # one of REGIME_STEPS; None: the presets' fits only
+
+
+@dataclass
+class HeliostatResult:
+    """What a chunk's task returns for one heliostat."""
+
+    outputs: tuple                    # (coarse_params rows, coarse_predictions rows, summary)
+    regime_params: list[dict] = field(default_factory=list)  # its candidates' regime_params rows
+    episode_flags: np.ndarray | None = None  # per row: in a left-out episode (None: no refit)
+    refitted: bool = False            # fitted again without its episodes' rows
+    notes: list[str] = field(default_factory=list)  # lines for the stage's log
+
+
+@dataclass
+class ChunkResult:
+    """What a chunk's task returns: its regimes.parquet rows (None without regime steps) and
+    per heliostat, in the chunk's order, its :class:`HeliostatResult`."""
+
+    regimes: pd.DataFrame | None
+    heliostats: list[HeliostatResult]
 
 
 def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
@@ -156,16 +194,86 @@ def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
             for e, df in zip(ends, frames)]
 
 
-def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, starts,
-                   regime_steps) -> tuple:
-    """Regimes of each heliostat of a chunk on its first fit's residuals; heliostats with
-    episodes fitted again without the episodes' rows (kept by the sweep's margin); then the
-    regime-aware candidates of the heliostats with a break (``regime_steps == "candidates"``).
-    ``fit_again`` is fit_coarse's ``_fit_chunk`` (the presets' fits of some of the chunk's
-    heliostats). Returns fit_coarse's ``_fit_task``'s (regimes, per heliostat tuples)."""
+def _selected_time_error(outputs: tuple, rows: pd.DataFrame, mask: np.ndarray) -> float:
+    """Mean ``time_error_mrad`` of the selected model of a heliostat's ``outputs`` on the time
+    split's validation rows where ``mask`` (N,) holds; NaN without a time split."""
+    labels = time_labels_of(rows)
+    if labels is None:
+        return float("nan")
+    pred = outputs[1]
+    err = pred.loc[pred["selected"], "time_error_mrad"].to_numpy(float)
+    return _mean(err[(labels == "validation") & mask])
+
+
+def _time_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs: tuple,
+                data: MeasurementBatch) -> CandidateSetup | None:
+    """The candidates' setup on the time split: the time split's labels in place of the split's
+    and the selected plain fit's time-split fit as the plain fit; None without a time split or
+    without that fit. Its validation days are not required (it is not judged by them: it says
+    how the model chosen on the kNN split does forward in time)."""
+    labels = time_labels_of(rows)
+    if labels is None:
+        return None
+    param_rows, pred, summary = outputs
+    plain = [{**r, "fitted": r["time_fitted"]} for r in param_rows if r["selected"]]
+    if not np.isfinite([r["fitted"] for r in plain]).all():
+        return None
+    setup = candidate_setup(hid, rows.assign(split=time_rows(labels)), regimes,
+                            (plain, pred.assign(error_mrad=pred["time_error_mrad"]), summary),
+                            MAX_EPISODE_SHARE, data)
+    return dataclasses.replace(setup, days=max(setup.days, MIN_VALIDATION_DAYS))
+
+
+def _time_candidates(chunk: CoarseChunk, ks: Sequence[int], specs: dict, rows: Sequence,
+                     of: dict, results: Sequence, batches: dict) -> dict:
+    """The regime-aware candidates of the heliostats ``ks`` of a chunk fitted again on their
+    time split's training rows (batched or scipy, as the chunk): k -> :class:`TimeCandidates`."""
+    ids = [str(h["heliostat_id"]) for h in chunk.heliostats]
+    setups = {k: st for k in ks
+              if (st := _time_setup(ids[k], rows[k], of[ids[k]], results[k], batches[k]))}
+    if not setups:
+        return {}
+    kwargs = chunk.options
+    order = sorted(setups)
+    with one_thread(blas=True):
+        if chunk.solver == "batched":
+            fitted = fit_candidates_batched([specs[k] for k in order], [setups[k] for k in order],
+                                            loss=kwargs["loss"], f_scale_mrad=kwargs["f_scale_mrad"])
+        else:
+            fitted = [_scipy_candidates(specs[k], setups[k], kwargs) for k in order]
+        frames = predict_candidates([specs[k] for k in order], [setups[k] for k in order], fitted)
+    return {k: TimeCandidates({f.model: f for f in fits},
+                              {f.model: fr for f, fr in zip(fits, frs)},
+                              time_labels_of(rows[k]), setups[k].plain_val, setups[k].val)
+            for k, fits, frs in zip(order, fitted, frames)}
+
+
+def _scipy_candidates(spec: HeliostatSpec, setup: CandidateSetup, options: dict) -> list:
+    """One heliostat's candidates, one scipy solve per model (each starting from the last)."""
+    fits: list = []
+    for model in REGIME_MODELS:
+        fit = fit_regime_model(spec, setup.preset, setup.params, setup.free, setup.data,
+                               setup.regime, setup.times, setup.train, model,
+                               loss=options["loss"], f_scale_mrad=options["f_scale_mrad"],
+                               start=fits[-1] if fits else None)
+        if fit is None:
+            break
+        fits.append(fit)
+    return fits
+
+
+def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequence,
+                   fit_again: Callable) -> ChunkResult:
+    """Regimes of each heliostat of a chunk on its first fit's residuals (``outputs``: per
+    heliostat (param rows, prediction rows, summary); ``starts``: the batched candidates' start
+    or None); heliostats with episodes fitted again without the episodes' rows (kept by the
+    sweep's margin); then the regime-aware candidates of the heliostats with a break
+    (``chunk.regime_steps == "candidates"``). ``fit_again`` is fit_coarse's ``_fit_chunk`` (the
+    presets' fits of some of the chunk's heliostats)."""
+    hrows, presets, kwargs = chunk.heliostats, chunk.presets, chunk.options
     ids = [str(h["heliostat_id"]) for h in hrows]
-    regimes = _chunk_regimes(hrows, rows, results)
-    rows, results, starts = list(rows), list(results), list(starts)
+    regimes = _chunk_regimes(hrows, chunk.rows, outputs)
+    rows, results, starts = list(chunk.rows), list(outputs), list(starts)
     flags_of: list = [None] * len(ids)
     notes: list[list[str]] = [[] for _ in ids]
     refit = []
@@ -181,30 +289,39 @@ def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, sta
             flags_of[k] = flags
             refit.append(k)
     if refit:
-        again, again_starts = fit_again(solver, [hrows[k] for k in refit],
+        again, again_starts = fit_again(chunk.solver, [hrows[k] for k in refit],
                                         [rows[k] for k in refit], presets, kwargs)
         for k, res, start in zip(refit, again, again_starts):
             # the refit is a candidate: kept only if it beats the first fit by the sweep's margin
             # on the validation rows outside the episodes (the rows both fits are meant for)
             ok = (rows[k]["split"].to_numpy() == "validation") & ~flags_of[k]
             old, new = (_selected_error(r[1], ok) for r in (results[k], res))
-            if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old:
+            # forward in time: the refit may not be worse on the time split's validation rows
+            t_old, t_new = (_selected_time_error(r, rows[k], ~flags_of[k])
+                            for r in (results[k], res))
+            forward_ok = not (np.isfinite(t_old) and np.isfinite(t_new) and t_new > t_old)
+            if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old and forward_ok:
                 results[k], starts[k] = res, start
+            elif not forward_ok:
+                notes[k].append(f"{ids[k]}: the fit without its episodes is worse forward in "
+                                f"time ({t_new:.3f} vs {t_old:.3f} mrad on the time split's "
+                                "validation rows); the first fit is kept")
             else:
-                notes[k].append(f"{ids[k]}: the fit without its episodes is not 20 % better on "
+                notes[k].append(f"{ids[k]}: the fit without its episodes is not "
+                                f"{100 * EPISODE_REFIT_MIN_IMPROVEMENT:g} % better on "
                                 f"validation ({new:.3f} vs {old:.3f} mrad); the first fit is kept")
     # regime-aware candidates (per-regime offsets, drift) of heliostats with a break: each
     # replaces the fit above only if it beats it by the same margin on validation
     breaks = set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]), "heliostat_id"])
     of = dict(tuple(regimes.groupby("heliostat_id", sort=False)))
     broken = ([k for k, hid in enumerate(ids) if hid in breaks]
-              if regime_steps == "candidates" else [])
+              if chunk.regime_steps == "candidates" else [])
     specs = {k: HeliostatSpec.from_row(pd.Series(hrows[k])) for k in broken}
     batches = dict(zip(broken, _batches([rows[k] for k in broken])))
     setups = {k: candidate_setup(ids[k], rows[k], of[ids[k]], results[k], MAX_EPISODE_SHARE,
                                  batches[k]) for k in broken}
     fits, frames = {}, {}
-    if solver == "batched" and broken:   # the chunk is of one type: one program for all
+    if chunk.solver == "batched" and broken:   # the chunk is of one type: one program for all
         with one_thread(blas=True):
             fitted = fit_candidates_batched([specs[k] for k in broken],
                                             [setups[k] for k in broken], loss=kwargs["loss"],
@@ -213,6 +330,8 @@ def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, sta
             predicted = predict_candidates([specs[k] for k in broken],
                                            [setups[k] for k in broken], fitted)
         fits, frames = dict(zip(broken, fitted)), dict(zip(broken, predicted))
+    timed = _time_candidates(chunk, [k for k in broken if setups[k].eligible], specs, rows, of,
+                             results, batches)
     out = []
     for k, hid in enumerate(ids):
         regime_rows: list = []
@@ -221,6 +340,6 @@ def follow_regimes(fit_again, solver, hrows, rows, presets, kwargs, results, sta
                 hid, specs[k], rows[k], of[hid], results[k], loss=kwargs["loss"],
                 f_scale_mrad=kwargs["f_scale_mrad"], margin=EPISODE_REFIT_MIN_IMPROVEMENT,
                 max_episode_share=MAX_EPISODE_SHARE, setup=setups[k], fits=fits.get(k),
-                frames=frames.get(k))
-        out.append((results[k], regime_rows, flags_of[k], k in refit, notes[k]))
-    return _segment_errors(regimes, ids, rows, results), out
+                frames=frames.get(k), time=timed.get(k))
+        out.append(HeliostatResult(results[k], regime_rows, flags_of[k], k in refit, notes[k]))
+    return ChunkResult(_segment_errors(regimes, ids, rows, results), out)

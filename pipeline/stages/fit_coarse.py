@@ -7,7 +7,7 @@ coarse_params.parquet and coarse_predictions.parquet in one transaction. The fit
 from __future__ import annotations
 
 import logging
-import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -17,7 +17,7 @@ import torch
 
 from ..artifacts.paths import artifact_path
 from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS,
-                                 REGIME_PARAMS, REGIMES)
+                                 REGIME_PARAMS, REGIMES, ROLLING_ORIGIN)
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
 from ..artifacts.transaction import stage_transaction
@@ -34,9 +34,11 @@ from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
-from .coarse_regimes import REGIME_STEPS, detect_coarse_regimes, follow_regimes
-from .forward import (TIME_COLUMN, attach_coarse_time, chunks_per_worker, fit_coarse_time_split,
-                      load_time_labels)
+from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
+                             detect_coarse_regimes, follow_regimes)
+from .rolling import DEFAULT_MAX_ORIGINS, evaluate_rolling, rolling_chunks
+from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
+                      time_labels_of)
 
 __all__ = [
     "fit_heliostat_chunk",
@@ -73,28 +75,64 @@ def load_split_labels(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
     return labels.fillna("excluded")
 
 
-def _heliostat_inputs(hrow, rows: pd.DataFrame):
-    """(spec, nominal, all rows, split labels, training rows, episode mask) of one heliostat.
+@dataclass
+class _Inputs:
+    """What the presets' fits of one heliostat need (:func:`_heliostat_inputs`)."""
+
+    hid: str
+    spec: HeliostatSpec
+    nominal: torch.Tensor          # (28,)
+    data: MeasurementBatch         # all its rows
+    labels: np.ndarray             # (N,) split label
+    train: MeasurementBatch        # the training rows outside episodes
+    episode: np.ndarray            # (N,) bool: in a detected episode left out of the fits
+    time_labels: np.ndarray | None  # (N,) time split label (None: no time split)
+    time_train: MeasurementBatch | None  # the time split's training rows outside episodes
+
+
+def _heliostat_inputs(hrow, rows: pd.DataFrame) -> _Inputs:
+    """The inputs of one heliostat's fits.
 
     Rows of a detected episode (column ``episode``, if present) are left out of the training
-    rows and of the validation error that selects the preset."""
+    rows, of the time split's training rows and of the validation errors that select the
+    preset."""
     spec = HeliostatSpec.from_row(hrow)
     data = MeasurementBatch.from_frame(rows)
     labels = rows["split"].to_numpy()
     episode = (rows["episode"].to_numpy(bool) if "episode" in rows.columns
                else np.zeros(len(rows), dtype=bool))
-    return (spec, nominal_parameters(hrow), data, labels,
-            data.subset((labels == "train") & ~episode), episode)
+    time_labels = time_labels_of(rows)
+    time_train = (None if time_labels is None
+                  else data.subset((time_labels == "train") & ~episode))
+    return _Inputs(str(hrow["heliostat_id"]), spec, nominal_parameters(hrow), data, labels,
+                   data.subset((labels == "train") & ~episode), episode, time_labels, time_train)
+
+
+def _fit_inputs(inputs: Sequence[_Inputs], presets: Sequence[str], solver: str,
+                **kwargs) -> tuple[list, list]:
+    """Every preset of each heliostat fitted on its training rows, and again on its time split's
+    training rows where it has a time split (None elsewhere): per heliostat the two lists of
+    :class:`CoarseFit` in the order of ``presets``."""
+    fits = fit_presets([i.spec for i in inputs], [i.nominal for i in inputs],
+                       [i.train for i in inputs], presets, solver=solver, **kwargs)
+    timed = [k for k, i in enumerate(inputs) if i.time_train is not None]
+    time_fits: list = [None] * len(inputs)
+    if timed:
+        again = fit_presets([inputs[k].spec for k in timed], [inputs[k].nominal for k in timed],
+                            [inputs[k].time_train for k in timed], presets, solver=solver,
+                            **kwargs)
+        for k, f in zip(timed, again):
+            time_fits[k] = f
+    return fits, time_fits
 
 
 def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
                       loss: str, f_scale_mrad: float, robust_start: bool):
     """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary)."""
-    spec, nominal, data, labels, train, episode = _heliostat_inputs(hrow, rows)
-    fits = fit_presets([spec], [nominal], [train], presets, solver="scipy", loss=loss,
-                       f_scale_mrad=f_scale_mrad, robust_start=robust_start)[0]
-    return _heliostat_outputs(str(hrow["heliostat_id"]), spec, nominal, data, labels, train,
-                              episode, fits)[:3]
+    inputs = [_heliostat_inputs(hrow, rows)]
+    fits, time_fits = _fit_inputs(inputs, presets, "scipy", loss=loss,
+                                  f_scale_mrad=f_scale_mrad, robust_start=robust_start)
+    return _heliostat_outputs(inputs[0], fits[0], time_fits[0])[:3]
 
 
 def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: Sequence[str], *,
@@ -110,44 +148,58 @@ def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: 
 def _chunk_outputs(hrows, rows, presets, **kwargs) -> list[tuple]:
     """:func:`fit_heliostat_chunk`'s tuples with :func:`_heliostat_outputs`' fourth item."""
     inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
-    fits = fit_presets([i[0] for i in inputs], [i[1] for i in inputs], [i[4] for i in inputs],
-                       presets, solver="batched", **kwargs)
-    return [_heliostat_outputs(str(h["heliostat_id"]), *inp, fits[k])
-            for k, (h, inp) in enumerate(zip(hrows, inputs))]
+    fits, time_fits = _fit_inputs(inputs, presets, "batched", **kwargs)
+    return [_heliostat_outputs(i, f, t) for i, f, t in zip(inputs, fits, time_fits)]
 
 
-def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
-                       data: MeasurementBatch, labels: np.ndarray, train: MeasurementBatch,
-                       episode: np.ndarray, fits: Sequence[CoarseFit]):
-    """Predictions, the validation selection, param rows and summary of one heliostat's fits,
-    and the selected fit's (residuals (n, 3), Jacobian (n, 3, 28)) on its training rows with the
-    mask (N,) of those rows (the regime candidates start there; None without training rows)."""
-    preds, summaries = [], []
-    nominal_pred = predict(nominal, spec, data).assign(model="nominal")
-    preds.append(nominal_pred)
-    for fit in fits:
-        p = predict(fit.params, spec, data).assign(model=fit.preset)
-        preds.append(p)
-        err = p["error_mrad"].to_numpy()
-        summaries.append({"preset": fit.preset, "train": _mean(err[labels == "train"]),
-                          "validation": _mean(err[labels == "validation"]),
-                          "test": _mean(err[labels == "test"]),
-                          "validation_outside_episodes": _mean(
-                              err[(labels == "validation") & ~episode])})
-    # selection: lowest validation error outside detected episodes (no geometry predicts an
-    # episode's rows); without validation rows the largest preset asked
-    vals = [s["validation_outside_episodes"] for s in summaries]
-    if all(math.isnan(v) for v in vals):
-        chosen = len(fits) - 1
-    else:
-        chosen = int(np.nanargmin(vals))
-    mask = (labels == "train") & ~episode
+def _preset_errors(inp: _Inputs, fit: CoarseFit, time_fit: CoarseFit | None):
+    """One preset's predictions (with ``time_error_mrad``: the time split's fit's errors, NaN
+    without one) and its summary of mean errors."""
+    pred = predict(fit.params, inp.spec, inp.data).assign(model=fit.preset)
+    err = pred["error_mrad"].to_numpy()
+    t_err = (predict(time_fit.params, inp.spec, inp.data)["error_mrad"].to_numpy()
+             if time_fit is not None else np.full(len(err), np.nan))
+    pred["time_error_mrad"] = t_err
+    t_lab = inp.time_labels if inp.time_labels is not None else np.full(len(err), None)
+    outside = ~inp.episode
+    summary = {"preset": fit.preset, "train": _mean(err[inp.labels == "train"]),
+               "validation": _mean(err[inp.labels == "validation"]),
+               "test": _mean(err[inp.labels == "test"]),
+               "validation_outside_episodes": _mean(err[(inp.labels == "validation") & outside]),
+               "time_validation": _mean(t_err[(t_lab == "validation") & outside]),
+               "time_test": _mean(t_err[t_lab == "test"])}
+    return pred, summary
+
+
+def _heliostat_outputs(inp: _Inputs, fits: Sequence[CoarseFit],
+                       time_fits: Sequence[CoarseFit] | None):
+    """Predictions, the selection, param rows and summary of one heliostat's fits, and the
+    selected fit's (residuals (n, 3), Jacobian (n, 3, 28)) on its training rows with the mask
+    (N,) of those rows (the regime candidates start there; None without training rows).
+
+    The selection (:func:`~.forward.forward_guarded_choice`): the lowest validation error
+    outside detected episodes (no geometry predicts an episode's rows), unless the time split's
+    fits show that preset worse forward in time than another by more than the margin; without
+    validation rows the largest preset asked."""
+    hid, spec, nominal, data, labels, train = (inp.hid, inp.spec, inp.nominal, inp.data,
+                                               inp.labels, inp.train)
+    nominal_pred = predict(nominal, spec, data).assign(model="nominal",
+                                                       time_error_mrad=np.nan)
+    preds, summaries = [nominal_pred], []
+    for k, fit in enumerate(fits):
+        pred, summary = _preset_errors(inp, fit, time_fits[k] if time_fits else None)
+        preds.append(pred)
+        summaries.append(summary)
+    chosen = forward_guarded_choice([s["validation_outside_episodes"] for s in summaries],
+                                    [s["time_validation"] for s in summaries])
+    mask = (labels == "train") & ~inp.episode
     with torch.no_grad():
         start = (residual_and_jacobian(fits[chosen].params.to(torch.float64), spec, train.steps,
                                        train.sun, train.focal_spot) if len(train) else None)
     degenerate = data_degeneracy(spec, fits[chosen].params, nominal, train, jacobian=start)
     param_rows = []
     for k, (fit, s) in enumerate(zip(fits, summaries)):
+        time_params = time_fits[k].params if time_fits else None
         for i, name in enumerate(PARAMETER_NAMES):
             param_rows.append({
                 "heliostat_id": hid, "preset": fit.preset, "selected": k == chosen,
@@ -159,7 +211,10 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
                 "fit_status": fit.status, "fit_implausible": "; ".join(fit.implausible),
                 "fit_degenerate": degenerate,
                 "n_train": len(train), "train_error_mrad": s["train"],
-                "val_error_mrad": s["validation"], "test_error_mrad": s["test"]})
+                "val_error_mrad": s["validation"], "test_error_mrad": s["test"],
+                "time_fitted": float(time_params[i]) if time_params is not None else np.nan,
+                "time_val_error_mrad": s["time_validation"],
+                "time_test_error_mrad": s["time_test"]})
     pred = pd.concat(preds, ignore_index=True)
     pred["heliostat_id"] = hid
     pred["split"] = np.tile(labels, len(preds))
@@ -171,7 +226,7 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
         "presets": {s["preset"]: {k: s[k] for k in ("train", "validation", "test")} for s in summaries},
         "implausible": {f.preset: f.implausible for f in fits if f.implausible},
         "degenerate": degenerate,
-        "episode_rows": int(episode.sum()),
+        "episode_rows": int(inp.episode.sum()),
         "wall_time_s": float(sum(f.wall_time_s for f in fits)),
     }
     return param_rows, pred, summary, (None if start is None else (*start, mask))
@@ -248,19 +303,22 @@ def _fit_chunk(solver: str, hrows: Sequence[dict], rows: Sequence[pd.DataFrame],
     return [o[:3] for o in out], [o[3] for o in out]
 
 
-def _fit_task(task) -> tuple:
+def _fit_task(chunk: CoarseChunk) -> ChunkResult:
     """One chunk of heliostats (batched: one type; scipy: one heliostat), a picklable task for
-    :func:`~heliocal.pipeline.runtime.parallel.map_tasks`. The presets' fits, then, unless
-    ``regime_steps`` is ``off``, what follows from the regimes of their residuals
-    (:func:`.coarse_regimes.follow_regimes`), in the task, so that a heliostat's rows and frames
-    go to a worker once. Returns (the chunk's regimes.parquet rows or None, per heliostat (outputs,
-    regime_params rows, episode flags or None, refitted, log lines))."""
-    solver, hrows, rows, presets, kwargs, regime_steps = task
-    results, starts = _fit_chunk(solver, hrows, rows, presets, kwargs)
-    if regime_steps == "off":
-        return None, [(res, [], None, False, []) for res in results]
-    return follow_regimes(_fit_chunk, solver, hrows, rows, presets, kwargs, results, starts,
-                          regime_steps)
+    :func:`~heliocal.pipeline.runtime.parallel.map_tasks`: the presets' fits, then what follows
+    from the regimes of their residuals (:func:`.coarse_regimes.follow_regimes`), in the task, so
+    that a heliostat's rows and frames go to a worker once."""
+    outputs, starts = _fit_chunk(chunk.solver, chunk.heliostats, chunk.rows, chunk.presets,
+                                 chunk.options)
+    if chunk.regime_steps is None:
+        return ChunkResult(None, [HeliostatResult(out) for out in outputs])
+    return follow_regimes(chunk, outputs, starts, _fit_chunk)
+
+
+#: For benchmarks only (benchmarks/regimes_cost.py): True makes fit-coarse skip everything about
+#: regimes (no detection, refit or candidates; regimes.parquet empty), to measure what they cost.
+#: Not an option of the stage; heliocal never sets it.
+_SKIP_REGIMES = False
 
 
 def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
@@ -276,6 +334,143 @@ def _chunks_by_type(helio: pd.DataFrame, ids: Sequence[str], n_train: dict,
     return chunks
 
 
+def _read_rows(workdir: Path, heliostats: Sequence[str] | None) -> tuple[pd.DataFrame, dict]:
+    """(heliostats.parquet indexed by id, heliostat -> its measurements with the split and time
+    split labels, without rows the split excluded) of the heliostats with training rows."""
+    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
+    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
+    measurements["split"] = load_split_labels(workdir, measurements).to_numpy()
+    measurements[TIME_COLUMN] = load_time_labels(workdir, measurements)
+    helio = helio.set_index("heliostat_id", drop=False)
+    with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])
+    ids = [h for h in helio.index if h in with_train]   # (a scan per heliostat is O(H N))
+    if not ids:
+        raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
+                       "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")
+    groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
+    return helio, {hid: groups[hid][groups[hid]["split"] != "excluded"] for hid in ids}
+
+
+def _chunks(solver: str, helio: pd.DataFrame, rows_of: dict, batch_size: int) -> list[list[str]]:
+    """The heliostats' chunks (scipy: one each; batched: :func:`_chunks_by_type`), the chunks
+    with the most rows first: the longest tasks are not the last ones, so the workers finish
+    together (the results come back in task order)."""
+    ids = list(rows_of)
+    if solver == "scipy":
+        chunks = [[hid] for hid in ids]
+    else:
+        n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in ids}
+        chunks = _chunks_by_type(helio, ids, n_train, batch_size)
+    chunks.sort(key=lambda chunk: -sum(len(rows_of[h]) for h in chunk))
+    return chunks
+
+
+@dataclass
+class _FieldFits:
+    """The chunks' results gathered for the field."""
+
+    outputs: dict            # heliostat -> (coarse_params rows, coarse_predictions rows, summary)
+    regimes: pd.DataFrame    # regimes.parquet
+    regime_params: pd.DataFrame  # regime_params.parquet
+    refitted: list[str]      # heliostats fitted again without their episodes' rows
+
+
+def _collect(chunks: Sequence[list[str]], results: Sequence[ChunkResult],
+             rows_of: dict) -> _FieldFits:
+    """Gather the chunks' results; a heliostat refitted without its episodes gets their flags
+    in ``rows_of`` (the time split's fit leaves them out too). Logs the chunks' notes."""
+    outputs, found, regime_rows, refitted = {}, [], [], []
+    for chunk, result in zip(chunks, results):
+        if result.regimes is not None and len(result.regimes):
+            found.append(result.regimes)
+        for hid, h in zip(chunk, result.heliostats):
+            outputs[hid] = h.outputs
+            regime_rows += h.regime_params
+            if h.episode_flags is not None:
+                rows_of[hid] = rows_of[hid].assign(episode=h.episode_flags)
+            if h.refitted:
+                refitted.append(hid)
+            for line in h.notes:
+                log.info("%s", line)
+    regimes = (pd.concat(found, ignore_index=True)
+               .sort_values("heliostat_id", kind="mergesort").reset_index(drop=True)
+               if found else detect_field(pd.DataFrame(columns=["heliostat_id", "timestamp",
+                                                                "measurement_id",
+                                                                *REGIME_COMPONENTS]))
+               .assign(error_mrad=np.nan))
+    return _FieldFits(outputs, regimes, pd.DataFrame(regime_rows,
+                                                     columns=REGIME_PARAMS.column_names()),
+                      refitted)
+
+
+def _time_split_summary(preds: pd.DataFrame, rows: pd.DataFrame) -> dict | None:
+    """Mean ``time_error_mrad`` of a heliostat's selected model (``preds``: its predictions) on
+    each part of its time split (the model fitted again on the time split's training rows);
+    None without a time split."""
+    labels = time_labels_of(rows)
+    if labels is None:
+        return None
+    mine = preds[preds["selected"].to_numpy(bool)]
+    by_id = dict(zip(rows["measurement_id"].astype(str), labels))
+    lab = mine["measurement_id"].astype(str).map(by_id).to_numpy(dtype=object)
+    err = mine["time_error_mrad"].to_numpy(float)
+    return {sp: _mean(err[lab == sp]) for sp in ("train", "validation", "test")}
+
+
+def _add_next_day(summaries: Sequence[dict], rolling: pd.DataFrame) -> None:
+    """Each summary's ``next_day``: the rolling-origin evaluation's origins, rows and mean
+    next-day error (None without origins)."""
+    by_h = dict(tuple(rolling.groupby("heliostat_id", sort=False))) if len(rolling) else {}
+    for s in summaries:
+        g = by_h.get(s["heliostat_id"])
+        s["next_day"] = None if g is None else {
+            "origins": int(g["origin_date"].nunique()), "rows": len(g),
+            "mean_error_mrad": float(g["error_mrad"].mean())}
+
+
+def _log_fit_warnings(summary: dict) -> None:
+    """A heliostat's warnings: degenerate training data, an implausible selected fit."""
+    if summary["degenerate"]:
+        log.warning("%s: degenerate training data: %s; its errors say nothing about accuracy "
+                    "(calibrate it at more sun positions)", summary["heliostat_id"],
+                    summary["degenerate"])
+    for name, items in summary["implausible"].items():
+        if name == summary["selected"]:
+            log.warning("%s: the nominal geometry needed a large correction (%s)",
+                        summary["heliostat_id"], "; ".join(items))
+
+
+def _write_outputs(workdir: Path, tables: dict, heliostats: Sequence[str] | None,
+                   opts: dict) -> None:
+    """Write fit-coarse's four artifacts. A partial run keeps the other heliostats' fits when the
+    previous run read the same inputs (artifacts.merge_with_previous); the inputs are recorded
+    as they were read."""
+    if heliostats:
+        replaced = lambda old: old["heliostat_id"].isin(set(heliostats))  # noqa: E731
+        tables = {schema: merge_with_previous(workdir, schema, df, replaced)
+                  for schema, df in tables.items()}
+    for schema, df in tables.items():
+        write_artifact(df, workdir, schema, stage="fit-coarse", options=opts)
+
+
+def _regimes_summary(fits: _FieldFits, summaries: Sequence[dict]) -> dict:
+    """The summary's counts of regimes, refits and regime-aware models."""
+    regimes = fits.regimes
+    return {
+        "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
+            ["detected", "renovation"]), "heliostat_id"].nunique()),
+        "detected_breaks": int((regimes["cause"] == "detected").sum()),
+        "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
+        "episodes": int((regimes["kind"] == "episode").sum()),
+        "outliers": int((regimes["kind"] == "outlier").sum()),
+        "refitted_without_episodes": sorted(h for h in fits.refitted
+                                            if fits.outputs[h][2]["episode_rows"]),
+        "regime_models_fitted": int(fits.regime_params["heliostat_id"].nunique()),
+        "regime_models_selected": sorted(
+            s["heliostat_id"] for s in summaries
+            if s.get("regime_candidates", {}).get("selected"))}
+
+
 @locks_workdir("fit-coarse")
 @stage_transaction("fit-coarse")
 @restores_process_state
@@ -285,7 +480,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    heliostats: Sequence[str] | None = None, progress=None,
                    workers: int | None = 1, scheduler: str = "local",
                    dask_address: str | None = None, solver: str = "batched",
-                   batch_size: int = 64, regime_steps: str = "candidates") -> dict:
+                   batch_size: int = 64, regime_steps: str = "candidates",
+                   rolling_origins: int = DEFAULT_MAX_ORIGINS) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -301,8 +497,10 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         Levenberg-Marquardt program per chunk and preset, :mod:`heliocal.pipeline.physics.lm`) or
         ``scipy`` (one :func:`scipy.optimize.least_squares` per heliostat, the reference).
     batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
-    regime_steps : one of :data:`REGIME_STEPS` (default ``candidates``; the others measure what
-        the regimes cost, ``benchmarks/regimes_cost.py``).
+    regime_steps : one of :data:`REGIME_STEPS`: ``candidates`` (the default) or ``detect``
+        (detection and the refit without episodes, no regime-aware candidates).
+    rolling_origins : origins per heliostat of the rolling-origin evaluation
+        (:mod:`.rolling`; rolling_origin.parquet); 0 skips it (the artifact is then empty).
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
@@ -310,108 +508,46 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     check_choice(solver, "solver", "fit_coarse", SOLVERS)
     check_choice(regime_steps, "regime_steps", "fit_coarse", REGIME_STEPS)
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
+    rolling_origins = check_int(rolling_origins, "rolling_origins", "fit_coarse", 0)
+    steps = None if _SKIP_REGIMES else regime_steps
     warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
-    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
-    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
-    measurements["split"] = load_split_labels(workdir, measurements).to_numpy()
-    measurements[TIME_COLUMN] = load_time_labels(workdir, measurements)
+    helio, rows_of = _read_rows(workdir, heliostats)
+    ids = list(rows_of)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
-    helio = helio.set_index("heliostat_id", drop=False)
-    with_train = set(measurements.loc[measurements["split"] == "train", "heliostat_id"])
-    ids = [h for h in helio.index if h in with_train]   # (a scan per heliostat is O(H N))
-    if not ids:
-        raise FitError(f"no heliostat in {workdir} has training measurements; check split.parquet "
-                       "(rerun `heliocal split-knn` with smaller --n-test/--n-val)")
-    groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
-    rows_of = {hid: groups[hid][groups[hid]["split"] != "excluded"] for hid in ids}
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
-
-    if solver == "scipy":
-        chunks = [[hid] for hid in ids]
-    else:
-        n_train = {hid: int((rows_of[hid]["split"] == "train").sum()) for hid in ids}
-        chunks = _chunks_by_type(helio, ids, n_train, batch_size)
-    # the chunks with the most rows go first: the longest tasks are not the last ones, so the
-    # workers finish together (the results come back in task order)
-    chunks.sort(key=lambda chunk: -sum(len(rows_of[h]) for h in chunk))
-    tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
-              presets, kwargs, regime_steps) for chunk in chunks]
+    chunks = _chunks(solver, helio, rows_of, batch_size)
+    tasks = [CoarseChunk(solver, [helio.loc[h].to_dict() for h in chunk],
+                         [rows_of[h] for h in chunk], presets, kwargs, steps) for chunk in chunks]
     chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
                               dask_address=dask_address,
                               progress=(lambda done, total: progress(done, total, None))
                               if progress else None,
                               chunks_per_worker=chunks_per_worker(solver))
-    by_id, found, regime_rows, refit = {}, [], [], []
-    for chunk, (segments, results) in zip(chunks, chunk_results):
-        if segments is not None and len(segments):
-            found.append(segments)
-        for hid, (outputs, rows, flags, refitted, notes) in zip(chunk, results):
-            by_id[hid] = outputs
-            regime_rows += rows
-            if flags is not None:   # the time split's fit leaves the episodes out too
-                rows_of[hid] = rows_of[hid].assign(episode=flags)
-            if refitted:
-                refit.append(hid)
-            for line in notes:
-                log.info("%s", line)
-    regimes = (pd.concat(found, ignore_index=True)
-               .sort_values("heliostat_id", kind="mergesort").reset_index(drop=True)
-               if found else detect_field(pd.DataFrame(columns=["heliostat_id", "timestamp",
-                                                                "measurement_id",
-                                                                *REGIME_COMPONENTS]))
-               .assign(error_mrad=np.nan))
-    regime_params = pd.DataFrame(regime_rows, columns=REGIME_PARAMS.column_names())
+    fits = _collect(chunks, chunk_results, rows_of)
     all_params, all_preds, summaries = [], [], []
-    for params, preds, summary in (by_id[h] for h in ids):
-        if summary["degenerate"]:
-            log.warning("%s: degenerate training data: %s; its errors say nothing about accuracy "
-                        "(calibrate it at more sun positions)", summary["heliostat_id"],
-                        summary["degenerate"])
-        for name, items in summary["implausible"].items():
-            if name == summary["selected"]:
-                log.warning("%s: the nominal geometry needed a large correction (%s)",
-                            summary["heliostat_id"], "; ".join(items))
+    for hid in ids:
+        params, preds, summary = fits.outputs[hid]
+        _log_fit_warnings(summary)
+        summary["time_split"] = _time_split_summary(preds, rows_of[hid])
         all_params += params
         all_preds.append(preds)
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
-            "robust_start": robust_start, "solver": solver, "regime_steps": regime_steps,
+            "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
+            "rolling_origins": rolling_origins,
             "heliostats": list(heliostats) if heliostats else None}
     params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
-    # forward in time: the selected preset fitted again on the time split's training rows (a
-    # regime-aware selection: its base preset; the time split's regimes are not refitted)
-    time_fits = fit_coarse_time_split(
-        helio, rows_of, {h: base_preset(by_id[h][2]["selected"]) for h in ids}, solver=solver,
-        batch_size=batch_size, options=kwargs, workers=workers, scheduler=scheduler,
-        dask_address=dask_address)
-    params, preds = attach_coarse_time(params, preds, time_fits, rows_of)
-    for s in summaries:
-        tf = time_fits.get(s["heliostat_id"])
-        labels = rows_of[s["heliostat_id"]][TIME_COLUMN].to_numpy(dtype=object)
-        s["time_split"] = None if tf is None else {
-            sp: _mean(tf[1][labels == sp]) for sp in ("train", "validation", "test")}
-    if heliostats:
-        # a partial run keeps the other heliostats' fits when the previous run read the same
-        # inputs (artifacts.merge_with_previous); the inputs are recorded as they were read
-        replaced = lambda old: old["heliostat_id"].isin(set(heliostats))  # noqa: E731
-        params = merge_with_previous(workdir, COARSE_PARAMS, params, replaced)
-        preds = merge_with_previous(workdir, COARSE_PREDICTIONS, preds, replaced)
-        regimes = merge_with_previous(workdir, REGIMES, regimes, replaced)
-        regime_params = merge_with_previous(workdir, REGIME_PARAMS, regime_params, replaced)
-    write_artifact(params, workdir, COARSE_PARAMS, stage="fit-coarse", options=opts)
-    write_artifact(preds, workdir, COARSE_PREDICTIONS, stage="fit-coarse", options=opts)
-    write_artifact(regimes, workdir, REGIMES, stage="fit-coarse", options=opts)
-    write_artifact(regime_params, workdir, REGIME_PARAMS, stage="fit-coarse", options=opts)
+    rolling = evaluate_rolling(
+        rolling_chunks(helio, rows_of, {s["heliostat_id"]: s["selected"] for s in summaries},
+                       fits.regimes, solver=solver, options=kwargs, batch_size=batch_size,
+                       max_origins=rolling_origins) if rolling_origins else [],
+        workers=workers, scheduler=scheduler, dask_address=dask_address,
+        chunks_per_worker=chunks_per_worker(solver))
+    _add_next_day(summaries, rolling)
+    _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
+                             REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params,
+                             ROLLING_ORIGIN: rolling},
+                   heliostats, opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
-            "regimes": {
-                "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
-                    ["detected", "renovation"]), "heliostat_id"].nunique()),
-                "detected_breaks": int((regimes["cause"] == "detected").sum()),
-                "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
-                "episodes": int((regimes["kind"] == "episode").sum()),
-                "outliers": int((regimes["kind"] == "outlier").sum()),
-                "refitted_without_episodes": sorted(h for h in refit if by_id[h][2]["episode_rows"]),
-                "regime_models_fitted": int(regime_params["heliostat_id"].nunique()),
-                "regime_models_selected": sorted(
-                    h for h in ids if by_id[h][2].get("regime_candidates", {}).get("selected"))}}
+            "regimes": _regimes_summary(fits, summaries)}

@@ -1,35 +1,43 @@
-"""Forward-in-time evaluation (issue 17): every model evaluated on the time split as well.
+"""Forward-in-time evaluation: every model evaluated, and chosen, on the time split as well.
 
 ``split-knn`` writes, beside the split that selects models (kNN by default), a time split of
 every heliostat with timestamps (split.parquet ``time_split``: the latest measurements are test,
 the ones before them validation, the earlier ones train). The operational question is
 "calibrate now, aim for the coming weeks", and a model that saw a recent row cannot answer it for
 that row: evaluating the kNN-trained model on the time split's test rows would leak (those rows
-may be among its training rows). So the *selected* model is trained a second time, the same way,
-on the time split's training rows only, and its errors on every row are written beside the
-model's own (``time_error_mrad``):
+may be among its training rows). So every model is trained a second time, the same way, on the
+time split's training rows only, and its errors on every row are written beside the model's own
+(``time_error_mrad``):
 
-- ``fit-coarse``: the selected preset fitted again (same solver, loss and robust start rules) on
-  the time split's training rows (:func:`fit_coarse_time_split`); its parameters are
-  coarse_params.parquet's ``time_fitted``. (Rows of detected episodes are not left out of this
-  fit: the episodes were found on residuals that include the recent rows.)
+- ``fit-coarse``: every preset fitted again (same solver, loss and robust start rules) on the time
+  split's training rows outside detected episodes, in the same chunk task as its kNN fit; a
+  regime-aware candidate (``<preset>+offsets``, ``+drift``) fitted again on those rows with the
+  same regimes (a regime that starts after the last training row has no rows of its own and
+  takes the parameters of the regime before it, as ``aim`` does); its parameters are
+  coarse_params.parquet's ``time_fitted``.
 - ``fit-hybrid``: the fitted mode trained again with the same weight decay and seed on top of
-  that time-split coarse fit.
+  the selected preset's time-split coarse fit.
 - ``sweep``: a heliostat whose selected model is the coarse one takes fit-coarse's time-split
   errors, at no cost; with ``sweep --time-split`` a selected hybrid (or pretrained-nn) is trained
   again (the variant, weight decay and seed the kNN selection chose) on top of the time-split
   coarse fit, along the same weight-decay path down to the selected weight decay
-  (:func:`add_sweep_time_split`). That is a second training program per chunk, measured at +50 %
-  of the sweep's time on a simulated field (benchmarks/forward_cost.py), so it is not the
-  default; without it the selected hybrids' forward-in-time errors are missing ("n/a").
+  (:func:`add_sweep_time_split`).
 
-The selection itself never looks at the time split. A heliostat without a time split (no or too
-few timestamps) has no ``time_error_mrad`` and every forward-in-time figure of it is "n/a".
+Choosing forward-aware (:func:`forward_guarded_choice`): the kNN validation selects, but a choice
+whose time-split validation error is worse than another candidate's by more than the margin
+(:data:`heliocal.pipeline.vocabulary.MIN_IMPROVEMENT`) gives way to the candidate with the
+smallest worst relative regret over both validations. On the Jülich log's heliostats with few
+rows a 28-parameter fit from six rows of March extrapolated to June by 256 mrad while the kNN
+validation, whose rows lie between the training rows in time, saw 1.5 mrad. A regime-aware
+candidate or the refit without episodes must in addition not be worse than the plain fit on the
+time split's validation rows. A heliostat without a time split (no or too few timestamps) is
+chosen on the kNN validation alone and every forward-in-time figure of it is "n/a".
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -39,22 +47,22 @@ import torch
 
 from ..artifacts.schemas import COARSE_PARAMS, SPLIT
 from ..artifacts.store import artifact_present, read_artifact
-from ..models.coarse import MeasurementBatch, fit_presets, predict
+from ..models.coarse import MeasurementBatch
 from ..models.config import ensemble_seeds
 from ..models.pretrained import fit_pretrained
 from ..models.training import build_problem, ensemble_errors_mrad, stack_problems, take_rows
 from ..physics.metrics import error_mrad, measured_normal
 from ..physics.metrics import mean_or_nan as _mean
-from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec, nominal_parameters
+from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec
 from ..runtime.parallel import map_tasks
+from ..vocabulary import MIN_IMPROVEMENT
 
 __all__ = [
     "TIME_COLUMN",
     "load_time_labels",
     "time_labels_of",
-    "fit_coarse_time_split",
+    "forward_guarded_choice",
     "chunks_per_worker",
-    "attach_coarse_time",
     "load_time_parameters",
     "add_sweep_time_split",
     "time_rows",
@@ -97,54 +105,30 @@ def time_rows(labels: np.ndarray | None) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 # fit-coarse
 # ------------------------------------------------------------------------------------------------
-def _coarse_time_task(task) -> list[tuple[np.ndarray, np.ndarray]]:
-    """One chunk (one type and preset): the preset fitted on each heliostat's time-split training
-    rows; per heliostat (params (28,), error_mrad of every row)."""
-    solver, hrows, rows, preset, options = task
-    hrows = [pd.Series(h) for h in hrows]
-    specs = [HeliostatSpec.from_row(h) for h in hrows]
-    data = [MeasurementBatch.from_frame(r) for r in rows]
-    trains = [d.subset(r[TIME_COLUMN].to_numpy(dtype=object) == "train") for d, r in zip(data, rows)]
-    fits = fit_presets(specs, [nominal_parameters(h) for h in hrows], trains, (preset,),
-                       solver=solver, **options)
-    return [(f[0].params.numpy().copy(), predict(f[0].params, s, d)["error_mrad"].to_numpy())
-            for f, s, d in zip(fits, specs, data)]
+def forward_guarded_choice(knn_val: Sequence[float], time_val: Sequence[float],
+                           margin: float = MIN_IMPROVEMENT) -> int:
+    """The index of the candidate to select from their mean validation errors [mrad] on the
+    kNN split (``knn_val``) and of their time-split fits on the time split's validation rows
+    (``time_val``; NaN where a candidate has none).
 
-
-def fit_coarse_time_split(helio: pd.DataFrame, rows_of: dict, preset_of: dict, *, solver: str,
-                          batch_size: int, options: dict, workers=1, scheduler="local",
-                          dask_address=None) -> dict:
-    """The selected preset of every heliostat with a time split, fitted again on the time
-    split's training rows with fit-coarse's solver and ``options`` (loss, f_scale_mrad,
-    robust_start).
-
-    Parameters
-    ----------
-    helio : heliostats.parquet indexed by heliostat id.
-    rows_of : heliostat -> its rows (with the ``time_split`` column), in fit-coarse's order.
-    preset_of : heliostat -> its selected preset.
-
-    Returns
-    -------
-    heliostat -> (params (28,) numpy, error_mrad (N,) of every row in ``rows_of``'s order).
-    """
-    ids = [h for h in sorted(preset_of) if time_labels_of(rows_of[h]) is not None]
-    groups: dict = {}
-    for hid in ids:
-        key = (str(helio.loc[hid, "kinematic_type"]), str(helio.loc[hid, "actuator_type"]),
-               preset_of[hid])
-        groups.setdefault(key, []).append(hid)
-    chunks = []
-    for key in sorted(groups):
-        members = sorted(groups[key], key=lambda h: (int((rows_of[h][TIME_COLUMN] == "train").sum()), h))
-        step = 1 if solver == "scipy" else batch_size
-        chunks += [(key[2], members[i:i + step]) for i in range(0, len(members), step)]
-    tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
-              preset, options) for preset, chunk in chunks]
-    results = map_tasks(_coarse_time_task, tasks, workers=workers, scheduler=scheduler,
-                        dask_address=dask_address,
-                        chunks_per_worker=chunks_per_worker(solver)) if tasks else []
-    return {h: r for (_, chunk), res in zip(chunks, results) for h, r in zip(chunk, res)}
+    The kNN choice (lowest ``knn_val``) stands unless its time validation error exceeds the
+    best one by more than ``margin`` (relative); then the candidate with the smallest worst
+    relative regret ``max(knn_val / min knn_val, time_val / min time_val)`` is chosen. Without
+    any finite kNN validation error the last candidate is chosen (the largest preset asked);
+    without finite time validation errors, the kNN choice."""
+    kv = np.asarray(knn_val, float)
+    tv = np.asarray(time_val, float)
+    if not np.isfinite(kv).any():
+        return len(kv) - 1
+    k = int(np.nanargmin(np.where(np.isfinite(kv), kv, np.inf)))
+    both = np.isfinite(kv) & np.isfinite(tv)
+    if not np.isfinite(tv[k]) or both.sum() < 2:
+        return k
+    best_t = tv[both].min()
+    if tv[k] <= (1.0 + margin) * best_t:
+        return k
+    regret = np.maximum(kv / kv[both].min(), tv / best_t)
+    return int(np.argmin(np.where(both, regret, np.inf)))
 
 
 def chunks_per_worker(solver: str) -> int:
@@ -153,46 +137,6 @@ def chunks_per_worker(solver: str) -> int:
     one at a time up to 16 per worker (groups of four left one worker idle for seconds at the
     end of a 2,000-heliostat field); scipy's tasks are single heliostats, grouped by four."""
     return 16 if solver == "batched" else 4
-
-
-def attach_coarse_time(params: pd.DataFrame, preds: pd.DataFrame, fits: dict,
-                       rows_of: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """coarse_params with ``time_fitted``, ``time_val_error_mrad``, ``time_test_error_mrad`` and
-    coarse_predictions with ``time_error_mrad``, on the selected preset's rows of the heliostats
-    in ``fits`` (:func:`fit_coarse_time_split`); missing elsewhere."""
-    params = params.assign(time_fitted=np.nan, time_val_error_mrad=np.nan,
-                           time_test_error_mrad=np.nan)
-    preds = preds.assign(time_error_mrad=np.nan)
-    if not fits:
-        return params, preds
-    p_sel = params["selected"].to_numpy(bool)
-    p_hid = params["heliostat_id"].to_numpy()
-    e_sel = preds["selected"].to_numpy(bool)
-    e_hid = preds["heliostat_id"].to_numpy()
-    by_p = pd.Series(np.arange(len(params))).groupby(p_hid).indices
-    by_e = pd.Series(np.arange(len(preds))).groupby(e_hid).indices
-    tf, tv, tt = (params[c].to_numpy(float).copy() for c in
-                  ("time_fitted", "time_val_error_mrad", "time_test_error_mrad"))
-    te = preds["time_error_mrad"].to_numpy(float).copy()
-    # the whole columns once (converting them per heliostat made this quadratic in the field:
-    # 88 s of fit-coarse's 168 s at 2,000 heliostats)
-    p_index = params["parameter_index"].to_numpy()
-    e_mid = preds["measurement_id"].astype(str).to_numpy()
-    for hid, (theta, err) in fits.items():
-        labels = rows_of[hid][TIME_COLUMN].to_numpy(dtype=object)
-        pi = by_p[hid][p_sel[by_p[hid]]]
-        order = p_index[pi]
-        tf[pi] = theta[order]
-        tv[pi] = _mean(err[labels == "validation"])
-        tt[pi] = _mean(err[labels == "test"])
-        ei = by_e[hid][e_sel[by_e[hid]]]
-        # a heliostat's prediction rows of one model are in the order of its rows
-        position = pd.Series(np.arange(len(labels)),
-                             index=rows_of[hid]["measurement_id"].astype(str).to_numpy())
-        te[ei] = err[position.loc[e_mid[ei]].to_numpy()]
-    params["time_fitted"], params["time_val_error_mrad"], params["time_test_error_mrad"] = tf, tv, tt
-    preds["time_error_mrad"] = te
-    return params, preds
 
 
 def load_time_parameters(workdir: str | Path, heliostats: Sequence[str] | None = None) -> dict:
@@ -212,6 +156,20 @@ def load_time_parameters(workdir: str | Path, heliostats: Sequence[str] | None =
 # ------------------------------------------------------------------------------------------------
 # sweep
 # ------------------------------------------------------------------------------------------------
+@dataclass
+class _TimeEntry:
+    """One heliostat whose selected model the sweep trains again on the time split."""
+
+    hid: str
+    rows: pd.DataFrame          # its measurements, in the order of its predictions
+    hrow: dict                  # its heliostats.parquet row
+    labels: np.ndarray          # its time split's label per row (None: not in it)
+    theta: torch.Tensor         # fit-coarse's time-split fit of its selected preset (28,)
+    free: torch.Tensor          # the preset's free parameters (28,) bool
+    weight_decay: float         # the selected model's
+    seed: int                   # the selected model's
+
+
 def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
     """One group of heliostats whose selected models train together (one hybrid variant, one
     kinematic and actuator type and free parameters; or one heliostat's pretrained-nn): per
@@ -220,42 +178,40 @@ def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
     kind, entries, cfg, weight_decays, path, train_path = task
     torch.use_deterministic_algorithms(True, warn_only=True)
     out = []
-    prepared = []
-    for hid, rows, hrow, labels, theta, free, wd, seed in entries:
-        hrow = pd.Series(hrow)
-        prepared.append((hid, rows, hrow, time_rows(labels), theta, free, wd, seed,
-                         HeliostatSpec.from_row(hrow), MeasurementBatch.from_frame(rows)))
+    hrows = [pd.Series(e.hrow) for e in entries]
+    labels = [time_rows(e.labels) for e in entries]
     if kind == "pretrained-nn":
-        for hid, rows, hrow, labels, theta, _, _, seed, spec, data in prepared:
-            _, _, normal, position = fit_pretrained(theta, spec, hrow, rows, data, labels, seed,
-                                                    cfg)
+        for e, hrow, lab in zip(entries, hrows, labels):
+            d = MeasurementBatch.from_frame(e.rows)
+            _, _, normal, position = fit_pretrained(e.theta, HeliostatSpec.from_row(hrow), hrow,
+                                                    e.rows, d, lab, e.seed, cfg)
             with torch.no_grad():
-                out.append((hid, error_mrad(normal, measured_normal(data.sun, position,
-                                                                    data.focal_spot)).numpy()))
+                out.append((e.hid, error_mrad(normal, measured_normal(d.sun, position,
+                                                                      d.focal_spot)).numpy()))
         return out
     k_ens = cfg.ensemble
     problems, taken, fit_labels = [], [], []
-    for hid, rows, hrow, labels, theta, free, *_ in prepared:
-        p = build_problem(rows, hrow, theta, free, cfg)
-        fitting = np.isin(labels, ("train", "validation"))
+    for e, hrow, lab in zip(entries, hrows, labels):
+        p = build_problem(e.rows, hrow, e.theta, e.free, cfg)
+        fitting = np.isin(lab, ("train", "validation"))
         problems.append(p)
         taken.append(take_rows(p, torch.as_tensor(fitting)))
-        fit_labels.append(labels[fitting])
+        fit_labels.append(lab[fitting])
     stacked, valid = stack_problems([t for t in taken for _ in range(k_ens)])
     n = stacked.data.steps.shape[1]
     lab = np.array([np.resize(x, n) for x in fit_labels for _ in range(k_ens)])
-    seeds = [s for e in prepared for s in ensemble_seeds(e[7], k_ens)]
+    seeds = [s for e in entries for s in ensemble_seeds(e.seed, k_ens)]
     # the selected weight decays are reached along the sweep's path (strong to weak)
-    wds = [w for w in weight_decays if w >= min(e[6] for e in prepared)]
+    wds = [w for w in weight_decays if w >= min(e.weight_decay for e in entries)]
     for wd, result in train_path(stacked, torch.as_tensor(lab == "train") & valid,
                                  torch.as_tensor(lab == "validation") & valid, seeds, wds, cfg,
                                  path):
-        for k, e in enumerate(prepared):
-            if e[6] == wd:
+        for k, e in enumerate(entries):
+            if e.weight_decay == wd:
                 nets = slice(k * k_ens, (k + 1) * k_ens)
                 layers = [(w[nets], b[nets]) for w, b in result.layers]
                 with torch.no_grad():
-                    out.append((e[0], ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]))
+                    out.append((e.hid, ensemble_errors_mrad(problems[k], layers, k_ens).numpy()[0]))
     return out
 
 
@@ -278,8 +234,7 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
     Parameters
     ----------
     chosen : the selection results (``selection``, ``predictions``) of the sweep.
-    items : heliostat -> the sweep's inputs (id, rows, heliostat row, split rows, selected
-        coarse fit, coarse predictions per model, ...).
+    items : heliostat -> the sweep's inputs (:class:`~.sweep_inputs.SweepInputs`).
     variants : the sweep's ``(name, FineConfig)``; ``pretrain_config``: a selected
         pretrained-nn's.
     """
@@ -290,9 +245,10 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
     for res in chosen:
         sel = res["selection"]
         hid = sel["heliostat_id"]
-        _, rows, hrow, srows, selected, coarse, *_ = items[hid]
-        rows = rows.reset_index(drop=True)
-        by_id = dict(zip(srows["measurement_id"].astype(str), srows[TIME_COLUMN]))
+        item = items[hid]
+        rows, hrow, selected = item.rows.reset_index(drop=True), item.hrow, item.selected
+        by_id = dict(zip(item.split_rows["measurement_id"].astype(str),
+                         item.split_rows[TIME_COLUMN]))
         labels = np.array([None if pd.isna(v := by_id.get(m)) else v
                            for m in rows["measurement_id"].astype(str)], dtype=object)
         res["time_labels"] = labels
@@ -300,15 +256,16 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
         if (labels == "train").sum() < 2 or theta is None:
             continue
         if sel["model"] == "coarse":
-            errors[hid] = coarse[selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
+            errors[hid] = item.coarse[selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
             continue
         if not enabled:
             continue
         free = selected["free"]
         key = (sel["model"], str(hrow["kinematic_type"]), str(hrow["actuator_type"]),
                tuple(bool(x) for x in free.tolist()))
-        entries.setdefault(key, []).append((hid, rows, hrow, labels, theta, free,
-                                            float(sel["weight_decay"]), int(sel["seed"])))
+        entries.setdefault(key, []).append(_TimeEntry(hid, rows, hrow, labels, theta, free,
+                                                      float(sel["weight_decay"]),
+                                                      int(sel["seed"])))
     tasks = []
     for key in sorted(entries):
         step = 1 if key[0] == "pretrained-nn" else batch_size
@@ -322,12 +279,13 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
     for res in chosen:
         sel, pred = res["selection"], res["predictions"]
         hid, labels = sel["heliostat_id"], res.pop("time_labels")
-        rows = items[hid][1].reset_index(drop=True)
+        rows = items[hid].rows.reset_index(drop=True)
         err = errors.get(hid)
         position = pd.Series(np.arange(len(rows)), index=rows["measurement_id"].astype(str))
         at = position.loc[pred["measurement_id"].astype(str).to_numpy()].to_numpy()
         pred["time_error_mrad"] = np.nan if err is None else err[at]
         test = labels == "test"
-        coarse = items[hid][5][items[hid][4]["preset"]]["time_error_mrad"].to_numpy(np.float64)
+        coarse = (items[hid].coarse[items[hid].selected["preset"]]["time_error_mrad"]
+                  .to_numpy(np.float64))
         sel["time_test_error_mrad"] = _mean(err[test]) if err is not None else float("nan")
         sel["coarse_time_test_error_mrad"] = _mean(coarse[test])

@@ -30,6 +30,7 @@ naming the file, the problem and the fix) before any artifact is written.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import logging
 import os
 import shutil
@@ -46,6 +47,7 @@ from ..artifacts.paths import artifact_path
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_REASONS
 from ..artifacts.store import artifact_writer, write_artifact
 from ..artifacts.table import to_table
+from ..artifacts.leftovers import OWNER_FILENAME, SPILL_PREFIX
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import InputError, check_int
@@ -294,6 +296,19 @@ def _sources(sources: Iterable[str | os.PathLike]) -> list[Path]:
     return sources
 
 
+def _refuse_workdir_inside(sources: Sequence[Path], workdir: Path) -> None:
+    """A work directory inside a source folder would be read as part of the source while ingest
+    writes it (and the source would change under the run): refused, one line."""
+    where = workdir.resolve()
+    for src in sources:
+        if src.is_dir():
+            folder = src.resolve()
+            if where == folder or folder in where.parents:
+                raise InputError(f"the work directory {workdir} is inside the source folder {src}: "
+                                 "ingest would read the files it writes there; use a --workdir "
+                                 f"outside {src}")
+
+
 def ingest(sources: Iterable[str | os.PathLike], options: IngestOptions | None = None):
     """Read every source and return (measurements, heliostats, rejected, info) DataFrames.
 
@@ -322,15 +337,20 @@ def ingest(sources: Iterable[str | os.PathLike], options: IngestOptions | None =
 class _SpillFolder(os.PathLike):
     """A hidden folder in the workdir for sorted runs, made when the first run is written and
     removed (with its runs) when the stage ends, also on an error; usable as the folder of a
-    :class:`SortedSpill`."""
+    :class:`SortedSpill`. While it lives, the stage holds an ``flock`` on its owner file, so that
+    the next stage run removes the folder of a killed ingest, and only that
+    (:func:`heliocal.pipeline.artifacts.transaction.recover`)."""
 
     def __init__(self, workdir: Path):
         self.workdir = workdir
         self.path: Path | None = None
+        self._owner = None
 
     def __fspath__(self) -> str:
         if self.path is None:
-            self.path = Path(tempfile.mkdtemp(prefix=".ingest-spill-", dir=self.workdir))
+            self.path = Path(tempfile.mkdtemp(prefix=SPILL_PREFIX, dir=self.workdir))
+            self._owner = open(self.path / OWNER_FILENAME, "a+b")
+            fcntl.flock(self._owner.fileno(), fcntl.LOCK_EX)
         return str(self.path)
 
     def __truediv__(self, name: str) -> Path:
@@ -342,6 +362,8 @@ class _SpillFolder(os.PathLike):
     def __exit__(self, *exc) -> None:
         if self.path is not None:
             shutil.rmtree(self.path, ignore_errors=True)
+        if self._owner is not None:
+            self._owner.close()
 
 
 class _RejectedSink:
@@ -404,6 +426,7 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
     batch_rows = check_int(batch_rows, "batch_rows", "ingest", 1)
     sources = _sources(sources)
     workdir = Path(workdir)
+    _refuse_workdir_inside(sources, workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     inputs = {f"source:{s}": s for s in sources}
     if opts.tower:

@@ -39,7 +39,9 @@ processes (``runtime.parallel.map_tasks``), in this process when there are few.
 from __future__ import annotations
 
 import json
+import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..artifacts.manifests import current_transaction, load_manifest
@@ -54,7 +56,8 @@ from ..report.inputs import load_inputs
 from ..report.metrics import compute_metrics, metrics_json
 from ..report.pages import (build_report, figure_tasks, parameter_tables, render_html,
                             render_markdown, resolve_figures)
-from ..report.render import FigureTask, ReportFigure, render_task
+from ..report.forward import svg_next_day
+from ..report.render import FigureTask, ReportFigure, by_heliostat, render_task
 from ..report.regimes import regime_alerts
 from ..report.site import (SORT_JS, field_page_blocks, heliostat_html, heliostats_list_html,
                            index_html, nav_html, why_text)
@@ -65,6 +68,8 @@ __all__ = [
     "measurement_floor",
     "run_report",
 ]
+
+log = logging.getLogger("heliocal.report")
 
 
 #: Fewer figures than this are drawn in this process: starting worker processes (each imports
@@ -115,29 +120,72 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
     return summary
 
 
+@dataclass
+class _Floor:
+    """The measurement floor drawn on the error distribution, and why there is none."""
+
+    value_mrad: float | None
+    source: str                 # where the value comes from ("" without one)
+    problems: list[str]         # a ground_truth.json that could not be used, and why
+
+
 def measurement_floor(workdir: Path, floor_mrad: float | None) -> tuple[float | None, str]:
-    """(floor [mrad] or None, where it comes from): ``floor_mrad`` when given, else the median
-    ``noise_floor_mrad`` of the heliostats in the ``ground_truth.json`` of a
-    simulated field the sources came from (``heliocal simulate`` writes it beside them)."""
+    """(floor [mrad] or None, where it comes from or why there is none): ``floor_mrad`` when
+    given, else the median ``noise_floor_mrad`` of the heliostats in the ``ground_truth.json`` of
+    a simulated field the sources came from (``heliocal simulate`` writes it beside them); a
+    malformed one is logged once as a warning and named instead of a source."""
+    floor = _measurement_floor(workdir, floor_mrad)
+    return floor.value_mrad, floor.source or "; ".join(floor.problems)
+
+
+def _measurement_floor(workdir: Path, floor_mrad: float | None) -> _Floor:
     if floor_mrad is not None:
-        return float(floor_mrad), "given with --floor-mrad"
+        return _Floor(float(floor_mrad), "given with --floor-mrad", [])
     m = load_manifest(workdir, "ingest")
     sources = (m.data.get("options", {}).get("sources") or []) if m is not None else []
+    problems = []
     for src in sources:
         p = Path(src)
         truth = (p if p.is_dir() else p.parent) / "ground_truth.json"
-        if truth.is_file():
-            try:
-                helios = json.loads(truth.read_text(encoding="utf-8")).get("heliostats", {})
-                vals = sorted(float(h["noise_floor_mrad"]) for h in helios.values()
-                              if math.isfinite(float(h.get("noise_floor_mrad", "nan"))))
-            except (OSError, ValueError, TypeError, KeyError, AttributeError):
-                continue
-            if vals:
-                mid = len(vals) // 2
-                med = vals[mid] if len(vals) % 2 else (vals[mid - 1] + vals[mid]) / 2
-                return med, "simulator's noise floor, median over the field"
-    return None, ""
+        if not truth.is_file():
+            continue
+        try:
+            vals = _noise_floors_mrad(truth)
+        except ValueError as exc:
+            problems.append(f"{truth}: {exc}; the report has no measurement floor from it "
+                            "(give --floor-mrad)")
+            log.warning("%s", problems[-1])
+            continue
+        if vals:
+            mid = len(vals) // 2
+            med = vals[mid] if len(vals) % 2 else (vals[mid - 1] + vals[mid]) / 2
+            return _Floor(med, "simulator's noise floor, median over the field", problems)
+    return _Floor(None, "", problems)
+
+
+def _noise_floors_mrad(truth: Path) -> list[float]:
+    """The heliostats' finite ``noise_floor_mrad`` values [mrad] of a ``ground_truth.json``,
+    sorted; ValueError saying what is wrong with a file that is not one."""
+    try:
+        data = json.loads(truth.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"not valid JSON ({exc.msg}, line {exc.lineno} column "
+                         f"{exc.colno})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"cannot be read as text ({exc})") from None
+    helios = data.get("heliostats", {}) if isinstance(data, dict) else None
+    if not isinstance(helios, dict):
+        raise ValueError("'heliostats' is not an object of heliostats")
+    vals = []
+    for hid, h in helios.items():
+        value = h.get("noise_floor_mrad", "nan") if isinstance(h, dict) else None
+        try:
+            value = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"heliostat {hid!r} has no number as noise_floor_mrad") from None
+        if math.isfinite(value):
+            vals.append(value)
+    return sorted(vals)
 
 
 @stage_transaction("report", root=lambda a: a["out"], consistent_inputs=False)
@@ -154,20 +202,84 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     table = field_table(inp, metrics, choices, alert_mrad=alert_mrad,
                         extra_alerts=regime_alerts(inp.regimes))
     summary = field_summary(table, alert_mrad=alert_mrad)
-    floor, floor_source = measurement_floor(workdir, floor_mrad)
+    measured_floor = _measurement_floor(workdir, floor_mrad)
+    floor, floor_source = measured_floor.value_mrad, measured_floor.source
 
     # field figures
     wd_frame = weight_decay_frame(inp.sweep)
-    ts_frame = training_size_frame(inp.sweep)
-    comp = comparison_table(wd_frame, inp.selection)
     cdf_task = FigureTask("field_cdf", "field_error_cdf.png",
                           "Share of heliostats whose model (the one aim uses) has a mean test error "
-                          "below x; dashed: " + ", ".join(f"{x:g}" for x in ERROR_LINES_MRAD)
+                          "below x (dotted: the mean next-day error of the rolling-origin "
+                          "evaluation, the coarse preset recalibrated every calibration day); "
+                          "dashed: " + ", ".join(f"{x:g}" for x in ERROR_LINES_MRAD)
                           + " mrad" + (f"; grey: the measurement floor ({floor_source})"
                                        if floor is not None else ""), None,
                           {"errors": table["test_error_mrad"].to_numpy(float),
+                           "next_day": table.loc[~table["degenerate"].to_numpy(bool),
+                                                 "next_day_error_mrad"].to_numpy(float),
                            "lines": ERROR_LINES_MRAD, "floor": floor,
                            "floor_source": floor_source})
+    field_plan = _field_plan(inp, wd_frame, training_size_frame(inp.sweep),
+                             comparison_table(wd_frame, inp.selection))
+    tasks = [cdf_task] + figure_tasks(blocks) + figure_tasks(field_plan)
+    n_workers = workers if len(tasks) >= MIN_PARALLEL_FIGURES else 1
+    results = map_tasks(render_task, tasks, workers=n_workers)
+    drawn = {t.filename: r for t, r in zip(tasks, results)}
+    blocks = resolve_figures(blocks, drawn)
+    field_blocks = resolve_figures(field_plan, drawn)
+    figs = [b[1] for b in blocks + field_blocks if b[0] == "figure"]
+    cdf_png, cdf_why = drawn[cdf_task.filename]
+    cdf = ReportFigure(cdf_task.filename, cdf_task.caption, cdf_png) if cdf_png else None
+    if cdf is not None:
+        figs.append(cdf)
+    for f in figs:
+        txn.write_bytes(f"figures/{safe_name(f.filename)}", f.png)
+
+    title = f"heliocal report: {workdir}"
+    notes = [b[1] for b in blocks if b[0] == "note"]
+    floor_text = (f"Measurement floor: {floor:.3f} mrad ({floor_source})." if floor is not None
+                  else "Measurement floor: unknown (give `heliocal report --floor-mrad F`).")
+    subtitle = (f"heliocal {metrics['heliocal_version']}, git {metrics['git_revision']}; "
+                f"{metrics['data']['n_measurements']} measurements from "
+                f"{metrics['data']['first_timestamp'] or '?'} to "
+                f"{metrics['data']['last_timestamp'] or '?'}.")
+    run_notes = list(inp.notes) + measured_floor.problems + _plan_page(workdir, txn, title)
+    if not choices:
+        run_notes.append(f"No model yet: run {inp.run_hint('coarse_params.parquet')} for the "
+                         "field map's errors and the worst heliostats.")
+    svg = svg_field_map(table, tower_en_m(inp), alert_mrad=alert_mrad)
+    txn.write_bytes("index.html", index_html(
+        title, subtitle, summary, table, worst(table), svg, cdf, cdf_why, floor_text,
+        run_notes).encode("utf-8"))
+    txn.write_bytes("heliostats.html", heliostats_list_html(title, table).encode("utf-8"))
+    txn.write_bytes("field.html", render_html(field_page_blocks(field_blocks), embed=False,
+                                              nav=nav_html()).encode("utf-8"))
+    txn.write_bytes("details.html", render_html(blocks, embed=False,
+                                                nav=nav_html()).encode("utf-8"))
+    txn.write_bytes("metrics.json", metrics_json(metrics).encode("utf-8"))
+    txn.write_bytes("report.md", render_markdown(blocks).encode("utf-8"))
+    pages = _heliostat_pages(txn, out, inp, helios, table, blocks, wd_frame, title)
+
+    heliostats = []
+    for hid, h in helios.items():
+        model = h["selection"]["model"]
+        test = h["models"].get(model or "", {}).get("splits", {}).get("test", {})
+        heliostats.append({"heliostat_id": hid, "model": model,
+                           "test_mean_error_mrad": test.get("mean_error_mrad"),
+                           "test_p95_error_mrad": test.get("p95_error_mrad")})
+    fig_dir = out / "figures"
+    return {"workdir": str(workdir), "report": str(out / "index.html"),
+            "markdown": str(out / "report.md"), "metrics": str(out / "metrics.json"),
+            "details": str(out / "details.html"), "field": str(out / "field.html"),
+            "figures": [str(fig_dir / f.filename) for f in figs], "notes": notes,
+            "measurement_floor": {"value_mrad": floor, "source": floor_source,
+                                  "problems": measured_floor.problems},
+            "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats}
+
+
+def _field_plan(inp, wd_frame, ts_frame, comp) -> list[tuple]:
+    """field.html's blocks: paper 000's figures as field aggregates (weight decay, training size,
+    hybrid against coarse), each a figure task or a note naming the stage to run for it."""
     field_plan: list[tuple] = [("h2", "Error against weight decay (paper 000, fig. 9a)")]
     sweep_hint = f"run {inp.run_hint('sweep.parquet')}"
     if wd_frame is None:
@@ -208,59 +320,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
             "coarse model (fit-coarse's selected preset), on validation and test; red: the "
             "sweep selected the hybrid. Below the diagonal the hybrid is better.", None,
             {"table": comp})))
-
-    tasks = [cdf_task] + figure_tasks(blocks) + figure_tasks(field_plan)
-    n_workers = workers if len(tasks) >= MIN_PARALLEL_FIGURES else 1
-    results = map_tasks(render_task, tasks, workers=n_workers)
-    drawn = {t.filename: r for t, r in zip(tasks, results)}
-    blocks = resolve_figures(blocks, drawn)
-    field_blocks = resolve_figures(field_plan, drawn)
-    figs = [b[1] for b in blocks + field_blocks if b[0] == "figure"]
-    cdf_png, cdf_why = drawn[cdf_task.filename]
-    cdf = ReportFigure(cdf_task.filename, cdf_task.caption, cdf_png) if cdf_png else None
-    if cdf is not None:
-        figs.append(cdf)
-    for f in figs:
-        txn.write_bytes(f"figures/{safe_name(f.filename)}", f.png)
-
-    title = f"heliocal report: {workdir}"
-    notes = [b[1] for b in blocks if b[0] == "note"]
-    floor_text = (f"Measurement floor: {floor:.3f} mrad ({floor_source})." if floor is not None
-                  else "Measurement floor: unknown (give `heliocal report --floor-mrad F`).")
-    subtitle = (f"heliocal {metrics['heliocal_version']}, git {metrics['git_revision']}; "
-                f"{metrics['data']['n_measurements']} measurements from "
-                f"{metrics['data']['first_timestamp'] or '?'} to "
-                f"{metrics['data']['last_timestamp'] or '?'}.")
-    run_notes = list(inp.notes) + _plan_page(workdir, txn, title)
-    if not choices:
-        run_notes.append(f"No model yet: run {inp.run_hint('coarse_params.parquet')} for the "
-                         "field map's errors and the worst heliostats.")
-    svg = svg_field_map(table, tower_en_m(inp), alert_mrad=alert_mrad)
-    txn.write_bytes("index.html", index_html(
-        title, subtitle, summary, table, worst(table), svg, cdf, cdf_why, floor_text,
-        run_notes).encode("utf-8"))
-    txn.write_bytes("heliostats.html", heliostats_list_html(title, table).encode("utf-8"))
-    txn.write_bytes("field.html", render_html(field_page_blocks(field_blocks), embed=False,
-                                              nav=nav_html()).encode("utf-8"))
-    txn.write_bytes("details.html", render_html(blocks, embed=False,
-                                                nav=nav_html()).encode("utf-8"))
-    txn.write_bytes("metrics.json", metrics_json(metrics).encode("utf-8"))
-    txn.write_bytes("report.md", render_markdown(blocks).encode("utf-8"))
-    pages = _heliostat_pages(txn, out, inp, helios, table, blocks, wd_frame, title)
-
-    heliostats = []
-    for hid, h in helios.items():
-        model = h["selection"]["model"]
-        test = h["models"].get(model or "", {}).get("splits", {}).get("test", {})
-        heliostats.append({"heliostat_id": hid, "model": model,
-                           "test_mean_error_mrad": test.get("mean_error_mrad"),
-                           "test_p95_error_mrad": test.get("p95_error_mrad")})
-    fig_dir = out / "figures"
-    return {"workdir": str(workdir), "report": str(out / "index.html"),
-            "markdown": str(out / "report.md"), "metrics": str(out / "metrics.json"),
-            "details": str(out / "details.html"), "field": str(out / "field.html"),
-            "figures": [str(fig_dir / f.filename) for f in figs], "notes": notes,
-            "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats}
+    return field_plan
 
 
 def _plan_page(workdir: Path, txn, title: str) -> list[str]:
@@ -303,6 +363,7 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
             first = sel.drop_duplicates("heliostat_id")
             presets = dict(zip(first["heliostat_id"].astype(str), first["preset"].astype(str)))
     rows = {r["heliostat_id"]: r for _, r in table.iterrows()}
+    rolling = by_heliostat(inp.rolling)
     ids = list(helios)
     written = []
     folder = out / "heliostats"
@@ -327,7 +388,8 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
         bv = best_val.get(hid)
         page = heliostat_html(title, row, helios[hid],
                               why_text(row, helios[hid], None if bv is None else float(bv)),
-                              figs, prow, head, mrows, prev_next)
+                              figs, prow, head, mrows, prev_next,
+                              svg_next_day(rolling.get(hid)))
         path = safe_child(folder, row["page"])
         txn.write_bytes(f"heliostats/{path.name}", page.encode("utf-8"))
         written.append(str(path))

@@ -17,6 +17,7 @@ import pandas as pd
 import torch
 
 from .. import __version__
+from ..artifacts.audit import refuse_links
 from ..artifacts.paths import atomic_write_text, safe_child
 from ..artifacts.workdir_lock import LOCK_FILENAME, locks_workdir
 from ..errors import InputError
@@ -181,6 +182,77 @@ def _clear_previous(out: Path) -> None:
             paint.rmdir()
 
 
+def _write_paint(out: Path, field_: SimulatedField, paint_ids: list[str], is_paint: np.ndarray,
+                 spot_wgs: np.ndarray) -> dict[str, str]:
+    """The juelich heliostats as a PAINT folder (properties, one calibration file per
+    measurement, timestamps.json) and as a WGS84 log (calibration_log.csv); returns the files."""
+    meas = field_.measurements
+    files: dict[str, str] = {}
+    stamps = {}
+    for hid in paint_ids:
+        h = field_.heliostats[hid]
+        hdir = safe_child(out / "paint", hid)
+        atomic_write_text(safe_child(hdir, f"{hid}-heliostat-properties.json"),
+                          json_text(h.paint_properties))
+    for i in np.flatnonzero(is_paint):
+        r = meas.iloc[i]
+        hid, mid = r["heliostat_id"], r["measurement_id"]
+        doc = {"motor_position": {"axis_1_motor_position": int(r["axis_1_steps"]),
+                                  "axis_2_motor_position": int(r["axis_2_steps"])},
+               "target_name": r["target_name"],
+               "sun_elevation": float(r["sun_elevation_deg"]),
+               "sun_azimuth": float(r["sun_azimuth_deg"]),
+               "focal_spot": {"UTIS": [float(v) for v in spot_wgs[i]]}}
+        atomic_write_text(safe_child(safe_child(out / "paint", hid) / "calibration",
+                                     f"{mid}-calibration-properties.json"),
+                          json.dumps(doc) + "\n")
+        stamps[f"{hid}_{mid}"] = _iso(r["timestamp"])
+    atomic_write_text(out / "paint" / "timestamps.json",
+                      json_text(dict(sorted(stamps.items()))))
+    files["paint"] = "paint/"
+
+    header = ["heliostat_id", "timestamp", "sample_id", "sun_elevation", "sun_azimuth",
+              "axis_1_motor_position", "axis_2_motor_position", "target_name",
+              "heliostat_lat", "heliostat_lon", "heliostat_alt",
+              "focal_spot_lat", "focal_spot_lon", "focal_spot_alt",
+              "target_center_lat", "target_center_lon", "target_center_alt", "temperature"]
+    rows = []
+    for i in np.flatnonzero(is_paint):
+        r = meas.iloc[i]
+        h = field_.heliostats[r["heliostat_id"]]
+        t = field_.targets[r["target_name"]]["center_wgs84"]
+        rows.append([r["heliostat_id"], _iso(r["timestamp"]), r["measurement_id"],
+                     r["sun_elevation_deg"], r["sun_azimuth_deg"],
+                     int(r["axis_1_steps"]), int(r["axis_2_steps"]), r["target_name"],
+                     h.row["latitude_deg"], h.row["longitude_deg"], h.row["altitude_m"],
+                     *spot_wgs[i], *t, r["temperature_c"]])
+    atomic_write_text(out / "calibration_log.csv", _csv(header, rows))
+    files["wgs84_log"] = "calibration_log.csv"
+    return files
+
+
+def _write_enu(out: Path, field_: SimulatedField, enu_ids: list[str],
+               is_paint: np.ndarray) -> dict[str, str]:
+    """The az-el heliostats as an ENU log with its TOML properties; returns the files."""
+    meas = field_.measurements
+    files: dict[str, str] = {}
+    header = ["heliostat_id", "measurement_id", "timestamp", "sun_azimuth_deg",
+              "sun_elevation_deg", "axis_1_steps", "axis_2_steps", "target_name",
+              "focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m", "temperature"]
+    rows = []
+    for i in np.flatnonzero(~is_paint):
+        r = meas.iloc[i]
+        rows.append([r["heliostat_id"], r["measurement_id"], _iso(r["timestamp"]),
+                     r["sun_azimuth_deg"], r["sun_elevation_deg"], int(r["axis_1_steps"]),
+                     int(r["axis_2_steps"]), r["target_name"], r["focal_spot_e_m"],
+                     r["focal_spot_n_m"], r["focal_spot_u_m"], r["temperature_c"]])
+    atomic_write_text(out / "enu_log.csv", _csv(header, rows))
+    atomic_write_text(out / "enu_properties.toml", _toml_properties(field_, enu_ids))
+    files["enu_log"] = "enu_log.csv"
+    files["enu_properties"] = "enu_properties.toml"
+    return files
+
+
 @locks_workdir("simulate", "out_dir")
 def write_field(field_: SimulatedField, out_dir: str | os.PathLike, *, overwrite: bool = False) -> dict:
     """Write a simulated field into ``out_dir`` (created if needed); every file atomically.
@@ -209,6 +281,8 @@ def write_field(field_: SimulatedField, out_dir: str | os.PathLike, *, overwrite
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"{out}: exists and is not a folder; give a folder for the simulation")
+    if out.is_dir():
+        refuse_links(out)  # a planted link would have files written or removed outside
     if out.is_dir() and any(p.name != LOCK_FILENAME for p in out.iterdir()):
         if not overwrite:
             raise InputError(f"{out}: the folder is not empty; choose an empty or new folder, or "
@@ -224,69 +298,15 @@ def write_field(field_: SimulatedField, out_dir: str | os.PathLike, *, overwrite
 
     lat, lon, alt = enu_to_wgs84(meas["focal_spot_e_m"].to_numpy(), meas["focal_spot_n_m"].to_numpy(),
                                  meas["focal_spot_u_m"].to_numpy(), ref)
-    spot_wgs = np.stack([lat, lon, alt], axis=1)
+    spot_wgs = np.stack([lat, lon, alt], axis=1)   # (N, 3) lat, lon [deg], alt [m]
     paint_ids = [h for h, v in field_.heliostats.items() if v.paint_properties is not None]
     enu_ids = [h for h in field_.heliostats if h not in paint_ids]
     is_paint = meas["heliostat_id"].isin(paint_ids).to_numpy()
 
     if paint_ids:
-        stamps = {}
-        for hid in paint_ids:
-            h = field_.heliostats[hid]
-            hdir = safe_child(out / "paint", hid)
-            atomic_write_text(safe_child(hdir, f"{hid}-heliostat-properties.json"),
-                              json_text(h.paint_properties))
-        for i in np.flatnonzero(is_paint):
-            r = meas.iloc[i]
-            hid, mid = r["heliostat_id"], r["measurement_id"]
-            doc = {"motor_position": {"axis_1_motor_position": int(r["axis_1_steps"]),
-                                      "axis_2_motor_position": int(r["axis_2_steps"])},
-                   "target_name": r["target_name"],
-                   "sun_elevation": float(r["sun_elevation_deg"]),
-                   "sun_azimuth": float(r["sun_azimuth_deg"]),
-                   "focal_spot": {"UTIS": [float(v) for v in spot_wgs[i]]}}
-            atomic_write_text(safe_child(safe_child(out / "paint", hid) / "calibration",
-                                         f"{mid}-calibration-properties.json"),
-                              json.dumps(doc) + "\n")
-            stamps[f"{hid}_{mid}"] = _iso(r["timestamp"])
-        atomic_write_text(out / "paint" / "timestamps.json",
-                          json_text(dict(sorted(stamps.items()))))
-        files["paint"] = "paint/"
-
-        header = ["heliostat_id", "timestamp", "sample_id", "sun_elevation", "sun_azimuth",
-                  "axis_1_motor_position", "axis_2_motor_position", "target_name",
-                  "heliostat_lat", "heliostat_lon", "heliostat_alt",
-                  "focal_spot_lat", "focal_spot_lon", "focal_spot_alt",
-                  "target_center_lat", "target_center_lon", "target_center_alt", "temperature"]
-        rows = []
-        for i in np.flatnonzero(is_paint):
-            r = meas.iloc[i]
-            h = field_.heliostats[r["heliostat_id"]]
-            t = field_.targets[r["target_name"]]["center_wgs84"]
-            rows.append([r["heliostat_id"], _iso(r["timestamp"]), r["measurement_id"],
-                         r["sun_elevation_deg"], r["sun_azimuth_deg"],
-                         int(r["axis_1_steps"]), int(r["axis_2_steps"]), r["target_name"],
-                         h.row["latitude_deg"], h.row["longitude_deg"], h.row["altitude_m"],
-                         *spot_wgs[i], *t, r["temperature_c"]])
-        atomic_write_text(out / "calibration_log.csv", _csv(header, rows))
-        files["wgs84_log"] = "calibration_log.csv"
-
+        files.update(_write_paint(out, field_, paint_ids, is_paint, spot_wgs))
     if enu_ids:
-        header = ["heliostat_id", "measurement_id", "timestamp", "sun_azimuth_deg",
-                  "sun_elevation_deg", "axis_1_steps", "axis_2_steps", "target_name",
-                  "focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m", "temperature"]
-        rows = []
-        for i in np.flatnonzero(~is_paint):
-            r = meas.iloc[i]
-            rows.append([r["heliostat_id"], r["measurement_id"], _iso(r["timestamp"]),
-                         r["sun_azimuth_deg"], r["sun_elevation_deg"], int(r["axis_1_steps"]),
-                         int(r["axis_2_steps"]), r["target_name"], r["focal_spot_e_m"],
-                         r["focal_spot_n_m"], r["focal_spot_u_m"], r["temperature_c"]])
-        atomic_write_text(out / "enu_log.csv", _csv(header, rows))
-        atomic_write_text(out / "enu_properties.toml", _toml_properties(field_, enu_ids))
-        files["enu_log"] = "enu_log.csv"
-        files["enu_properties"] = "enu_properties.toml"
-
+        files.update(_write_enu(out, field_, enu_ids, is_paint))
     header = ["heliostat_id", "measurement_id", "timestamp", "temperature_c", *DISTURBANCE_COLUMNS]
     rows = [[r["heliostat_id"], r["measurement_id"], _iso(r["timestamp"]), r["temperature_c"],
              *[r[c] for c in DISTURBANCE_COLUMNS]] for _, r in meas.iterrows()]

@@ -16,7 +16,7 @@ from strong to weak (:func:`train_path`, :class:`PathConfig`). The selection
 (``selection.parquet``) is the candidate ensemble with the lowest mean validation error, where
 the coarse model is always a candidate, so the selected model is never worse than
 ``fit-coarse``'s on validation. A hybrid must beat the coarse model's validation error by
-:data:`MIN_IMPROVEMENT` (20 %, relative) to be chosen; why 20 % is in docs/hybrid.md
+:data:`MIN_IMPROVEMENT` (relative) to be chosen; why that margin is in docs/hybrid.md
 ("Selection"). The selected ensemble's weights are written to ``DIR/hybrid/selected/<HID>.pt``
 (+ JSON), in the layout of ``fit-hybrid``, for ``aim`` and ``report``.
 
@@ -38,7 +38,6 @@ import dataclasses
 import logging
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -46,45 +45,35 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..artifacts.store import (check_fresh, merge_with_previous, previous_run_matches,
-                               read_artifact, write_artifact)
-from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
-from ..models.coarse import MeasurementBatch, fit_presets, metrics_frame, normal_errors_mrad
-from .fit_coarse import coarse_fit_options, coarse_row_parameters, load_selected_parameters
-from ..errors import FitError, ParameterError, check_float, check_int
-from .fit_hybrid import hybrid_chunks
-from ..models.config import FineConfig, ensemble_seeds
-from ..models.network import layers_to_state
-from ..models.training import (FineProblem, MemberResult, take_rows, build_problem,
-                               ensemble_errors_mrad, predict_ensembles, predictions_frame,
-                               stack_problems, train_members)
-from ..models.pretrained import PretrainConfig, fit_pretrained
-from ..physics.parameters import HeliostatSpec, nominal_parameters
-from ..physics.metrics import error_mrad, measured_normal
-from ..runtime.parallel import map_tasks, warm_up
-from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, SELECTED_PREDICTIONS, SELECTION, SPLIT, SWEEP
-from ..artifacts.modelfiles import write_model
-from .split import restrict_training
 from ..artifacts.manifests import current_transaction
+from ..artifacts.modelfiles import write_model
+from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
+from ..artifacts.store import merge_with_previous, previous_run_matches, write_artifact
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
-from ..vocabulary import DEFAULT_STUDY, HYBRID_BATCH_SIZE, OCTAVE_BANDS
-from ..models.config import PathConfig
+from ..errors import ParameterError, check_float, check_int
+from ..models.coarse import fit_presets, metrics_frame, normal_errors_mrad
+from ..models.config import FineConfig, PathConfig, ensemble_seeds
+from ..models.network import layers_to_state
+from ..models.pretrained import PretrainConfig
+from ..models.training import (FineProblem, MemberResult, build_problem, ensemble_errors_mrad,
+                               predict_ensembles, predictions_frame, stack_problems, take_rows,
+                               train_members)
+from ..runtime.parallel import map_tasks, warm_up
 from ..runtime.process_state import restores_process_state
+from ..vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCTAVE_BANDS,
+                          NeuralBaseline)
+from .fit_coarse import coarse_fit_options, coarse_row_parameters
+from .fit_hybrid import hybrid_chunks
 from .forward import add_sweep_time_split
+from .split import restrict_training
+from .sweep_inputs import (SweepHeliostat, SweepInputs, fit_pretrained_errors, read_sweep_inputs,
+                           split_stats, sweep_row)
 
 __all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants", "MIN_IMPROVEMENT",
            "train_path", "study_heliostats"]
 
 log = logging.getLogger("heliocal.sweep")
-
-
-#: Relative validation improvement a hybrid needs to be selected over the coarse model. The
-#: validation rows lie between the training rows in sun position while the kNN test rows lie at
-#: the edge; a network that interpolates the coarse fit's residual structure improves validation
-#: by up to about 15 % on static heliostats without improving (or while worsening) the test rows,
-#: whereas the dynamic disturbances the fine model is for improve it by 25-45 % (docs/hybrid.md).
-MIN_IMPROVEMENT = 0.20
 
 LADDER = (5, 10, 20, 40, 60, 100, 150, 200, 300, 400)
 
@@ -100,25 +89,6 @@ def weight_decay_grid(wd_max: float = 1.0, wd_min: float = 1e-6, per_decade: int
     decades = math.log10(wd_max / wd_min)
     n = int(round(decades * per_decade)) + 1
     return [float(x) for x in np.logspace(math.log10(wd_max), math.log10(wd_min), n)] + [0.0]
-
-
-def _stats(err: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
-    if not mask.any():
-        return float("nan"), float("nan")
-    v = err[mask]
-    return float(v.mean()), float(np.median(v))
-
-
-def _row(hid, model, n_train, wd, seed, err, labels, train_mask, dist, base_preset, wall):
-    tr = _stats(err, train_mask)
-    va = _stats(err, labels == "validation")
-    te = _stats(err, labels == "test")
-    return {"heliostat_id": hid, "model": model, "n_train": int(n_train),
-            "weight_decay": wd, "seed": int(seed),
-            "train_error_mrad": tr[0], "train_median_error_mrad": tr[1],
-            "val_error_mrad": va[0], "val_median_error_mrad": va[1],
-            "test_error_mrad": te[0], "test_median_error_mrad": te[1],
-            "test_train_distance_deg": dist, "base_preset": base_preset, "wall_time_s": wall}
 
 
 def hybrid_variants(config: FineConfig, extra_bands: Sequence[tuple] = (OCTAVE_BANDS,)):
@@ -170,50 +140,11 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
         yield wd, result
 
 
-# ------------------------------------------------------------------------------------------------
-# one heliostat's inputs
-# ------------------------------------------------------------------------------------------------
-@dataclass
-class _Heliostat:
-    """What both parts of the sweep need of one heliostat (built in the worker)."""
-
-    hid: str
-    rows: pd.DataFrame          # its measurements (all splits) with the split label
-    hrow: pd.Series
-    split_rows: pd.DataFrame
-    selected: dict              # fit-coarse's selected fit (load_selected_parameters)
-    coarse: dict                # model -> DataFrame of coarse_predictions metric columns, rows' order
-    coarse_val: float           # fit-coarse's selected preset's mean validation error
-    coarse_test: float          # ... and test error (coarse_params.parquet)
-
-    def __post_init__(self):
-        self.rows = self.rows.reset_index(drop=True)
-        self.hrow = pd.Series(self.hrow)
-        self.labels = self.rows["split"].to_numpy()
-        self.spec = HeliostatSpec.from_row(self.hrow)
-        self.nominal = nominal_parameters(self.hrow)
-        self.data = MeasurementBatch.from_frame(self.rows)
-        self.train = self.labels == "train"
-        self.n_full = int(self.train.sum())
-        test = self.split_rows["split"] == "test"
-        self.test_distance = (float(self.split_rows.loc[test, "nearest_train_distance_deg"].mean())
-                              if test.any() else float("nan"))
-
-
-def _coarse_by_model(pred: pd.DataFrame, rows: pd.DataFrame) -> dict:
-    """coarse_predictions rows of one heliostat per model, in the order of ``rows``."""
-    order = rows["measurement_id"].astype(str).to_numpy()
-    out = {}
-    for model, g in pred.groupby("model", sort=True):
-        out[str(model)] = g.set_index(g["measurement_id"].astype(str)).reindex(order)
-    return out
-
-
 _METRICS = ("error_mrad", "beam_error_mrad", "spot_offset_horizontal_m", "spot_offset_vertical_m",
             "spot_offset_m")
 
 
-def _sel_frame(h: _Heliostat, metrics: pd.DataFrame) -> pd.DataFrame:
+def _sel_frame(h: SweepHeliostat, metrics: pd.DataFrame) -> pd.DataFrame:
     """selected_predictions rows of one heliostat from a frame of the metric columns."""
     out = metrics[list(_METRICS)].reset_index(drop=True).copy()
     out["measurement_id"] = h.rows["measurement_id"].astype(str).to_numpy()
@@ -222,25 +153,15 @@ def _sel_frame(h: _Heliostat, metrics: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
-def _fit_pretrained_errors(h: _Heliostat, coarse, labels, seed: int, config: PretrainConfig):
-    """:func:`fit_pretrained` on one heliostat, plus every row's error_mrad and the seconds."""
-    t0 = time.perf_counter()
-    model, info, normal, position = fit_pretrained(coarse, h.spec, h.hrow, h.rows, h.data, labels,
-                                                   seed, config)
-    with torch.no_grad():
-        err = error_mrad(normal, measured_normal(h.data.sun, position, h.data.focal_spot)).numpy()
-    return model, info, normal, position, err, time.perf_counter() - t0
-
-
 # ------------------------------------------------------------------------------------------------
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
-def _select_chunk(items, variants, weight_decays, seeds, path,
+def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, path,
                   pretrain_config: PretrainConfig | None = None) -> list[dict]:
     """The full-size candidates and the selection of a chunk of heliostats that share one
     kinematic type, actuator type and coarse preset (one batched program per weight decay);
     with ``pretrain_config`` the pre-trained network (first seed) is a candidate too."""
-    helios = [_Heliostat(*item) for item in items]
+    helios = [SweepHeliostat.of(item) for item in items]
     val_masks = [h.labels == "validation" for h in helios]
     test_masks = [h.labels == "test" for h in helios]
     out_rows: list[list[dict]] = [[] for _ in helios]
@@ -250,7 +171,7 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
         for model, frame in h.coarse.items():
             if model == "nominal":
                 continue
-            rows.append(_row(h.hid, model, h.n_full, float("nan"), 0,
+            rows.append(sweep_row(h.hid, model, h.n_full, float("nan"), 0,
                              frame["error_mrad"].to_numpy(np.float64), h.labels, h.train,
                              h.test_distance, model, 0.0))
         best.append({"model": "coarse", "weight_decay": float("nan"), "seed": 0,
@@ -279,9 +200,9 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
                     err = ensemble_errors_mrad(problem, layers, k_ens).numpy()   # (seeds, N)
                 threshold = h.coarse_val * (1.0 - MIN_IMPROVEMENT)
                 for j, s in enumerate(seeds):
-                    out_rows[i].append(_row(h.hid, kind, h.n_full, wd, s, err[j], h.labels,
+                    out_rows[i].append(sweep_row(h.hid, kind, h.n_full, wd, s, err[j], h.labels,
                                             h.train, h.test_distance, h.selected["preset"], wall))
-                    v = _stats(err[j], val_masks[i])[0]
+                    v = split_stats(err[j], val_masks[i])[0]
                     # a hybrid replaces the coarse model only if it is better on validation by
                     # more than MIN_IMPROVEMENT (relative); see its comment
                     if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
@@ -289,23 +210,23 @@ def _select_chunk(items, variants, weight_decays, seeds, path,
                     if best[i]["model"] == "coarse" or v < best[i]["val"]:
                         ens = slice(j * k_ens, (j + 1) * k_ens)
                         best[i] = {"model": kind, "weight_decay": wd, "seed": int(s), "val": v,
-                                   "test": _stats(err[j], test_masks[i])[0], "cfg": cfg,
+                                   "test": split_stats(err[j], test_masks[i])[0], "cfg": cfg,
                                    "problem": problem,
                                    "layers": [(w[ens].clone(), b[ens].clone()) for w, b in layers]}
     if pretrain_config is not None:
         for i, h in enumerate(helios):
-            model, info, normal, position, err, wall = _fit_pretrained_errors(
+            model, info, normal, position, err, wall = fit_pretrained_errors(
                 h, h.selected["params"], h.labels, seeds[0], pretrain_config)
-            out_rows[i].append(_row(h.hid, "pretrained-nn", h.n_full, float("nan"), seeds[0], err,
+            out_rows[i].append(sweep_row(h.hid, "pretrained-nn", h.n_full, float("nan"), seeds[0], err,
                                     h.labels, h.train, h.test_distance, h.selected["preset"], wall))
-            v = _stats(err, val_masks[i])[0]
+            v = split_stats(err, val_masks[i])[0]
             threshold = h.coarse_val * (1.0 - MIN_IMPROVEMENT)   # the hybrids' margin rule
             if math.isnan(v) or (not math.isnan(threshold) and v >= threshold):
                 continue
             if best[i]["model"] == "coarse" or v < best[i]["val"]:
                 best[i] = {"model": "pretrained-nn", "weight_decay": float("nan"),
                            "seed": int(seeds[0]), "val": v,
-                           "test": _stats(err, test_masks[i])[0], "pretrained": model,
+                           "test": split_stats(err, test_masks[i])[0], "pretrained": model,
                            "normal": normal, "position": position, "info": info}
     results = []
     for h, rows, b in zip(helios, out_rows, best):
@@ -353,7 +274,7 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
                      pretrain_config, baselines, coarse_options) -> dict:
     """Study rows of one heliostat: every size below the full one (refits with fit-coarse's
     function and options), and the baselines at every size."""
-    h = _Heliostat(*item)
+    h = SweepHeliostat.of(item)
     hid, labels = h.hid, h.labels
     out_rows: list[dict] = []
     masks, dists = {}, {}
@@ -385,7 +306,7 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
         for fit in fits:
             with torch.no_grad():
                 err = normal_errors_mrad(fit.params, h.spec, h.data).numpy()
-            out_rows.append(_row(hid, fit.preset, n, float("nan"), 0, err, labels, masks[n],
+            out_rows.append(sweep_row(hid, fit.preset, n, float("nan"), 0, err, labels, masks[n],
                                  dists[n], fit.preset, wall))
             if fit.preset == base_preset and n < h.n_full:
                 bases[n] = fit.params
@@ -404,7 +325,7 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
             with torch.no_grad():
                 err = ensemble_errors_mrad(problem, result.layers, k_ens).numpy()
             for k, (n, s) in enumerate(members):
-                out_rows.append(_row(hid, kind, n, wd if kind.startswith("hybrid") else float("nan"),
+                out_rows.append(sweep_row(hid, kind, n, wd if kind.startswith("hybrid") else float("nan"),
                                      s, err[k], labels, masks[n], dists[n], base_preset, wall))
 
     members = [(n, s) for n in small for s in seeds]
@@ -418,8 +339,8 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
         for n in sizes:
             lab = np.where(masks[n], "train", np.where(labels == "train", "unused", labels))
             for s in seeds:
-                *_, e, wall = _fit_pretrained_errors(h, bases[n], lab, int(s), pretrain_config)
-                out_rows.append(_row(hid, "pretrained-nn", n, float("nan"), s, e, labels,
+                *_, e, wall = fit_pretrained_errors(h, bases[n], lab, int(s), pretrain_config)
+                out_rows.append(sweep_row(hid, "pretrained-nn", n, float("nan"), s, e, labels,
                                      masks[n], dists[n], base_preset, wall))
     return {"rows": out_rows}
 
@@ -459,6 +380,80 @@ def study_heliostats(ids: Sequence[str], study: int | Sequence[str] | None,
     return sorted(rng.choice(np.array(ids, dtype=object), size=k, replace=False).tolist())
 
 
+def _checked_seeds(seeds: Sequence[int]) -> list[int]:
+    seeds = [check_int(s, "seeds", "sweep", 0) for s in seeds]
+    if not seeds:
+        raise ParameterError("The 'seeds' parameter of sweep must list at least one seed. Got "
+                             "[] instead.")
+    return seeds
+
+
+def _checked_baselines(baselines: Sequence[str]) -> tuple[str, ...]:
+    for b in baselines:
+        if b not in NeuralBaseline.values():
+            raise ParameterError(f"The 'baselines' parameter of sweep must list "
+                                 f"{' and/or '.join(NeuralBaseline.values())}. Got {b!r} instead.")
+    return tuple(baselines)
+
+
+def _checked_weight_decays(weight_decays: Sequence[float] | None) -> list[float]:
+    """The weight decays (default :func:`weight_decay_grid`) in path order, each checked."""
+    weight_decays = _path_order(weight_decays if weight_decays is not None
+                                else weight_decay_grid())
+    for wd in weight_decays:
+        check_float(wd, "weight_decays", "sweep", 0.0, None)
+    if not weight_decays:
+        raise ParameterError("The 'weight_decays' parameter of sweep must list at least one "
+                             "weight decay. Got [] instead.")
+    return weight_decays
+
+
+def _study_sizes(item: SweepInputs, n_train: Sequence[int] | None) -> list[int]:
+    """The study's training sizes of one heliostat: ``n_train`` capped at its training rows
+    (which are always one of them), else :func:`default_ladder`."""
+    n_full = int((item.split_rows["split"] == "train").sum())
+    return (sorted({min(check_int(n, "n_train", "sweep", 2), n_full) for n in n_train} | {n_full})
+            if n_train else default_ladder(n_full))
+
+
+def _study_presets(item: SweepInputs, presets: Sequence[str] | None) -> tuple[str, ...]:
+    """The coarse presets the study refits: ``presets``, else those fit-coarse fitted (no
+    regime-aware models)."""
+    return tuple(presets) if presets else tuple(
+        m for m in item.coarse if m != "nominal" and "+" not in m)
+
+
+def _write_outputs(workdir: Path, results: list[dict], chosen: list[dict],
+                   heliostats: Sequence[str] | None, opts: dict, seed: int) -> pd.DataFrame:
+    """Write the selected models, sweep.parquet, selection.parquet and
+    selected_predictions.parquet of a run's results; return the selection."""
+    rows = [r for res in results for r in res["rows"]]
+    selection = pd.DataFrame([res["selection"] for res in chosen])
+    txn = current_transaction(workdir, "sweep")
+    hashes = txn.input_fingerprints()  # what this run read: the selected models' recorded inputs
+    for res in chosen:
+        st = res["selected_state"]
+        if st is None:
+            continue
+        hid = st["config"]["heliostat_id"]
+        write_model(txn, "selected", hid, st["state"], {**st["config"], "inputs": hashes})
+    # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
+    # previous sweep read the same inputs (artifacts.merge_with_previous)
+    tables = {SWEEP: pd.DataFrame(rows), SELECTION: selection,
+              SELECTED_PREDICTIONS: pd.concat([res["predictions"] for res in chosen],
+                                              ignore_index=True)}
+    if heliostats:
+        requested = set(heliostats)
+        replaced = lambda old: old["heliostat_id"].isin(requested)  # noqa: E731
+        tables = {s: merge_with_previous(workdir, s, df, replaced) for s, df in tables.items()}
+        if previous_run_matches(workdir, "sweep"):
+            txn.carry_over(r for r in txn.previous_files("hybrid/selected")
+                           if r.rsplit("/", 1)[-1].rsplit(".", 1)[0] not in requested)
+    for schema, df in tables.items():
+        write_artifact(df, workdir, schema, stage="sweep", options=opts, seed=seed)
+    return selection
+
+
 @locks_workdir("sweep")
 @stage_transaction("sweep")
 @restores_process_state
@@ -493,75 +488,29 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     time_split : also train the selected hybrids forward in time (:mod:`.forward`; +50 % time).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
-    warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
-    seeds = [check_int(s, "seeds", "sweep", 0) for s in seeds]
-    if not seeds:
-        raise ParameterError("The 'seeds' parameter of sweep must list at least one seed. Got "
-                             "[] instead.")
-    weight_decays = _path_order(weight_decays if weight_decays is not None
-                                else weight_decay_grid())
-    for wd in weight_decays:
-        check_float(wd, "weight_decays", "sweep", 0.0, None)
-    if not weight_decays:
-        raise ParameterError("The 'weight_decays' parameter of sweep must list at least one "
-                             "weight decay. Got [] instead.")
-    for b in baselines:
-        if b not in ("nn-only", "pretrained-nn"):
-            raise ParameterError(f"The 'baselines' parameter of sweep must list nn-only and/or "
-                                 f"pretrained-nn. Got {b!r} instead.")
+    seeds, weight_decays = _checked_seeds(seeds), _checked_weight_decays(weight_decays)
+    baselines = _checked_baselines(baselines)
     config = (config or FineConfig()).validated()
     pretrain_config = pretrain_config or PretrainConfig()
     path = (path or PathConfig()).validated()
     batch_size = check_int(batch_size, "batch_size", "sweep", 1)
     variants = hybrid_variants(config, extra_bands)
-    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
-    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats).set_index("heliostat_id", drop=False)
-    check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})
-    check_fresh(workdir, COARSE_PARAMS, {"measurements": MEASUREMENTS, "split": SPLIT})
-    check_fresh(workdir, COARSE_PREDICTIONS, {"measurements": MEASUREMENTS, "split": SPLIT})
-    split = read_artifact(workdir, SPLIT, heliostats=heliostats)
-    selected = load_selected_parameters(workdir, heliostats)
-    coarse_options = coarse_fit_options(workdir)
-    params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
-                           columns=["heliostat_id", "preset", "selected", "val_error_mrad",
-                                    "test_error_mrad"])
-    params = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
-    preds = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats)
-    pred_of = dict(tuple(preds.groupby("heliostat_id", sort=False)))
-    merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
-                                on=["heliostat_id", "measurement_id"], how="inner")
-    rows_of = dict(tuple(merged.groupby("heliostat_id", sort=False)))   # not a scan per heliostat
-    split_of = dict(tuple(split.groupby("heliostat_id", sort=False)))
-    items = {}
-    for hid in sorted(selected):
-        rows = rows_of.get(hid)
-        srows = split_of.get(hid)
-        if rows is None or srows is None or hid not in helio.index or hid not in pred_of:
-            continue
-        if not (srows["split"] == "train").any():
-            continue
-        items[hid] = (hid, rows, helio.loc[hid].to_dict(), srows, selected[hid],
-                      _coarse_by_model(pred_of[hid], rows),
-                      float(params.loc[hid, "val_error_mrad"]),
-                      float(params.loc[hid, "test_error_mrad"]))
-    if not items:
-        raise FitError(f"no heliostat in {workdir} has a coarse fit and training rows; run "
-                       f"`heliocal fit-coarse --workdir {workdir}` first")
-    ids = sorted(items, key=lambda h: (len(items[h][1]), h))
-    chunks = hybrid_chunks(ids, selected, helio, batch_size)
+    warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
+    items = read_sweep_inputs(workdir, heliostats)
+    selected = {hid: item.selected for hid, item in items.items()}
+    helio = pd.DataFrame([item.hrow for item in items.values()],
+                         index=list(items)) if items else None
+    ids = sorted(items, key=lambda h: (len(items[h].rows), h))
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
                          pretrain_config if select_pretrained else None))
-             for chunk in chunks]
+             for chunk in hybrid_chunks(ids, selected, helio, batch_size)]
     studied = study_heliostats(list(items), study, study_seed)
+    coarse_options = coarse_fit_options(workdir)
     for hid in studied:
-        n_full = int((items[hid][3]["split"] == "train").sum())
-        sizes = (sorted({min(check_int(n, "n_train", "sweep", 2), n_full) for n in n_train}
-                        | {n_full}) if n_train else default_ladder(n_full))
-        study_presets = tuple(presets) if presets else tuple(
-            m for m in items[hid][5] if m != "nominal" and "+" not in m)   # no regime models
-        tasks.append(("study", (items[hid], sizes, study_presets, variants, weight_decays, seeds,
-                                path, pretrain_config, tuple(baselines), coarse_options)))
+        tasks.append(("study", (items[hid], _study_sizes(items[hid], n_train),
+                                _study_presets(items[hid], presets), variants, weight_decays,
+                                seeds, path, pretrain_config, baselines, coarse_options)))
     parts = map_tasks(_sweep_task, tasks, workers=workers, scheduler=scheduler,
                       dask_address=dask_address,
                       progress=(lambda d, t: progress(d, t, None)) if progress else None)
@@ -571,16 +520,6 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     add_sweep_time_split(workdir, chosen, items, variants, weight_decays, path, pretrain_config,
                          train_path, time_split, batch_size=batch_size, workers=workers,
                          scheduler=scheduler, dask_address=dask_address)
-    rows = [r for res in results for r in res["rows"]]
-    selection = pd.DataFrame([res["selection"] for res in chosen])
-    txn = current_transaction(workdir, "sweep")
-    hashes = txn.input_fingerprints()  # what this run read: the selected models' recorded inputs
-    for res in chosen:
-        st = res["selected_state"]
-        if st is None:
-            continue
-        hid = st["config"]["heliostat_id"]
-        write_model(txn, "selected", hid, st["state"], {**st["config"], "inputs": hashes})
     opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
             "seeds": seeds, "presets": list(presets) if presets else "fit-coarse's",
             "baselines": list(baselines), "extra_bands": [list(b) for b in extra_bands],
@@ -590,20 +529,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "batch_size": batch_size, "select_pretrained": bool(select_pretrained),
             "coarse_options": coarse_options, "time_split": bool(time_split),
             "heliostats": list(heliostats) if heliostats else None}
-    # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
-    # previous sweep read the same inputs (artifacts.merge_with_previous)
-    tables = {SWEEP: pd.DataFrame(rows), SELECTION: selection,
-              SELECTED_PREDICTIONS: pd.concat([res["predictions"] for res in chosen],
-                                              ignore_index=True)}
-    if heliostats:
-        requested = set(heliostats)
-        replaced = lambda old: old["heliostat_id"].isin(requested)  # noqa: E731
-        tables = {s: merge_with_previous(workdir, s, df, replaced) for s, df in tables.items()}
-        if previous_run_matches(workdir, "sweep"):
-            txn.carry_over(r for r in txn.previous_files("hybrid/selected")
-                           if r.rsplit("/", 1)[-1].rsplit(".", 1)[0] not in requested)
-    for schema, df in tables.items():
-        write_artifact(df, workdir, schema, stage="sweep", options=opts, seed=seeds[0])
+    selection = _write_outputs(workdir, results, chosen, heliostats, opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "study_heliostats": studied,
             "members_per_heliostat": {h: len(weight_decays) * len(seeds) * len(variants)

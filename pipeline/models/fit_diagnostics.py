@@ -1,0 +1,77 @@
+"""What a coarse fit's Jacobian at the solution says about its parameters: standard errors, which
+parameters the data determine, and the condition number (:func:`fit_diagnostics`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..physics.parameters import PARAMETER_NAMES
+from ..vocabulary import STD_ERROR_PSEUDO_INVERSE
+
+__all__ = ["FitDiagnostics", "fit_diagnostics"]
+
+
+@dataclass
+class FitDiagnostics:
+    """:func:`fit_diagnostics` of one fit."""
+
+    std_error: np.ndarray       # (28,) standard errors; NaN where fixed
+    determined: np.ndarray      # (28,) bool: the data, not the prior, pin the parameter
+    condition_number: float     # of the scaled data Jacobian
+    pseudo_inverse: bool        # J^T J was singular: std_error from its pseudo-inverse
+
+    def flag_status(self, status: str) -> str:
+        """The fit's status, with :data:`~heliocal.pipeline.vocabulary.STD_ERROR_PSEUDO_INVERSE`
+        appended when the standard errors are not trustworthy."""
+        return f"{status}; {STD_ERROR_PSEUDO_INVERSE}" if self.pseudo_inverse else status
+
+
+def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
+                    free_idx: np.ndarray, sigma: np.ndarray) -> FitDiagnostics:
+    """Standard errors, the 'determined' flags and the condition number from the Jacobian ``J``
+    (data rows, then prior rows; columns the free parameters ``free_idx``) and residuals ``r``
+    at the solution; ``sigma`` (28,) the prior sigmas, which scale the columns.
+
+    ``cov = s^2 (J^T J)^-1`` with ``s^2`` the data residual variance. When ``J^T J`` cannot be
+    inverted the pseudo-inverse stands in and ``pseudo_inverse`` says so: such standard errors
+    are finite but not trustworthy (a direction the data and the prior both leave free gets
+    none)."""
+    std = np.full(len(PARAMETER_NAMES), np.nan)
+    determined = np.ones(len(PARAMETER_NAMES), bool)
+    cond = float("nan")
+    pseudo = False
+    if J is not None:
+        dof = max(n_data - len(free_idx), 1)
+        s2 = float((r[:n_data] ** 2).sum() / dof)
+        scale = sigma[free_idx]
+        Js = J * scale  # scaled columns: comparable units
+        # singular values of the scaled data Jacobian from the small normal matrix (a tall SVD
+        # is slow with a multithreaded BLAS under load)
+        try:
+            ev = np.linalg.eigvalsh(Js[:n_data].T @ Js[:n_data])
+            cond = float(np.sqrt(ev[-1] / ev[0])) if ev[0] > 0 else float("inf")
+        except np.linalg.LinAlgError:
+            cond = float("inf")
+        JtJ = Js.T @ Js
+        try:
+            cov_scaled = np.linalg.inv(JtJ)
+        except np.linalg.LinAlgError:
+            cov_scaled, pseudo = np.linalg.pinv(JtJ), True
+        # data-noise covariance; the prior rows stay in (they keep it invertible)
+        std_free = np.sqrt(np.clip(np.diag(cov_scaled), 0, None) * max(s2, 1e-300)) * scale
+        std[free_idx] = std_free
+        # "determined": the data alone pin the parameter to well within its prior sigma, for a
+        # unit (1 mrad) measurement noise; otherwise the prior, not the data, fixes it.
+        Jd = Js[:n_data]
+        try:
+            eig, vec = np.linalg.eigh(Jd.T @ Jd)
+            tol = max(eig.max(), 1e-300) * 1e-12
+            inv = (vec / np.where(eig > tol, eig, np.inf)) @ vec.T
+            data_only = np.sqrt(np.clip(np.diag(inv), 0, None))
+            null = (vec[:, eig <= tol] ** 2).sum(axis=1) > 1e-6
+        except np.linalg.LinAlgError:  # pragma: no cover
+            data_only, null = np.full(len(free_idx), np.inf), np.ones(len(free_idx), bool)
+        determined[free_idx] = (data_only < 0.5) & ~null
+    return FitDiagnostics(std, determined, cond, pseudo)
