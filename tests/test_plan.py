@@ -318,6 +318,15 @@ def test_plan_end_to_end(runner, ingested, tmp_path):
     assert chosen.groupby("heliostat_id").size().max() <= 4
     assert {labels[f"{h}/{m}"] for h, m in zip(chosen["heliostat_id"], chosen["measurement_id"])
             } <= {"train", "validation"}
+    # the fourth bad input: --from-existing over days without rows (the sample's logs end on
+    # 2024-06-07); one line, and the plan of the run before stays as it was
+    result = runner.invoke(app, ["plan", "--workdir", str(wd), "--start", "2030-01-01",
+                                 "--days", "62", "--from-existing", "--workers", "1"])
+    assert result.exit_code == 1
+    assert result.stderr == (f"Error: no measured rows outside the test set from 2030-01-01 for "
+                             f"62 days in {wd} to choose from (--from-existing); choose dates "
+                             f"of the logs\n")
+    pd.testing.assert_frame_equal(read_artifact(wd, PLAN), chosen)
 
 
 # ------------------------------------------------------------------------------------------------
