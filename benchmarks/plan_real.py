@@ -53,7 +53,8 @@ def _prepare(work: Path, sources, properties, preset: str) -> None:
     if not (work / "coarse_params.parquet").exists():
         run_ingest(sources, work, IngestOptions(properties=properties) if properties else None)
         run_split(work, n_test=20, n_val=10)
-        run_fit_coarse(work, preset=preset, workers=1)
+        # the rolling-origin evaluation scores the selected fits and leaves them as they are
+        run_fit_coarse(work, preset=preset, workers=1, rolling_origins=0)
 
 
 def _test_errors(work: Path, choices: dict, presets: dict) -> pd.Series:
