@@ -5,18 +5,20 @@ simulate``'s model, seed 0), writes it as a WGS84 calibration log plus PAINT hel
 files, then runs ``ingest``, ``split-knn``, ``fit-coarse --preset static-20``, ``fit-hybrid``
 (one weight decay), ``pretrained-nn`` (``fit-hybrid --mode pretrained-nn``: the pre-trained
 network's cost per heliostat, default variant), ``sweep --study 0`` (the production selection of
-every heliostat with the default weight decays, band sets and ensembles; no training-size study)
-and ``report`` (every page and figure; the size of ``report/index.html`` and of the report folder
-are printed too), and on request ``fit-coarse-no-rolling`` (fit-coarse without its rolling-origin
-evaluation, for the next-day error's cost) and ``aim`` (``aim --date 2024-03-01 --every 10min``:
-every heliostat's aims of a day) as separate ``heliocal`` processes, once with ``--workers 1`` and once with
+every heliostat with the default weight decays, band sets and ensembles; no training-size study),
+``plan`` (a 7-day measurement plan from 2024-03-01, the budget the logs' pace gives; only when
+asked for in ``--stages``) and ``report`` (every page and figure; the size of
+``report/index.html`` and of the report folder are printed too), and on request
+``fit-coarse-no-rolling`` (fit-coarse without its rolling-origin evaluation, for the next-day
+error's cost) and ``aim`` (``aim --date 2024-03-01 --every 10min``: every heliostat's aims of a
+day) as separate ``heliocal`` processes, once with ``--workers 1`` and once with
 ``--workers 2``, and prints per stage the wall
 time, heliostats per second and the peak memory of the stage's whole process tree (summed RSS,
 sampled every 0.1 s), so the scaling ratio is measured in one run. Usage::
 
     .venv/bin/python benchmarks/field.py [--heliostats 2000] [--out runs/field-bench]
         [--hybrid-epochs 800]
-        [--stages ingest,split-knn,fit-coarse,fit-hybrid,pretrained-nn,sweep,report]
+        [--stages ingest,split-knn,fit-coarse,fit-hybrid,pretrained-nn,sweep,plan,report]
         [--solver batched|scipy] [--workers 1,2] [--sweep-args "--no-warm-start"]
 
 The simulated field is cached in OUT/field (delete it to simulate again).
@@ -182,6 +184,8 @@ def main() -> None:
                               "--workers", str(workers)],
             "sweep": ["sweep", "--workdir", str(wd), "--study", "0",
                       "--workers", str(workers), *args.sweep_args.split()],
+            "plan": ["plan", "--workdir", str(wd), "--start", "2024-03-01", "--days", "7",
+                     "--workers", str(workers)],
             "report": ["report", "--workdir", str(wd), "--workers", str(workers)],
             # fit-coarse without its rolling-origin evaluation: beside fit-coarse, the cost of
             # the next-day error (run it after fit-coarse; it replaces the fit's artifacts)

@@ -16,6 +16,7 @@ from heliocal.cli import simulate as _simulate  # noqa: F401,E402
 from heliocal.cli import hybrid as _hybrid  # noqa: F401,E402
 from heliocal.cli import sweep as _sweep  # noqa: F401,E402
 from heliocal.cli import info as _info  # noqa: F401,E402
+from heliocal.cli import plan as _plan  # noqa: F401,E402
 
 __all__ = ["app", "main"]
 

@@ -18,7 +18,7 @@ __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric"
            "DEFAULT_TIME_MAX_MARGIN_DAYS", "DEFAULT_MAX_SPOT_DISTANCE_M",
            "DEFAULT_SUN_TOLERANCE_DEG", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_ROLLING_ORIGINS",
            "DEFAULT_FOURIER_BANDS", "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "MIN_IMPROVEMENT",
-           "STD_ERROR_PSEUDO_INVERSE"]
+           "STD_ERROR_PSEUDO_INVERSE", "PLAN_MIN_ELEVATION_DEG", "PLAN_DEFAULT_DAYS"]
 
 
 class Choice(str, enum.Enum):
@@ -224,6 +224,12 @@ DEFAULT_ALERT_MRAD = 2.0
 DEFAULT_FOURIER_BANDS = tuple(float(b) for b in range(1, 33))
 #: Fourier bands of the ``hybrid-octaves`` candidate: Tancik et al.'s octaves 1, 2, 4, ..., 32.
 OCTAVE_BANDS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+
+
+#: ``plan``: lowest sun elevation of a planned row and of the year's aims [deg], and the
+#: default length of a plan [days].
+PLAN_MIN_ELEVATION_DEG = 10.0
+PLAN_DEFAULT_DAYS = 7
 
 #: Appended to a coarse fit's ``fit_status`` (coarse_params.parquet) when ``J^T J`` at the solution
 #: could not be inverted and its standard errors come from the pseudo-inverse; the report shows it

@@ -15,12 +15,11 @@ from .ids import (HELIOSTAT_ID_RE, HELIOSTAT_ID_RULE, WINDOWS_RESERVED_NAMES,
                   heliostat_id_problem, suggest_heliostat_id)
 from .table import ArtifactSchema, Column
 
-__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS", "REGIMES",
-           "REGIME_PARAMS", "ROLLING_ORIGIN",
-           "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
+__all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS",
+           "REGIMES", "REGIME_PARAMS", "ROLLING_ORIGIN", "HYBRID_PREDICTIONS", "SWEEP", "SELECTION",
+           "SELECTED_PREDICTIONS", "PLAN", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
-           "WINDOWS_RESERVED_NAMES",
-           "nomenclature_markdown"]
+           "WINDOWS_RESERVED_NAMES", "nomenclature_markdown"]
 
 C = Column
 
@@ -514,11 +513,47 @@ SELECTED_PREDICTIONS = ArtifactSchema(
                 "`selected`): the selected hybrid member, or the coarse model.")
 
 
+PLAN = ArtifactSchema(
+    name="plan", filename="plan.parquet", producer="plan", sort_by=("rank",),
+    description="The measurement plan in the order of choice: each row the (heliostat, time, "
+                "target) of the largest drop of its heliostat's expected year-round aim error "
+                "given the rows before it, one heliostat on a target at a time (docs/plan.md). "
+                "`plan.csv` beside it holds the same rows in time order for a plant scheduler.",
+    columns=(
+        C("rank", "int64", "", "Order of choice, 1 = the largest expected gain."),
+        C("heliostat_id", "string", "", "Heliostat to measure."),
+        C("time_utc", "timestamp", "UTC", "When to measure (the start of its slot; with "
+          "--from-existing the time the chosen row was measured)."),
+        C("day", "int64", "", "Solar day of the plan: 0 = --start (a day runs from local mean "
+          "solar midnight)."),
+        C("target", "string", "", "Calibration target, one the heliostat was measured on."),
+        C("sun_azimuth_deg", "float64", "deg", "Sun azimuth at that time (NREL SPA), 0 = south, "
+          "positive toward east."),
+        C("sun_elevation_deg", "float64", "deg", "Apparent sun elevation at that time."),
+        C("axis_1_steps", "float64", "steps", "Motor position of actuator 1 that puts the "
+          "coarse model's beam on the target centre (the measured one with --from-existing)."),
+        C("axis_2_steps", "float64", "steps", "The same for actuator 2."),
+        C("expected_gain_mrad2", "float64", "mrad^2", "Reduction of the heliostat's expected "
+          "year-round mean squared aim error by this row, after the heliostat's rows of lower "
+          "rank."),
+        C("expected_error_before_mrad", "float64", "mrad", "The heliostat's expected year-round "
+          "RMS aim error from the parameters' uncertainty before this row (its rows so far and "
+          "the plan's rows of lower rank)."),
+        C("expected_error_after_mrad", "float64", "mrad", "The same after this row."),
+        C("coarse_model", "string", "", "The coarse model whose covariance the gain rests on "
+          "(fit-coarse's selected model; `nominal:<preset>` for a heliostat without a coarse "
+          "fit: its nominal geometry with the field's most common preset)."),
+        C("measurement_id", "string", "", "With --from-existing: the measurement chosen.",
+          nullable=True),
+    ),
+)
+
+
 def all_schemas() -> list[ArtifactSchema]:
     """Every artifact schema of heliocal, in the order of the stages that write them."""
     return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
             REGIMES, REGIME_PARAMS, ROLLING_ORIGIN, HYBRID_PREDICTIONS, SWEEP, SELECTION,
-            SELECTED_PREDICTIONS]
+            SELECTED_PREDICTIONS, PLAN]
 
 
 def nomenclature_markdown() -> str:

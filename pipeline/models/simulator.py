@@ -66,6 +66,9 @@ __all__ = [
     "SimulatedHeliostat",
     "SimulatedField",
     "simulate_field",
+    "integer_steps",
+    "noiseless_spots",
+    "target_plane_axes",
 ]
 
 _FUNC = "simulate_field"
@@ -349,13 +352,13 @@ def _azel_heliostat(hid: str, position_enu) -> dict:
     return row
 
 
-def _inverse_steps(params, spec, sun, aim) -> torch.Tensor:
+def integer_steps(params, spec, sun, aim) -> torch.Tensor:
     """Integer steps (N, 2) from per-measurement parameters (N, 28); NaN rows are unreachable."""
     steps = inverse_kinematics(params, spec, sun.unsqueeze(-2), aim.unsqueeze(-2)).squeeze(-2)
     return torch.round(steps)
 
 
-def _spots(params, spec, steps, sun, centre, normal):
+def noiseless_spots(params, spec, steps, sun, centre, normal):
     """Noiseless focal spots (N, 3), mirror centres (N, 3) for integer steps (N, 2)."""
     n_mirror, position = forward_kinematics(params, spec, steps.unsqueeze(-2))
     n_mirror, position = n_mirror.squeeze(-2), position.squeeze(-2)
@@ -364,7 +367,8 @@ def _spots(params, spec, steps, sun, centre, normal):
     return position + distance.unsqueeze(-1) * beam, position
 
 
-def _plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def target_plane_axes(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit horizontal and vertical axes (N, 3) of target planes with normals (N, 3)."""
     up = np.array([0.0, 0.0, 1.0])
     horizontal = np.cross(normal, up)
     horizontal /= np.linalg.norm(horizontal, axis=-1, keepdims=True)
@@ -511,21 +515,21 @@ def _simulate_measurements(rng, h: SimulatedHeliostat, count: int, slots, t0, ta
                                                     np.zeros(n)).items() if k != "gear_error"}
         true = h.true + change_offsets(h.changes, times) if h.changes else h.true
         params = params_per_measurement(true, h.disturbances, base, n)
-        steps = _inverse_steps(params, spec, sun, centre)
+        steps = integer_steps(params, spec, sun, centre)
         values = base
         if "gear_error" in h.disturbances:  # the gear error depends on the steps: fixed point
             for _ in range(3):
                 values = disturbance_values(h.disturbances, times, t0, temperature,
                                              np.nan_to_num(steps[:, 1].numpy()))
                 params = params_per_measurement(true, h.disturbances, values, n)
-                steps = _inverse_steps(params, spec, sun, centre)
+                steps = integer_steps(params, spec, sun, centre)
             values = disturbance_values(h.disturbances, times, t0, temperature,
                                          np.nan_to_num(steps[:, 1].numpy()))
             params = params_per_measurement(true, h.disturbances, values, n)
         ok = torch.isfinite(steps).all(-1).numpy()
         ok &= np.cumsum(ok) <= need
         sel = torch.as_tensor(ok)
-        spot, position = _spots(params[sel], spec, steps[sel], sun[sel], centre[sel], normal[sel])
+        spot, position = noiseless_spots(params[sel], spec, steps[sel], sun[sel], centre[sel], normal[sel])
         rows.append({"times": times[ok], "az": az[ok], "el": el[ok], "sun": sun[sel],
                      "target": [target_names[w] for w in which[ok]], "centre": centre[sel],
                      "normal": normal[sel], "temperature": temperature[ok], "steps": steps[sel],
@@ -540,7 +544,7 @@ def _simulate_measurements(rng, h: SimulatedHeliostat, count: int, slots, t0, ta
     sun, steps, params, spot, position = cat("sun"), cat("steps"), cat("params"), cat("spot"), cat("position")
     centre, normal = cat("centre"), cat("normal")
     distance = torch.linalg.vector_norm(spot - position, dim=-1).numpy()
-    horizontal, vertical = _plane_axes(normal.numpy())
+    horizontal, vertical = target_plane_axes(normal.numpy())
     z = rng.standard_normal((len(distance), 2))
     sigma = distance * noise_mrad / 1000.0
     noisy = (spot.numpy() + (sigma * z[:, 0])[:, None] * horizontal

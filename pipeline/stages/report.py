@@ -59,8 +59,8 @@ from ..report.pages import (build_report, figure_tasks, parameter_tables, render
 from ..report.forward import svg_next_day
 from ..report.render import FigureTask, ReportFigure, by_heliostat, render_task
 from ..report.regimes import regime_alerts
-from ..report.site import (field_page_blocks, heliostat_html, heliostats_list_html, index_html,
-                           nav_html, why_text)
+from ..report.site import (SORT_JS, field_page_blocks, heliostat_html, heliostats_list_html,
+                           index_html, nav_html, why_text)
 from ..runtime.parallel import default_workers, map_tasks
 from ..runtime.process_state import restores_process_state
 
@@ -244,7 +244,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
                 f"{metrics['data']['n_measurements']} measurements from "
                 f"{metrics['data']['first_timestamp'] or '?'} to "
                 f"{metrics['data']['last_timestamp'] or '?'}.")
-    run_notes = list(inp.notes) + measured_floor.problems
+    run_notes = list(inp.notes) + measured_floor.problems + _plan_page(workdir, txn, title)
     if not choices:
         run_notes.append(f"No model yet: run {inp.run_hint('coarse_params.parquet')} for the "
                          "field map's errors and the worst heliostats.")
@@ -339,6 +339,23 @@ def _field_plan(inp, wd_frame, ts_frame, comp) -> list[tuple]:
             "sweep selected the hybrid. Below the diagonal the hybrid is better.", None,
             {"table": comp})))
     return field_plan
+
+
+def _plan_page(workdir: Path, txn, title: str) -> list[str]:
+    """Write ``plan.html`` when the work directory has a plan (``heliocal plan``); the note
+    for the overview that points to it."""
+    from ..artifacts.paths import artifact_path
+    from ..artifacts.schemas import PLAN
+    from ..artifacts.store import artifact_present, read_artifact, read_provenance
+    from ..report.plan import plan_html
+
+    if not artifact_present(workdir, PLAN):
+        return []
+    plan = read_artifact(workdir, PLAN)
+    options = read_provenance(artifact_path(workdir, PLAN)).get("options") or {}
+    page = plan_html(title, plan, options, nav_html(), SORT_JS)
+    txn.write_bytes("plan.html", page.encode("utf-8"))
+    return ["The measurement plan (`heliocal plan`) is on plan.html."]
 
 
 def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
