@@ -15,7 +15,7 @@ import re
 from .table import ArtifactSchema, Column
 
 __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS", "REGIMES",
-           "REGIME_PARAMS",
+           "REGIME_PARAMS", "FIELD_PRIOR",
            "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
            "WINDOWS_RESERVED_NAMES",
@@ -273,9 +273,12 @@ COARSE_PARAMS = ArtifactSchema(
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
         C("preset", "string", "", "Parameter preset of the fit (static-6 ... static-28, stone-8), "
-          "or a regime-aware candidate on the selected preset (`<preset>+offsets`, "
+          "a regime-aware candidate on the selected preset (`<preset>+offsets`, "
           "`<preset>+drift`; regime_params.parquet): its `fitted` values are the latest "
-          "regime's parameters."),
+          "regime's parameters, or the field-prior geometry `<preset>+field-prior` (the "
+          "nominal geometry moved by the field prior's mean of `<preset>`, field_prior.parquet; "
+          "not fitted: a candidate of every heliostat's selection, and the model of a heliostat "
+          "without training rows, `n_train` 0)."),
         C("selected", "bool", "", "True for the preset used downstream (chosen by validation error "
           "with --preset auto)."),
         C("parameter_index", "int64", "", "Position in the 28-parameter vector."),
@@ -289,8 +292,10 @@ COARSE_PARAMS = ArtifactSchema(
         C("determined", "bool", "", "False where the data cannot determine it (std error > half "
           "the prior sigma)."),
         C("fit_iterations", "int64", "", "Jacobian evaluations of the LM solve (robust start excluded)."),
-        C("fit_cost", "float64", "mrad^2", "Final cost: half the sum of squared residuals."),
-        C("fit_condition_number", "float64", "", "Condition number of the scaled Jacobian."),
+        C("fit_cost", "float64", "mrad^2", "Final cost: half the sum of squared residuals "
+          "(missing for a field-prior geometry, which is not fitted).", nullable=True),
+        C("fit_condition_number", "float64", "", "Condition number of the scaled Jacobian "
+          "(missing for a field-prior geometry).", nullable=True),
         C("fit_status", "string", "", "Solver message."),
         C("fit_implausible", "string", "", "Parameters corrected by more than a plausible amount "
           "(empty if none)."),
@@ -299,7 +304,8 @@ COARSE_PARAMS = ArtifactSchema(
           "spread in sun position; its errors then say nothing about accuracy (empty if the "
           "data are fine)."),
         C("n_train", "int64", "", "Training measurements."),
-        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows."),
+        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows (missing for "
+          "the field-prior geometry of a heliostat without training rows).", nullable=True),
         C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows (NaN if none).",
           nullable=True),
         C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
@@ -311,6 +317,13 @@ COARSE_PARAMS = ArtifactSchema(
           "time-split fit on the time split's validation rows (missing: n/a).", nullable=True),
         C("time_test_error_mrad", "float64", "mrad", "Selected preset only: its mean error on "
           "the time split's test rows, the latest measurements (missing: n/a).", nullable=True),
+        C("prior_mean", "float64", "", "The field prior's mean this fit was given "
+          "(field_prior.parquet, in the parameter's unit); missing where the fit had the "
+          "default prior (PRIOR_SIGMA around the nominal value).", nullable=True),
+        C("prior_sigma", "float64", "", "The field prior's sigma this fit was given (the "
+          "parameter's unit); missing where the fit had the default prior. std_error^2 / "
+          "prior_sigma^2 is how much the fit leans on the prior (1: all prior, 0: all data).",
+          nullable=True),
     ),
 )
 
@@ -428,6 +441,50 @@ REGIME_PARAMS = ArtifactSchema(
     ),
 )
 
+FIELD_PRIOR = ArtifactSchema(
+    name="field_prior",
+    filename="field_prior.parquet",
+    producer="fit-coarse",
+    sort_by=("kinematic_type", "actuator_type", "geometry_source", "preset", "parameter_index"),
+    description="The field's empirical-Bayes prior of the coarse parameters (`fit-coarse --prior "
+                "field`; heliocal.pipeline.models.field_prior says how): per kinematic type, "
+                "actuator type, geometry source and preset, each parameter's typical deviation "
+                "from the nominal value over the well-determined heliostats (robust location and "
+                "scale), and the expected error of the field-prior geometry that a heliostat "
+                "without training rows gets. Rows of parameters without enough well-determined "
+                "heliostats have no `scale` (their fits keep the default prior). With "
+                "`--prior-from` the other work directory's prior, as it was used.",
+    columns=(
+        C("kinematic_type", "string", "", "Kinematic type of the group."),
+        C("actuator_type", "string", "", "Actuator type of the group."),
+        C("geometry_source", "string", "", "`properties` (heliostats with a properties file) or "
+          "`default` (ingest's default geometry)."),
+        C("preset", "string", "", "The preset whose fits estimate the prior and which it is "
+          "given to."),
+        C("parameter_index", "int64", "", "Position in the 28-parameter vector."),
+        C("parameter", "string", "", "Parameter name."),
+        C("unit", "string", "", "Unit of `mean` and `scale`: rad, m, or 1 (increments, relative "
+          "to the nominal value)."),
+        C("mean", "float64", "", "Typical deviation from the nominal value (median over the "
+          "well-determined heliostats; 0 without a field prior)."),
+        C("scale", "float64", "", "Prior sigma a heliostat's fit gets (the field's spread "
+          "without the fits' noise, plus the median's uncertainty); missing: default prior.",
+          nullable=True),
+        C("n_heliostats", "int64", "", "Well-determined heliostats that estimate it."),
+        C("spatial", "bool", "", "True where the prior mean is the nearest heliostats' "
+          "(`--prior field+spatial`, only where that reduces the spread)."),
+        C("expected_error_mrad", "float64", "mrad", "The group's field-prior geometry (nominal "
+          "plus the mean of its first preset): median over the group's heliostats of its mean "
+          "test error, each with a prior from the other heliostats; what a heliostat without "
+          "training rows is expected to get (missing: no heliostat with test rows).",
+          nullable=True),
+        C("nominal_error_mrad", "float64", "mrad", "The same median for the nominal geometry.",
+          nullable=True),
+        C("n_evaluated", "int64", "", "Heliostats of the group with test rows behind the two "
+          "medians."),
+    ),
+)
+
 HYBRID_PREDICTIONS = dataclasses.replace(
     COARSE_PREDICTIONS,
     name="hybrid_predictions",
@@ -511,7 +568,7 @@ SELECTED_PREDICTIONS = ArtifactSchema(
 def all_schemas() -> list[ArtifactSchema]:
     """Every artifact schema of heliocal, in the order of the stages that write them."""
     return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
-            REGIMES, REGIME_PARAMS, HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
+            REGIMES, REGIME_PARAMS, FIELD_PRIOR, HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
 
 
 def nomenclature_markdown() -> str:

@@ -17,8 +17,8 @@ import pandas as pd
 import torch
 
 from ..artifacts.paths import artifact_path
-from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS,
-                                 REGIME_PARAMS, REGIMES)
+from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, FIELD_PRIOR, HELIOSTATS,
+                                 MEASUREMENTS, REGIME_PARAMS, REGIMES)
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
 from ..artifacts.transaction import stage_transaction
@@ -35,6 +35,9 @@ from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
+from .coarse_prior import (PRIOR_MODES, attach_prior_columns, field_prior_fit, finish_table,
+                           is_field_prior, plan_field_prior, prior_time_fits, summary_of,
+                           zero_row_outputs)
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes)
 from .forward import (TIME_COLUMN, attach_coarse_time, chunks_per_worker, fit_coarse_time_split,
@@ -90,13 +93,26 @@ def _heliostat_inputs(hrow, rows: pd.DataFrame):
 
 
 def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
-                      loss: str, f_scale_mrad: float, robust_start: bool):
-    """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary)."""
+                      loss: str, f_scale_mrad: float, robust_start: bool,
+                      priors: dict | None = None, field_geometry: dict | None = None):
+    """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary).
+    ``priors``, ``field_geometry``: as :func:`_chunk_outputs`."""
     spec, nominal, data, labels, train, episode = _heliostat_inputs(hrow, rows)
     fits = fit_presets([spec], [nominal], [train], presets, solver="scipy", loss=loss,
-                       f_scale_mrad=f_scale_mrad, robust_start=robust_start)[0]
+                       f_scale_mrad=f_scale_mrad, robust_start=robust_start, priors=priors)[0]
+    fits = _with_field_prior(str(hrow["heliostat_id"]), spec, nominal, fits, field_geometry)
     return _heliostat_outputs(str(hrow["heliostat_id"]), spec, nominal, data, labels, train,
                               episode, fits)[:3]
+
+
+def _with_field_prior(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
+                      fits: list[CoarseFit], field_geometry: dict | None) -> list[CoarseFit]:
+    """A heliostat's fits with its field-prior geometry first (a candidate of the selection, so
+    no fit worse on validation than the field's typical geometry is selected; issue 34)."""
+    if not field_geometry or hid not in field_geometry:
+        return list(fits)
+    name, params = field_geometry[hid]
+    return [field_prior_fit(name, params, nominal, spec)] + list(fits)
 
 
 def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: Sequence[str], *,
@@ -109,12 +125,18 @@ def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: 
                                               robust_start=robust_start)]
 
 
-def _chunk_outputs(hrows, rows, presets, **kwargs) -> list[tuple]:
-    """:func:`fit_heliostat_chunk`'s tuples with :func:`_heliostat_outputs`' fourth item."""
+def _chunk_outputs(hrows, rows, presets, field_geometry: dict | None = None,
+                   **kwargs) -> list[tuple]:
+    """:func:`fit_heliostat_chunk`'s tuples with :func:`_heliostat_outputs`' fourth item.
+    ``kwargs`` go to fit_presets (with ``priors``: the field prior of each heliostat's fits);
+    ``field_geometry``: heliostat -> (model name, parameters (28,)) of its field-prior geometry,
+    a candidate of its selection (:mod:`.coarse_prior`)."""
     inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
     fits = fit_presets([i[0] for i in inputs], [i[1] for i in inputs], [i[4] for i in inputs],
                        presets, solver="batched", **kwargs)
-    return [_heliostat_outputs(str(h["heliostat_id"]), *inp, fits[k])
+    return [_heliostat_outputs(str(h["heliostat_id"]), *inp,
+                               _with_field_prior(str(h["heliostat_id"]), inp[0], inp[1], fits[k],
+                                                 field_geometry))
             for k, (h, inp) in enumerate(zip(hrows, inputs))]
 
 
@@ -393,6 +415,21 @@ def _regimes_summary(fits: _FieldFits, summaries: Sequence[dict]) -> dict:
             if s.get("regime_candidates", {}).get("selected"))}
 
 
+def _prior_plan(workdir: Path, helio: pd.DataFrame, rows_of: dict, heliostats, presets,
+                prior: str, prior_from, **fit_options):
+    """The run's field prior (:func:`~.coarse_prior.plan_field_prior`). A partial run
+    (``heliostats``) estimates it from the whole field, so its fits are a full run's (give
+    ``prior_from`` = the work directory itself to reuse its committed prior instead). Logs
+    what the prior does not cover."""
+    if heliostats and prior != "none" and prior_from is None:
+        helio, rows_of = _read_rows(workdir, None)
+    plan = plan_field_prior(helio, rows_of, presets, mode=prior, prior_from=prior_from,
+                            **fit_options)
+    for line in plan.notes:
+        log.warning("%s", line)
+    return plan
+
+
 @locks_workdir("fit-coarse")
 @stage_transaction("fit-coarse")
 @restores_process_state
@@ -402,7 +439,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    heliostats: Sequence[str] | None = None, progress=None,
                    workers: int | None = 1, scheduler: str = "local",
                    dask_address: str | None = None, solver: str = "batched",
-                   batch_size: int = 64, regime_steps: str = "candidates") -> dict:
+                   batch_size: int = 64, regime_steps: str = "candidates",
+                   prior: str = "field", prior_from: str | Path | None = None) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -420,12 +458,18 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
     regime_steps : one of :data:`REGIME_STEPS`: ``candidates`` (the default) or ``detect``
         (detection and the refit without episodes, no regime-aware candidates).
+    prior : one of :data:`~.coarse_prior.PRIOR_MODES`: ``field`` (the default: the field's
+        empirical-Bayes prior where a group has enough well-determined heliostats,
+        :mod:`.coarse_prior`), ``field+spatial`` (its mean from the nearest heliostats where
+        that helps) or ``none`` (the default weak prior only).
+    prior_from : another work directory whose field_prior.parquet to use (``prior="field"``).
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
     check_float(f_scale_mrad, "f_scale_mrad", "fit_coarse", 0.0, None, low_inclusive=False)
     check_choice(solver, "solver", "fit_coarse", SOLVERS)
     check_choice(regime_steps, "regime_steps", "fit_coarse", REGIME_STEPS)
+    check_choice(prior, "prior", "fit_coarse", PRIOR_MODES)
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
     steps = None if _SKIP_REGIMES else regime_steps
     warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
@@ -434,9 +478,13 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     ids = list(rows_of)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
+    plan = _prior_plan(workdir, helio, rows_of, heliostats, presets, prior, prior_from,
+                       solver=solver, options=kwargs, batch_size=batch_size, workers=workers,
+                       scheduler=scheduler, dask_address=dask_address)
     chunks = _chunks(solver, helio, rows_of, batch_size)
     tasks = [CoarseChunk(solver, [helio.loc[h].to_dict() for h in chunk],
-                         [rows_of[h] for h in chunk], presets, kwargs, steps) for chunk in chunks]
+                         [rows_of[h] for h in chunk], presets,
+                         dict(kwargs, **plan.options_for(chunk)), steps) for chunk in chunks]
     chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
                               dask_address=dask_address,
                               progress=(lambda done, total: progress(done, total, None))
@@ -451,15 +499,24 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
-            "heliostats": list(heliostats) if heliostats else None}
-    params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
+            "heliostats": list(heliostats) if heliostats else None, "prior": prior,
+            "prior_from": None if prior_from is None else str(prior_from)}
+    zero_rows, zero_ids = zero_row_outputs(helio, plan, set(rows_of), heliostats)
+    params, preds = pd.DataFrame(all_params + zero_rows), pd.concat(all_preds, ignore_index=True)
     # forward in time: the selected preset fitted again on the time split's training rows (a
-    # regime-aware selection: its base preset; the time split's regimes are not refitted)
+    # regime-aware selection: its base preset; the time split's regimes are not refitted), with
+    # the same field prior; a field-prior geometry is the same on both splits
+    selected = {s["heliostat_id"]: s["selected"] for s in summaries}
     time_fits = fit_coarse_time_split(
-        helio, rows_of, {s["heliostat_id"]: base_preset(s["selected"]) for s in summaries},
-        solver=solver, batch_size=batch_size, options=kwargs, workers=workers,
+        helio, rows_of, {h: base_preset(m) for h, m in selected.items() if not is_field_prior(m)},
+        solver=solver, batch_size=batch_size, workers=workers,
+        options=dict(kwargs, priors={h: {base_preset(m): plan.priors[h][base_preset(m)]}
+                                     for h, m in selected.items()
+                                     if base_preset(m) in plan.priors.get(h, {})}),
         scheduler=scheduler, dask_address=dask_address)
-    params, preds = attach_coarse_time(params, preds, time_fits, rows_of)
+    time_fits.update(prior_time_fits(helio, rows_of, plan, selected))
+    params, preds = attach_coarse_time(attach_prior_columns(params, plan), preds, time_fits,
+                                       rows_of)
     for s in summaries:
         tf = time_fits.get(s["heliostat_id"])
         labels = rows_of[s["heliostat_id"]][TIME_COLUMN].to_numpy(dtype=object)
@@ -468,5 +525,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
                              REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params},
                    heliostats, opts)
+    table = finish_table(plan, helio, summaries)
+    write_artifact(table, workdir, FIELD_PRIOR, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
-            "regimes": _regimes_summary(fits, summaries)}
+            "regimes": _regimes_summary(fits, summaries),
+            "field_prior": summary_of(plan, table, zero_ids)}
