@@ -445,16 +445,22 @@ def _mrad(x) -> str:
 
 def _aim_table(models: list) -> Table:
     table = Table(title=Text("models `aim --model auto` uses (mean error_mrad)"),
+                  caption=Text("forward: the same model fitted on the time split's training "
+                               "rows, on its test rows (the latest); next day: fit-coarse's "
+                               "rolling-origin evaluation (rolling_origin.parquet)"),
                   box=box.SIMPLE_HEAD, pad_edge=False)
-    for col in ("heliostat", "model", "weight decay", "chosen by", "validation", "test"):
-        table.add_column(col, justify="right" if col in ("validation", "test", "weight decay")
-                         else "left", no_wrap=True)
+    numbers = ("validation", "test", "forward", "next day", "weight decay")
+    for col in ("heliostat", "model", "weight decay", "chosen by", "validation", "test",
+                "forward", "next day"):
+        table.add_column(col, justify="right" if col in numbers else "left", no_wrap=True)
     for m in models:
         name = (f"coarse {m['preset']}" if m["model"] == "coarse"
                 else f"{m['variant']} on {m['preset']}")
         wd = "-" if m["weight_decay"] is None else f"{m['weight_decay']:g}"
         table.add_row(Text(m["heliostat_id"]), Text(name), Text(wd), Text(m["source"]),
-                      Text(_mrad(m["val_error_mrad"])), Text(_mrad(m["test_error_mrad"])))
+                      Text(_mrad(m["val_error_mrad"])), Text(_mrad(m["test_error_mrad"])),
+                      Text(_mrad(m.get("forward_error_mrad"))),
+                      Text(_mrad(m.get("next_day_error_mrad"))))
     return table
 
 

@@ -17,7 +17,7 @@ __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric"
            "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "FocalSpotDetector",
            "AzimuthConvention", "DEFAULT_BATCH_ROWS", "DEFAULT_TIME_MIN",
            "DEFAULT_TIME_MAX_MARGIN_DAYS", "DEFAULT_MAX_SPOT_DISTANCE_M",
-           "DEFAULT_SUN_TOLERANCE_DEG", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY",
+           "DEFAULT_SUN_TOLERANCE_DEG", "HYBRID_BATCH_SIZE", "DEFAULT_STUDY", "DEFAULT_ROLLING_ORIGINS",
            "DEFAULT_FOURIER_BANDS", "OCTAVE_BANDS", "DEFAULT_ALERT_MRAD", "MIN_IMPROVEMENT",
            "STD_ERROR_PSEUDO_INVERSE"]
 
@@ -216,6 +216,9 @@ HYBRID_BATCH_SIZE = 32
 #: Heliostats in the training-size study by default (``sweep --study``): enough for the paper's
 #: figures; the production selection covers every heliostat.
 DEFAULT_STUDY = 10
+#: Origins per heliostat of fit-coarse's rolling-origin evaluation by default
+#: (``fit-coarse --rolling-origins``): one warm-started refit each.
+DEFAULT_ROLLING_ORIGINS = 12
 
 #: Relative validation improvement a candidate model needs over the one it would replace: a hybrid
 #: over the coarse model in ``sweep``, and in ``fit-coarse`` the fit without a heliostat's episodes

@@ -79,7 +79,8 @@ def test_time_split_error_comes_from_a_model_that_never_saw_the_step(step_workdi
 def test_time_split_fit_is_recorded_with_its_errors(step_workdir):
     p = read_artifact(step_workdir, COARSE_PARAMS)
     sel = p[p["selected"]]
-    assert sel["time_fitted"].notna().all() and p.loc[~p["selected"], "time_fitted"].isna().all()
+    # every preset is fitted again on the time split (the selection weighs it)
+    assert p["time_fitted"].notna().all() and p["time_val_error_mrad"].notna().all()
     rows = _selected(step_workdir)
     # coarse_params' time errors are the means of coarse_predictions' time_error_mrad (exact)
     for sp, col in (("validation", "time_val_error_mrad"), ("test", "time_test_error_mrad")):
@@ -89,6 +90,36 @@ def test_time_split_fit_is_recorded_with_its_errors(step_workdir):
     assert np.abs(moved).max() > 1e-5
     fixed = sel.loc[~sel["free"]]
     np.testing.assert_array_equal(fixed["time_fitted"].to_numpy(), fixed["fitted"].to_numpy())
-    # other presets carry no time_error_mrad
+    # every preset's rows carry their time-split fit's errors, the nominal geometry's none (it
+    # is not fitted); coarse_params' figures are their means
     pred = read_artifact(step_workdir, COARSE_PREDICTIONS)
-    assert pred.loc[~pred["selected"], "time_error_mrad"].isna().all()
+    nominal = pred["model"] == "nominal"
+    assert pred.loc[nominal, "time_error_mrad"].isna().all()
+    assert pred.loc[~nominal, "time_error_mrad"].notna().all()
+    split = read_artifact(step_workdir, SPLIT)[["heliostat_id", "measurement_id", "time_split"]]
+    every = pred[~nominal].merge(split, on=["heliostat_id", "measurement_id"])
+    for preset, g in every.groupby("model"):
+        want = g.loc[g["time_split"] == "test", "time_error_mrad"].mean()
+        got = p.loc[p["preset"] == preset, "time_test_error_mrad"].iloc[0]
+        assert got == pytest.approx(want, rel=1e-12)
+
+
+def test_forward_guarded_choice_keeps_the_knn_choice_unless_it_is_worse_forward():
+    from heliocal.pipeline.stages.forward import forward_guarded_choice
+
+    # the kNN choice (index 2) is within 20 % of the best time validation error: it stands
+    assert forward_guarded_choice([1.0, 0.9, 0.8], [1.0, 1.1, 1.15]) == 2
+    # six rows of March, a 28-parameter fit: best between its training rows, 78 mrad forward
+    # (the Jülich log's AO52) while a 6-parameter fit is 10 mrad forward: regrets (kNN, time)
+    # are (1.0, 7.8) and (1.31, 1.0): the smaller worst regret, static-6, is chosen
+    assert forward_guarded_choice([1.96, 1.5], [10.0, 78.0]) == 0
+    # the worst regret decides between the others too: (1.25, 1.3), (1.5, 1.0), (1.0, 2.0)
+    assert forward_guarded_choice([1.0, 1.2, 0.8], [1.3, 1.0, 2.0]) == 0
+    # no time split (NaN), or only one candidate with a time fit: the kNN choice
+    assert forward_guarded_choice([1.0, 0.8], [np.nan, np.nan]) == 1
+    assert forward_guarded_choice([1.0, 0.8], [1.0, np.nan]) == 1
+    # no kNN validation at all: the last candidate (the largest preset asked)
+    assert forward_guarded_choice([np.nan, np.nan, np.nan], [1.0, 2.0, 3.0]) == 2
+    # the margin is the sweep's 20 %: 1.2x the best time error still stands, 1.21x does not
+    assert forward_guarded_choice([1.0, 0.9], [1.0, 1.2]) == 1
+    assert forward_guarded_choice([1.0, 0.9], [1.0, 1.21]) == 0

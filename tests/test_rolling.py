@@ -8,6 +8,8 @@ rows lie before it, at most ``max_origins`` of them spread evenly by rank with t
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
+import pytest
 
 from heliocal.pipeline.models.rolling import rolling_origins
 
@@ -44,3 +46,85 @@ def test_usable_rows_and_sampling_keep_the_last_day():
     assert not got[0].train[0] and got[0].train.sum() == 3
     assert got[-1].train.sum() == 18 and got[-1].score.tolist()[-1]
     assert rolling_origins(t, usable, min_rows=3, max_origins=0) == []
+
+
+# --------------------------------------------------------------------------------------------
+# fit-coarse's rolling-origin evaluation, end to end on simulated heliostats (ground truth from
+# the simulator: a static heliostat's true model, the noise floor, and a step of known size)
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def rolled(tmp_path_factory):
+    from heliocal.pipeline.artifacts.schemas import ROLLING_ORIGIN
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.models.simulator import simulate_field
+    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
+    from heliocal.pipeline.stages.ingest import run_ingest
+    from heliocal.pipeline.stages.simulate import write_field
+    from heliocal.pipeline.stages.split import run_split
+
+    root = tmp_path_factory.mktemp("rolling")
+    field = simulate_field(2, seed=4, measurements=(160, 160), dynamic_fraction=0.0,
+                           noise_mrad=0.4, deviations="static-6")
+    write_field(field, root / "field")
+    work = root / "work"
+    run_ingest([root / "field" / "paint"], work, IngestOptions())
+    run_split(work)
+    summary = run_fit_coarse(work, preset="static-6", rolling_origins=6)
+    return {"field": field, "work": work, "summary": summary,
+            "rolling": read_artifact(work, ROLLING_ORIGIN)}
+
+
+@pytest.mark.slow
+def test_next_day_errors_of_static_heliostats_sit_at_their_noise_floor(rolled):
+    from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import read_artifact
+
+    rolling = rolled["rolling"]
+    meas = read_artifact(rolled["work"], MEASUREMENTS)
+    assert set(rolling["heliostat_id"]) == set(rolled["field"].heliostats)
+    for hid, g in rolling.groupby("heliostat_id"):
+        h = rolled["field"].heliostats[hid]
+        # six origins, each scoring the rows of its own UTC day with a fit on the earlier rows
+        assert g["origin_date"].nunique() == 6
+        # a static heliostat's geometry is learnt from the first origin's 10+ rows on: the
+        # next-day error is the noise floor (the true model's mean error on the noisy spots,
+        # from the simulator) within its sampling spread on ~20 rows
+        assert g["error_mrad"].mean() < 1.5 * h.noise_floor_mrad, (hid, g["error_mrad"].mean())
+        assert (g["days_since_last_row"] > 0).all()
+        # no leak: an origin's fit has exactly the rows before its day, and scores rows of
+        # that day only (the measurements' own times, counted here)
+        times = pd.to_datetime(meas.loc[meas["heliostat_id"] == hid, "timestamp"], utc=True)
+        by_id = dict(zip(meas.loc[meas["heliostat_id"] == hid, "measurement_id"], times))
+        for day, o in g.groupby("origin_date"):
+            assert o["n_train"].iloc[0] == int((times < day).sum())
+            scored = pd.to_datetime(o["measurement_id"].map(by_id), utc=True).dt.floor("D")
+            assert (scored == day).all()
+        n = g.drop_duplicates("origin_date").sort_values("origin_date")["n_train"].to_numpy()
+        assert (np.diff(n) > 0).all() and n[0] >= 10
+
+
+@pytest.mark.slow
+def test_a_warm_started_origin_fit_is_the_cold_fit_of_its_rows(rolled):
+    """The warm start changes where LM starts, not the objective: the last origin's fit of a
+    heliostat, redone cold on the same rows, gives the same errors (to 1e-5 mrad)."""
+    from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.models.coarse import MeasurementBatch, fit_heliostats_batched, predict
+    from heliocal.pipeline.physics.parameters import HeliostatSpec, nominal_parameters
+
+    work, rolling = rolled["work"], rolled["rolling"]
+    hid = sorted(rolling["heliostat_id"].unique())[0]
+    rows = read_artifact(work, MEASUREMENTS, heliostats=[hid]).reset_index(drop=True)
+    hrow = read_artifact(work, HELIOSTATS, heliostats=[hid]).iloc[0]
+    last = rolling[rolling["heliostat_id"] == hid]["origin_date"].max()
+    day = pd.to_datetime(rows["timestamp"], utc=True).dt.floor("D")
+    data = MeasurementBatch.from_frame(rows)
+    train, scored = (day < last).to_numpy(), (day == last).to_numpy()
+    spec = HeliostatSpec.from_row(hrow)
+    cold = fit_heliostats_batched([spec], [nominal_parameters(hrow)], [data.subset(train)],
+                                  "static-6", loss="soft_l1", robust_start="auto")[0]
+    want = predict(cold.params, spec, data.subset(scored))["error_mrad"].to_numpy()
+    got = (rolling[(rolling["heliostat_id"] == hid) & (rolling["origin_date"] == last)]
+           .set_index("measurement_id").loc[data.subset(scored).measurement_id, "error_mrad"])
+    np.testing.assert_allclose(got.to_numpy(), want, atol=1e-5)

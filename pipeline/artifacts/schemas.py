@@ -12,10 +12,11 @@ from __future__ import annotations
 import dataclasses
 import re
 
+from .schemas_prior import FIELD_PRIOR
 from .table import ArtifactSchema, Column
 
 __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS", "REGIMES",
-           "REGIME_PARAMS", "FIELD_PRIOR",
+           "REGIME_PARAMS", "ROLLING_ORIGIN", "FIELD_PRIOR",
            "HYBRID_PREDICTIONS", "SWEEP", "SELECTION", "SELECTED_PREDICTIONS", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
            "WINDOWS_RESERVED_NAMES",
@@ -310,13 +311,16 @@ COARSE_PARAMS = ArtifactSchema(
           nullable=True),
         C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
           nullable=True),
-        C("time_fitted", "float64", "", "Selected preset only: the parameter fitted again, the "
-          "same way, on the time split's training rows (split.parquet `time_split`); missing "
-          "for the other presets and where the heliostat has no time split.", nullable=True),
-        C("time_val_error_mrad", "float64", "mrad", "Selected preset only: mean error of that "
-          "time-split fit on the time split's validation rows (missing: n/a).", nullable=True),
-        C("time_test_error_mrad", "float64", "mrad", "Selected preset only: its mean error on "
-          "the time split's test rows, the latest measurements (missing: n/a).", nullable=True),
+        C("time_fitted", "float64", "", "The parameter fitted again, the same way, on the time "
+          "split's training rows outside detected episodes (split.parquet `time_split`; a "
+          "regime-aware candidate with the same regimes, its latest regime's value); missing "
+          "where the heliostat has no time split.", nullable=True),
+        C("time_val_error_mrad", "float64", "mrad", "Mean error of that time-split fit on the "
+          "time split's validation rows outside detected episodes (missing: n/a); the selection "
+          "weighs it beside `val_error_mrad` (docs/split.md, \"Choosing forward-aware\").",
+          nullable=True),
+        C("time_test_error_mrad", "float64", "mrad", "Its mean error on the time split's test "
+          "rows, the latest measurements (missing: n/a).", nullable=True),
         C("prior_mean", "float64", "", "The field prior's mean this fit was given "
           "(field_prior.parquet, in the parameter's unit); missing where the fit had the "
           "default prior (PRIOR_SIGMA around the nominal value).", nullable=True),
@@ -350,11 +354,12 @@ COARSE_PREDICTIONS = ArtifactSchema(
         C("spot_offset_vertical_m", "float64", "m", "Same, vertical axis (up)."),
         C("spot_offset_m", "float64", "m", "Distance between predicted and measured spot on the "
           "target plane."),
-        C("time_error_mrad", "float64", "mrad", "The selected model only: error_mrad of the same "
-          "model (preset, or hybrid configuration) trained again on the time split's training "
-          "rows (split.parquet `time_split`), so that on the time split's validation and test "
-          "rows it is an honest forward-in-time error; missing for the other models and where "
-          "the heliostat has no time split.", nullable=True),
+        C("time_error_mrad", "float64", "mrad", "error_mrad of the same model (preset, "
+          "regime-aware candidate, or the selected hybrid configuration) trained again on the "
+          "time split's training rows (split.parquet `time_split`), so that on the time split's "
+          "validation and test rows it is an honest forward-in-time error; missing for the "
+          "nominal geometry, for hybrids other than the selected one and where the heliostat "
+          "has no time split.", nullable=True),
     ),
 )
 
@@ -441,49 +446,33 @@ REGIME_PARAMS = ArtifactSchema(
     ),
 )
 
-FIELD_PRIOR = ArtifactSchema(
-    name="field_prior",
-    filename="field_prior.parquet",
+ROLLING_ORIGIN = ArtifactSchema(
+    name="rolling_origin",
+    filename="rolling_origin.parquet",
     producer="fit-coarse",
-    sort_by=("kinematic_type", "actuator_type", "geometry_source", "preset", "parameter_index"),
-    description="The field's empirical-Bayes prior of the coarse parameters (`fit-coarse --prior "
-                "field`; heliocal.pipeline.models.field_prior says how): per kinematic type, "
-                "actuator type, geometry source and preset, each parameter's typical deviation "
-                "from the nominal value over the well-determined heliostats (robust location and "
-                "scale), and the expected error of the field-prior geometry that a heliostat "
-                "without training rows gets. Rows of parameters without enough well-determined "
-                "heliostats have no `scale` (their fits keep the default prior). With "
-                "`--prior-from` the other work directory's prior, as it was used.",
+    sort_by=("heliostat_id", "measurement_id"),
+    description="The rolling-origin (prequential) evaluation of fit-coarse's selected preset: at "
+                "each origin (a calibration day with enough earlier rows; at most "
+                "`--rolling-origins` per heliostat, spread over its history) the preset is "
+                "fitted again on every row before that day (a regime-aware selection: the rows "
+                "since its latest break) and scores that day's rows: the next-day error of a "
+                "heliostat recalibrated every calibration day "
+                "(heliocal.pipeline.stages.rolling says how).",
     columns=(
-        C("kinematic_type", "string", "", "Kinematic type of the group."),
-        C("actuator_type", "string", "", "Actuator type of the group."),
-        C("geometry_source", "string", "", "`properties` (heliostats with a properties file) or "
-          "`default` (ingest's default geometry)."),
-        C("preset", "string", "", "The preset whose fits estimate the prior and which it is "
-          "given to."),
-        C("parameter_index", "int64", "", "Position in the 28-parameter vector."),
-        C("parameter", "string", "", "Parameter name."),
-        C("unit", "string", "", "Unit of `mean` and `scale`: rad, m, or 1 (increments, relative "
-          "to the nominal value)."),
-        C("mean", "float64", "", "Typical deviation from the nominal value (median over the "
-          "well-determined heliostats; 0 without a field prior)."),
-        C("scale", "float64", "", "Prior sigma a heliostat's fit gets (the field's spread "
-          "without the fits' noise, plus the median's uncertainty); missing: default prior.",
-          nullable=True),
-        C("n_heliostats", "int64", "", "Well-determined heliostats that estimate it."),
-        C("spatial", "bool", "", "True where the prior mean is the nearest heliostats' "
-          "(`--prior field+spatial`, only where that reduces the spread)."),
-        C("expected_error_mrad", "float64", "mrad", "The group's field-prior geometry (nominal "
-          "plus the mean of its first preset): median over the group's heliostats of its mean "
-          "test error, each with a prior from the other heliostats; what a heliostat without "
-          "training rows is expected to get (missing: no heliostat with test rows).",
-          nullable=True),
-        C("nominal_error_mrad", "float64", "mrad", "The same median for the nominal geometry.",
-          nullable=True),
-        C("n_evaluated", "int64", "", "Heliostats of the group with test rows behind the two "
-          "medians."),
+        C("heliostat_id", "string", "", "Heliostat."),
+        C("measurement_id", "string", "", "The row scored."),
+        C("origin_date", "timestamp", "UTC", "The calibration day (UTC midnight) whose rows are "
+          "scored by the fit on the rows before it."),
+        C("model", "string", "", "The preset fitted at the origin (the selected model's "
+          "geometry)."),
+        C("n_train", "int64", "", "Rows the origin's fit used."),
+        C("days_since_last_row", "float64", "d", "Time from the fit's last row to the row "
+          "scored [days]."),
+        C("error_mrad", "float64", "mrad", "The row's error under the origin's fit (the next-day "
+          "error)."),
     ),
 )
+
 
 HYBRID_PREDICTIONS = dataclasses.replace(
     COARSE_PREDICTIONS,
@@ -568,7 +557,8 @@ SELECTED_PREDICTIONS = ArtifactSchema(
 def all_schemas() -> list[ArtifactSchema]:
     """Every artifact schema of heliocal, in the order of the stages that write them."""
     return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
-            REGIMES, REGIME_PARAMS, FIELD_PRIOR, HYBRID_PREDICTIONS, SWEEP, SELECTION, SELECTED_PREDICTIONS]
+            REGIMES, REGIME_PARAMS, ROLLING_ORIGIN, FIELD_PRIOR, HYBRID_PREDICTIONS, SWEEP,
+            SELECTION, SELECTED_PREDICTIONS]
 
 
 def nomenclature_markdown() -> str:

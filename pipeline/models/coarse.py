@@ -129,8 +129,9 @@ class MeasurementBatch:
         )
 
     def subset(self, mask: np.ndarray) -> "MeasurementBatch":
-        m = torch.as_tensor(np.asarray(mask, bool))
-        return MeasurementBatch(self.measurement_id[np.asarray(mask, bool)], self.steps[m],
+        keep = np.array(mask, dtype=bool)  # a writable copy: torch refuses read-only arrays
+        m = torch.from_numpy(keep)
+        return MeasurementBatch(self.measurement_id[keep], self.steps[m],
                                 self.sun[m], self.focal_spot[m], self.target_center[m],
                                 self.target_normal[m])
 
@@ -421,8 +422,14 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
                            robust_start: bool | str = True, max_nfev: int = 200,
                            prior_weight: float = 1.0, tolerance: float = 1e-10,
                            start_caches: Sequence[dict] | None = None,
-                           priors: Sequence[tuple | None] | None = None) -> list[CoarseFit]:
+                           priors: Sequence[tuple | None] | None = None,
+                           starts: Sequence[torch.Tensor | None] | None = None) -> list[CoarseFit]:
     """:func:`fit_heliostat` for many heliostats of one kinematic and actuator type at once.
+
+    ``starts`` (per heliostat (28,) or None) warm-starts Levenberg-Marquardt there (e.g. the fit
+    of the same heliostat on fewer rows) without changing the objective: the prior stays
+    centred where a cold fit centres it (the nominal geometry, or the robust start of
+    ``start_caches``, which the caller keeps across such fits).
 
     The objective (data rows, prior rows, loss) and the start (including the robust start, per
     heliostat) are those of :func:`fit_heliostat`; the minimisation is one batched
@@ -480,7 +487,11 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
         prior_mean=base[:, free_idx_t],
         prior_scale=(1.0 / torch.stack([sf for *_, sf in setups])) if prior_weight > 0 else None,
         x_scale=torch.as_tensor(sigma[:, free_idx]))
-    sol = solve_batched(problem, base[:, free_idx_t], loss=loss, f_scale=f_scale_mrad,
+    x0 = base[:, free_idx_t].clone()
+    for j, k in enumerate(batch):
+        if starts is not None and starts[k] is not None:
+            x0[j] = starts[k].to(torch.float64)[free_idx_t]
+    sol = solve_batched(problem, x0, loss=loss, f_scale=f_scale_mrad,
                         max_nfev=max_nfev, tolerance=tolerance)
     wall = (time.perf_counter() - t0) / len(batch)
     data_rows = 3 * n_max

@@ -51,8 +51,8 @@ from ..physics.jacobian import residual_and_jacobian
 from ..physics.lm import NAN_RESIDUAL_MRAD, normal_residuals_mrad, stack_specs, take_spec
 from ..physics.parameters import PARAMETER_INDEX, HeliostatSpec
 from .coarse import MeasurementBatch
-from .regime_fit import (REGIME_MODELS, CandidateSetup, RegimeFit, prior_rows,
-                         regime_layout)
+from .regime_candidates import CandidateSetup
+from .regime_fit import REGIME_MODELS, RegimeFit, prior_rows, regime_layout
 
 __all__ = ["fit_candidates_batched"]
 
@@ -294,7 +294,7 @@ def fit_candidates_batched(specs: Sequence[HeliostatSpec], setups: Sequence[Cand
 
     Parameters
     ----------
-    specs : the heliostats; setups : their :func:`~regime_fit.candidate_setup` (a heliostat that
+    specs : the heliostats; setups : their :func:`~regime_candidates.candidate_setup` (a heliostat that
         is not ``eligible`` or has fewer than two regimes with enough training rows gets none).
     loss, f_scale_mrad, prior_weight : as :func:`~regime_fit.fit_regime_model`.
     models : the candidates, in :data:`~regime_fit.REGIME_MODELS` order.
@@ -309,7 +309,7 @@ def fit_candidates_batched(specs: Sequence[HeliostatSpec], setups: Sequence[Cand
 
     Returns
     -------
-    Per heliostat the list of its fits, as :func:`~regime_fit.regime_candidates` takes them.
+    Per heliostat the list of its fits, as :func:`~regime_candidates.regime_candidates` takes them.
     """
     t0 = time.perf_counter()
     out: list[list[RegimeFit]] = [[] for _ in setups]

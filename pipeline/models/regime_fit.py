@@ -49,10 +49,8 @@ from scipy.optimize import least_squares
 from ..errors import check_choice
 from ..physics.jacobian import forward_state, residual_and_jacobian
 from ..physics.kinematics import forward_kinematics
-from ..physics.metrics import mean_or_nan as _mean
 from ..physics.metrics import measured_normal
 from ..physics.parameters import PARAMETER_INDEX, PARAMETER_NAMES, HeliostatSpec
-from ..runtime.process_state import one_thread
 from .changes import change_parameters
 from .coarse import MeasurementBatch, metrics_frame, prior_sigma
 
@@ -68,8 +66,8 @@ __all__ = [
     "fit_regime_model",
     "predict_rows",
     "predict_parameters",
-    "predict_candidates",
     "table_row_parameters",
+    "seconds_utc",
 ]
 
 #: The candidates, in the order they are fitted.
@@ -106,7 +104,7 @@ def base_preset(model: str) -> str:
     return model.split("+", 1)[0]
 
 
-def _seconds(times) -> np.ndarray:
+def seconds_utc(times) -> np.ndarray:
     """UTC times (anything pandas reads) as float seconds since 1970; NaN for missing (the
     integer count of the times' unit divided by its count per second, as pandas'
     ``total_seconds``)."""
@@ -170,7 +168,7 @@ class RegimeFit:
         without a time is taken at its regime's reference time."""
         return _row_parameters(self.base, self.moved, self.drifting, self.offsets, self.rates,
                                self.reference_s, self.span_s, self.source(regime),
-                               _seconds(times))
+                               seconds_utc(times))
 
 
 def _row_parameters(base, moved, drifting, offsets, rates, reference_s, span_s, k, seconds):
@@ -221,7 +219,7 @@ def regime_layout(spec: HeliostatSpec, free, regime, times, train,
         return None
     use = train & np.isin(regime, fitted)
     k = np.maximum(np.searchsorted(fitted, regime, side="right") - 1, 0)[use]
-    sec = _seconds(times)[use]
+    sec = seconds_utc(times)[use]
     n_f = len(fitted)
     reference_s = np.array([np.nanmean(sec[k == f]) if np.isfinite(sec[k == f]).any() else 0.0
                             for f in range(n_f)])
@@ -350,41 +348,6 @@ def fit_regime_model(spec: HeliostatSpec, preset: str, params: torch.Tensor, fre
                      str(res.message), cond, time.perf_counter() - t0)
 
 
-def predict_candidates(specs: Sequence[HeliostatSpec], setups: "Sequence[CandidateSetup]",
-                       fits: Sequence[Sequence[RegimeFit]]) -> list[list[pd.DataFrame]]:
-    """coarse_predictions' rows of every row of every heliostat for each of its fits (each row
-    at its own regime's parameters; :func:`predict_rows`), with ``model``, ``heliostat_id``,
-    ``split`` and ``selected`` (False) set, in one forward pass for all: per heliostat a list of
-    frames in the order of its fits. The heliostats share one kinematic and actuator type."""
-    from ..physics.lm import stack_specs, take_spec
-
-    out: list[list[pd.DataFrame]] = [[] for _ in setups]
-    pairs = [(h, f) for h, fs in enumerate(fits) for f in fs]
-    if not pairs:
-        return out
-    sizes = [len(setups[h].data) for h, _ in pairs]
-    params = torch.cat([f.row_parameters(setups[h].regime, setups[h].times) for h, f in pairs])
-    owner = torch.as_tensor(np.repeat(np.arange(len(pairs)), sizes))
-    spec = take_spec(stack_specs([specs[h] for h, _ in pairs]), owner)
-    batches = [setups[h].data for h, _ in pairs]
-    flat = MeasurementBatch(np.concatenate([b.measurement_id for b in batches]),
-                            *(torch.cat([getattr(b, name) for b in batches])
-                              for name in ("steps", "sun", "focal_spot", "target_center",
-                                           "target_normal")))
-    with torch.no_grad():
-        normal, position = forward_kinematics(params, spec, flat.steps.unsqueeze(1))
-    # the label columns of all frames at once (a string column per frame costs more than the
-    # forward pass)
-    frame = metrics_frame(flat, normal[:, 0], position[:, 0]).assign(
-        model=np.repeat([f.name for _, f in pairs], sizes),
-        heliostat_id=np.repeat([setups[h].hid for h, _ in pairs], sizes),
-        split=np.concatenate([setups[h].labels for h, _ in pairs]), selected=False)
-    ends = np.cumsum(sizes)
-    for (h, _), a, b in zip(pairs, ends - sizes, ends):
-        out[h].append(frame.iloc[a:b])
-    return out
-
-
 def table_row_parameters(params: torch.Tensor, table: pd.DataFrame, regimes: pd.DataFrame,
                          timestamps) -> torch.Tensor:
     """Per-row parameters (N, 28) of a regime-aware model from the artifacts, as
@@ -405,14 +368,14 @@ def table_row_parameters(params: torch.Tensor, table: pd.DataFrame, regimes: pd.
     regime = regime_of_rows(regimes, hid, times)["regime"].to_numpy()
     latest = int(table.loc[table["latest"].astype(bool), "regime"].max()
                  if table["latest"].any() else table["regime"].max())
-    seconds = _seconds(times)
+    seconds = seconds_utc(times)
     out = params.to(torch.float64).expand(len(regime), len(PARAMETER_NAMES)).clone()
     for name, g in table.groupby("parameter", sort=False):
         g = g.drop_duplicates("regime").set_index("regime")
         row = g.loc[np.where(np.isin(regime, g.index), regime, latest)]
         rate = row["drift_rad_per_year"].to_numpy(np.float64)
-        held = np.clip(seconds, _seconds(row["drift_from"]), _seconds(row["drift_to"]))
-        years = np.nan_to_num((held - _seconds(row["drift_reference"])) / _YEAR_S)
+        held = np.clip(seconds, seconds_utc(row["drift_from"]), seconds_utc(row["drift_to"]))
+        years = np.nan_to_num((held - seconds_utc(row["drift_reference"])) / _YEAR_S)
         out[:, PARAMETER_INDEX[name]] = torch.as_tensor(row["value_rad"].to_numpy(np.float64)
                                                         + rate * years)
     return out
@@ -425,183 +388,3 @@ def predict_parameters(params: torch.Tensor, spec: HeliostatSpec,
     with torch.no_grad():
         normal, position = forward_kinematics(params, spec, data.steps.unsqueeze(1))
     return metrics_frame(data, normal[:, 0], position[:, 0])
-
-
-def _stamp(seconds: float) -> pd.Timestamp:
-    """A drift time as a UTC timestamp (whole seconds); missing if not finite."""
-    if not np.isfinite(seconds):
-        return pd.NaT
-    return pd.Timestamp(round(float(seconds)), unit="s", tz="UTC")
-
-
-# ------------------------------------------------------------------------------------------------
-# fit-coarse's candidates of one heliostat
-# ------------------------------------------------------------------------------------------------
-def _days(times: np.ndarray) -> int:
-    """Distinct UTC days of datetime64 ``times`` (NaT not counted)."""
-    return len(np.unique(times[~np.isnat(times)].astype("datetime64[D]")))
-
-
-@dataclass
-class CandidateSetup:
-    """What the candidates of one heliostat are fitted and judged on (:func:`candidate_setup`)."""
-
-    hid: str                  # the heliostat
-    regime: np.ndarray        # (N,) regime number of each row
-    labels: np.ndarray        # (N,) split label
-    train: np.ndarray         # (N,) bool: training rows outside episodes (the fitted rows)
-    val: np.ndarray           # (N,) bool: validation rows outside episodes (the judged rows)
-    times: pd.Series          # (N,) UTC
-    data: MeasurementBatch
-    preset: str               # the plain fit's preset
-    params: torch.Tensor      # (28,) its parameters
-    free: np.ndarray          # (28,) its free mask
-    plain_val: float          # its mean validation error on ``val`` [mrad]
-    days: int                 # distinct UTC days of ``val``
-
-    @property
-    def eligible(self) -> bool:
-        """Enough validation days to judge a candidate (:data:`MIN_VALIDATION_DAYS`)."""
-        return self.days >= MIN_VALIDATION_DAYS
-
-
-def candidate_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs: tuple,
-                    max_episode_share: float, data: MeasurementBatch | None = None) -> CandidateSetup:
-    """The rows, regimes and plain fit of one heliostat's candidates (arguments as
-    :func:`regime_candidates`; ``data``: ``MeasurementBatch.from_frame(rows)`` if made)."""
-    from .regimes import regime_arrays, utc_values
-
-    param_rows, pred, _ = outputs
-    regime, episode = regime_arrays(regimes, hid, rows["timestamp"])
-    if episode.mean() > max_episode_share:
-        episode = np.zeros_like(episode)
-    labels = rows["split"].to_numpy()
-    val = (labels == "validation") & ~episode
-    chosen_rows = [r for r in param_rows if r["selected"]]
-    return CandidateSetup(
-        hid, regime, labels, (labels == "train") & ~episode, val,
-        rows["timestamp"], MeasurementBatch.from_frame(rows) if data is None else data,
-        chosen_rows[0]["preset"],
-        torch.tensor([r["fitted"] for r in chosen_rows], dtype=torch.float64),
-        np.array([r["free"] for r in chosen_rows], bool),
-        _mean(pred["error_mrad"].to_numpy()[pred["selected"].to_numpy(bool)][val]),
-        _days(utc_values(rows["timestamp"])[val]))
-
-
-def regime_candidates(hid: str, spec: HeliostatSpec, rows: pd.DataFrame, regimes: pd.DataFrame,
-                      outputs: tuple, *, loss: str, f_scale_mrad: float, margin: float,
-                      max_episode_share: float, models: Sequence[str] = REGIME_MODELS,
-                      fits: "Sequence[RegimeFit] | None" = None,
-                      setup: CandidateSetup | None = None,
-                      frames: "Sequence[pd.DataFrame] | None" = None):
-    """The regime-aware candidates of one heliostat beside its plain fit, and the selection.
-
-    Parameters
-    ----------
-    hid, spec, rows : the heliostat, its rows (with ``split`` and ``timestamp``) in the order of
-        ``outputs``' predictions.
-    regimes : regimes.parquet's rows (the detection on the plain fit's residuals).
-    outputs : ``fit-coarse``'s (param rows, predictions, summary) of the heliostat.
-    loss, f_scale_mrad : ``fit-coarse``'s options.
-    margin : relative validation improvement a candidate needs over the plain fit (the sweep's
-        rule); validation rows of detected episodes are left out of both errors. Without
-        validation rows on :data:`MIN_VALIDATION_DAYS` days no candidate is fitted.
-    max_episode_share : episodes' rows are left out of the fits when they hold at most this
-        share of the rows (``fit-coarse``'s rule for its episode refit).
-    fits : the candidates already fitted (:func:`heliocal.pipeline.models.regime_batch.
-        fit_candidates_batched`, one program for many heliostats); None fits them here, one
-        scipy solve per model.
-    setup : :func:`candidate_setup` of these arguments, if already made.
-    frames : :func:`predict_candidates` of ``fits``, if already made (for many heliostats at
-        once).
-
-    Returns
-    -------
-    (outputs with the candidates' rows added and the selection moved to the chosen one,
-    regime_params.parquet rows of the candidates)
-    """
-    from .regimes import utc_values
-
-    param_rows, pred, summary = outputs
-    chosen_rows = [r for r in param_rows if r["selected"]]
-    c = setup or candidate_setup(hid, rows, regimes, outputs, max_episode_share)
-    regime, labels, val, times, data = c.regime, c.labels, c.val, c.times, c.data
-    plain_val, days = c.plain_val, c.days
-    if fits is None:
-        fits = []
-        with one_thread(blas=True):   # small problems: threads only add overhead and contention
-            for model in models if c.eligible else ():
-                fit = fit_regime_model(spec, c.preset, c.params, c.free, data, regime, times,
-                                       c.train, model, loss=loss, f_scale_mrad=f_scale_mrad,
-                                       start=fits[-1] if fits else None)
-                if fit is None:
-                    break   # the same regimes for every model
-                fits.append(fit)
-    if frames is None:
-        frames = predict_candidates([spec], [c], [fits])[0]
-    vals = [_mean(f["error_mrad"].to_numpy()[val]) for f in frames]
-    best = None
-    for k, v in enumerate(vals):
-        if np.isfinite(v) and np.isfinite(plain_val) and v < (1.0 - margin) * plain_val:
-            if best is None or v < vals[best]:
-                best = k
-    mine = (regimes["heliostat_id"].to_numpy() == hid) & (regimes["kind"].to_numpy() == "regime")
-    seg_numbers, seg_start, seg_end = (regimes[c].array[mine] for c in ("regime", "start", "end"))
-    latest = (int(seg_numbers[np.argsort(utc_values(regimes["start"])[mine], kind="stable")[-1]])
-              if mine.any() else int(regime.max()))
-    stamps = utc_values(times)
-    t_end = stamps[~np.isnat(stamps)].max(keepdims=True)   # the last row's time (datetime64)
-    # each regime's time span (its segments' first start and last end), looked up per row below
-    spans: dict = {}
-    for number, start, end in zip(seg_numbers, seg_start, seg_end):
-        a, b = spans.get(int(number), (start, end))
-        spans[int(number)] = (min(a, start), max(b, end))
-    numbers = sorted(set(spans) | set(np.unique(regime).tolist()))
-    new_params, out_rows = [], []
-    if best is not None:
-        for r in param_rows:
-            r["selected"] = False
-        summary["selected"] = fits[best].name
-    for k, (fit, frame) in enumerate(zip(fits, frames)):
-        err = frame["error_mrad"].to_numpy()
-        errs = {sp: _mean(err[labels == sp]) for sp in ("train", "validation", "test")}
-        summary["presets"][fit.name] = errs
-        latest_params = fit.row_parameters([latest], t_end)[0]
-        for r in chosen_rows:
-            i = r["parameter_index"]
-            new_params.append({**r, "preset": fit.name, "selected": k == best,
-                               "fitted": float(latest_params[i]), "std_error": float("nan"),
-                               "fit_iterations": fit.iterations, "fit_cost": fit.cost,
-                               "fit_condition_number": fit.condition_number, "fit_status": fit.status,
-                               "n_train": int(fit.n_train.sum()), "train_error_mrad": errs["train"],
-                               "val_error_mrad": errs["validation"],
-                               "test_error_mrad": errs["test"]})
-        for number in numbers:
-            s = int(fit.source([number])[0])
-            start, end = spans.get(number, (pd.NaT, pd.NaT))
-            drift_stamps = ((_stamp(fit.reference_s[s]), _stamp(fit.span_s[s, 0]),
-                             _stamp(fit.span_s[s, 1])) if fit.drifting else (pd.NaT,) * 3)
-            for j, name in enumerate(fit.moved):
-                d = fit.drifting.index(name) if name in fit.drifting else None
-                out_rows.append({
-                    "heliostat_id": hid, "model": fit.name, "selected": k == best,
-                    "regime": number, "fitted_regime": int(fit.fitted[s]),
-                    "start": start, "end": end,
-                    "n_train": int(fit.n_train[s]), "parameter": name,
-                    "offset_rad": float(fit.offsets[s, j]),
-                    "value_rad": float(fit.base[PARAMETER_INDEX[name]]) + float(fit.offsets[s, j]),
-                    "drift_rad_per_year": float(fit.rates[s, d]) if d is not None else 0.0,
-                    "drift_reference": drift_stamps[0] if d is not None else pd.NaT,
-                    "drift_from": drift_stamps[1] if d is not None else pd.NaT,
-                    "drift_to": drift_stamps[2] if d is not None else pd.NaT,
-                    "latest": number == latest})
-    summary["regime_candidates"] = {"plain_validation": plain_val, "validation_days": int(days),
-                                    **{f.model: v for f, v in zip(fits, vals)},
-                                    "selected": fits[best].model if best is not None else None}
-    if frames:   # the frames as they are, then the selection (setting a column on any of them
-        n_plain = len(pred)   # first made pandas' concat several times slower)
-        pred = pd.concat([pred, *frames], ignore_index=True)
-        if best is not None:
-            pred["selected"] = np.repeat([False, *(k == best for k in range(len(frames)))],
-                                         [n_plain, *map(len, frames)])
-    return (param_rows + new_params, pred, summary), out_rows

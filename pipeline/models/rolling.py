@@ -20,10 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..vocabulary import DEFAULT_ROLLING_ORIGINS
+
 __all__ = ["Origin", "DEFAULT_MAX_ORIGINS", "MIN_ORIGIN_ROWS", "rolling_origins", "utc_days"]
 
 #: Origins per heliostat by default (the cost is one warm-started fit per origin).
-DEFAULT_MAX_ORIGINS = 12
+DEFAULT_MAX_ORIGINS = DEFAULT_ROLLING_ORIGINS
 
 #: Rows a fit needs before an origin, at the least: each row gives two equations, so 10 rows
 #: give 20 for the 6 to 28 free parameters of a preset held by its prior.

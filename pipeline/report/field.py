@@ -16,6 +16,7 @@ import urllib.parse
 import numpy as np
 import pandas as pd
 
+from .forward import next_day_mean
 from ..vocabulary import DEFAULT_ALERT_MRAD
 from .inputs import ReportInputs
 from .site import model_label
@@ -113,6 +114,7 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
                      "weight_decay": c["weight_decay"] if c else None,
                      "val_error_mrad": val, "test_error_mrad": test,
                      "time_test_error_mrad": _forward_test(h),
+                     "next_day_error_mrad": next_day_mean(h),
                      "n_measurements": int(h["n_measurements"]),
                      "n_test": int(h["split_counts"].get("test", 0)), "alerts": alerts,
                      "degenerate": isinstance(why, str) and bool(why),
@@ -120,6 +122,7 @@ def field_table(inp: ReportInputs, metrics: dict, choices: dict, *,
     return pd.DataFrame(rows, columns=["heliostat_id", "e_m", "n_m", "model", "variant", "preset",
                                        "source", "weight_decay", "val_error_mrad",
                                        "test_error_mrad", "time_test_error_mrad",
+                                       "next_day_error_mrad",
                                        "n_measurements", "n_test", "alerts", "degenerate", "page"])
 
 
@@ -129,6 +132,11 @@ def _forward_test(h: dict) -> float:
     v = (((h.get("forward_in_time") or {}).get("final") or {}).get("time_test") or {}).get(
         "mean_error_mrad")
     return float("nan") if v is None else float(v)
+
+
+def _median_or_none(values: np.ndarray) -> float | None:
+    v = values[np.isfinite(values)]
+    return float(np.median(v)) if len(v) else None
 
 
 def field_summary(table: pd.DataFrame, *, alert_mrad: float = ALERT_MRAD) -> dict:
@@ -156,6 +164,9 @@ def field_summary(table: pd.DataFrame, *, alert_mrad: float = ALERT_MRAD) -> dic
         "n_degenerate": int(degenerate.sum()),
         "median_test_error_mrad": float(np.median(err[ok])) if ok.any() else None,
         "p95_test_error_mrad": float(np.percentile(err[ok], 95)) if ok.any() else None,
+        "median_next_day_error_mrad": _median_or_none(
+            table["next_day_error_mrad"].to_numpy(float)[~degenerate]
+            if "next_day_error_mrad" in table.columns else np.array([])),
         "alert_mrad": float(alert_mrad),
         "n_above_alert": int((err[ok] > alert_mrad).sum()),
         "n_on_alert": int(table["alerts"].map(bool).sum()),

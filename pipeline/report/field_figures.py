@@ -26,7 +26,8 @@ __all__ = [
 
 
 def _cdf(args: dict):
-    """Empirical CDF of the per-heliostat test error with reference lines and the floor."""
+    """Empirical CDF of the per-heliostat test error (and of the next-day error of the
+    rolling-origin evaluation, dotted) with reference lines and the floor."""
     err = np.sort(np.asarray(args["errors"], float))
     err = err[np.isfinite(err)]
     if not len(err):
@@ -35,7 +36,13 @@ def _cdf(args: dict):
     ax = axes[0, 0]
     frac = np.arange(1, len(err) + 1) / len(err)
     ax.step(np.concatenate([[0.0], err]), np.concatenate([[0.0], frac]), where="post",
-            color="k", lw=1.6, label=f"{len(err)} heliostats")
+            color="k", lw=1.6, label=f"test error, {len(err)} heliostats")
+    nxt = np.sort(np.asarray(args.get("next_day", []), float))
+    nxt = nxt[np.isfinite(nxt)]
+    if len(nxt):   # the rolling-origin evaluation: recalibrated every calibration day
+        ax.step(np.concatenate([[0.0], nxt]), np.concatenate([[0.0], np.arange(1, len(nxt) + 1)
+                                                              / len(nxt)]), where="post",
+                color="tab:blue", lw=1.3, ls=":", label=f"next-day error, {len(nxt)} heliostats")
     colors = {0.5: "tab:green", 1.0: "tab:olive", 2.0: "tab:red"}
     for x in args["lines"]:
         share = float((err <= x).mean())
@@ -45,10 +52,11 @@ def _cdf(args: dict):
     if floor is not None and math.isfinite(floor):
         ax.axvspan(0, floor, color="0.85", zorder=0,
                    label=f"measurement floor {floor:.2f} mrad ({args.get('floor_source', '')})")
-    top = max(float(np.percentile(err, 99)) * 1.15, max(args["lines"]) * 1.1)
+    top = max(float(np.percentile(err, 99)) * 1.15, max(args["lines"]) * 1.1,
+              float(np.percentile(nxt, 95)) * 1.1 if len(nxt) else 0.0)
     ax.set_xlim(0, top)
     ax.set_ylim(0, 1.0)
-    ax.set_xlabel("mean test error of the model aim uses [mrad]")
+    ax.set_xlabel("mean error per heliostat [mrad]")
     ax.set_ylabel("share of heliostats")
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small", loc="lower right")

@@ -22,8 +22,8 @@ __all__ = [
 
 
 _OPTIONAL = ("split.parquet", "coarse_params.parquet", "coarse_predictions.parquet",
-             "regimes.parquet", "hybrid_predictions.parquet", "sweep.parquet", "selection.parquet",
-             "selected_predictions.parquet")
+             "regimes.parquet", "rolling_origin.parquet", "hybrid_predictions.parquet",
+             "sweep.parquet", "selection.parquet", "selected_predictions.parquet")
 
 
 #: Stage that writes each optional artifact (used when its schema is not importable yet).
@@ -51,6 +51,7 @@ class ReportInputs:
     sweep: pd.DataFrame | None = None
     selection: pd.DataFrame | None = None
     regimes: pd.DataFrame | None = None
+    rolling: pd.DataFrame | None = None  # rolling_origin.parquet: the next-day errors
     paths: dict[str, Path] = field(default_factory=dict)  # filename -> path of every input read
     notes: list[str] = field(default_factory=list)  # staleness and similar warnings
 
@@ -134,6 +135,8 @@ def load_inputs(workdir: str | Path) -> ReportInputs:
             inp.selection = df
         elif name == "regimes.parquet":
             inp.regimes = df
+        elif name == "rolling_origin.parquet":
+            inp.rolling = df
     preds = []
     for name in ("coarse_predictions.parquet", "hybrid_predictions.parquet",
                  "selected_predictions.parquet"):

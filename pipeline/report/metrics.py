@@ -321,7 +321,37 @@ def _forward_in_time(inp: ReportInputs, finals: dict,
     for role in FORWARD_ROLES:
         field[role] = {k: _statistics(np.concatenate(v) if v else np.array([]), None, None)
                        for k, v in pooled[role].items()}
+    _next_day(inp, finals, per, field, degenerate)
     return per, field
+
+
+def _next_day(inp: ReportInputs, finals: dict, per: dict, field: dict,
+              degenerate: set[str]) -> None:
+    """Each heliostat's ``next_day`` (the rolling-origin evaluation's errors of fit-coarse's
+    selected preset: statistics, origins, median days since the fit's last row) and the field's
+    pooled over the heliostats that are not ``degenerate`` (in place)."""
+    r = inp.rolling
+    empty = {**_statistics(np.array([]), None, None), "origins": 0,
+             "median_days_since_last_row": None}
+    pooled = []
+    groups = dict(tuple(r.groupby(r["heliostat_id"].astype(str), sort=True))) if (
+        r is not None and len(r)) else {}
+    for hid in set(per) | set(finals):
+        entry = per.setdefault(hid, _empty_forward(finals.get(hid, {})))
+        g = groups.get(hid)
+        if g is None:
+            entry["next_day"] = dict(empty)
+            continue
+        err = g["error_mrad"].to_numpy(float)
+        entry["next_day"] = {**_statistics(err, None, None),
+                             "origins": int(g["origin_date"].nunique()),
+                             "median_days_since_last_row": _r(
+                                 np.median(g["days_since_last_row"].to_numpy(float)))}
+        if hid not in degenerate:
+            pooled.append(err)
+    field["next_day"] = {**_statistics(np.concatenate(pooled) if pooled else np.array([]),
+                                       None, None),
+                         "n_heliostats": len(pooled)}
 
 
 def _model_statistics(p: pd.DataFrame) -> dict:

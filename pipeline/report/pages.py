@@ -9,7 +9,6 @@ import html
 import math
 import re
 import urllib.parse
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np

@@ -128,6 +128,7 @@ def index_html(title: str, subtitle: str, summary: dict, table: pd.DataFrame, wo
             ("median test error", f"{_num(s['median_test_error_mrad'])} mrad"
              + (f" ({s['n_degenerate']} degenerate left out)" if s.get("n_degenerate") else "")),
             ("p95 test error", f"{_num(s['p95_test_error_mrad'])} mrad"),
+            ("median next-day error", f"{_num(s.get('median_next_day_error_mrad'))} mrad"),
             (f"above {s['alert_mrad']:g} mrad", s["n_above_alert"]),
             ("on alert", s["n_on_alert"])]
     out = page_head(title)
@@ -201,13 +202,20 @@ def why_text(row, h: dict, best_hybrid_val: float | None) -> str:
                 f"on {row['preset']}; no sweep has run to compare it with the coarse model "
                 "(run `heliocal sweep`).")
     return (f"aim uses fit-coarse's selected preset {row['preset']} (the preset with the lowest "
-            "validation error, or the one given with --preset); no hybrid model has been fitted "
+            "validation error unless it is worse forward in time, on the time split, than another "
+            "by more than 20 %; or the one given with --preset); no hybrid model has been fitted "
             "(run `heliocal sweep`).")
+
+
+def _next_day_text(row) -> str:
+    v = row.get("next_day_error_mrad") if hasattr(row, "get") else None
+    return "n/a" if v is None or not math.isfinite(float(v)) else f"{_num(v)} mrad"
 
 
 def heliostat_html(title: str, row, h: dict, why: str, figures: Sequence[tuple],
                    param_rows: list[list] | None, param_head: str, model_rows: list[list],
-                   prev_next: tuple[str | None, str | None]) -> str:
+                   prev_next: tuple[str | None, str | None],
+                   next_day_svg: str | None = None) -> str:
     """``heliostats/<id>.html``: the heliostat's alerts, model and why, its figures (``figures``:
     ``("figure", ReportFigure)`` or ``("note", text)`` blocks), parameters with standard errors
     and accuracy per model and split."""
@@ -224,6 +232,7 @@ def heliostat_html(title: str, row, h: dict, why: str, figures: Sequence[tuple],
     t = _time_num(row)
     kpis = [("test error", f"{_num(row['test_error_mrad'])} mrad"),
             ("test error forward in time", t if t == "n/a" else f"{t} mrad"),
+            ("next-day error", _next_day_text(row)),
             ("validation error", f"{_num(row['val_error_mrad'])} mrad"),
             ("model aim uses", model_label(row)),
             ("measurements", row["n_measurements"]), ("test rows", row["n_test"]),
@@ -232,6 +241,12 @@ def heliostat_html(title: str, row, h: dict, why: str, figures: Sequence[tuple],
     out.append('<ul class="kpi">' + "".join(
         f"<li><b>{e(str(v))}</b>{e(k)}</li>" for k, v in kpis) + "</ul>")
     out.append(f"<h2>Selected model and why</h2><p>{inline(why)}</p>")
+    if next_day_svg:
+        out.append("<h2>Recalibrated every calibration day</h2>")
+        out.append(f'<figure>{next_day_svg}<figcaption>Rolling-origin evaluation '
+                   "(rolling_origin.parquet): on each calibration day the coarse preset fitted "
+                   "on every earlier row, its error on that day's rows, against the days since "
+                   "the fit's last row.</figcaption></figure>")
     out.append("<h2>Figures</h2>")
     for b in figures:
         if b[0] == "note":

@@ -48,8 +48,10 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
     (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``; None for coarse), ``source`` (the stage that chose it: ``sweep``,
     ``fit-hybrid`` or ``fit-coarse``), ``preset`` (the coarse preset, also under a hybrid),
     ``weight_decay`` (None for coarse), ``val_error_mrad``, ``test_error_mrad`` (NaN without
-    such rows), ``model_dir`` (the folder under ``hybrid/`` with its weights; None for coarse)};
-    empty without coarse_params.parquet.
+    such rows), ``forward_error_mrad`` (the same model fitted on the time split's training rows,
+    on its test rows; NaN: n/a), ``next_day_error_mrad`` (the mean next-day error of fit-coarse's
+    rolling-origin evaluation; NaN without one), ``model_dir`` (the folder under ``hybrid/``
+    with its weights; None for coarse)}; empty without coarse_params.parquet.
     """
     from ..artifacts.schemas import SELECTION, SPLIT
 
@@ -58,7 +60,7 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
         return {}
     params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
                            columns=["heliostat_id", "preset", "selected", "val_error_mrad",
-                                    "test_error_mrad"])
+                                    "test_error_mrad", "time_test_error_mrad"])
     coarse = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
     selection = None
     if artifact_present(workdir, SELECTION):
@@ -68,13 +70,16 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
                                              "split": SPLIT, "coarse_params": COARSE_PARAMS})
         selection = selection.drop_duplicates("heliostat_id").set_index("heliostat_id")
     fit_hybrid_errors = None
+    next_day = _next_day_errors(workdir, heliostats)
     out = {}
     for hid in sorted(coarse.index):
         c = coarse.loc[hid]
         entry = {"heliostat_id": hid, "model": "coarse", "variant": None, "source": "fit-coarse",
                  "preset": str(c["preset"]), "weight_decay": None,
                  "val_error_mrad": float(c["val_error_mrad"]),
-                 "test_error_mrad": float(c["test_error_mrad"]), "model_dir": None}
+                 "test_error_mrad": float(c["test_error_mrad"]),
+                 "forward_error_mrad": float(c["time_test_error_mrad"]),
+                 "next_day_error_mrad": next_day.get(hid, float("nan")), "model_dir": None}
         choice = (str(selection.loc[hid, "model"])
                   if selection is not None and hid in selection.index else None)
         if choice == "coarse":
@@ -89,7 +94,9 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
                              weight_decay=(None if choice == "pretrained-nn"
                                            else float(row["weight_decay"])),
                              val_error_mrad=float(row["val_error_mrad"]),
-                             test_error_mrad=float(row["test_error_mrad"]), model_dir="selected")
+                             test_error_mrad=float(row["test_error_mrad"]),
+                             forward_error_mrad=_number(row.get("time_test_error_mrad")),
+                             model_dir="selected")
             elif strict:
                 raise StageInputError(f"{workdir}/selection.parquet selects {choice} for {hid}, "
                                       f"but the sweep committed no model for it; rerun `heliocal "
@@ -104,9 +111,21 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
             val, test = fit_hybrid_errors.get(hid, (float("nan"), float("nan")))
             entry.update(model="hybrid", variant="hybrid", source="fit-hybrid",
                          weight_decay=_number(cfg.get("weight_decay")),
-                         val_error_mrad=val, test_error_mrad=test, model_dir="hybrid")
+                         val_error_mrad=val, test_error_mrad=test,
+                         forward_error_mrad=float("nan"), model_dir="hybrid")
         out[hid] = entry
     return out
+
+
+def _next_day_errors(workdir: CommittedWorkdir, heliostats) -> dict:
+    """heliostat -> its mean next-day error (rolling_origin.parquet; empty without it)."""
+    from ..artifacts.schemas import ROLLING_ORIGIN
+
+    if not artifact_present(workdir, ROLLING_ORIGIN):
+        return {}
+    r = read_artifact(workdir, ROLLING_ORIGIN, heliostats=heliostats,
+                      columns=["heliostat_id", "error_mrad"])
+    return {str(h): float(v) for h, v in r.groupby("heliostat_id")["error_mrad"].mean().items()}
 
 
 def _config(data: bytes) -> dict:

@@ -47,7 +47,7 @@ from ..vocabulary import CoarsePrior
 
 __all__ = ["PRIOR_MODES", "PRIOR_ROUNDS", "SAMPLE_SIZE", "FIELD_PRIOR_MODEL", "PriorPlan",
            "plan_field_prior", "field_prior_name", "is_field_prior", "field_prior_fit",
-           "zero_row_outputs", "finish_table", "attach_prior_columns", "prior_time_fits",
+           "with_field_prior", "zero_row_outputs", "finish_table", "attach_prior_columns",
            "summary_of"]
 
 log = logging.getLogger("heliocal.coarse")
@@ -338,6 +338,19 @@ def field_prior_fit(name: str, params: np.ndarray, nominal: torch.Tensor, spec: 
                      0, float("nan"), float("nan"), status, [], 0.0)
 
 
+def with_field_prior(inp, fits: list[CoarseFit], time_fits: list | None,
+                      field_geometry: dict | None) -> tuple[list, list | None]:
+    """A heliostat's fits and time-split fits with its field-prior geometry first (a candidate
+    of the selection, so no fit worse on validation than the field's typical geometry is
+    selected; issue 34). The geometry does not depend on the heliostat's rows: it is its own
+    time-split "fit"."""
+    if not field_geometry or inp.hid not in field_geometry:
+        return list(fits), time_fits
+    name, params = field_geometry[inp.hid]
+    geometry = field_prior_fit(name, params, inp.nominal, inp.spec)
+    return [geometry] + list(fits), (None if time_fits is None else [geometry] + list(time_fits))
+
+
 def zero_row_outputs(helio: pd.DataFrame, plan: PriorPlan, with_rows: set[str],
                      heliostats: Sequence[str] | None) -> tuple[list[dict], list[str]]:
     """coarse_params rows of the heliostats without training rows that get the field-prior
@@ -362,7 +375,8 @@ def zero_row_outputs(helio: pd.DataFrame, plan: PriorPlan, with_rows: set[str],
                 "fit_condition_number": float("nan"), "fit_status": status,
                 "fit_implausible": "", "fit_degenerate": "no training rows", "n_train": 0,
                 "train_error_mrad": float("nan"), "val_error_mrad": float("nan"),
-                "test_error_mrad": float("nan")})
+                "test_error_mrad": float("nan"), "time_fitted": float("nan"),
+                "time_val_error_mrad": float("nan"), "time_test_error_mrad": float("nan")})
         ids.append(hid)
     return rows, ids
 
@@ -371,24 +385,6 @@ def _unit(name: str) -> str:
     from ..physics.parameters import PARAMETER_UNITS
 
     return PARAMETER_UNITS[name]
-
-
-def prior_time_fits(helio: pd.DataFrame, rows_of: dict, plan: PriorPlan,
-                    selected: dict[str, str]) -> dict:
-    """The time split's "fit" of the heliostats whose selected model is the field-prior
-    geometry: that geometry itself (it does not depend on the heliostat's rows), with its error
-    on every row; the heliostats with a time split only (as fit_coarse_time_split)."""
-    from .forward import time_labels_of
-
-    out = {}
-    for hid, model in selected.items():
-        if not is_field_prior(model) or time_labels_of(rows_of[hid]) is None:
-            continue
-        params = torch.as_tensor(plan.geometry[hid][1], dtype=torch.float64)
-        spec = HeliostatSpec.from_row(helio.loc[hid])
-        err = predict(params, spec, MeasurementBatch.from_frame(rows_of[hid]))["error_mrad"]
-        out[hid] = (params.numpy().copy(), err.to_numpy())
-    return out
 
 
 def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:

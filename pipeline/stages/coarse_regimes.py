@@ -8,6 +8,7 @@ validation; then each regime's error under the final model. :mod:`.fit_coarse` r
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field, fields
 from typing import Callable, Mapping, Sequence
 
@@ -17,13 +18,17 @@ import pandas as pd
 from ..artifacts.schemas import REGIMES
 from ..models.coarse import MeasurementBatch
 from ..models.regime_batch import fit_candidates_batched
-from ..models.regime_fit import candidate_setup, predict_candidates, regime_candidates
+from ..models.regime_candidates import (CandidateSetup, TimeCandidates, candidate_setup,
+                                        predict_candidates, regime_candidates)
+from ..models.regime_fit import MIN_VALIDATION_DAYS, REGIME_MODELS, fit_regime_model
 from ..models.regimes import (detect_field, detect_records, regime_of_rows,
                               residual_components_mrad, utc_values)
 from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import HeliostatSpec
 from ..runtime.process_state import one_thread
 from ..vocabulary import MIN_IMPROVEMENT
+from .forward import time_labels_of, time_rows
+from .coarse_prior import is_field_prior
 
 __all__ = ["detect_coarse_regimes", "follow_regimes", "REGIME_STEPS", "MAX_EPISODE_SHARE",
            "EPISODE_REFIT_MIN_IMPROVEMENT", "CoarseChunk", "HeliostatResult", "ChunkResult"]
@@ -190,6 +195,74 @@ def _batches(frames: Sequence[pd.DataFrame]) -> list[MeasurementBatch]:
             for e, df in zip(ends, frames)]
 
 
+def _selected_time_error(outputs: tuple, rows: pd.DataFrame, mask: np.ndarray) -> float:
+    """Mean ``time_error_mrad`` of the selected model of a heliostat's ``outputs`` on the time
+    split's validation rows where ``mask`` (N,) holds; NaN without a time split."""
+    labels = time_labels_of(rows)
+    if labels is None:
+        return float("nan")
+    pred = outputs[1]
+    err = pred.loc[pred["selected"], "time_error_mrad"].to_numpy(float)
+    return _mean(err[(labels == "validation") & mask])
+
+
+def _time_setup(hid: str, rows: pd.DataFrame, regimes: pd.DataFrame, outputs: tuple,
+                data: MeasurementBatch) -> CandidateSetup | None:
+    """The candidates' setup on the time split: the time split's labels in place of the split's
+    and the selected plain fit's time-split fit as the plain fit; None without a time split or
+    without that fit. Its validation days are not required (it is not judged by them: it says
+    how the model chosen on the kNN split does forward in time)."""
+    labels = time_labels_of(rows)
+    if labels is None:
+        return None
+    param_rows, pred, summary = outputs
+    plain = [{**r, "fitted": r["time_fitted"]} for r in param_rows if r["selected"]]
+    if not np.isfinite([r["fitted"] for r in plain]).all():
+        return None
+    setup = candidate_setup(hid, rows.assign(split=time_rows(labels)), regimes,
+                            (plain, pred.assign(error_mrad=pred["time_error_mrad"]), summary),
+                            MAX_EPISODE_SHARE, data)
+    return dataclasses.replace(setup, days=max(setup.days, MIN_VALIDATION_DAYS))
+
+
+def _time_candidates(chunk: CoarseChunk, ks: Sequence[int], specs: dict, rows: Sequence,
+                     of: dict, results: Sequence, batches: dict) -> dict:
+    """The regime-aware candidates of the heliostats ``ks`` of a chunk fitted again on their
+    time split's training rows (batched or scipy, as the chunk): k -> :class:`TimeCandidates`."""
+    ids = [str(h["heliostat_id"]) for h in chunk.heliostats]
+    setups = {k: st for k in ks
+              if (st := _time_setup(ids[k], rows[k], of[ids[k]], results[k], batches[k]))}
+    if not setups:
+        return {}
+    kwargs = chunk.options
+    order = sorted(setups)
+    with one_thread(blas=True):
+        if chunk.solver == "batched":
+            fitted = fit_candidates_batched([specs[k] for k in order], [setups[k] for k in order],
+                                            loss=kwargs["loss"], f_scale_mrad=kwargs["f_scale_mrad"])
+        else:
+            fitted = [_scipy_candidates(specs[k], setups[k], kwargs) for k in order]
+        frames = predict_candidates([specs[k] for k in order], [setups[k] for k in order], fitted)
+    return {k: TimeCandidates({f.model: f for f in fits},
+                              {f.model: fr for f, fr in zip(fits, frs)},
+                              time_labels_of(rows[k]), setups[k].plain_val, setups[k].val)
+            for k, fits, frs in zip(order, fitted, frames)}
+
+
+def _scipy_candidates(spec: HeliostatSpec, setup: CandidateSetup, options: dict) -> list:
+    """One heliostat's candidates, one scipy solve per model (each starting from the last)."""
+    fits: list = []
+    for model in REGIME_MODELS:
+        fit = fit_regime_model(spec, setup.preset, setup.params, setup.free, setup.data,
+                               setup.regime, setup.times, setup.train, model,
+                               loss=options["loss"], f_scale_mrad=options["f_scale_mrad"],
+                               start=fits[-1] if fits else None)
+        if fit is None:
+            break
+        fits.append(fit)
+    return fits
+
+
 def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequence,
                    fit_again: Callable) -> ChunkResult:
     """Regimes of each heliostat of a chunk on its first fit's residuals (``outputs``: per
@@ -224,8 +297,16 @@ def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequenc
             # on the validation rows outside the episodes (the rows both fits are meant for)
             ok = (rows[k]["split"].to_numpy() == "validation") & ~flags_of[k]
             old, new = (_selected_error(r[1], ok) for r in (results[k], res))
-            if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old:
+            # forward in time: the refit may not be worse on the time split's validation rows
+            t_old, t_new = (_selected_time_error(r, rows[k], ~flags_of[k])
+                            for r in (results[k], res))
+            forward_ok = not (np.isfinite(t_old) and np.isfinite(t_new) and t_new > t_old)
+            if new < (1.0 - EPISODE_REFIT_MIN_IMPROVEMENT) * old and forward_ok:
                 results[k], starts[k] = res, start
+            elif not forward_ok:
+                notes[k].append(f"{ids[k]}: the fit without its episodes is worse forward in "
+                                f"time ({t_new:.3f} vs {t_old:.3f} mrad on the time split's "
+                                "validation rows); the first fit is kept")
             else:
                 notes[k].append(f"{ids[k]}: the fit without its episodes is not "
                                 f"{100 * EPISODE_REFIT_MIN_IMPROVEMENT:g} % better on "
@@ -234,7 +315,9 @@ def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequenc
     # replaces the fit above only if it beats it by the same margin on validation
     breaks = set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]), "heliostat_id"])
     of = dict(tuple(regimes.groupby("heliostat_id", sort=False)))
-    broken = ([k for k, hid in enumerate(ids) if hid in breaks]
+    # (not on a field-prior geometry: it is not fitted to the heliostat's rows at all)
+    broken = ([k for k, hid in enumerate(ids)
+               if hid in breaks and not is_field_prior(results[k][2]["selected"])]
               if chunk.regime_steps == "candidates" else [])
     specs = {k: HeliostatSpec.from_row(pd.Series(hrows[k])) for k in broken}
     batches = dict(zip(broken, _batches([rows[k] for k in broken])))
@@ -250,6 +333,8 @@ def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequenc
             predicted = predict_candidates([specs[k] for k in broken],
                                            [setups[k] for k in broken], fitted)
         fits, frames = dict(zip(broken, fitted)), dict(zip(broken, predicted))
+    timed = _time_candidates(chunk, [k for k in broken if setups[k].eligible], specs, rows, of,
+                             results, batches)
     out = []
     for k, hid in enumerate(ids):
         regime_rows: list = []
@@ -258,6 +343,6 @@ def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequenc
                 hid, specs[k], rows[k], of[hid], results[k], loss=kwargs["loss"],
                 f_scale_mrad=kwargs["f_scale_mrad"], margin=EPISODE_REFIT_MIN_IMPROVEMENT,
                 max_episode_share=MAX_EPISODE_SHARE, setup=setups[k], fits=fits.get(k),
-                frames=frames.get(k))
+                frames=frames.get(k), time=timed.get(k))
         out.append(HeliostatResult(results[k], regime_rows, flags_of[k], k in refit, notes[k]))
     return ChunkResult(_segment_errors(regimes, ids, rows, results), out)

@@ -7,7 +7,6 @@ coarse_params.parquet and coarse_predictions.parquet in one transaction. The fit
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -18,7 +17,7 @@ import torch
 
 from ..artifacts.paths import artifact_path
 from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, FIELD_PRIOR, HELIOSTATS,
-                                 MEASUREMENTS, REGIME_PARAMS, REGIMES)
+                                 MEASUREMENTS, REGIME_PARAMS, REGIMES, ROLLING_ORIGIN)
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
 from ..artifacts.transaction import stage_transaction
@@ -35,13 +34,13 @@ from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
-from .coarse_prior import (PRIOR_MODES, attach_prior_columns, field_prior_fit, finish_table,
-                           is_field_prior, plan_field_prior, prior_time_fits, summary_of,
-                           zero_row_outputs)
+from .coarse_prior import (PRIOR_MODES, attach_prior_columns, finish_table, plan_field_prior,
+                           summary_of, with_field_prior, zero_row_outputs)
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes)
-from .forward import (TIME_COLUMN, attach_coarse_time, chunks_per_worker, fit_coarse_time_split,
-                      load_time_labels)
+from .rolling import DEFAULT_MAX_ORIGINS, add_next_day, evaluate_rolling, rolling_chunks
+from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
+                      time_labels_of)
 
 __all__ = [
     "fit_heliostat_chunk",
@@ -78,18 +77,55 @@ def load_split_labels(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
     return labels.fillna("excluded")
 
 
-def _heliostat_inputs(hrow, rows: pd.DataFrame):
-    """(spec, nominal, all rows, split labels, training rows, episode mask) of one heliostat.
+@dataclass
+class _Inputs:
+    """What the presets' fits of one heliostat need (:func:`_heliostat_inputs`)."""
+
+    hid: str
+    spec: HeliostatSpec
+    nominal: torch.Tensor          # (28,)
+    data: MeasurementBatch         # all its rows
+    labels: np.ndarray             # (N,) split label
+    train: MeasurementBatch        # the training rows outside episodes
+    episode: np.ndarray            # (N,) bool: in a detected episode left out of the fits
+    time_labels: np.ndarray | None  # (N,) time split label (None: no time split)
+    time_train: MeasurementBatch | None  # the time split's training rows outside episodes
+
+
+def _heliostat_inputs(hrow, rows: pd.DataFrame) -> _Inputs:
+    """The inputs of one heliostat's fits.
 
     Rows of a detected episode (column ``episode``, if present) are left out of the training
-    rows and of the validation error that selects the preset."""
+    rows, of the time split's training rows and of the validation errors that select the
+    preset."""
     spec = HeliostatSpec.from_row(hrow)
     data = MeasurementBatch.from_frame(rows)
     labels = rows["split"].to_numpy()
     episode = (rows["episode"].to_numpy(bool) if "episode" in rows.columns
                else np.zeros(len(rows), dtype=bool))
-    return (spec, nominal_parameters(hrow), data, labels,
-            data.subset((labels == "train") & ~episode), episode)
+    time_labels = time_labels_of(rows)
+    time_train = (None if time_labels is None
+                  else data.subset((time_labels == "train") & ~episode))
+    return _Inputs(str(hrow["heliostat_id"]), spec, nominal_parameters(hrow), data, labels,
+                   data.subset((labels == "train") & ~episode), episode, time_labels, time_train)
+
+
+def _fit_inputs(inputs: Sequence[_Inputs], presets: Sequence[str], solver: str,
+                **kwargs) -> tuple[list, list]:
+    """Every preset of each heliostat fitted on its training rows, and again on its time split's
+    training rows where it has a time split (None elsewhere): per heliostat the two lists of
+    :class:`CoarseFit` in the order of ``presets``."""
+    fits = fit_presets([i.spec for i in inputs], [i.nominal for i in inputs],
+                       [i.train for i in inputs], presets, solver=solver, **kwargs)
+    timed = [k for k, i in enumerate(inputs) if i.time_train is not None]
+    time_fits: list = [None] * len(inputs)
+    if timed:
+        again = fit_presets([inputs[k].spec for k in timed], [inputs[k].nominal for k in timed],
+                            [inputs[k].time_train for k in timed], presets, solver=solver,
+                            **kwargs)
+        for k, f in zip(timed, again):
+            time_fits[k] = f
+    return fits, time_fits
 
 
 def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
@@ -97,22 +133,12 @@ def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str
                       priors: dict | None = None, field_geometry: dict | None = None):
     """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary).
     ``priors``, ``field_geometry``: as :func:`_chunk_outputs`."""
-    spec, nominal, data, labels, train, episode = _heliostat_inputs(hrow, rows)
-    fits = fit_presets([spec], [nominal], [train], presets, solver="scipy", loss=loss,
-                       f_scale_mrad=f_scale_mrad, robust_start=robust_start, priors=priors)[0]
-    fits = _with_field_prior(str(hrow["heliostat_id"]), spec, nominal, fits, field_geometry)
-    return _heliostat_outputs(str(hrow["heliostat_id"]), spec, nominal, data, labels, train,
-                              episode, fits)[:3]
-
-
-def _with_field_prior(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
-                      fits: list[CoarseFit], field_geometry: dict | None) -> list[CoarseFit]:
-    """A heliostat's fits with its field-prior geometry first (a candidate of the selection, so
-    no fit worse on validation than the field's typical geometry is selected; issue 34)."""
-    if not field_geometry or hid not in field_geometry:
-        return list(fits)
-    name, params = field_geometry[hid]
-    return [field_prior_fit(name, params, nominal, spec)] + list(fits)
+    inputs = [_heliostat_inputs(hrow, rows)]
+    fits, time_fits = _fit_inputs(inputs, presets, "scipy", loss=loss,
+                                  f_scale_mrad=f_scale_mrad, robust_start=robust_start,
+                                  priors=priors)
+    return _heliostat_outputs(inputs[0], *with_field_prior(inputs[0], fits[0], time_fits[0],
+                                                            field_geometry))[:3]
 
 
 def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: Sequence[str], *,
@@ -132,46 +158,59 @@ def _chunk_outputs(hrows, rows, presets, field_geometry: dict | None = None,
     ``field_geometry``: heliostat -> (model name, parameters (28,)) of its field-prior geometry,
     a candidate of its selection (:mod:`.coarse_prior`)."""
     inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
-    fits = fit_presets([i[0] for i in inputs], [i[1] for i in inputs], [i[4] for i in inputs],
-                       presets, solver="batched", **kwargs)
-    return [_heliostat_outputs(str(h["heliostat_id"]), *inp,
-                               _with_field_prior(str(h["heliostat_id"]), inp[0], inp[1], fits[k],
-                                                 field_geometry))
-            for k, (h, inp) in enumerate(zip(hrows, inputs))]
+    fits, time_fits = _fit_inputs(inputs, presets, "batched", **kwargs)
+    return [_heliostat_outputs(i, *with_field_prior(i, f, t, field_geometry))
+            for i, f, t in zip(inputs, fits, time_fits)]
 
 
-def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
-                       data: MeasurementBatch, labels: np.ndarray, train: MeasurementBatch,
-                       episode: np.ndarray, fits: Sequence[CoarseFit]):
-    """Predictions, the validation selection, param rows and summary of one heliostat's fits,
-    and the selected fit's (residuals (n, 3), Jacobian (n, 3, 28)) on its training rows with the
-    mask (N,) of those rows (the regime candidates start there; None without training rows)."""
-    preds, summaries = [], []
-    nominal_pred = predict(nominal, spec, data).assign(model="nominal")
-    preds.append(nominal_pred)
-    for fit in fits:
-        p = predict(fit.params, spec, data).assign(model=fit.preset)
-        preds.append(p)
-        err = p["error_mrad"].to_numpy()
-        summaries.append({"preset": fit.preset, "train": _mean(err[labels == "train"]),
-                          "validation": _mean(err[labels == "validation"]),
-                          "test": _mean(err[labels == "test"]),
-                          "validation_outside_episodes": _mean(
-                              err[(labels == "validation") & ~episode])})
-    # selection: lowest validation error outside detected episodes (no geometry predicts an
-    # episode's rows); without validation rows the largest preset asked
-    vals = [s["validation_outside_episodes"] for s in summaries]
-    if all(math.isnan(v) for v in vals):
-        chosen = len(fits) - 1
-    else:
-        chosen = int(np.nanargmin(vals))
-    mask = (labels == "train") & ~episode
+def _preset_errors(inp: _Inputs, fit: CoarseFit, time_fit: CoarseFit | None):
+    """One preset's predictions (with ``time_error_mrad``: the time split's fit's errors, NaN
+    without one) and its summary of mean errors."""
+    pred = predict(fit.params, inp.spec, inp.data).assign(model=fit.preset)
+    err = pred["error_mrad"].to_numpy()
+    t_err = (predict(time_fit.params, inp.spec, inp.data)["error_mrad"].to_numpy()
+             if time_fit is not None else np.full(len(err), np.nan))
+    pred["time_error_mrad"] = t_err
+    t_lab = inp.time_labels if inp.time_labels is not None else np.full(len(err), None)
+    outside = ~inp.episode
+    summary = {"preset": fit.preset, "train": _mean(err[inp.labels == "train"]),
+               "validation": _mean(err[inp.labels == "validation"]),
+               "test": _mean(err[inp.labels == "test"]),
+               "validation_outside_episodes": _mean(err[(inp.labels == "validation") & outside]),
+               "time_validation": _mean(t_err[(t_lab == "validation") & outside]),
+               "time_test": _mean(t_err[t_lab == "test"])}
+    return pred, summary
+
+
+def _heliostat_outputs(inp: _Inputs, fits: Sequence[CoarseFit],
+                       time_fits: Sequence[CoarseFit] | None):
+    """Predictions, the selection, param rows and summary of one heliostat's fits, and the
+    selected fit's (residuals (n, 3), Jacobian (n, 3, 28)) on its training rows with the mask
+    (N,) of those rows (the regime candidates start there; None without training rows).
+
+    The selection (:func:`~.forward.forward_guarded_choice`): the lowest validation error
+    outside detected episodes (no geometry predicts an episode's rows), unless the time split's
+    fits show that preset worse forward in time than another by more than the margin; without
+    validation rows the largest preset asked."""
+    hid, spec, nominal, data, labels, train = (inp.hid, inp.spec, inp.nominal, inp.data,
+                                               inp.labels, inp.train)
+    nominal_pred = predict(nominal, spec, data).assign(model="nominal",
+                                                       time_error_mrad=np.nan)
+    preds, summaries = [nominal_pred], []
+    for k, fit in enumerate(fits):
+        pred, summary = _preset_errors(inp, fit, time_fits[k] if time_fits else None)
+        preds.append(pred)
+        summaries.append(summary)
+    chosen = forward_guarded_choice([s["validation_outside_episodes"] for s in summaries],
+                                    [s["time_validation"] for s in summaries])
+    mask = (labels == "train") & ~inp.episode
     with torch.no_grad():
         start = (residual_and_jacobian(fits[chosen].params.to(torch.float64), spec, train.steps,
                                        train.sun, train.focal_spot) if len(train) else None)
     degenerate = data_degeneracy(spec, fits[chosen].params, nominal, train, jacobian=start)
     param_rows = []
     for k, (fit, s) in enumerate(zip(fits, summaries)):
+        time_params = time_fits[k].params if time_fits else None
         for i, name in enumerate(PARAMETER_NAMES):
             param_rows.append({
                 "heliostat_id": hid, "preset": fit.preset, "selected": k == chosen,
@@ -183,7 +222,10 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
                 "fit_status": fit.status, "fit_implausible": "; ".join(fit.implausible),
                 "fit_degenerate": degenerate,
                 "n_train": len(train), "train_error_mrad": s["train"],
-                "val_error_mrad": s["validation"], "test_error_mrad": s["test"]})
+                "val_error_mrad": s["validation"], "test_error_mrad": s["test"],
+                "time_fitted": float(time_params[i]) if time_params is not None else np.nan,
+                "time_val_error_mrad": s["time_validation"],
+                "time_test_error_mrad": s["time_test"]})
     pred = pd.concat(preds, ignore_index=True)
     pred["heliostat_id"] = hid
     pred["split"] = np.tile(labels, len(preds))
@@ -195,7 +237,7 @@ def _heliostat_outputs(hid: str, spec: HeliostatSpec, nominal: torch.Tensor,
         "presets": {s["preset"]: {k: s[k] for k in ("train", "validation", "test")} for s in summaries},
         "implausible": {f.preset: f.implausible for f in fits if f.implausible},
         "degenerate": degenerate,
-        "episode_rows": int(episode.sum()),
+        "episode_rows": int(inp.episode.sum()),
         "wall_time_s": float(sum(f.wall_time_s for f in fits)),
     }
     return param_rows, pred, summary, (None if start is None else (*start, mask))
@@ -372,6 +414,20 @@ def _collect(chunks: Sequence[list[str]], results: Sequence[ChunkResult],
                       refitted)
 
 
+def _time_split_summary(preds: pd.DataFrame, rows: pd.DataFrame) -> dict | None:
+    """Mean ``time_error_mrad`` of a heliostat's selected model (``preds``: its predictions) on
+    each part of its time split (the model fitted again on the time split's training rows);
+    None without a time split."""
+    labels = time_labels_of(rows)
+    if labels is None:
+        return None
+    mine = preds[preds["selected"].to_numpy(bool)]
+    by_id = dict(zip(rows["measurement_id"].astype(str), labels))
+    lab = mine["measurement_id"].astype(str).map(by_id).to_numpy(dtype=object)
+    err = mine["time_error_mrad"].to_numpy(float)
+    return {sp: _mean(err[lab == sp]) for sp in ("train", "validation", "test")}
+
+
 def _log_fit_warnings(summary: dict) -> None:
     """A heliostat's warnings: degenerate training data, an implausible selected fit."""
     if summary["degenerate"]:
@@ -415,19 +471,23 @@ def _regimes_summary(fits: _FieldFits, summaries: Sequence[dict]) -> dict:
             if s.get("regime_candidates", {}).get("selected"))}
 
 
-def _prior_plan(workdir: Path, helio: pd.DataFrame, rows_of: dict, heliostats, presets,
-                prior: str, prior_from, **fit_options):
-    """The run's field prior (:func:`~.coarse_prior.plan_field_prior`). A partial run
-    (``heliostats``) estimates it from the whole field, so its fits are a full run's (give
-    ``prior_from`` = the work directory itself to reuse its committed prior instead). Logs
-    what the prior does not cover."""
-    if heliostats and prior != "none" and prior_from is None:
-        helio, rows_of = _read_rows(workdir, None)
-    plan = plan_field_prior(helio, rows_of, presets, mode=prior, prior_from=prior_from,
+def _prior_plan(workdir: Path, presets, prior: str, prior_from, **fit_options):
+    """The run's field prior (:func:`~.coarse_prior.plan_field_prior`), estimated from the whole
+    field (a partial run's fits are a full run's) on every row that is no heliostat's test row
+    (rows the split skipped included: a plant's history; a heliostat's own rows never enter its
+    own prior, :mod:`~heliocal.pipeline.models.field_prior`). Logs what it does not cover."""
+    helio = read_artifact(workdir, HELIOSTATS).set_index("heliostat_id", drop=False)
+    known: dict = {}
+    if prior != "none" and prior_from is None:
+        measurements = read_artifact(workdir, MEASUREMENTS)
+        labels = load_split_labels(workdir, measurements).to_numpy()
+        rows = measurements[labels != "test"].assign(split="train")
+        known = dict(tuple(rows.groupby("heliostat_id", sort=True)))
+    plan = plan_field_prior(helio, known, presets, mode=prior, prior_from=prior_from,
                             **fit_options)
     for line in plan.notes:
         log.warning("%s", line)
-    return plan
+    return plan, helio
 
 
 @locks_workdir("fit-coarse")
@@ -440,7 +500,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    workers: int | None = 1, scheduler: str = "local",
                    dask_address: str | None = None, solver: str = "batched",
                    batch_size: int = 64, regime_steps: str = "candidates",
-                   prior: str = "field", prior_from: str | Path | None = None) -> dict:
+                   rolling_origins: int = DEFAULT_MAX_ORIGINS, prior: str = "field",
+                   prior_from: str | Path | None = None) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -458,6 +519,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     batch_size : heliostats per chunk of the batched solver (one task for ``map_tasks``).
     regime_steps : one of :data:`REGIME_STEPS`: ``candidates`` (the default) or ``detect``
         (detection and the refit without episodes, no regime-aware candidates).
+    rolling_origins : origins per heliostat of the rolling-origin evaluation
+        (:mod:`.rolling`; rolling_origin.parquet); 0 skips it (the artifact is then empty).
     prior : one of :data:`~.coarse_prior.PRIOR_MODES`: ``field`` (the default: the field's
         empirical-Bayes prior where a group has enough well-determined heliostats,
         :mod:`.coarse_prior`), ``field+spatial`` (its mean from the nearest heliostats where
@@ -471,6 +534,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     check_choice(regime_steps, "regime_steps", "fit_coarse", REGIME_STEPS)
     check_choice(prior, "prior", "fit_coarse", PRIOR_MODES)
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
+    rolling_origins = check_int(rolling_origins, "rolling_origins", "fit_coarse", 0)
     steps = None if _SKIP_REGIMES else regime_steps
     warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
@@ -478,9 +542,9 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     ids = list(rows_of)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
-    plan = _prior_plan(workdir, helio, rows_of, heliostats, presets, prior, prior_from,
-                       solver=solver, options=kwargs, batch_size=batch_size, workers=workers,
-                       scheduler=scheduler, dask_address=dask_address)
+    plan, field = _prior_plan(workdir, presets, prior, prior_from, solver=solver, options=kwargs,
+                              batch_size=batch_size, workers=workers, scheduler=scheduler,
+                              dask_address=dask_address)
     chunks = _chunks(solver, helio, rows_of, batch_size)
     tasks = [CoarseChunk(solver, [helio.loc[h].to_dict() for h in chunk],
                          [rows_of[h] for h in chunk], presets,
@@ -492,40 +556,35 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                               chunks_per_worker=chunks_per_worker(solver))
     fits = _collect(chunks, chunk_results, rows_of)
     all_params, all_preds, summaries = [], [], []
-    for params, preds, summary in (fits.outputs[h] for h in ids):
+    for hid in ids:
+        params, preds, summary = fits.outputs[hid]
         _log_fit_warnings(summary)
+        summary["time_split"] = _time_split_summary(preds, rows_of[hid])
         all_params += params
         all_preds.append(preds)
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
-            "heliostats": list(heliostats) if heliostats else None, "prior": prior,
-            "prior_from": None if prior_from is None else str(prior_from)}
-    zero_rows, zero_ids = zero_row_outputs(helio, plan, set(rows_of), heliostats)
+            "rolling_origins": rolling_origins, "prior": prior,
+            "prior_from": None if prior_from is None else str(prior_from),
+            "heliostats": list(heliostats) if heliostats else None}
+    zero_rows, zero_ids = zero_row_outputs(field, plan, set(rows_of), heliostats)
     params, preds = pd.DataFrame(all_params + zero_rows), pd.concat(all_preds, ignore_index=True)
-    # forward in time: the selected preset fitted again on the time split's training rows (a
-    # regime-aware selection: its base preset; the time split's regimes are not refitted), with
-    # the same field prior; a field-prior geometry is the same on both splits
-    selected = {s["heliostat_id"]: s["selected"] for s in summaries}
-    time_fits = fit_coarse_time_split(
-        helio, rows_of, {h: base_preset(m) for h, m in selected.items() if not is_field_prior(m)},
-        solver=solver, batch_size=batch_size, workers=workers,
-        options=dict(kwargs, priors={h: {base_preset(m): plan.priors[h][base_preset(m)]}
-                                     for h, m in selected.items()
-                                     if base_preset(m) in plan.priors.get(h, {})}),
-        scheduler=scheduler, dask_address=dask_address)
-    time_fits.update(prior_time_fits(helio, rows_of, plan, selected))
-    params, preds = attach_coarse_time(attach_prior_columns(params, plan), preds, time_fits,
-                                       rows_of)
-    for s in summaries:
-        tf = time_fits.get(s["heliostat_id"])
-        labels = rows_of[s["heliostat_id"]][TIME_COLUMN].to_numpy(dtype=object)
-        s["time_split"] = None if tf is None else {
-            sp: _mean(tf[1][labels == sp]) for sp in ("train", "validation", "test")}
+    params = attach_prior_columns(params, plan)
+    rolling = evaluate_rolling(
+        rolling_chunks(helio, rows_of, {s["heliostat_id"]: s["selected"] for s in summaries},
+                       fits.regimes, solver=solver, options=kwargs, batch_size=batch_size,
+                       max_origins=rolling_origins, priors=plan.priors,
+                       fixed={h: g[1] for h, g in plan.geometry.items()})
+        if rolling_origins else [],
+        workers=workers, scheduler=scheduler, dask_address=dask_address,
+        chunks_per_worker=chunks_per_worker(solver))
+    add_next_day(summaries, rolling)
     _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
-                             REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params},
+                             REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params,
+                             ROLLING_ORIGIN: rolling},
                    heliostats, opts)
-    table = finish_table(plan, helio, summaries)
+    table = finish_table(plan, field, summaries)
     write_artifact(table, workdir, FIELD_PRIOR, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
             "regimes": _regimes_summary(fits, summaries),

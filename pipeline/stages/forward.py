@@ -1,30 +1,37 @@
-"""Forward-in-time evaluation (issue 17): every model evaluated on the time split as well.
+"""Forward-in-time evaluation: every model evaluated, and chosen, on the time split as well.
 
 ``split-knn`` writes, beside the split that selects models (kNN by default), a time split of
 every heliostat with timestamps (split.parquet ``time_split``: the latest measurements are test,
 the ones before them validation, the earlier ones train). The operational question is
 "calibrate now, aim for the coming weeks", and a model that saw a recent row cannot answer it for
 that row: evaluating the kNN-trained model on the time split's test rows would leak (those rows
-may be among its training rows). So the *selected* model is trained a second time, the same way,
-on the time split's training rows only, and its errors on every row are written beside the
-model's own (``time_error_mrad``):
+may be among its training rows). So every model is trained a second time, the same way, on the
+time split's training rows only, and its errors on every row are written beside the model's own
+(``time_error_mrad``):
 
-- ``fit-coarse``: the selected preset fitted again (same solver, loss and robust start rules) on
-  the time split's training rows (:func:`fit_coarse_time_split`); its parameters are
-  coarse_params.parquet's ``time_fitted``. (Rows of detected episodes are not left out of this
-  fit: the episodes were found on residuals that include the recent rows.)
+- ``fit-coarse``: every preset fitted again (same solver, loss and robust start rules) on the time
+  split's training rows outside detected episodes, in the same chunk task as its kNN fit; a
+  regime-aware candidate (``<preset>+offsets``, ``+drift``) fitted again on those rows with the
+  same regimes (a regime that starts after the last training row has no rows of its own and
+  takes the parameters of the regime before it, as ``aim`` does); its parameters are
+  coarse_params.parquet's ``time_fitted``.
 - ``fit-hybrid``: the fitted mode trained again with the same weight decay and seed on top of
-  that time-split coarse fit.
+  the selected preset's time-split coarse fit.
 - ``sweep``: a heliostat whose selected model is the coarse one takes fit-coarse's time-split
   errors, at no cost; with ``sweep --time-split`` a selected hybrid (or pretrained-nn) is trained
   again (the variant, weight decay and seed the kNN selection chose) on top of the time-split
   coarse fit, along the same weight-decay path down to the selected weight decay
-  (:func:`add_sweep_time_split`). That is a second training program per chunk, measured at +50 %
-  of the sweep's time on a simulated field (benchmarks/forward_cost.py), so it is not the
-  default; without it the selected hybrids' forward-in-time errors are missing ("n/a").
+  (:func:`add_sweep_time_split`).
 
-The selection itself never looks at the time split. A heliostat without a time split (no or too
-few timestamps) has no ``time_error_mrad`` and every forward-in-time figure of it is "n/a".
+Choosing forward-aware (:func:`forward_guarded_choice`): the kNN validation selects, but a choice
+whose time-split validation error is worse than another candidate's by more than the margin
+(:data:`heliocal.pipeline.vocabulary.MIN_IMPROVEMENT`) gives way to the candidate with the
+smallest worst relative regret over both validations. On the Jülich log's heliostats with few
+rows a 28-parameter fit from six rows of March extrapolated to June by 256 mrad while the kNN
+validation, whose rows lie between the training rows in time, saw 1.5 mrad. A regime-aware
+candidate or the refit without episodes must in addition not be worse than the plain fit on the
+time split's validation rows. A heliostat without a time split (no or too few timestamps) is
+chosen on the kNN validation alone and every forward-in-time figure of it is "n/a".
 """
 
 from __future__ import annotations
@@ -40,22 +47,22 @@ import torch
 
 from ..artifacts.schemas import COARSE_PARAMS, SPLIT
 from ..artifacts.store import artifact_present, read_artifact
-from ..models.coarse import MeasurementBatch, fit_presets, predict
+from ..models.coarse import MeasurementBatch
 from ..models.config import ensemble_seeds
 from ..models.pretrained import fit_pretrained
 from ..models.training import build_problem, ensemble_errors_mrad, stack_problems, take_rows
 from ..physics.metrics import error_mrad, measured_normal
 from ..physics.metrics import mean_or_nan as _mean
-from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec, nominal_parameters
+from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec
 from ..runtime.parallel import map_tasks
+from ..vocabulary import MIN_IMPROVEMENT
 
 __all__ = [
     "TIME_COLUMN",
     "load_time_labels",
     "time_labels_of",
-    "fit_coarse_time_split",
+    "forward_guarded_choice",
     "chunks_per_worker",
-    "attach_coarse_time",
     "load_time_parameters",
     "add_sweep_time_split",
     "time_rows",
@@ -98,54 +105,30 @@ def time_rows(labels: np.ndarray | None) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 # fit-coarse
 # ------------------------------------------------------------------------------------------------
-def _coarse_time_task(task) -> list[tuple[np.ndarray, np.ndarray]]:
-    """One chunk (one type and preset): the preset fitted on each heliostat's time-split training
-    rows; per heliostat (params (28,), error_mrad of every row)."""
-    solver, hrows, rows, preset, options = task
-    hrows = [pd.Series(h) for h in hrows]
-    specs = [HeliostatSpec.from_row(h) for h in hrows]
-    data = [MeasurementBatch.from_frame(r) for r in rows]
-    trains = [d.subset(r[TIME_COLUMN].to_numpy(dtype=object) == "train") for d, r in zip(data, rows)]
-    fits = fit_presets(specs, [nominal_parameters(h) for h in hrows], trains, (preset,),
-                       solver=solver, **options)
-    return [(f[0].params.numpy().copy(), predict(f[0].params, s, d)["error_mrad"].to_numpy())
-            for f, s, d in zip(fits, specs, data)]
+def forward_guarded_choice(knn_val: Sequence[float], time_val: Sequence[float],
+                           margin: float = MIN_IMPROVEMENT) -> int:
+    """The index of the candidate to select from their mean validation errors [mrad] on the
+    kNN split (``knn_val``) and of their time-split fits on the time split's validation rows
+    (``time_val``; NaN where a candidate has none).
 
-
-def fit_coarse_time_split(helio: pd.DataFrame, rows_of: dict, preset_of: dict, *, solver: str,
-                          batch_size: int, options: dict, workers=1, scheduler="local",
-                          dask_address=None) -> dict:
-    """The selected preset of every heliostat with a time split, fitted again on the time
-    split's training rows with fit-coarse's solver and ``options`` (loss, f_scale_mrad,
-    robust_start).
-
-    Parameters
-    ----------
-    helio : heliostats.parquet indexed by heliostat id.
-    rows_of : heliostat -> its rows (with the ``time_split`` column), in fit-coarse's order.
-    preset_of : heliostat -> its selected preset.
-
-    Returns
-    -------
-    heliostat -> (params (28,) numpy, error_mrad (N,) of every row in ``rows_of``'s order).
-    """
-    ids = [h for h in sorted(preset_of) if time_labels_of(rows_of[h]) is not None]
-    groups: dict = {}
-    for hid in ids:
-        key = (str(helio.loc[hid, "kinematic_type"]), str(helio.loc[hid, "actuator_type"]),
-               preset_of[hid])
-        groups.setdefault(key, []).append(hid)
-    chunks = []
-    for key in sorted(groups):
-        members = sorted(groups[key], key=lambda h: (int((rows_of[h][TIME_COLUMN] == "train").sum()), h))
-        step = 1 if solver == "scipy" else batch_size
-        chunks += [(key[2], members[i:i + step]) for i in range(0, len(members), step)]
-    tasks = [(solver, [helio.loc[h].to_dict() for h in chunk], [rows_of[h] for h in chunk],
-              preset, options) for preset, chunk in chunks]
-    results = map_tasks(_coarse_time_task, tasks, workers=workers, scheduler=scheduler,
-                        dask_address=dask_address,
-                        chunks_per_worker=chunks_per_worker(solver)) if tasks else []
-    return {h: r for (_, chunk), res in zip(chunks, results) for h, r in zip(chunk, res)}
+    The kNN choice (lowest ``knn_val``) stands unless its time validation error exceeds the
+    best one by more than ``margin`` (relative); then the candidate with the smallest worst
+    relative regret ``max(knn_val / min knn_val, time_val / min time_val)`` is chosen. Without
+    any finite kNN validation error the last candidate is chosen (the largest preset asked);
+    without finite time validation errors, the kNN choice."""
+    kv = np.asarray(knn_val, float)
+    tv = np.asarray(time_val, float)
+    if not np.isfinite(kv).any():
+        return len(kv) - 1
+    k = int(np.nanargmin(np.where(np.isfinite(kv), kv, np.inf)))
+    both = np.isfinite(kv) & np.isfinite(tv)
+    if not np.isfinite(tv[k]) or both.sum() < 2:
+        return k
+    best_t = tv[both].min()
+    if tv[k] <= (1.0 + margin) * best_t:
+        return k
+    regret = np.maximum(kv / kv[both].min(), tv / best_t)
+    return int(np.argmin(np.where(both, regret, np.inf)))
 
 
 def chunks_per_worker(solver: str) -> int:
@@ -154,45 +137,6 @@ def chunks_per_worker(solver: str) -> int:
     one at a time up to 16 per worker (groups of four left one worker idle for seconds at the
     end of a 2,000-heliostat field); scipy's tasks are single heliostats, grouped by four."""
     return 16 if solver == "batched" else 4
-
-
-def attach_coarse_time(params: pd.DataFrame, preds: pd.DataFrame, fits: dict,
-                       rows_of: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """coarse_params with ``time_fitted``, ``time_val_error_mrad``, ``time_test_error_mrad`` and
-    coarse_predictions with ``time_error_mrad``, on the selected preset's rows of the heliostats
-    in ``fits`` (:func:`fit_coarse_time_split`); missing elsewhere."""
-    params = params.assign(time_fitted=np.nan, time_val_error_mrad=np.nan,
-                           time_test_error_mrad=np.nan)
-    preds = preds.assign(time_error_mrad=np.nan)
-    if not fits:
-        return params, preds
-    p_sel = params["selected"].to_numpy(bool)
-    p_hid = params["heliostat_id"].to_numpy()
-    e_sel = preds["selected"].to_numpy(bool)
-    e_hid = preds["heliostat_id"].to_numpy()
-    by_p = pd.Series(np.arange(len(params))).groupby(p_hid).indices
-    by_e = pd.Series(np.arange(len(preds))).groupby(e_hid).indices
-    tf, tv, tt = (params[c].to_numpy(float).copy() for c in
-                  ("time_fitted", "time_val_error_mrad", "time_test_error_mrad"))
-    te = preds["time_error_mrad"].to_numpy(float).copy()
-    # the whole columns once: converted per heliostat, they would make this quadratic in the field
-    p_index = params["parameter_index"].to_numpy()
-    e_mid = preds["measurement_id"].astype(str).to_numpy()
-    for hid, (theta, err) in fits.items():
-        labels = rows_of[hid][TIME_COLUMN].to_numpy(dtype=object)
-        pi = by_p[hid][p_sel[by_p[hid]]]
-        order = p_index[pi]
-        tf[pi] = theta[order]
-        tv[pi] = _mean(err[labels == "validation"])
-        tt[pi] = _mean(err[labels == "test"])
-        ei = by_e[hid][e_sel[by_e[hid]]]
-        # a heliostat's prediction rows of one model are in the order of its rows
-        position = pd.Series(np.arange(len(labels)),
-                             index=rows_of[hid]["measurement_id"].astype(str).to_numpy())
-        te[ei] = err[position.loc[e_mid[ei]].to_numpy()]
-    params["time_fitted"], params["time_val_error_mrad"], params["time_test_error_mrad"] = tf, tv, tt
-    preds["time_error_mrad"] = te
-    return params, preds
 
 
 def load_time_parameters(workdir: str | Path, heliostats: Sequence[str] | None = None) -> dict:

@@ -56,7 +56,8 @@ from ..report.inputs import load_inputs
 from ..report.metrics import compute_metrics, metrics_json
 from ..report.pages import (build_report, figure_tasks, parameter_tables, render_html,
                             render_markdown, resolve_figures)
-from ..report.render import FigureTask, ReportFigure, render_task
+from ..report.forward import svg_next_day
+from ..report.render import FigureTask, ReportFigure, by_heliostat, render_task
 from ..report.regimes import regime_alerts
 from ..report.site import (field_page_blocks, heliostat_html, heliostats_list_html, index_html,
                            nav_html, why_text)
@@ -208,10 +209,14 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     wd_frame = weight_decay_frame(inp.sweep)
     cdf_task = FigureTask("field_cdf", "field_error_cdf.png",
                           "Share of heliostats whose model (the one aim uses) has a mean test error "
-                          "below x; dashed: " + ", ".join(f"{x:g}" for x in ERROR_LINES_MRAD)
+                          "below x (dotted: the mean next-day error of the rolling-origin "
+                          "evaluation, the coarse preset recalibrated every calibration day); "
+                          "dashed: " + ", ".join(f"{x:g}" for x in ERROR_LINES_MRAD)
                           + " mrad" + (f"; grey: the measurement floor ({floor_source})"
                                        if floor is not None else ""), None,
                           {"errors": table["test_error_mrad"].to_numpy(float),
+                           "next_day": table.loc[~table["degenerate"].to_numpy(bool),
+                                                 "next_day_error_mrad"].to_numpy(float),
                            "lines": ERROR_LINES_MRAD, "floor": floor,
                            "floor_source": floor_source})
     field_plan = _field_plan(inp, wd_frame, training_size_frame(inp.sweep),
@@ -341,6 +346,7 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
             first = sel.drop_duplicates("heliostat_id")
             presets = dict(zip(first["heliostat_id"].astype(str), first["preset"].astype(str)))
     rows = {r["heliostat_id"]: r for _, r in table.iterrows()}
+    rolling = by_heliostat(inp.rolling)
     ids = list(helios)
     written = []
     folder = out / "heliostats"
@@ -365,7 +371,8 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
         bv = best_val.get(hid)
         page = heliostat_html(title, row, helios[hid],
                               why_text(row, helios[hid], None if bv is None else float(bv)),
-                              figs, prow, head, mrows, prev_next)
+                              figs, prow, head, mrows, prev_next,
+                              svg_next_day(rolling.get(hid)))
         path = safe_child(folder, row["page"])
         txn.write_bytes(f"heliostats/{path.name}", page.encode("utf-8"))
         written.append(str(path))
