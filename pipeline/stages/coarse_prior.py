@@ -7,23 +7,26 @@ How (``--prior field``, the default; ``none`` fits as before; ``field+spatial`` 
 neighbours' mean where it helps):
 
 1. The *sample* of each group (kinematic type, actuator type, geometry source): its heliostats
-   with the most training rows, at most :data:`SAMPLE_SIZE` (all of them in most fields), are
-   fitted with every preset of the run under the default weak prior.
+   with the most rows, at most :data:`SAMPLE_SIZE` (all of them in most fields), are fitted
+   with every preset of the run under the default weak prior, each on all its rows that are not
+   test rows (the stage passes them: a plant's history, heliostats the split skipped included).
 2. Per preset the prior is estimated from those fits (per fold: leave-out,
    :class:`~heliocal.pipeline.models.field_prior.GroupPrior`).
-3. Fit -> prior -> refit, :data:`PRIOR_ROUNDS` times in all: the sample is fitted again under
-   its priors and the prior estimated again from those (posterior) fits. Then every heliostat
-   is fitted by the stage under the last prior (MAP: the prior's rows in the batched LM).
+3. Fit -> prior -> refit, :data:`PRIOR_ROUNDS` = 1 time: every heliostat is fitted by the stage
+   under that prior (MAP: the prior's rows in the batched LM). More rounds (refitting the
+   sample under its priors and estimating again, the EM step) would let a heliostat's own fit
+   reach its own prior through the other heliostats' refits, which the leave-out forbids.
 
 A parameter gets the field's prior only where :data:`~heliocal.pipeline.models.field_prior.MIN_HELIOSTATS`
 well-determined heliostats (outside the heliostat's own fold) estimate it; elsewhere, and in a
 group without them, the fit keeps the default prior, so such a field is fitted exactly as with
 ``--prior none``. With ``--prior-from OTHER`` the prior of OTHER's field_prior.parquet is used
-(no estimation here; the file is recorded as an input).
+(no estimation here; the run's provenance records ``prior_from`` among its options).
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 from dataclasses import dataclass, field
@@ -35,6 +38,8 @@ import pandas as pd
 import torch
 
 from ..artifacts.schemas import FIELD_PRIOR
+from ..artifacts.manifests import ACTIVE_TRANSACTION
+from ..artifacts.paths import artifact_path
 from ..artifacts.store import read_artifact
 from ..errors import ParameterError, StageInputError
 from ..models.coarse import CoarseFit, MeasurementBatch, fit_presets, predict
@@ -47,7 +52,7 @@ from ..vocabulary import CoarsePrior
 
 __all__ = ["PRIOR_MODES", "PRIOR_ROUNDS", "SAMPLE_SIZE", "FIELD_PRIOR_MODEL", "PriorPlan",
            "plan_field_prior", "field_prior_name", "is_field_prior", "field_prior_fit",
-           "with_field_prior", "zero_row_outputs", "finish_table", "attach_prior_columns",
+           "with_field_prior", "field_prior_note", "zero_row_outputs", "finish_table", "attach_prior_columns",
            "summary_of"]
 
 log = logging.getLogger("heliocal.coarse")
@@ -55,9 +60,9 @@ log = logging.getLogger("heliocal.coarse")
 #: Choices of ``fit-coarse --prior``.
 PRIOR_MODES = CoarsePrior.values()
 
-#: Fits of the sample before the final fit: 1 = fit -> prior -> final fit; 2 adds one refit of
-#: the sample under its prior and a second estimate (the EM step of the hierarchical model).
-PRIOR_ROUNDS = 2
+#: Fits of the sample before the final fit: 1 = fit -> prior -> final fit (module docstring: a
+#: second round, the EM step, would break the leave-out).
+PRIOR_ROUNDS = 1
 
 #: Heliostats per group whose fits estimate the prior (those with the most training rows).
 SAMPLE_SIZE = 256
@@ -316,7 +321,17 @@ def _read_other(prior_from) -> pd.DataFrame:
     if not other.is_dir():
         raise StageInputError(f"--prior-from {other}: no such work directory; give the folder "
                               "of a fit-coarse run with a field prior")
-    table = read_artifact(other, FIELD_PRIOR)
+    # read outside this run's transaction (the other work directory's own inputs are not this
+    # run's), then recorded as a source of this run: its provenance names the file and its hash
+    txn = ACTIVE_TRANSACTION.get()
+    token = ACTIVE_TRANSACTION.set(None)
+    try:
+        table = read_artifact(other, FIELD_PRIOR)
+    finally:
+        ACTIVE_TRANSACTION.reset(token)
+    if txn is not None:
+        path = artifact_path(other, FIELD_PRIOR)
+        txn.add_source("prior_from", path, hashlib.sha256(path.read_bytes()).hexdigest())
     if table.empty:
         raise StageInputError(f"--prior-from {other}: its field_prior.parquet holds no prior "
                               "(its fit-coarse ran with --prior none, or no group had enough "
@@ -443,3 +458,28 @@ def summary_of(plan: PriorPlan, table: pd.DataFrame, zero_rows: Sequence[str]) -
                        "nominal_error_mrad": _mean(g["nominal_error_mrad"].to_numpy(float))})
     return {"mode": plan.mode, "prior_from": plan.prior_from, "groups": groups,
             "zero_row_heliostats": list(zero_rows), "notes": list(plan.notes)}
+
+
+def field_prior_note(workdir, hrow, model: str) -> str | None:
+    """What ``aim`` says of a heliostat whose selected model is its group's field-prior
+    geometry (None for any other model): that it has no fit of its own, and the error measured
+    on heliostats like it (field_prior.parquet ``expected_error_mrad``, where known)."""
+    from ..artifacts.store import artifact_present
+
+    if not is_field_prior(model):
+        return None
+    hid = str(hrow["heliostat_id"])
+    text = (f"{hid} has no fit of its own (no training rows): it aims with the field-prior "
+            f"geometry of its group ({model}, the nominal geometry moved by the field's typical "
+            "deviations)")
+    if artifact_present(workdir, FIELD_PRIOR):
+        table = read_artifact(workdir, FIELD_PRIOR)
+        kt, at, source = group_key(hrow)
+        mine = table[(table["kinematic_type"] == kt) & (table["actuator_type"] == at)
+                     & (table["geometry_source"] == source)]
+        if len(mine) and math.isfinite(float(mine["expected_error_mrad"].iloc[0])):
+            r = mine.iloc[0]
+            text += (f"; on the test rows of {int(r['n_evaluated'])} heliostats like it that "
+                     f"geometry is off by {float(r['expected_error_mrad']):.3g} mrad (median; "
+                     f"nominal geometry {float(r['nominal_error_mrad']):.3g} mrad)")
+    return text + "; calibrate it to get its own fit"
