@@ -32,6 +32,7 @@ from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.vectors import unit_vector as _unit
 from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
+from .coarse_prior import field_prior_note
 from .fit_coarse import load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
 
@@ -177,8 +178,13 @@ def _read_heliostat(wd: CommittedWorkdir, heliostat_id: str) -> _Heliostat:
     if heliostat_id not in selected:
         raise StageInputError(f"heliostat {heliostat_id!r} has no coarse fit: run `heliocal "
                               f"fit-coarse --workdir {wd}` first")
-    return _Heliostat(heliostat_id, row, HeliostatSpec.from_row(row),
-                      selected[heliostat_id]["params"])
+    h = _Heliostat(heliostat_id, row, HeliostatSpec.from_row(row),
+                   selected[heliostat_id]["params"])
+    note = field_prior_note(wd, row, selected[heliostat_id]["preset"])
+    if note:
+        h.warnings.append(note)
+        log.warning("%s", note)
+    return h
 
 
 def _target_point(wd: CommittedWorkdir, name: str) -> np.ndarray:
