@@ -10,6 +10,7 @@ training rows (at ``all``): the largest relative test-error increase under the p
 
     .venv/bin/python benchmarks/field_prior.py SOURCE [--properties DIR] [--out DIR]
         [--n-train 3,5,10,20,all] [--split-args "--n-test 10 --n-val 5"]
+        [--priors none,field,field+spatial]
 
 SOURCE is what ``heliocal ingest`` reads (a calibration log, a PAINT folder, or a simulated
 field's folder). The rolling-origin evaluation is skipped (``--rolling-origins 0``): it does not
@@ -57,6 +58,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "field-prior")
     ap.add_argument("--n-train", default="3,5,10,20,all")
     ap.add_argument("--split-args", default="")
+    ap.add_argument("--priors", default="none,field", help="fit-coarse --prior values to compare")
     args = ap.parse_args()
     base = args.out / "ingested"
     shutil.rmtree(args.out, ignore_errors=True)
@@ -67,19 +69,19 @@ def main() -> None:
     rows = []
     for n in args.n_train.split(","):
         split = ["--n-train", n] if n != "all" else []
-        for prior in ("none", "field"):
-            wd = args.out / f"n{n}-{prior}"
+        for prior in args.priors.split(","):
+            wd = args.out / f"n{n}-{prior.replace('+', '-')}"
             shutil.copytree(base, wd)
             _run("split-knn", "--workdir", str(wd), *split, *args.split_args.split())
             wall = _run("fit-coarse", "--workdir", str(wd), "--prior", prior,
                         "--rolling-origins", "0")
             s = _scores(wd)
             rows.append({"n_train": n, "prior": prior, **s, "wall_s": wall})
-            print(f"n_train={n:>3} prior={prior:5s} kNN test {s['knn_test']:.3f} mrad "
+            print(f"n_train={n:>3} prior={prior:13s} kNN test {s['knn_test']:.3f} mrad "
                   f"({s['n_knn']} heliostats)  time test {s['time_test']:.3f} ({s['n_time']})  "
                   f"field-prior selected {s['field_prior_selected']}  zero-row {s['zero_rows']}  "
                   f"fit {wall:.1f} s", flush=True)
-    full = [r for r in rows if r["n_train"] == "all"]
+    full = [r for r in rows if r["n_train"] == "all" and r["prior"] in ("none", "field")]
     if len(full) == 2 and len(full[0]["big"]):
         ratio = (full[1]["big"] / full[0]["big"]).dropna()
         print(f"heliostats with >= 100 training rows: {len(ratio)}; worst test ratio field/none "
