@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
@@ -11,7 +12,7 @@ from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag,
                               SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
                               progress_bar, stdout)
 from heliocal.pipeline.vocabulary import (DEFAULT_ROLLING_ORIGINS, CoarseLoss, CoarsePreset,
-                                         CoarseSolver, RobustStart)
+                                         CoarsePrior, CoarseSolver, RobustStart)
 
 
 def _human(summary: dict) -> None:
@@ -63,6 +64,17 @@ def fit_coarse_cmd(
     solver: Annotated[CoarseSolver, typer.Option(
         help="batched (many heliostats per vectorized Levenberg-Marquardt program) or scipy "
              "(one least_squares per heliostat, the reference).")] = CoarseSolver.batched,
+    prior: Annotated[CoarsePrior, typer.Option(
+        help="Prior of the fits: field (the field's typical geometry, learned from the "
+             "well-determined heliostats of each type and geometry source; only where at least 8 "
+             "of them determine a parameter), field+spatial (its mean from the nearest "
+             "heliostats where that helps) or none (a weak prior around the nominal geometry "
+             "only).")] = CoarsePrior.field,
+    prior_from: Annotated[Optional[Path], typer.Option(
+        "--prior-from", file_okay=False,
+        help="Use the field prior of another work directory's fit-coarse run (e.g. a plant's "
+             "longer history for new heliostats; this work directory itself reuses its "
+             "committed prior) instead of learning it here.")] = None,
     rolling_origins: Annotated[int, typer.Option(
         min=0, help="Origins per heliostat of the rolling-origin evaluation (each a refit on "
                     "the rows before a calibration day, scored on that day's rows); 0 skips "
@@ -80,5 +92,6 @@ def fit_coarse_cmd(
         summary = run_fit_coarse(workdir, preset=preset.value, loss=loss.value, f_scale_mrad=f_scale,
                                  robust_start=robust_start.value, heliostats=heliostat, progress=advance,
                                  solver=solver.value, workers=workers, scheduler=scheduler.value,
-                                 dask_address=dask_address, rolling_origins=rolling_origins)
+                                 dask_address=dask_address, rolling_origins=rolling_origins,
+                                 prior=prior.value, prior_from=prior_from)
     emit(summary, json_, _human)

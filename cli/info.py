@@ -457,6 +457,8 @@ def _aim_table(models: list) -> Table:
         name = (f"coarse {m['preset']}" if m["model"] == "coarse"
                 else f"nominal ({m['preset']} worse)" if m["model"] == "nominal"
                 else f"{m['variant']} on {m['preset']}")
+        if m["preset"].endswith("+field-prior"):   # no training rows: no fit of its own
+            name = f"field prior {m['preset'].split('+')[0]} (no fit of its own)"
         wd = "-" if m["weight_decay"] is None else f"{m['weight_decay']:g}"
         table.add_row(Text(m["heliostat_id"]), Text(name), Text(wd), Text(m["source"]),
                       Text(_mrad(m["val_error_mrad"])), Text(_mrad(m["test_error_mrad"])),

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from heliocal.cli.app import JsonFlag, QuietFlag, Seed, command, emit, stdout
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.vocabulary import DisturbanceKind
+from heliocal.pipeline.vocabulary import DisturbanceKind, SimulatedMounting
 
 DISTURBANCE_KINDS = DisturbanceKind.values()
 
@@ -88,6 +88,12 @@ def simulate_cmd(
     drift_fraction: Annotated[float, typer.Option(
         "--drift-fraction", help="Share of heliostats whose actuator zero point drifts (1-3 "
                                  "mrad/year from a date on), 0 to 1.")] = 0.0,
+    mounting: Annotated[SimulatedMounting, typer.Option(
+        "--mounting", help="independent (each heliostat's deviations drawn on its own) or "
+                           "field (from its type's distribution: a systematic deviation per "
+                           "type, spatially correlated pedestal tilts and positions, and an "
+                           "individual part; the ground truth of fit-coarse --prior).")
+    ] = SimulatedMounting.independent,
     overwrite: Annotated[bool, typer.Option(
         "--overwrite", help="Replace a previous simulation in --out (only its files are removed).")] = False,
     json_: JsonFlag = False,
@@ -104,6 +110,7 @@ def simulate_cmd(
                            deviations=deviations, start=start, end=end,
                            changes=Changes(step_fraction=step_fraction,
                                            episode_fraction=episode_fraction,
-                                           drift_fraction=drift_fraction))
+                                           drift_fraction=drift_fraction),
+                           mounting=mounting.value)
     summary = write_field(field, out, overwrite=overwrite)
     emit(summary, json_, _human)

@@ -13,6 +13,7 @@ import enum
 
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
            "PretrainVariant", "NeuralBaseline", "AimModel", "CoarseLoss", "CoarseSolver",
+           "CoarsePrior", "SimulatedMounting",
            "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "FocalSpotDetector",
            "AzimuthConvention", "DEFAULT_BATCH_ROWS", "DEFAULT_TIME_MIN",
            "DEFAULT_TIME_MAX_MARGIN_DAYS", "DEFAULT_MAX_SPOT_DISTANCE_M",
@@ -135,6 +136,23 @@ class CoarseSolver(Choice):
 
     batched = "batched"
     scipy = "scipy"
+
+
+class CoarsePrior(Choice):
+    """Prior of ``fit-coarse``'s fits: the default weak one around the nominal geometry only,
+    the field's empirical-Bayes prior, or that with spatial neighbours for its mean."""
+
+    none = "none"
+    field = "field"
+    field_spatial = "field+spatial"
+
+
+class SimulatedMounting(Choice):
+    """How ``simulate`` draws the heliostats' deviations from the nominal geometry: each on its
+    own, or from the type's distribution with spatially correlated mounting errors."""
+
+    independent = "independent"
+    field = "field"
 
 
 class Scheduler(Choice):

@@ -13,10 +13,11 @@ import dataclasses
 
 from .ids import (HELIOSTAT_ID_RE, HELIOSTAT_ID_RULE, WINDOWS_RESERVED_NAMES,
                   heliostat_id_problem, suggest_heliostat_id)
+from .schemas_prior import FIELD_PRIOR
 from .table import ArtifactSchema, Column
 
 __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS",
-           "REGIMES", "REGIME_PARAMS", "ROLLING_ORIGIN", "HYBRID_PREDICTIONS", "SWEEP", "SELECTION",
+           "REGIMES", "REGIME_PARAMS", "ROLLING_ORIGIN", "FIELD_PRIOR", "HYBRID_PREDICTIONS", "SWEEP", "SELECTION",
            "SELECTED_PREDICTIONS", "PLAN", "REJECTION_REASONS", "HELIOSTAT_ID_RE",
            "HELIOSTAT_ID_RULE", "heliostat_id_problem", "suggest_heliostat_id", "all_schemas",
            "WINDOWS_RESERVED_NAMES", "nomenclature_markdown"]
@@ -222,9 +223,12 @@ COARSE_PARAMS = ArtifactSchema(
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
         C("preset", "string", "", "Parameter preset of the fit (static-6 ... static-28, stone-8), "
-          "or a regime-aware candidate on the selected preset (`<preset>+offsets`, "
+          "a regime-aware candidate on the selected preset (`<preset>+offsets`, "
           "`<preset>+drift`; regime_params.parquet): its `fitted` values are the latest "
-          "regime's parameters."),
+          "regime's parameters, or the field-prior geometry `<preset>+field-prior` (the "
+          "nominal geometry moved by the field prior's mean of `<preset>`, field_prior.parquet; "
+          "not fitted: a candidate of every heliostat's selection, and the model of a heliostat "
+          "without training rows, `n_train` 0)."),
         C("selected", "bool", "", "True for the preset used downstream (chosen by validation error "
           "with --preset auto)."),
         C("parameter_index", "int64", "", "Position in the 28-parameter vector."),
@@ -238,8 +242,10 @@ COARSE_PARAMS = ArtifactSchema(
         C("determined", "bool", "", "False where the data cannot determine it (std error > half "
           "the prior sigma)."),
         C("fit_iterations", "int64", "", "Jacobian evaluations of the LM solve (robust start excluded)."),
-        C("fit_cost", "float64", "mrad^2", "Final cost: half the sum of squared residuals."),
-        C("fit_condition_number", "float64", "", "Condition number of the scaled Jacobian."),
+        C("fit_cost", "float64", "mrad^2", "Final cost: half the sum of squared residuals "
+          "(missing for a field-prior geometry, which is not fitted).", nullable=True),
+        C("fit_condition_number", "float64", "", "Condition number of the scaled Jacobian "
+          "(missing for a field-prior geometry).", nullable=True),
         C("fit_status", "string", "", "Solver message."),
         C("fit_implausible", "string", "", "Parameters corrected by more than a plausible amount "
           "(empty if none)."),
@@ -248,7 +254,8 @@ COARSE_PARAMS = ArtifactSchema(
           "spread in sun position; its errors then say nothing about accuracy (empty if the "
           "data are fine)."),
         C("n_train", "int64", "", "Training measurements."),
-        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows."),
+        C("train_error_mrad", "float64", "mrad", "Mean error on the training rows (missing for "
+          "the field-prior geometry of a heliostat without training rows).", nullable=True),
         C("val_error_mrad", "float64", "mrad", "Mean error on the validation rows (NaN if none).",
           nullable=True),
         C("test_error_mrad", "float64", "mrad", "Mean error on the test rows (NaN if none).",
@@ -263,6 +270,13 @@ COARSE_PARAMS = ArtifactSchema(
           nullable=True),
         C("time_test_error_mrad", "float64", "mrad", "Its mean error on the time split's test "
           "rows, the latest measurements (missing: n/a).", nullable=True),
+        C("prior_mean", "float64", "", "The field prior's mean this fit was given "
+          "(field_prior.parquet, in the parameter's unit); missing where the fit had the "
+          "default prior (PRIOR_SIGMA around the nominal value).", nullable=True),
+        C("prior_sigma", "float64", "", "The field prior's sigma this fit was given (the "
+          "parameter's unit); missing where the fit had the default prior. std_error^2 / "
+          "prior_sigma^2 is how much the fit leans on the prior (1: all prior, 0: all data).",
+          nullable=True),
     ),
 )
 
@@ -552,8 +566,8 @@ PLAN = ArtifactSchema(
 def all_schemas() -> list[ArtifactSchema]:
     """Every artifact schema of heliocal, in the order of the stages that write them."""
     return [MEASUREMENTS, HELIOSTATS, REJECTED, SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS,
-            REGIMES, REGIME_PARAMS, ROLLING_ORIGIN, HYBRID_PREDICTIONS, SWEEP, SELECTION,
-            SELECTED_PREDICTIONS, PLAN]
+            REGIMES, REGIME_PARAMS, ROLLING_ORIGIN, FIELD_PRIOR, HYBRID_PREDICTIONS, SWEEP,
+            SELECTION, SELECTED_PREDICTIONS, PLAN]
 
 
 def nomenclature_markdown() -> str:

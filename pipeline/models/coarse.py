@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -267,28 +267,36 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
 
 def _fit_setup(spec: HeliostatSpec, nominal: torch.Tensor, train: MeasurementBatch, preset: str,
                *, robust_start, start: torch.Tensor | None, start_cache: dict | None,
-               prior_weight: float):
-    """What both solvers share before LM: free mask (28,), prior sigma (28,), the start (28,)
-    (nominal, explicit, or the robust start's) and the free parameters' prior sigma (P,)."""
+               prior_weight: float, prior: tuple | None = None):
+    """What both solvers share before LM: free mask (28,), the default prior sigma (28,) (the
+    variables' scale), the start (28,) (the prior's mean: nominal or ``prior``'s; explicit; or
+    the robust start's) and the free parameters' prior sigma (P,): ``prior``'s sigma (28,),
+    except for zero points the robust start moved (the field's spread of them does not apply
+    to a heliostat whose zero points are off by far more), which keep the default."""
     free = preset_mask(preset, spec.actuator_type, spec.kinematic_type).numpy()
     free_idx = np.flatnonzero(free)
     sigma = prior_sigma(nominal)
-    x0_full = start.clone() if start is not None else nominal.clone()
+    centre = nominal if prior is None else torch.as_tensor(prior[0], dtype=torch.float64)
+    sig_prior = sigma.copy() if prior is None else np.asarray(prior[1], np.float64).copy()
+    x0_full = start.clone() if start is not None else centre.clone()
     mode = {True: "always", False: "never"}.get(robust_start, robust_start)
     check_choice(mode, "robust_start", "fit_heliostat", ("always", "auto", "never"))
     if mode != "never" and start is None and len(train):
         zero_point = tuple(bool(free[PARAMETER_INDEX[f"axis_{i}_{f}"]]) for i in (1, 2)
                            for f in ("initial_angle_rad", "initial_stroke_length_m"))
         cache = start_cache if start_cache is not None else {}
-        if zero_point not in cache:
+        key = zero_point if prior is None else (zero_point, centre.numpy().tobytes())
+        if key not in cache:
             needed = mode == "always"
             if not needed:
                 with torch.no_grad():
-                    med = torch.nan_to_num(normal_errors_mrad(nominal, spec, train), nan=1e9).median()
+                    med = torch.nan_to_num(normal_errors_mrad(centre, spec, train), nan=1e9).median()
                 needed = float(med) > ROBUST_START_THRESHOLD_MRAD
-            cache[zero_point] = _robust_start(x0_full, spec, train, free) if needed else x0_full
-        x0_full = cache[zero_point].clone()
-    sig_free = torch.as_tensor(sigma[free_idx]) / math.sqrt(max(prior_weight, 1e-300))
+            cache[key] = _robust_start(x0_full, spec, train, free) if needed else x0_full
+        x0_full = cache[key].clone()
+        moved = (x0_full != centre).numpy()
+        sig_prior[moved] = sigma[moved]
+    sig_free = torch.as_tensor(sig_prior[free_idx]) / math.sqrt(max(prior_weight, 1e-300))
     return free, sigma, x0_full, sig_free
 
 
@@ -296,7 +304,8 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
                   *, loss: str = "linear", f_scale_mrad: float = 1.0, robust_start: bool = True,
                   max_nfev: int = 200, start: torch.Tensor | None = None,
                   prior_weight: float = 1.0, tolerance: float = 1e-10,
-                  jacobian: str = "exact", start_cache: dict | None = None) -> CoarseFit:
+                  jacobian: str = "exact", start_cache: dict | None = None,
+                  prior: tuple | None = None) -> CoarseFit:
     """Fit one heliostat's free parameters (preset) on its training measurements.
 
     Parameters
@@ -319,6 +328,9 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     tolerance : xtol = ftol = gtol of the solver (relative changes of step, cost, gradient).
     prior_weight : multiplier of the prior's curvature (1 = :data:`PRIOR_SIGMA`; 0 = no prior,
         plain least squares, as in the noiseless recovery tests).
+    prior : (mean (28,), sigma (28,)) [parameter units]: a Gaussian prior (e.g. the field's,
+        :mod:`.field_prior`) instead of :data:`PRIOR_SIGMA` around the nominal values; its mean
+        is the start. None: the default.
     """
     check_choice(preset, "preset", "fit_heliostat", PRESET_NAMES)
     check_choice(loss, "loss", "fit_heliostat", LOSSES)
@@ -326,7 +338,8 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     nominal = nominal.to(torch.float64)
     free, sigma, x0_full, sig_free = _fit_setup(spec, nominal, train, preset,
                                                 robust_start=robust_start, start=start,
-                                                start_cache=start_cache, prior_weight=prior_weight)
+                                                start_cache=start_cache, prior_weight=prior_weight,
+                                                prior=prior)
     free_idx = np.flatnonzero(free)
     free_idx_t = torch.as_tensor(free_idx)
     # the prior's mean is the start: the nominal geometry, with the actuator zero points the
@@ -409,6 +422,7 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
                            robust_start: bool | str = True, max_nfev: int = 200,
                            prior_weight: float = 1.0, tolerance: float = 1e-10,
                            start_caches: Sequence[dict] | None = None,
+                           priors: Sequence[tuple | None] | None = None,
                            starts: Sequence[torch.Tensor | None] | None = None) -> list[CoarseFit]:
     """:func:`fit_heliostat` for many heliostats of one kinematic and actuator type at once.
 
@@ -422,7 +436,8 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
     Levenberg-Marquardt program (:func:`heliocal.pipeline.physics.lm.solve_batched`) instead of one
     scipy solve per heliostat. Standard errors, 'determined' flags and the condition number
     come from the same per-heliostat diagnostics at the solution. Heliostats without training
-    rows are left to :func:`fit_heliostat` ("nothing to fit").
+    rows are left to :func:`fit_heliostat` ("nothing to fit"). ``priors``: per heliostat
+    :func:`fit_heliostat`'s ``prior`` (None: the default).
     """
     from ..physics.lm import BatchedProblem, solve_batched, stack_specs
 
@@ -432,18 +447,20 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
     n_helio = len(specs)
     caches = list(start_caches) if start_caches is not None else [{} for _ in range(n_helio)]
     fits: list[CoarseFit | None] = [None] * n_helio
+    priors = list(priors) if priors is not None else [None] * n_helio
     setups, batch = [], []
     for k in range(n_helio):
         if len(trains[k]) == 0:
             fits[k] = fit_heliostat(specs[k], nominals[k], trains[k], preset, loss=loss,
                                     f_scale_mrad=f_scale_mrad, robust_start=robust_start,
                                     max_nfev=max_nfev, prior_weight=prior_weight,
-                                    tolerance=tolerance, start_cache=caches[k])
+                                    tolerance=tolerance, start_cache=caches[k], prior=priors[k])
             continue
         nominal = nominals[k].to(torch.float64)
         setups.append((nominal,) + _fit_setup(specs[k], nominal, trains[k], preset,
                                               robust_start=robust_start, start=None,
-                                              start_cache=caches[k], prior_weight=prior_weight))
+                                              start_cache=caches[k], prior_weight=prior_weight,
+                                              prior=priors[k]))
         batch.append(k)
     if not batch:
         return fits
@@ -548,7 +565,8 @@ def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarr
 def fit_presets(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
                 trains: Sequence[MeasurementBatch], presets: Sequence[str], *,
                 solver: str = "batched", loss: str = "soft_l1", f_scale_mrad: float = 1.0,
-                robust_start: bool | str = "auto") -> list[list[CoarseFit]]:
+                robust_start: bool | str = "auto",
+                priors: Mapping[str, Mapping[str, tuple]] | None = None) -> list[list[CoarseFit]]:
     """Every preset for each heliostat on its training rows, exactly as ``fit-coarse`` fits them.
 
     This is the one fitting function of ``fit-coarse`` (:func:`run_fit_coarse`) and of the
@@ -565,6 +583,8 @@ def fit_presets(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor]
     solver : ``batched`` (per preset one :func:`fit_heliostats_batched` program for all) or
         ``scipy`` (one :func:`fit_heliostat` per heliostat and preset).
     loss, f_scale_mrad, robust_start : see :func:`fit_heliostat`.
+    priors : heliostat id -> preset -> :func:`fit_heliostat`'s ``prior`` (mean (28,), sigma
+        (28,)); a heliostat or preset it does not name gets the default prior.
 
     Returns
     -------
@@ -573,10 +593,12 @@ def fit_presets(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor]
     check_choice(solver, "solver", "fit_presets", SOLVERS)
     caches = [{} for _ in specs]
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
+    own = [(priors or {}).get(spec.heliostat_id) or {} for spec in specs]
     if solver == "scipy":
-        return [[fit_heliostat(spec, nominal, train, preset, start_cache=cache, **kwargs)
-                 for preset in presets]
-                for spec, nominal, train, cache in zip(specs, nominals, trains, caches)]
+        return [[fit_heliostat(spec, nominal, train, preset, start_cache=cache,
+                               prior=mine.get(preset), **kwargs) for preset in presets]
+                for spec, nominal, train, cache, mine in zip(specs, nominals, trains, caches, own)]
     per_preset = [fit_heliostats_batched(specs, nominals, trains, preset, start_caches=caches,
-                                         **kwargs) for preset in presets]
+                                         priors=[mine.get(preset) for mine in own], **kwargs)
+                  for preset in presets]
     return [[fits[k] for fits in per_preset] for k in range(len(specs))]

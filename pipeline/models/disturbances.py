@@ -18,6 +18,7 @@ from ..vocabulary import DisturbanceKind
 __all__ = [
     "DISTURBANCE_COLUMNS",
     "deviate_parameters",
+    "deviation_kind",
     "disturbance_column",
     "disturbance_setup",
     "disturbance_values",
@@ -101,7 +102,8 @@ def temperature_c(rng: np.random.Generator, times: pd.DatetimeIndex, longitude_d
     return np.round(t, 1)
 
 
-def _deviation_kind(name: str) -> str:
+def deviation_kind(name: str) -> str:
+    """The kind of a parameter in :data:`DEVIATION_SIZES`."""
     if name.endswith("_increment"):
         return "increment"
     if name.endswith("_initial_angle_rad"):
@@ -116,7 +118,7 @@ def _deviation_kind(name: str) -> str:
 def deviate_parameters(rng, nominal: torch.Tensor, names: Sequence[str]) -> torch.Tensor:
     true = nominal.clone()
     for name in names:
-        kind = _deviation_kind(name)
+        kind = deviation_kind(name)
         low, high = DEVIATION_SIZES[kind]
         size = float(rng.uniform(low, high)) * (1.0 if rng.random() < 0.5 else -1.0)
         i = PARAMETER_INDEX[name]

@@ -58,7 +58,8 @@ from .changes import Changes, change_offsets, draw_changes
 from .disturbances import (DISTURBANCE_COLUMNS, DISTURBANCE_KINDS, Disturbances, deviate_parameters,
                            disturbance_column, disturbance_setup, disturbance_values,
                            params_per_measurement, temperature_c)
-from ..vocabulary import SimulatedType
+from ..vocabulary import SimulatedMounting, SimulatedType
+from .mounting import FieldMounting
 
 __all__ = [
     "SIMULATED_TYPES",
@@ -392,7 +393,7 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
                    deviations: str | Sequence[str] = "static-20", start: str = "2023-01-01",
                    end: str = "2024-01-01",
                    reference: tuple[float, float, float] = JUELICH_REFERENCE,
-                   changes: Changes | None = None) -> SimulatedField:
+                   changes: Changes | None = None, mounting: str = "independent") -> SimulatedField:
     """Simulate a calibrated field with known ground truth (see the module docstring).
 
     Parameters
@@ -412,6 +413,10 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
     reference : plant reference point (lat [deg], lon [deg], ellipsoidal height [m]).
     changes : regime steps, episodes and drift (:class:`~heliocal.pipeline.models.changes.Changes`;
         default none); drawn from their own generator, so without them the field is the same.
+    mounting : ``independent`` (each heliostat's deviations drawn on their own) or ``field``
+        (from its type's distribution with spatially correlated mounting errors,
+        :mod:`.mounting`; their own generator: the times and noise are those of the same field
+        with independent deviations).
 
     Returns
     -------
@@ -425,6 +430,7 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
     reference = tuple(float(x) for x in reference)
     rng = np.random.default_rng(seed)
     change_rng = np.random.default_rng([seed, 17])
+    check_choice(mounting, "mounting", _FUNC, SimulatedMounting.values())
     targets = _targets(reference)
     target_names = list(targets)
     slots = _daylight_slots(reference, t0, t1)
@@ -434,7 +440,13 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
     n_dynamic = int(round(dynamic_fraction * n_heliostats))
     heliostats: dict[str, SimulatedHeliostat] = {}
     frames = []
-    for k, (hid, position) in enumerate(_layout(rng, n_heliostats)):
+    layout = _layout(rng, n_heliostats)
+    field_mounting = (FieldMounting(np.random.default_rng([seed, 34]),
+                                    np.array([p[:2] for _, p in layout]),
+                                    [kinematic_types[k % len(kinematic_types)]
+                                     for k in range(len(layout))])
+                      if mounting == "field" else None)
+    for k, (hid, position) in enumerate(layout):
         kt = kinematic_types[k % len(kinematic_types)]
         dynamic = k >= n_heliostats - n_dynamic
         paint = None
@@ -448,7 +460,9 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
             names = () if deviations == "none" else preset_parameters(deviations, spec.actuator_type, kt)
         else:
             names = tuple(n for n in PARAMETER_NAMES if n in set(deviations))
-        true = deviate_parameters(rng, nominal, names)
+        true = deviate_parameters(rng, nominal, names)   # drawn either way: the same field
+        if field_mounting is not None:
+            true = field_mounting.true(k, kt, nominal, names)
         setup = disturbance_setup(rng, kt, spec.actuator_type, disturbances, sizes) if dynamic else {}
         count = int(rng.integers(m_lo, m_hi + 1))
         h = SimulatedHeliostat(hid, kt, spec.actuator_type, dynamic, row, spec, nominal, true, names,
@@ -471,6 +485,8 @@ def simulate_field(n_heliostats: int = 4, *, seed: int = 0, measurements: tuple[
                 "noise_mrad": noise_mrad,
                 "deviations": deviations if isinstance(deviations, str) else list(deviations),
                 "start": str(t0.date()), "end": str(t1.date()), "reference": list(reference)}
+    if mounting != "independent":   # only then: an independent field's settings stay as they were
+        settings["mounting"] = mounting
     if changes is not None and changes.any:
         settings["changes"] = asdict(changes)
     return SimulatedField(reference, targets, heliostats, meas, settings)

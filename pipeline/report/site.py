@@ -205,6 +205,12 @@ def why_text(row, h: dict, best_hybrid_val: float | None) -> str:
         return (f"aim uses the coarse model {row['preset']}: the sweep kept it because no hybrid "
                 f"candidate beat its validation error {_num(row['val_error_mrad'])} mrad by the "
                 f"sweep's margin{best}.")
+    if row["model"] == "coarse" and str(row["preset"]).endswith("+field-prior"):
+        return (f"aim uses the field-prior geometry of its group ({row['preset']}): the nominal "
+                "geometry moved by the field's typical deviations (fit-coarse --prior field), "
+                "either because it has no training rows, so no fit of its own, or because it "
+                "beat every fitted preset on validation; field_prior.parquet gives the error "
+                "measured on heliostats like it.")
     if row["source"] == "fit-hybrid":
         return (f"aim uses fit-hybrid's hybrid model (weight decay {fmt_g(row['weight_decay'])}) "
                 f"on {row['preset']}; no sweep has run to compare it with the coarse model "

@@ -36,6 +36,7 @@ from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.sun import sun_angles_from_vector
 from ..physics.vectors import unit_vector as _unit
 from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
+from .coarse_prior import field_prior_note
 from .fit_coarse import coarse_row_parameters, load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
 
@@ -182,8 +183,13 @@ def _read_heliostat(wd: CommittedWorkdir, heliostat_id: str) -> _Heliostat:
     if heliostat_id not in selected:
         raise StageInputError(f"heliostat {heliostat_id!r} has no coarse fit: run `heliocal "
                               f"fit-coarse --workdir {wd}` first")
-    return _Heliostat(heliostat_id, row, HeliostatSpec.from_row(row),
-                      selected[heliostat_id]["params"], selected[heliostat_id])
+    h = _Heliostat(heliostat_id, row, HeliostatSpec.from_row(row),
+                   selected[heliostat_id]["params"], selected[heliostat_id])
+    note = field_prior_note(wd, row, selected[heliostat_id]["preset"])
+    if note:
+        h.warnings.append(note)
+        log.warning("%s", note)
+    return h
 
 
 def _target_point(wd: CommittedWorkdir, name: str) -> np.ndarray:

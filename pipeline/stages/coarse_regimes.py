@@ -28,6 +28,7 @@ from ..physics.parameters import HeliostatSpec
 from ..runtime.process_state import one_thread
 from ..vocabulary import MIN_IMPROVEMENT
 from .forward import time_labels_of, time_rows
+from .coarse_prior import is_field_prior
 
 __all__ = ["detect_coarse_regimes", "follow_regimes", "REGIME_STEPS", "MAX_EPISODE_SHARE",
            "EPISODE_REFIT_MIN_IMPROVEMENT", "CoarseChunk", "HeliostatResult", "ChunkResult"]
@@ -314,7 +315,9 @@ def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequenc
     # replaces the fit above only if it beats it by the same margin on validation
     breaks = set(regimes.loc[regimes["cause"].isin(["detected", "renovation"]), "heliostat_id"])
     of = dict(tuple(regimes.groupby("heliostat_id", sort=False)))
-    broken = ([k for k, hid in enumerate(ids) if hid in breaks]
+    # (not on a field-prior geometry: it is not fitted to the heliostat's rows at all)
+    broken = ([k for k, hid in enumerate(ids)
+               if hid in breaks and not is_field_prior(results[k][2]["selected"])]
               if chunk.regime_steps == "candidates" else [])
     specs = {k: HeliostatSpec.from_row(pd.Series(hrows[k])) for k in broken}
     batches = dict(zip(broken, _batches([rows[k] for k in broken])))

@@ -16,8 +16,8 @@ import pandas as pd
 import torch
 
 from ..artifacts.paths import artifact_path
-from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS,
-                                 REGIME_PARAMS, REGIMES, ROLLING_ORIGIN)
+from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, FIELD_PRIOR, HELIOSTATS,
+                                 MEASUREMENTS, REGIME_PARAMS, REGIMES, ROLLING_ORIGIN)
 from ..artifacts.store import (artifact_present, check_fresh, merge_with_previous, read_artifact,
                                write_artifact)
 from ..artifacts.transaction import stage_transaction
@@ -34,9 +34,11 @@ from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES
                                   nominal_parameters)
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
+from .coarse_prior import (PRIOR_MODES, attach_prior_columns, finish_table, plan_field_prior,
+                           summary_of, with_field_prior, zero_row_outputs)
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes)
-from .rolling import DEFAULT_MAX_ORIGINS, evaluate_rolling, rolling_chunks
+from .rolling import DEFAULT_MAX_ORIGINS, add_next_day, evaluate_rolling, rolling_chunks
 from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
                       time_labels_of)
 
@@ -127,12 +129,16 @@ def _fit_inputs(inputs: Sequence[_Inputs], presets: Sequence[str], solver: str,
 
 
 def fit_one_heliostat(hrow: pd.Series, rows: pd.DataFrame, presets: Sequence[str], *,
-                      loss: str, f_scale_mrad: float, robust_start: bool):
-    """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary)."""
+                      loss: str, f_scale_mrad: float, robust_start: bool,
+                      priors: dict | None = None, field_geometry: dict | None = None):
+    """Fit every preset for one heliostat (scipy); returns (param rows, prediction rows, summary).
+    ``priors``, ``field_geometry``: as :func:`_chunk_outputs`."""
     inputs = [_heliostat_inputs(hrow, rows)]
     fits, time_fits = _fit_inputs(inputs, presets, "scipy", loss=loss,
-                                  f_scale_mrad=f_scale_mrad, robust_start=robust_start)
-    return _heliostat_outputs(inputs[0], fits[0], time_fits[0])[:3]
+                                  f_scale_mrad=f_scale_mrad, robust_start=robust_start,
+                                  priors=priors)
+    return _heliostat_outputs(inputs[0], *with_field_prior(inputs[0], fits[0], time_fits[0],
+                                                            field_geometry))[:3]
 
 
 def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: Sequence[str], *,
@@ -145,11 +151,16 @@ def fit_heliostat_chunk(hrows: Sequence, rows: Sequence[pd.DataFrame], presets: 
                                               robust_start=robust_start)]
 
 
-def _chunk_outputs(hrows, rows, presets, **kwargs) -> list[tuple]:
-    """:func:`fit_heliostat_chunk`'s tuples with :func:`_heliostat_outputs`' fourth item."""
+def _chunk_outputs(hrows, rows, presets, field_geometry: dict | None = None,
+                   **kwargs) -> list[tuple]:
+    """:func:`fit_heliostat_chunk`'s tuples with :func:`_heliostat_outputs`' fourth item.
+    ``kwargs`` go to fit_presets (with ``priors``: the field prior of each heliostat's fits);
+    ``field_geometry``: heliostat -> (model name, parameters (28,)) of its field-prior geometry,
+    a candidate of its selection (:mod:`.coarse_prior`)."""
     inputs = [_heliostat_inputs(h, r) for h, r in zip(hrows, rows)]
     fits, time_fits = _fit_inputs(inputs, presets, "batched", **kwargs)
-    return [_heliostat_outputs(i, f, t) for i, f, t in zip(inputs, fits, time_fits)]
+    return [_heliostat_outputs(i, *with_field_prior(i, f, t, field_geometry))
+            for i, f, t in zip(inputs, fits, time_fits)]
 
 
 def _preset_errors(inp: _Inputs, fit: CoarseFit, time_fit: CoarseFit | None):
@@ -417,17 +428,6 @@ def _time_split_summary(preds: pd.DataFrame, rows: pd.DataFrame) -> dict | None:
     return {sp: _mean(err[lab == sp]) for sp in ("train", "validation", "test")}
 
 
-def _add_next_day(summaries: Sequence[dict], rolling: pd.DataFrame) -> None:
-    """Each summary's ``next_day``: the rolling-origin evaluation's origins, rows and mean
-    next-day error (None without origins)."""
-    by_h = dict(tuple(rolling.groupby("heliostat_id", sort=False))) if len(rolling) else {}
-    for s in summaries:
-        g = by_h.get(s["heliostat_id"])
-        s["next_day"] = None if g is None else {
-            "origins": int(g["origin_date"].nunique()), "rows": len(g),
-            "mean_error_mrad": float(g["error_mrad"].mean())}
-
-
 def _log_fit_warnings(summary: dict) -> None:
     """A heliostat's warnings: degenerate training data, an implausible selected fit."""
     if summary["degenerate"]:
@@ -471,6 +471,25 @@ def _regimes_summary(fits: _FieldFits, summaries: Sequence[dict]) -> dict:
             if s.get("regime_candidates", {}).get("selected"))}
 
 
+def _prior_plan(workdir: Path, presets, prior: str, prior_from, **fit_options):
+    """The run's field prior (:func:`~.coarse_prior.plan_field_prior`), estimated from the whole
+    field (a partial run's fits are a full run's) on every row that is no heliostat's test row
+    (rows the split skipped included: a plant's history; a heliostat's own rows never enter its
+    own prior, :mod:`~heliocal.pipeline.models.field_prior`). Logs what it does not cover."""
+    helio = read_artifact(workdir, HELIOSTATS).set_index("heliostat_id", drop=False)
+    known: dict = {}
+    if prior != "none" and prior_from is None:
+        measurements = read_artifact(workdir, MEASUREMENTS)
+        labels = load_split_labels(workdir, measurements).to_numpy()
+        rows = measurements[labels != "test"].assign(split="train")
+        known = dict(tuple(rows.groupby("heliostat_id", sort=True)))
+    plan = plan_field_prior(helio, known, presets, mode=prior, prior_from=prior_from,
+                            **fit_options)
+    for line in plan.notes:
+        log.warning("%s", line)
+    return plan, helio
+
+
 @locks_workdir("fit-coarse")
 @stage_transaction("fit-coarse")
 @restores_process_state
@@ -481,7 +500,8 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    workers: int | None = 1, scheduler: str = "local",
                    dask_address: str | None = None, solver: str = "batched",
                    batch_size: int = 64, regime_steps: str = "candidates",
-                   rolling_origins: int = DEFAULT_MAX_ORIGINS) -> dict:
+                   rolling_origins: int = DEFAULT_MAX_ORIGINS, prior: str = "field",
+                   prior_from: str | Path | None = None) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -501,12 +521,18 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         (detection and the refit without episodes, no regime-aware candidates).
     rolling_origins : origins per heliostat of the rolling-origin evaluation
         (:mod:`.rolling`; rolling_origin.parquet); 0 skips it (the artifact is then empty).
+    prior : one of :data:`~.coarse_prior.PRIOR_MODES`: ``field`` (the default: the field's
+        empirical-Bayes prior where a group has enough well-determined heliostats,
+        :mod:`.coarse_prior`), ``field+spatial`` (its mean from the nearest heliostats where
+        that helps) or ``none`` (the default weak prior only).
+    prior_from : another work directory whose field_prior.parquet to use (``prior="field"``).
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
     check_float(f_scale_mrad, "f_scale_mrad", "fit_coarse", 0.0, None, low_inclusive=False)
     check_choice(solver, "solver", "fit_coarse", SOLVERS)
     check_choice(regime_steps, "regime_steps", "fit_coarse", REGIME_STEPS)
+    check_choice(prior, "prior", "fit_coarse", PRIOR_MODES)
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
     rolling_origins = check_int(rolling_origins, "rolling_origins", "fit_coarse", 0)
     steps = None if _SKIP_REGIMES else regime_steps
@@ -516,9 +542,13 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     ids = list(rows_of)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
+    plan, field = _prior_plan(workdir, presets, prior, prior_from, solver=solver, options=kwargs,
+                              batch_size=batch_size, workers=workers, scheduler=scheduler,
+                              dask_address=dask_address)
     chunks = _chunks(solver, helio, rows_of, batch_size)
     tasks = [CoarseChunk(solver, [helio.loc[h].to_dict() for h in chunk],
-                         [rows_of[h] for h in chunk], presets, kwargs, steps) for chunk in chunks]
+                         [rows_of[h] for h in chunk], presets,
+                         dict(kwargs, **plan.options_for(chunk)), steps) for chunk in chunks]
     chunk_results = map_tasks(_fit_task, tasks, workers=workers, scheduler=scheduler,
                               dask_address=dask_address,
                               progress=(lambda done, total: progress(done, total, None))
@@ -535,19 +565,27 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         summaries.append(summary)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
-            "rolling_origins": rolling_origins,
+            "rolling_origins": rolling_origins, "prior": prior,
+            "prior_from": None if prior_from is None else str(prior_from),
             "heliostats": list(heliostats) if heliostats else None}
-    params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
+    zero_rows, zero_ids = zero_row_outputs(field, plan, set(rows_of), heliostats)
+    params, preds = pd.DataFrame(all_params + zero_rows), pd.concat(all_preds, ignore_index=True)
+    params = attach_prior_columns(params, plan)
     rolling = evaluate_rolling(
         rolling_chunks(helio, rows_of, {s["heliostat_id"]: s["selected"] for s in summaries},
                        fits.regimes, solver=solver, options=kwargs, batch_size=batch_size,
-                       max_origins=rolling_origins) if rolling_origins else [],
+                       max_origins=rolling_origins, priors=plan.priors,
+                       fixed={h: g[1] for h, g in plan.geometry.items()})
+        if rolling_origins else [],
         workers=workers, scheduler=scheduler, dask_address=dask_address,
         chunks_per_worker=chunks_per_worker(solver))
-    _add_next_day(summaries, rolling)
+    add_next_day(summaries, rolling)
     _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
                              REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params,
                              ROLLING_ORIGIN: rolling},
                    heliostats, opts)
+    table = finish_table(plan, field, summaries)
+    write_artifact(table, workdir, FIELD_PRIOR, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
-            "regimes": _regimes_summary(fits, summaries)}
+            "regimes": _regimes_summary(fits, summaries),
+            "field_prior": summary_of(plan, table, zero_ids)}

@@ -24,6 +24,7 @@ from typing import Sequence
 
 import numpy as np
 import pandas as pd
+import torch
 
 from ..models.coarse import MeasurementBatch, fit_heliostats_batched, fit_heliostat, predict
 from ..models.regime_fit import base_preset
@@ -32,8 +33,10 @@ from ..models.rolling import DEFAULT_MAX_ORIGINS, MIN_ORIGIN_ROWS, Origin, rolli
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..runtime.parallel import map_tasks
 from ..runtime.process_state import one_thread
+from .coarse_prior import is_field_prior
 
-__all__ = ["RollingChunk", "rolling_chunks", "evaluate_rolling", "ROLLING_COLUMNS",
+__all__ = ["RollingChunk", "rolling_chunks", "evaluate_rolling", "add_next_day",
+           "ROLLING_COLUMNS",
            "DEFAULT_MAX_ORIGINS"]
 
 #: rolling_origin.parquet's columns, in order (pipeline/artifacts/schemas.py declares them).
@@ -52,6 +55,8 @@ class RollingChunk:
     breaks: list[np.ndarray]     # each one's regime starts (datetime64[s]) if regime-aware
     options: dict                # loss, f_scale_mrad, robust_start
     max_origins: int
+    priors: list | None = None   # each one's field prior of the preset (None: the default)
+    fixed: list | None = None    # a field-prior geometry's parameters (28,): not refitted
 
 
 def _origins(rows: pd.DataFrame, breaks: np.ndarray, max_origins: int) -> list[Origin]:
@@ -82,25 +87,29 @@ def _rolling_task(chunk: RollingChunk) -> list[pd.DataFrame]:
     times = [utc_values(r["timestamp"]).astype("datetime64[s]") for r in chunk.rows]
     origins = [_origins(r, b, chunk.max_origins) for r, b in zip(chunk.rows, chunk.breaks)]
     caches = [{} for _ in hrows]
+    priors = chunk.priors or [None] * len(hrows)
     previous: list = [None] * len(hrows)
     records: list[list] = [[] for _ in hrows]
     for j in range(max((len(o) for o in origins), default=0)):
         now = [h for h in range(len(hrows)) if len(origins[h]) > j]
         trains = [data[h].subset(origins[h][j].train) for h in now]
         with one_thread(blas=True):
-            if chunk.solver == "batched":
-                fits = fit_heliostats_batched(
+            if chunk.fixed is not None:
+                params = [torch.as_tensor(chunk.fixed[h], dtype=torch.float64) for h in now]
+            elif chunk.solver == "batched":
+                params = [f.params for f in fit_heliostats_batched(
                     [specs[h] for h in now], [nominals[h] for h in now], trains, chunk.preset,
                     start_caches=[caches[h] for h in now], starts=[previous[h] for h in now],
-                    **chunk.options)
+                    priors=[priors[h] for h in now], **chunk.options)]
             else:
-                fits = [fit_heliostat(specs[h], nominals[h], t, chunk.preset,
-                                      start=previous[h], start_cache=caches[h], **chunk.options)
-                        for h, t in zip(now, trains)]
-        for h, fit in zip(now, fits):
+                params = [fit_heliostat(specs[h], nominals[h], t, chunk.preset,
+                                        start=previous[h], start_cache=caches[h],
+                                        prior=priors[h], **chunk.options).params
+                          for h, t in zip(now, trains)]
+        for h, fitted in zip(now, params):
             o = origins[h][j]
             scored = data[h].subset(o.score)
-            err = predict(fit.params, specs[h], scored)["error_mrad"].to_numpy()
+            err = predict(fitted, specs[h], scored)["error_mrad"].to_numpy()
             last = times[h][o.train].max()
             gap_days = (times[h][o.score] - last) / np.timedelta64(1, "D")
             records[h].append(pd.DataFrame({
@@ -108,7 +117,7 @@ def _rolling_task(chunk: RollingChunk) -> list[pd.DataFrame]:
                 "measurement_id": scored.measurement_id, "origin_date": o.day,
                 "model": chunk.preset, "n_train": int(o.train.sum()),
                 "days_since_last_row": gap_days.astype(float), "error_mrad": err}))
-            previous[h] = fit.params
+            previous[h] = fitted
     return [pd.concat(r, ignore_index=True) if r else _empty() for r in records]
 
 
@@ -120,7 +129,8 @@ def _empty() -> pd.DataFrame:
 
 def rolling_chunks(helio: pd.DataFrame, rows_of: dict, selected: dict, regimes: pd.DataFrame, *,
                    solver: str, options: dict, batch_size: int,
-                   max_origins: int = DEFAULT_MAX_ORIGINS) -> list[RollingChunk]:
+                   max_origins: int = DEFAULT_MAX_ORIGINS, priors: dict | None = None,
+                   fixed: dict | None = None) -> list[RollingChunk]:
     """The rolling-origin tasks of a field.
 
     Parameters
@@ -129,7 +139,12 @@ def rolling_chunks(helio: pd.DataFrame, rows_of: dict, selected: dict, regimes: 
     rows_of : heliostat -> its rows as fit-coarse fitted them.
     selected : heliostat -> its selected model's name (a preset or ``<preset>+<model>``).
     regimes : regimes.parquet (the breaks of regime-aware heliostats).
+    priors : heliostat -> preset -> the field prior of its fits (fit-coarse's MAP prior, the same
+        at every origin; a heliostat or preset without one: the default prior).
+    fixed : heliostat -> its field-prior geometry (28,): a heliostat whose selected model is that
+        geometry is not refitted, its next-day error is the geometry's.
     """
+    priors, fixed = priors or {}, fixed or {}
     starts = regimes[(regimes["kind"] == "regime")
                      & regimes["cause"].isin(["detected", "renovation"])]
     breaks = {h: np.sort(utc_values(g["start"]).astype("datetime64[s]"))
@@ -138,8 +153,9 @@ def rolling_chunks(helio: pd.DataFrame, rows_of: dict, selected: dict, regimes: 
     for hid in sorted(selected):
         if "timestamp" not in rows_of[hid].columns:
             continue
+        model = selected[hid]
         key = (str(helio.loc[hid, "kinematic_type"]), str(helio.loc[hid, "actuator_type"]),
-               base_preset(selected[hid]))
+               model if is_field_prior(model) else base_preset(model))
         groups.setdefault(key, []).append(hid)
     chunks = []
     step = 1 if solver == "scipy" else batch_size
@@ -147,12 +163,15 @@ def rolling_chunks(helio: pd.DataFrame, rows_of: dict, selected: dict, regimes: 
         members = sorted(groups[key], key=lambda h: (len(rows_of[h]), h))
         for i in range(0, len(members), step):
             part = members[i:i + step]
+            regime_aware = lambda h: "+" in selected[h] and not is_field_prior(selected[h])  # noqa: E731
             chunks.append(RollingChunk(
                 solver, key[2], [helio.loc[h].to_dict() for h in part],
                 [rows_of[h] for h in part],
-                [breaks.get(h, np.array([], "datetime64[s]")) if "+" in selected[h]
+                [breaks.get(h, np.array([], "datetime64[s]")) if regime_aware(h)
                  else np.array([], "datetime64[s]") for h in part],
-                dict(options), max_origins))
+                dict(options), max_origins,
+                [priors.get(h, {}).get(key[2]) for h in part],
+                [fixed[h] for h in part] if is_field_prior(key[2]) else None))
     return chunks
 
 
@@ -169,3 +188,14 @@ def evaluate_rolling(chunks: Sequence[RollingChunk], *, workers=1, scheduler="lo
         return _empty()
     out = pd.concat(frames, ignore_index=True)
     return out.sort_values(["heliostat_id", "measurement_id"], kind="mergesort").reset_index(drop=True)
+
+
+def add_next_day(summaries: Sequence[dict], rolling: pd.DataFrame) -> None:
+    """Each summary's ``next_day``: the rolling-origin evaluation's origins, rows and mean
+    next-day error (None without origins)."""
+    by_h = dict(tuple(rolling.groupby("heliostat_id", sort=False))) if len(rolling) else {}
+    for s in summaries:
+        g = by_h.get(s["heliostat_id"])
+        s["next_day"] = None if g is None else {
+            "origins": int(g["origin_date"].nunique()), "rows": len(g),
+            "mean_error_mrad": float(g["error_mrad"].mean())}

@@ -1,0 +1,210 @@
+"""The field prior (issue 34): MAP fits under a Gaussian prior, the empirical-Bayes estimate, its
+leave-out rule, what does not match, and the simulator's field mounting.
+
+Expected values and their sources:
+
+* MAP under a Gaussian prior on noiseless data: the data residuals vanish at the true
+  parameters, so to first order the MAP fit is ``x_true + (J'J + D)^-1 D (m - x_true)`` with ``J``
+  the data Jacobian at the truth, ``D = diag(1 / sigma^2)`` and ``m`` the prior mean (the
+  closed-form Gaussian posterior of the linearised problem). The shift is 0.2 prior sigma, so
+  the second-order term is far below the 2 % tolerance;
+* a prior sigma of 1e-9 pins its parameter at the prior mean (the data would move it by the
+  shift, 1e-4 rad or more, opposed by a curvature 1e18 times that of the data's);
+* the estimate: deviations drawn from N(mu, tau^2) plus fit noise N(0, s^2) (known), so the
+  median is within 4 standard errors (1.2533 sqrt(tau^2 + s^2) / sqrt(n)) of mu and the noise-free
+  spread sqrt(scale^2 - s^2) within 15 % of tau for n = 400 (the MAD's relative standard error
+  is about 1.65 / sqrt(n) = 8 %... of scale; 15 % of tau covers 1.9 of them);
+* leave-out: with at most MAX_FOLDS heliostats each is its own fold, so its own deviation cannot
+  change its prior at all (equality, not a tolerance).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from heliocal.pipeline.models.coarse import MeasurementBatch, fit_heliostat
+from heliocal.pipeline.models.field_prior import (MAX_FOLDS, MIN_HELIOSTATS, FitSample,
+                                                  GroupPrior, default_sigma, estimate_prior)
+from heliocal.pipeline.models.mounting import CORRELATION_LENGTH_M, MOUNTING_PARAMETERS
+from heliocal.pipeline.models.simulator import simulate_field
+from heliocal.pipeline.physics.jacobian import residual_and_jacobian
+from heliocal.pipeline.physics.parameters import PARAMETER_INDEX, PARAMETER_NAMES
+from heliocal.pipeline.stages.coarse_prior import (PRIOR_ROUNDS, _estimate, _estimate_from_rows,
+                                                   _from_table)
+
+N = len(PARAMETER_NAMES)
+
+
+def _simulated(n: int = 60, seed: int = 3):
+    """One noiseless static heliostat: (spec, nominal (28,), true (28,), its rows as a batch),
+    straight from the simulator (its spots are where the true geometry sends the beam)."""
+    field = simulate_field(1, seed=seed, measurements=(n, n), kinematic_types=("juelich",),
+                           dynamic_fraction=0.0, noise_mrad=0.0, deviations="static-6")
+    sim = next(iter(field.heliostats.values()))
+    return sim.spec, sim.nominal, sim.true, MeasurementBatch.from_frame(field.measurements)
+
+
+@pytest.fixture(scope="module")
+def heliostat():
+    return _simulated()
+
+
+def test_map_fit_is_the_closed_form_gaussian_posterior(heliostat):
+    spec, nominal, true, data = heliostat
+    free = np.flatnonzero(fit_heliostat(spec, nominal, data, "static-6", loss="linear",
+                                        robust_start=False, prior_weight=0.0).free)
+    sigma = 0.05 * default_sigma(nominal.numpy())
+    mean = true.numpy().copy()
+    mean[free] += 0.2 * sigma[free] * np.where(np.arange(len(free)) % 2, 1.0, -1.0)
+    fit = fit_heliostat(spec, nominal, data, "static-6", loss="linear", robust_start=False,
+                        prior=(mean, sigma), tolerance=1e-14)
+    _, J = residual_and_jacobian(true, spec, data.steps, data.sun, data.focal_spot)
+    J = J.reshape(-1, N).numpy()[:, free]
+    D = np.diag(1.0 / sigma[free] ** 2)
+    expected = true.numpy()[free] + np.linalg.solve(J.T @ J + D, D @ (mean - true.numpy())[free])
+    shift = expected - true.numpy()[free]
+    got = fit.params.numpy()[free] - true.numpy()[free]
+    assert np.all(np.abs(shift) > 1e-7)          # the prior does pull
+    np.testing.assert_allclose(got, shift, rtol=0.02, atol=1e-3 * np.abs(shift).max())
+
+
+def test_a_prior_with_zero_scale_pins_its_parameter(heliostat):
+    spec, nominal, true, data = heliostat
+    i = PARAMETER_INDEX["axis_1_initial_angle_rad"]
+    mean, sigma = true.numpy().copy(), default_sigma(nominal.numpy())
+    mean[i] += 1e-3          # 1 mrad off the truth the data point to
+    sigma[i] = 1e-9
+    fit = fit_heliostat(spec, nominal, data, "static-6", loss="linear", robust_start=False,
+                        prior=(mean, sigma))
+    assert abs(float(fit.params[i]) - mean[i]) < 1e-8
+    # and without the pin the data take it back to the truth
+    sigma[i] = default_sigma(nominal.numpy())[i]
+    free = fit_heliostat(spec, nominal, data, "static-6", loss="linear", robust_start=False,
+                         prior=(mean, sigma), prior_weight=1e-12)
+    assert abs(float(free.params[i]) - float(true[i])) < 1e-7
+
+
+def _sample(n: int, mu: np.ndarray, tau: np.ndarray, s: np.ndarray, seed: int = 0,
+            determined: np.ndarray | None = None) -> FitSample:
+    rng = np.random.default_rng(seed)
+    dev = mu + tau * rng.standard_normal((n, N)) + s * rng.standard_normal((n, N))
+    det = np.ones((n, N), bool) if determined is None else np.broadcast_to(determined, (n, N))
+    return FitSample(np.array([f"H{k:04d}" for k in range(n)], dtype=object), dev,
+                     np.broadcast_to(s, (n, N)).copy(), det.copy(),
+                     rng.uniform(0, 200, (n, 2)))
+
+
+def test_estimate_recovers_the_generating_distribution():
+    mu = np.linspace(-2e-3, 2e-3, N)
+    tau, s = np.full(N, 1e-3), np.full(N, 0.5e-3)
+    n = 400
+    est = estimate_prior(_sample(n, mu, tau, s))
+    se = 1.2533 * np.sqrt(tau ** 2 + s ** 2) / np.sqrt(n)
+    assert np.all(np.abs(est.mean - mu) < 4 * se)
+    np.testing.assert_allclose(est.tau, tau, rtol=0.15)
+    # the sigma a heliostat gets adds the median's own uncertainty: a little above tau
+    assert np.all(est.sigma > est.tau) and np.all(est.sigma < 1.05 * est.tau)
+    assert np.all(est.n == n)
+
+
+def test_a_parameter_without_enough_determined_heliostats_keeps_the_default_prior():
+    mu, tau, s = np.zeros(N), np.full(N, 1e-3), np.full(N, 1e-4)
+    det = np.ones(N, bool)
+    det[5] = False
+    sample = _sample(MIN_HELIOSTATS, mu, tau, s, determined=det)
+    est = estimate_prior(sample)
+    assert not est.used[5] and est.used[4]
+    # one heliostat fewer: no parameter has a prior (the stage then fits as --prior none)
+    fewer = estimate_prior(sample, keep=np.arange(MIN_HELIOSTATS) > 0)
+    assert not fewer.used.any()
+    nominal = np.ones(N)
+    mean, sigma = est.heliostat_prior(nominal)
+    assert sigma[5] == default_sigma(nominal)[5] and mean[5] == nominal[5]
+
+
+def test_a_heliostats_own_fit_never_enters_its_own_prior():
+    n = MAX_FOLDS     # leave-one-out
+    sample = _sample(n, np.zeros(N), np.full(N, 1e-3), np.full(N, 1e-4), seed=2)
+    nominal = np.zeros(N)
+    before = GroupPrior.estimate(sample, posterior=False).prior_of("H0003", nominal)
+    sample.deviations[3] += 1.0   # a wildly different fit of its own
+    group = GroupPrior.estimate(sample, posterior=False)
+    after = group.prior_of("H0003", nominal)
+    np.testing.assert_array_equal(before[0], after[0])
+    np.testing.assert_array_equal(before[1], after[1])
+    # ... while the others' priors (and the field's) do see it
+    assert not np.array_equal(group.whole.mean,
+                              GroupPrior.estimate(_sample(n, np.zeros(N), np.full(N, 1e-3),
+                                                          np.full(N, 1e-4), seed=2),
+                                                  posterior=False).whole.mean)
+
+
+def _helio(ids, kt="juelich", at="ideal", source="paint"):
+    return pd.DataFrame({"heliostat_id": ids, "kinematic_type": kt, "actuator_type": at,
+                         "properties_source": source,
+                         "heliostat_e_m": np.arange(len(ids), dtype=float),
+                         "heliostat_n_m": 0.0}).set_index("heliostat_id", drop=False)
+
+
+def test_a_type_with_one_heliostat_gets_a_note_and_no_prior():
+    helio = _helio(["A1"])
+    calls = []
+
+    def fit_sample(samples, priors):
+        calls.append(samples)
+        return {}
+
+    estimates, notes = _estimate(helio, {"A1": pd.DataFrame({"split": ["train"] * 30})},
+                                 {("juelich", "ideal", "properties"): ["A1"]}, ("static-6",),
+                                 spatial=False, fit_sample=fit_sample)
+    # one sample fit per round, each of no heliostat (a sample of one teaches nothing)
+    assert estimates == {} and calls == [{}] * PRIOR_ROUNDS
+    assert len(notes) == 1 and "no field prior for the 1 heliostats of type juelich/ideal" in notes[0]
+    assert "fitted with the default prior" in notes[0]
+
+
+def _prior_table(kt="juelich", at="linear", preset="static-6", parameters=PARAMETER_NAMES):
+    return pd.DataFrame({"kinematic_type": kt, "actuator_type": at, "geometry_source": "properties",
+                         "preset": preset, "parameter": list(parameters),
+                         "parameter_index": np.arange(len(parameters)), "mean": 0.0,
+                         "scale": 1e-3, "n_heliostats": 20})
+
+
+def test_a_prior_from_another_plant_or_preset_is_refused_with_a_reason():
+    helio = _helio(["A1", "A2"], at="linear")
+    groups = {("juelich", "linear", "properties"): ["A1", "A2"]}
+    # another plant: its only group is an az-el type
+    est, notes = _from_table(_prior_table(kt="az-el"), groups, ("static-6",), helio, "OTHER")
+    assert est == {} and "the prior of OTHER has no heliostats of type juelich/linear" in notes[0]
+    assert "(it has az-el/linear/properties)" in notes[0]
+    # the preset's parameters do not match: a scale on every parameter, static-6 frees few
+    table = _prior_table()
+    est, why = _estimate_from_rows(table, "static-6", ("juelich", "linear", "properties"))
+    assert est is None and "which the preset does not fit on type juelich/linear" in why
+    # a table with a parameter missing
+    est, why = _estimate_from_rows(table.iloc[:-1], "static-6", ("juelich", "linear", "properties"))
+    assert est is None and "does not list the 28 parameters once each" in why
+
+
+def test_field_mounting_is_systematic_per_type_and_spatially_correlated():
+    field = simulate_field(150, seed=5, measurements=(3, 3), kinematic_types=("juelich",),
+                           dynamic_fraction=0.0, deviations="static-20", mounting="field")
+    sims = list(field.heliostats.values())
+    name = MOUNTING_PARAMETERS["juelich"][0]
+    i = PARAMETER_INDEX[name]
+    dev = np.array([float(h.true[i] - h.nominal[i]) for h in sims])
+    pos = np.array([h.spec.position_enu[:2].numpy() for h in sims])
+    d = np.sqrt(((pos[:, None] - pos[None]) ** 2).sum(-1))
+    diff2 = (dev[:, None] - dev[None]) ** 2
+    near = diff2[(d > 0) & (d < CORRELATION_LENGTH_M / 4)].mean()
+    far = diff2[d > 3 * CORRELATION_LENGTH_M].mean()
+    # neighbours differ by the individual part only; far pairs by the spatial part too
+    assert near < 0.5 * far
+    independent = simulate_field(150, seed=5, measurements=(3, 3), kinematic_types=("juelich",),
+                                 dynamic_fraction=0.0, deviations="static-20")
+    dev_i = np.array([float(h.true[i] - h.nominal[i]) for h in independent.heliostats.values()])
+    diff_i = (dev_i[:, None] - dev_i[None]) ** 2
+    assert diff_i[(d > 0) & (d < CORRELATION_LENGTH_M / 4)].mean() > 0.5 * diff_i[d > 3 * CORRELATION_LENGTH_M].mean()
