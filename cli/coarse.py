@@ -64,12 +64,12 @@ def fit_coarse_cmd(
     solver: Annotated[CoarseSolver, typer.Option(
         help="batched (many heliostats per vectorized Levenberg-Marquardt program) or scipy "
              "(one least_squares per heliostat, the reference).")] = CoarseSolver.batched,
-    prior: Annotated[CoarsePrior, typer.Option(
-        help="Prior of the fits: field (the field's typical geometry, learned from the "
-             "well-determined heliostats of each type and geometry source; only where at least 8 "
-             "of them determine a parameter), field+spatial (its mean from the nearest "
-             "heliostats where that helps) or none (a weak prior around the nominal geometry "
-             "only).")] = CoarsePrior.field,
+    prior: Annotated[Optional[CoarsePrior], typer.Option(
+        help="Prior of the fits: none (a weak prior around the nominal geometry; the default "
+             "until the field prior is measured on the real logs), field (the field's typical "
+             "geometry, learned from the well-determined heliostats of each type and geometry "
+             "source; only where at least 8 of them determine a parameter; the default with "
+             "--prior-from) or field+spatial (its mean from the nearest heliostats).")] = None,
     prior_from: Annotated[Optional[Path], typer.Option(
         "--prior-from", file_okay=False,
         help="Use the field prior of another work directory's fit-coarse run (e.g. a plant's "
@@ -93,5 +93,7 @@ def fit_coarse_cmd(
                                  robust_start=robust_start.value, heliostats=heliostat, progress=advance,
                                  solver=solver.value, workers=workers, scheduler=scheduler.value,
                                  dask_address=dask_address, rolling_origins=rolling_origins,
-                                 prior=prior.value, prior_from=prior_from)
+                                 prior=(prior.value if prior is not None
+                                        else "field" if prior_from is not None else "none"),
+                                 prior_from=prior_from)
     emit(summary, json_, _human)

@@ -53,7 +53,7 @@ def field(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("prior")
     # 20 heliostats, those with fewer than 20 + 10 + 2 rows are skipped by the split: zero rows
     work = _workdir(tmp, "field", 20, (12, 70))
-    summary = run_fit_coarse(work, preset="auto", rolling_origins=0)
+    summary = run_fit_coarse(work, preset="auto", rolling_origins=0, prior="field")
     return work, summary
 
 
@@ -104,7 +104,7 @@ def _fits(work):
 
 def test_a_field_of_one_heliostat_is_fitted_without_a_prior_and_says_why(tmp_path):
     work = _workdir(tmp_path, "one", 1, (60, 60))
-    summary = run_fit_coarse(work, preset="static-6", rolling_origins=0)
+    summary = run_fit_coarse(work, preset="static-6", rolling_origins=0, prior="field")
     notes = summary["field_prior"]["notes"]
     assert len(notes) == 1 and "no field prior for the 1 heliostats" in notes[0]
     with_prior = _fits(work)
@@ -118,7 +118,8 @@ def test_a_prior_from_another_plant_is_refused_per_group(field, tmp_path):
     work = _workdir(tmp_path, "azel", 2, (60, 60), types=("az-el",))
     with pytest.raises(ParameterError, match="--prior-from needs --prior field"):
         run_fit_coarse(work, preset="static-6", prior="none", prior_from=other)
-    summary = run_fit_coarse(work, preset="static-6", rolling_origins=0, prior_from=other)
+    summary = run_fit_coarse(work, preset="static-6", rolling_origins=0, prior="field",
+                             prior_from=other)
     notes = summary["field_prior"]["notes"]
     assert any(f"the prior of {other} has no heliostats of type az-el" in n for n in notes)
     assert summary["field_prior"]["prior_from"] == str(other)

@@ -589,7 +589,8 @@ def test_case_8_workdir_spelled_differently_keeps_models_fresh(tmp_path, monkeyp
         name: "fresh" for name in ("coarse_params.parquet", "coarse_predictions.parquet",
                                    "heliostats.parquet", "hybrid_predictions.parquet", "regimes.parquet",
                                    "regime_params.parquet", "measurements.parquet",
-                                   "rejected.parquet", "split.parquet", "rolling_origin.parquet")}
+                                   "rejected.parquet", "split.parquet", "rolling_origin.parquet",
+                                       "field_prior.parquet")}
     result = _run(runner, "aim", "--workdir", "./a", "--heliostat", "BE36", "--model", "hybrid",
                   "--target", "0,0,50", "--time", "2023-06-21T10:00Z")
     assert result.exit_code == 0, result.stderr

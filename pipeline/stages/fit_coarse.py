@@ -500,7 +500,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    workers: int | None = 1, scheduler: str = "local",
                    dask_address: str | None = None, solver: str = "batched",
                    batch_size: int = 64, regime_steps: str = "candidates",
-                   rolling_origins: int = DEFAULT_MAX_ORIGINS, prior: str = "field",
+                   rolling_origins: int = DEFAULT_MAX_ORIGINS, prior: str = "none",
                    prior_from: str | Path | None = None) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
