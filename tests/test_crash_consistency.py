@@ -368,6 +368,10 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
     # figures that do not depend on the changed models are equal in both runs: listed)
     old_files, new_files = old_view["files"], new_view["files"]
     same = sorted(k for k in old_files.keys() & new_files.keys() if old_files[k] == new_files[k])
+    if stage == "fit-coarse":
+        # the sample's 3 heliostats are too few for a field prior: both runs write the same
+        # empty field_prior.parquet, so a mix of the two is not visible in that file alone
+        same = [k for k in same if Path(k).name != "field_prior.parquet"]
     if stage != "report":
         assert same == [], same
     assert old_view != new_view
