@@ -102,9 +102,10 @@ test: $(VENV)/.installed
 	$(VENV)/bin/python -m pytest -q -m alone; alone=$$?; \
 	test $$parallel = 0 && test $$alone = 0
 
-## test-fast: the developer's loop: every test not marked slow (unit tests; under a minute)
+## test-fast: the developer's loop: every test not marked slow (unit tests; under a minute), in
+##            the same two processes as make test
 test-fast: $(VENV)/.installed
-	$(VENV)/bin/python -m pytest -q -m "not slow"
+	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) -m "not slow"
 
 ## regression: run the sample pipeline and compare its metrics.json with the committed baseline
 regression: $(WORKDIR)/report/index.html
