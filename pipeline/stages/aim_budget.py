@@ -130,15 +130,10 @@ def _level(sources: dict[str, np.ndarray], noise_mrad: float,
 def _held_out(wd: CommittedWorkdir, ids) -> tuple[pd.DataFrame, pd.DataFrame]:
     """(the coarse predictions of every model with each row's kNN and time split label, the
     rolling-origin rows' errors) of the heliostats ``ids``."""
-    pred = read_artifact(wd, COARSE_PREDICTIONS, heliostats=ids,
-                         columns=["heliostat_id", "measurement_id", "split", "model", "selected",
-                                  "error_mrad", "time_error_mrad"])
-    if artifact_present(wd, SPLIT):
-        split = read_artifact(wd, SPLIT, heliostats=ids,
-                              columns=["heliostat_id", "measurement_id", "time_split"])
-        pred = pred.merge(split, on=["heliostat_id", "measurement_id"], how="left")
-    else:
-        pred["time_split"] = None
+    from .aim_choice import time_labelled_predictions
+
+    pred = time_labelled_predictions(wd, ids, ["split", "model", "selected", "error_mrad",
+                                               "time_error_mrad"])
     rolling = (read_artifact(wd, ROLLING_ORIGIN, heliostats=ids,
                              columns=["heliostat_id", "error_mrad"])
                if artifact_present(wd, ROLLING_ORIGIN)

@@ -8,6 +8,8 @@ from __future__ import annotations
 import json
 from typing import Sequence
 
+import pandas as pd
+
 from ..artifacts.manifests import CommittedWorkdir
 from ..artifacts.modelfiles import model_files
 from ..artifacts.schemas import COARSE_PARAMS, HELIOSTATS, HYBRID_PREDICTIONS, MEASUREMENTS
@@ -18,6 +20,7 @@ from ..runtime.process_state import restores_process_state
 __all__ = [
     "aim_models",
     "nominal_fallback",
+    "time_labelled_predictions",
 ]
 
 
@@ -152,22 +155,29 @@ def nominal_fallback(entry: dict, time_val_error_mrad: float, nominal: dict | No
                          "calibration rows and refit")}
 
 
+def time_labelled_predictions(workdir: CommittedWorkdir, heliostats, columns) -> pd.DataFrame:
+    """coarse_predictions.parquet's ``columns`` (with heliostat_id and measurement_id) of the
+    heliostats, each row with its time split label (``time_split``; None without split.parquet)."""
+    from ..artifacts.schemas import COARSE_PREDICTIONS, SPLIT
+
+    keys = ["heliostat_id", "measurement_id"]
+    p = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats,
+                      columns=keys + [c for c in columns if c not in keys])
+    if not artifact_present(workdir, SPLIT):
+        return p.assign(time_split=None)
+    t = read_artifact(workdir, SPLIT, heliostats=heliostats, columns=keys + ["time_split"])
+    return p.merge(t, on=keys, how="left")
+
+
 def _nominal_errors(workdir: CommittedWorkdir, heliostats) -> dict:
     """heliostat -> the nominal geometry's mean error on its validation and test rows of the
     kNN split and of the time split (NaN without such rows)."""
-    from ..artifacts.schemas import COARSE_PREDICTIONS, SPLIT
+    from ..artifacts.schemas import COARSE_PREDICTIONS
 
     if not artifact_present(workdir, COARSE_PREDICTIONS):
         return {}
-    p = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats,
-                      columns=["heliostat_id", "measurement_id", "split", "model", "error_mrad"])
+    p = time_labelled_predictions(workdir, heliostats, ["split", "model", "error_mrad"])
     p = p[p["model"] == "nominal"]
-    if artifact_present(workdir, SPLIT):
-        t = read_artifact(workdir, SPLIT, heliostats=heliostats,
-                          columns=["heliostat_id", "measurement_id", "time_split"])
-        p = p.merge(t, on=["heliostat_id", "measurement_id"], how="left")
-    else:
-        p = p.assign(time_split=None)
     nan = float("nan")
     knn = p.groupby(["heliostat_id", "split"])["error_mrad"].mean()
     fwd = p.groupby(["heliostat_id", "time_split"])["error_mrad"].mean()
