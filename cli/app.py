@@ -72,6 +72,9 @@ Workdir = Annotated[Path, typer.Option(
     "--workdir", "-w", help="Work directory holding the stage artifacts.",
     file_okay=False, dir_okay=True)]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
+IncrementalFlag = Annotated[bool, typer.Option(
+    "--incremental", help="Compute again only the heliostats whose inputs changed since the "
+    "stage's last run (same options and code); take the others' results from its artifacts.")]
 QuietFlag = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars or info logs.")]
 Workers = Annotated[Optional[int], typer.Option(
     "--workers", help="Local worker processes for per-heliostat work (default: the machine's cores).")]

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
+from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, IncrementalFlag, JsonFlag, QuietFlag, Scheduler,
                               SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
                               progress_bar, stdout)
 from heliocal.pipeline.vocabulary import (DEFAULT_ROLLING_ORIGINS, CoarseLoss, CoarsePreset,
@@ -70,6 +70,7 @@ def fit_coarse_cmd(
     workers: Workers = None,
     scheduler: Scheduler = SchedulerChoice.local,
     dask_address: DaskAddress = None,
+    incremental: IncrementalFlag = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -80,5 +81,6 @@ def fit_coarse_cmd(
         summary = run_fit_coarse(workdir, preset=preset.value, loss=loss.value, f_scale_mrad=f_scale,
                                  robust_start=robust_start.value, heliostats=heliostat, progress=advance,
                                  solver=solver.value, workers=workers, scheduler=scheduler.value,
-                                 dask_address=dask_address, rolling_origins=rolling_origins)
+                                 dask_address=dask_address, rolling_origins=rolling_origins,
+                                 incremental=incremental)
     emit(summary, json_, _human)

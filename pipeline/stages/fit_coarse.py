@@ -36,6 +36,7 @@ from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes)
+from .increments import coarse_plan, with_previous
 from .rolling import DEFAULT_MAX_ORIGINS, evaluate_rolling, rolling_chunks
 from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
                       time_labels_of)
@@ -481,7 +482,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    workers: int | None = 1, scheduler: str = "local",
                    dask_address: str | None = None, solver: str = "batched",
                    batch_size: int = 64, regime_steps: str = "candidates",
-                   rolling_origins: int = DEFAULT_MAX_ORIGINS) -> dict:
+                   rolling_origins: int = DEFAULT_MAX_ORIGINS, incremental: bool = False) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -501,6 +502,9 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         (detection and the refit without episodes, no regime-aware candidates).
     rolling_origins : origins per heliostat of the rolling-origin evaluation
         (:mod:`.rolling`; rolling_origin.parquet); 0 skips it (the artifact is then empty).
+    incremental : fit only the heliostats whose rows, split or properties changed since the last
+        committed run with the same options and code, and keep the others' rows of the five
+        artifacts (:mod:`.increments`); otherwise (and when options or code changed) all.
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
@@ -513,6 +517,13 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
     helio, rows_of = _read_rows(workdir, heliostats)
+    opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
+            "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
+            "rolling_origins": rolling_origins,
+            "heliostats": list(heliostats) if heliostats else None}
+    plan = coarse_plan(workdir, helio, rows_of, opts, incremental, heliostats)
+    if plan is not None and plan.partial:
+        rows_of = {h: rows_of[h] for h in plan.compute}
     ids = list(rows_of)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
@@ -523,7 +534,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                               dask_address=dask_address,
                               progress=(lambda done, total: progress(done, total, None))
                               if progress else None,
-                              chunks_per_worker=chunks_per_worker(solver))
+                              chunks_per_worker=chunks_per_worker(solver)) if tasks else []
     fits = _collect(chunks, chunk_results, rows_of)
     all_params, all_preds, summaries = [], [], []
     for hid in ids:
@@ -533,11 +544,10 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         all_params += params
         all_preds.append(preds)
         summaries.append(summary)
-    opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
-            "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
-            "rolling_origins": rolling_origins,
-            "heliostats": list(heliostats) if heliostats else None}
-    params, preds = pd.DataFrame(all_params), pd.concat(all_preds, ignore_index=True)
+    params = pd.DataFrame(all_params, columns=COARSE_PARAMS.column_names() if not all_params
+                          else None)
+    preds = (pd.concat(all_preds, ignore_index=True) if all_preds
+             else pd.DataFrame(columns=COARSE_PREDICTIONS.column_names()))
     rolling = evaluate_rolling(
         rolling_chunks(helio, rows_of, {s["heliostat_id"]: s["selected"] for s in summaries},
                        fits.regimes, solver=solver, options=kwargs, batch_size=batch_size,
@@ -545,9 +555,10 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         workers=workers, scheduler=scheduler, dask_address=dask_address,
         chunks_per_worker=chunks_per_worker(solver))
     _add_next_day(summaries, rolling)
-    _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
-                             REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params,
-                             ROLLING_ORIGIN: rolling},
-                   heliostats, opts)
+    tables = {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds, REGIMES: fits.regimes,
+              REGIME_PARAMS: fits.regime_params, ROLLING_ORIGIN: rolling}
+    _write_outputs(workdir, {schema: with_previous(workdir, schema, df, plan)
+                             for schema, df in tables.items()}, heliostats, opts)
+    incremental_summary = plan.summary() if plan is not None else None
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
-            "regimes": _regimes_summary(fits, summaries)}
+            "regimes": _regimes_summary(fits, summaries), "incremental": incremental_summary}
