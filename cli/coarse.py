@@ -7,14 +7,16 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, IncrementalFlag, JsonFlag, QuietFlag, Scheduler,
-                              SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
-                              progress_bar, stdout)
+from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, IncrementalFlag, JsonFlag, QuietFlag,
+                              Scheduler, SchedulerChoice, Workdir, Workers, command, emit,
+                              fmt_number, incremental_line, progress_bar, stdout)
 from heliocal.pipeline.vocabulary import (DEFAULT_ROLLING_ORIGINS, CoarseLoss, CoarsePreset,
                                          CoarseSolver, RobustStart)
 
 
 def _human(summary: dict) -> None:
+    if incremental_line(summary):
+        return
     table = Table(title=f"fit-coarse ({summary['preset']}, loss {summary['loss']}) -> "
                         f"{summary['workdir']}", show_edge=False)
     for col in ("heliostat", "n_train", "nominal test", "selected", "train", "validation", "test",

@@ -10,8 +10,7 @@ from rich import box
 from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, IncrementalFlag, JsonFlag, QuietFlag, Seed, Workdir,
-                              command, emit,
-                              fmt_number, stdout)
+                              command, emit, fmt_number, incremental_line, stdout)
 from heliocal.pipeline.vocabulary import SplitMethod, SplitMetric
 
 __all__ = ["split_knn"]
@@ -25,6 +24,8 @@ Metric = SplitMetric
 
 
 def _print_summary(summary: dict) -> None:
+    if incremental_line(summary):
+        return
     table = Table(title=f"split-knn: method {summary['method']}, k={summary['k']}, metric "
                         f"{summary['metric']}", box=box.SIMPLE_HEAD, pad_edge=False)
     table.add_column("heliostat", no_wrap=True)

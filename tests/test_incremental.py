@@ -123,21 +123,26 @@ def test_incremental_stages_compute_only_the_changed_heliostat_and_equal_a_full_
 
 
 @pytest.mark.slow
-def test_unchanged_inputs_compute_nothing_and_other_options_compute_all(field, tmp_path):
+def test_unchanged_inputs_keep_the_files_and_other_options_compute_all(field, tmp_path):
     _, inc, _, _ = field
     import shutil
 
     wd = shutil.copytree(inc, tmp_path / "wd")
-    before = {p: (wd / p).read_bytes() for p in (SPLIT.filename, COARSE_PARAMS.filename)}
+    files = {stage: json.loads((wd / f"{stage}.manifest.json").read_text())["files"]
+             for stage in ("split-knn", "fit-coarse")}
     split = run_split(wd, incremental=True)
     fit = run_fit_coarse(wd, incremental=True, batch_size=2, workers=1)
-    assert split["incremental"]["computed"] == fit["incremental"]["computed"] == 0
-    assert fit["incremental"]["reused"] == 4 and fit["heliostats"] == []
-    for p, data in before.items():  # same rows: the tables' content fingerprints are unchanged
-        assert pd.read_parquet(wd / p).equals(pd.read_parquet(pd.io.common.BytesIO(data)))
+    assert split["incremental"] == fit["incremental"] == {"unchanged": True}
+    for stage, before in files.items():  # the same files (SHA-256), now listed by the new run
+        after = json.loads((wd / f"{stage}.manifest.json").read_text())
+        assert {k: v["sha256"] for k, v in after["files"].items()} == {
+            k: v["sha256"] for k, v in before.items()}
+        assert sorted(after["incremental"]["heliostats"]) == ["SP13", "SQ04", "SS48", "ST20"]
     # another option is a field-wide input: every heliostat again
     again = run_fit_coarse(wd, incremental=True, batch_size=2, workers=1, rolling_origins=3)
     assert again["incremental"]["computed"] == 4 and "field-wide" in again["incremental"]["why_all"]
+    assert len(pd.read_parquet(wd / "rolling_origin.parquet").groupby(
+        ["heliostat_id", "origin_date"])) <= 4 * 3
     with pytest.raises(ParameterError, match="--incremental"):
         run_fit_coarse(wd, incremental=True, heliostats=["SP13"])
 

@@ -3,12 +3,12 @@
 A per-heliostat stage (``split-knn``, ``fit-coarse``) records in its manifest, beside the usual
 provenance, the digest of each heliostat's inputs and one *field key*::
 
-    "incremental": {"field_key": <sha256>, "heliostats": {<id>: <sha256>, ...}}
+    "incremental": {"field_key": <sha256>, "code": <revision>, "heliostats": {<id>: <sha256>}}
 
 * a heliostat's digest is the SHA-256 of its rows in every input table the stage reads for it
   (:func:`heliostat_digests`: each row hashed by value, in the order the stage reads them);
 * the field key is the SHA-256 of everything that is not a heliostat's own: the stage, its
-  options, the heliocal version and code revision, the column names of its inputs, and any
+  options, the heliocal version and code (:func:`code_identity`), the column names of its inputs, and any
   field-wide value a heliostat's result depends on (a prior or a noise scale taken over the
   field would go there).
 
@@ -18,7 +18,9 @@ computed again, the others' rows are taken from the previous committed artifacts
 that are gone are dropped. When the field key moved (other options, other code, a field-wide
 input), or the previous run recorded no digests, every heliostat is computed again. Either way
 the run is one stage transaction like any other, and records the digests of what it read, so a
-next ``--incremental`` run starts from it.
+next ``--incremental`` run starts from it. A run whose upstream artifacts, options and code are
+all those of the previous run reads nothing: it keeps the previous run's files
+(:func:`carry_over_unchanged`).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import numpy as np
 import pandas as pd
 
 __all__ = ["INCREMENTAL_KEY", "Increment", "heliostat_digests", "field_key", "plan_increment",
-           "reused_rows"]
+           "reused_rows", "carry_over_unchanged", "code_identity"]
 
 #: Key of the per-heliostat digests in a stage's manifest.
 INCREMENTAL_KEY = "incremental"
@@ -63,16 +65,40 @@ def heliostat_digests(frames: Sequence[pd.DataFrame]) -> dict[str, str]:
     return out
 
 
+_CODE: str | None = None
+
+
+def code_identity() -> str:
+    """The code a result was computed with: the git revision, and for a checkout with local
+    changes (``-dirty``) or none (``unknown``) also the SHA-256 of every ``pipeline/**/*.py``, so an
+    edited but uncommitted library is never taken for the committed one. Asked once per process."""
+    global _CODE
+    if _CODE is None:
+        from pathlib import Path
+
+        from .provenance import git_revision
+
+        rev = git_revision()
+        if rev.endswith("-dirty") or rev == "unknown":
+            root = Path(__file__).resolve().parents[1]
+            h = hashlib.sha256()
+            for path in sorted(root.rglob("*.py")):
+                h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+            rev += "+" + h.hexdigest()[:16]
+        _CODE = rev
+    return _CODE
+
+
 def field_key(stage: str, options: Mapping, frames: Sequence[pd.DataFrame],
               field_inputs: Mapping | None = None) -> str:
     """The SHA-256 (hex) of what every heliostat's result of ``stage`` shares: its options, the
     code (heliocal version and git revision), the inputs' column names and dtypes, and
     ``field_inputs`` (field-wide values, JSON-able)."""
     from .. import __version__
-    from .provenance import git_revision, jsonable
+    from .provenance import jsonable
 
     text = json.dumps({"stage": stage, "options": jsonable(dict(options)),
-                       "version": __version__, "revision": git_revision(),
+                       "version": __version__, "revision": code_identity(),
                        "columns": [[f"{c}:{t}" for c, t in df.dtypes.astype(str).items()]
                                    for df in frames],
                        "field": jsonable(dict(field_inputs or {}))}, sort_keys=True)
@@ -101,7 +127,8 @@ def plan_increment(txn, key: str, digests: Mapping[str, str], incremental: bool)
     """Record ``key`` and ``digests`` in the run's manifest (``txn``: the active
     :class:`~.transaction.StageTransaction`) and decide which heliostats to compute: all of them
     unless ``incremental`` and the previous committed run recorded the same field key."""
-    txn.extra[INCREMENTAL_KEY] = {"field_key": key, "heliostats": dict(sorted(digests.items()))}
+    txn.extra[INCREMENTAL_KEY] = {"field_key": key, "code": code_identity(),
+                                  "heliostats": dict(sorted(digests.items()))}
     everything = sorted(digests)
     if not incremental:
         return Increment(everything, [], why="not --incremental")
@@ -121,3 +148,30 @@ def plan_increment(txn, key: str, digests: Mapping[str, str], incremental: bool)
 def reused_rows(previous: pd.DataFrame, reuse: Sequence[str]) -> pd.DataFrame:
     """The rows of the heliostats in ``reuse`` of a previous artifact."""
     return previous[previous["heliostat_id"].astype(str).isin(set(reuse))]
+
+
+def carry_over_unchanged(txn, options: Mapping) -> bool:
+    """When the previous committed run of ``txn``'s stage had ``options`` and this code and read
+    exactly the artifacts now committed upstream (each recorded input's fingerprint equals its
+    producer's committed one; a source file is never taken as unchanged), make this run keep
+    its files, inputs and digests as they are, without reading anything, and return True."""
+    from .. import __version__
+    from .manifests import CommittedWorkdir
+    from .provenance import jsonable
+
+    prev = txn.previous
+    if prev is None or not isinstance(prev.data.get(INCREMENTAL_KEY), dict) or not prev.inputs:
+        return False
+    if (prev.data.get("options") != jsonable(dict(options))
+            or prev.data[INCREMENTAL_KEY].get("code") != code_identity()
+            or prev.data.get("heliocal_version") != __version__):
+        return False
+    wd = CommittedWorkdir.of(txn.root)
+    for rec in prev.inputs.values():
+        if not rec.get("stage") or wd.fingerprint(rec["stage"], rec["path"]) != rec["fingerprint"]:
+            return False
+    txn.carry_over(txn.previous_files())
+    txn.inputs.update(prev.inputs)
+    txn.extra[INCREMENTAL_KEY] = prev.data[INCREMENTAL_KEY]
+    txn.options, txn.seed = options, prev.data.get("seed")
+    return True

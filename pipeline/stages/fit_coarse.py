@@ -36,6 +36,8 @@ from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes)
+from ..artifacts.incremental import carry_over_unchanged
+from ..artifacts.manifests import current_transaction
 from .increments import coarse_plan, with_previous
 from .rolling import DEFAULT_MAX_ORIGINS, evaluate_rolling, rolling_chunks
 from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
@@ -514,13 +516,17 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
     rolling_origins = check_int(rolling_origins, "rolling_origins", "fit_coarse", 0)
     steps = None if _SKIP_REGIMES else regime_steps
-    warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
-    helio, rows_of = _read_rows(workdir, heliostats)
     opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
             "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
             "rolling_origins": rolling_origins,
             "heliostats": list(heliostats) if heliostats else None}
+    if incremental and not heliostats and carry_over_unchanged(
+            current_transaction(workdir, "fit-coarse"), opts):
+        return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": [],
+                "regimes": None, "incremental": {"unchanged": True}}
+    warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
+    helio, rows_of = _read_rows(workdir, heliostats)
     plan = coarse_plan(workdir, helio, rows_of, opts, incremental, heliostats)
     if plan is not None and plan.partial:
         rows_of = {h: rows_of[h] for h in plan.compute}

@@ -33,9 +33,10 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from sklearn.neighbors import NearestNeighbors
 
-from ..artifacts.incremental import field_key, heliostat_digests, plan_increment, reused_rows
+from ..artifacts.incremental import (carry_over_unchanged, field_key, heliostat_digests,
+                                     plan_increment, reused_rows)
+from ..artifacts.paths import artifact_path
 from ..artifacts.manifests import current_transaction
 from ..artifacts.store import read_artifact, write_artifact
 from ..errors import FitError, InputError, ParameterError, check_choice, check_int
@@ -134,6 +135,8 @@ def knn_distance_deg(az_deg, el_deg, k: int = 3, metric: str = "euclidean") -> n
     if len(x) <= k:
         raise ParameterError(f"the kNN distance with k={k} needs at least {k + 1} sun positions; "
                              f"got {len(x)}")
+    from sklearn.neighbors import NearestNeighbors  # here: a kept split never loads sklearn
+
     nn = NearestNeighbors(n_neighbors=k, **nn_kw).fit(x)
     dist, _ = nn.kneighbors()  # X=None: each point's neighbours without the point itself
     return _to_deg(dist, metric).mean(axis=1)
@@ -146,6 +149,8 @@ def _nearest_distance(x_from: np.ndarray, x_to: np.ndarray, nn_kw: dict, metric:
     ``same[i]`` is the index into ``x_to`` of row i itself (or -1): that row is skipped.
     """
     n_nb = min(2, len(x_to))
+    from sklearn.neighbors import NearestNeighbors
+
     nn = NearestNeighbors(n_neighbors=n_nb, **nn_kw).fit(x_to)
     dist, idx = nn.kneighbors(x_from)
     out = dist[:, 0].copy()
@@ -542,10 +547,16 @@ def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: i
     """
     method, k, n_test, n_val, n_train, metric, seed = _check_options(
         method, k, n_test, n_val, n_train, metric, seed)
-    measurements = read_artifact(workdir, MEASUREMENTS, columns=_INPUT_COLUMNS)
     options = {"method": method, "k": k, "n_test": n_test, "n_val": n_val, "n_train": n_train,
                "metric": metric, "seed": seed}
-    plan = plan_increment(current_transaction(workdir, "split-knn"),
+    txn = current_transaction(workdir, "split-knn")
+    if incremental and carry_over_unchanged(txn, options):
+        return {"artifact": str(artifact_path(workdir, SPLIT)), **options,
+                "required_measurements": required_measurements(k, n_test, n_val, n_train),
+                "requirement": _requirement_text(k, n_test, n_val, n_train),
+                "heliostats": [], "skipped": [], "incremental": {"unchanged": True}}
+    measurements = read_artifact(workdir, MEASUREMENTS, columns=_INPUT_COLUMNS)
+    plan = plan_increment(txn,
                           field_key("split-knn", options, [measurements]),
                           heliostat_digests([measurements]), incremental)
     table, skipped = _split_increment(workdir, measurements, plan, options)
