@@ -69,23 +69,18 @@ _CODE: str | None = None
 
 
 def code_identity() -> str:
-    """The code a result was computed with: the git revision, and for a checkout with local
-    changes (``-dirty``) or none (``unknown``) also the SHA-256 of every ``pipeline/**/*.py``, so an
-    edited but uncommitted library is never taken for the committed one. Asked once per process."""
+    """The code a result is computed with: the SHA-256 of every ``pipeline/**/*.py`` (path and
+    bytes), so an edited library is never taken for another, whatever git says, and edits
+    elsewhere (docs, tests) do not count. Asked once per process (about 100 files)."""
     global _CODE
     if _CODE is None:
         from pathlib import Path
 
-        from .provenance import git_revision
-
-        rev = git_revision()
-        if rev.endswith("-dirty") or rev == "unknown":
-            root = Path(__file__).resolve().parents[1]
-            h = hashlib.sha256()
-            for path in sorted(root.rglob("*.py")):
-                h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
-            rev += "+" + h.hexdigest()[:16]
-        _CODE = rev
+        root = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256()
+        for path in sorted(root.rglob("*.py")):
+            h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+        _CODE = h.hexdigest()
     return _CODE
 
 
