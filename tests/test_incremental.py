@@ -138,6 +138,14 @@ def test_unchanged_inputs_keep_the_files_and_other_options_compute_all(field, tm
         assert {k: v["sha256"] for k, v in after["files"].items()} == {
             k: v["sha256"] for k, v in before.items()}
         assert sorted(after["incremental"]["heliostats"]) == ["SP13", "SQ04", "SS48", "ST20"]
+    # a manifest is untrusted: an input naming a stage outside the folder is not looked up, so
+    # the run cannot take its inputs as unchanged and checks every heliostat's digest instead
+    path = wd / "fit-coarse.manifest.json"
+    m = json.loads(path.read_text())
+    m["inputs"]["measurements"]["stage"] = f"../{wd.name}/fit-coarse"  # this very file
+    path.write_text(json.dumps(m))
+    hostile = run_fit_coarse(wd, incremental=True, batch_size=2, workers=1)
+    assert hostile["incremental"] == {"computed": 0, "reused": 4, "removed": 0, "why_all": None}
     # another option is a field-wide input: every heliostat again
     again = run_fit_coarse(wd, incremental=True, batch_size=2, workers=1, rolling_origins=3)
     assert again["incremental"]["computed"] == 4 and "field-wide" in again["incremental"]["why_all"]

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -35,6 +36,9 @@ import pandas as pd
 
 __all__ = ["INCREMENTAL_KEY", "Increment", "heliostat_digests", "field_key", "plan_increment",
            "reused_rows", "carry_over_unchanged", "code_identity"]
+
+#: A stage name as manifests spell it (lower-case letters, digits and '-').
+_STAGE_NAME = re.compile(r"[a-z][a-z0-9-]{0,39}")
 
 #: Key of the per-heliostat digests in a stage's manifest.
 INCREMENTAL_KEY = "incremental"
@@ -152,6 +156,7 @@ def carry_over_unchanged(txn, options: Mapping) -> bool:
     its files, inputs and digests as they are, without reading anything, and return True."""
     from .. import __version__
     from .manifests import CommittedWorkdir
+    from .paths import relative_path_problem
     from .provenance import jsonable
 
     prev = txn.previous
@@ -163,7 +168,12 @@ def carry_over_unchanged(txn, options: Mapping) -> bool:
         return False
     wd = CommittedWorkdir.of(txn.root)
     for rec in prev.inputs.values():
-        if not rec.get("stage") or wd.fingerprint(rec["stage"], rec["path"]) != rec["fingerprint"]:
+        # a manifest is untrusted input: only a stage's name and a plain relative path are looked up
+        if not (isinstance(rec, dict) and isinstance(rec.get("stage"), str)
+                and _STAGE_NAME.fullmatch(rec["stage"]) and isinstance(rec.get("path"), str)
+                and relative_path_problem(rec["path"]) is None):
+            return False
+        if wd.fingerprint(rec["stage"], rec["path"]) != rec.get("fingerprint"):
             return False
     txn.carry_over(txn.previous_files())
     txn.inputs.update(prev.inputs)
