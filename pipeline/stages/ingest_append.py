@@ -27,7 +27,7 @@ from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED
 from ..artifacts.store import artifact_present, read_artifact, write_artifact
 from ..errors import InputError
 
-__all__ = ["IDENTITY_EXCLUDED", "AppendResult", "merge_new_rows", "previous_tables"]
+__all__ = ["IDENTITY_EXCLUDED", "AppendResult", "merge_new_rows", "previous_tables", "write_appended"]
 
 #: Columns that say where a copy of a row came from, not what was measured: left out of a row's
 #: content identity.
