@@ -155,6 +155,18 @@ def test_unchanged_inputs_keep_the_files_and_other_options_compute_all(field, tm
         run_fit_coarse(wd, incremental=True, heliostats=["SP13"])
 
 
+def test_append_without_duplicates_adds_every_row(tmp_path):
+    """The usual day: no row is ingested already (the rejection table of none is empty)."""
+    logs = _logs(tmp_path)
+    new = pd.read_csv(logs["new"]).iloc[:5]          # SP13's 5 rows only
+    new.to_csv(tmp_path / "day.csv", index=False)
+    run_ingest([logs["old"]], tmp_path / "wd", OPTIONS)
+    info = run_ingest([tmp_path / "day.csv"], tmp_path / "wd", OPTIONS, append=True)
+    assert info["appended"]["added_rows"] == 5 and info["rejected"] == 0
+    assert len(pd.read_parquet(tmp_path / "wd" / "measurements.parquet")) == 585 + 5
+    assert len(pd.read_parquet(tmp_path / "wd" / "rejected.parquet")) == 0
+
+
 def test_append_needs_an_ingested_workdir(tmp_path):
     with pytest.raises(InputError, match="without --append first"):
         run_ingest([SYNTH / "calibration_log.csv"], tmp_path / "empty", OPTIONS, append=True)

@@ -77,7 +77,9 @@ def _rejections(rows: pd.DataFrame, old: pd.DataFrame, identical: np.ndarray) ->
         "measurement_id": rows["measurement_id"].to_numpy(),
         "reason": np.where(identical, "duplicate_of_ingested_row", "duplicate_measurement_id"),
         "detail": detail,
-        "raw": rows.drop(columns=["timestamp"]).to_json(orient="records", lines=True).splitlines()})
+        # (to_json of no rows is one empty line, not none)
+        "raw": (rows.drop(columns=["timestamp"]).to_json(orient="records", lines=True).splitlines()
+                if len(rows) else [])})
 
 
 class AppendResult:
