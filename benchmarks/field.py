@@ -183,8 +183,8 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
     w = ["--workers", str(workers)]
     coarse = ["fit-coarse", "--workdir", str(wd), "--preset", "static-20", *w,
               "--solver", args.solver]
-    later = [["sweep", "--workdir", str(wd), "--study", "0", *w, *args.sweep_args.split()],
-             ["report", "--workdir", str(wd), *w]]
+    later = [c for c in (["sweep", "--workdir", str(wd), "--study", "0", *w, *args.sweep_args.split()],
+                         ["report", "--workdir", str(wd), *w]) if c[0] in args.later.split(",")]
     phases = {
         "full": [["ingest", str(base), *props], ["split-knn", "--workdir", str(wd)], coarse,
                  *later],
@@ -222,6 +222,9 @@ def main() -> None:
     ap.add_argument("--workers", default="1,2", help="worker counts (--stages all: the last)")
     ap.add_argument("--solver", default="batched", help="fit-coarse --solver (batched or scipy)")
     ap.add_argument("--sweep-args", default="", help="extra options of the sweep stage")
+    ap.add_argument("--later", default="sweep,report",
+                    help="--stages all: the stages after fit-coarse in the full method and the "
+                         "update ('' leaves them out: they compute the whole field either way)")
     args = ap.parse_args()
     field_dir = args.out / f"field-{args.heliostats}"
     info = write_field(field_dir, args.heliostats)
