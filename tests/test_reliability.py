@@ -375,7 +375,7 @@ def test_same_inputs_and_seed_give_identical_artifacts(runner, tmp_path):
     assert names == ["coarse_params.parquet", "coarse_predictions.parquet", "heliostats.parquet",
                      "hybrid_predictions.parquet",
                      "measurements.parquet", "regime_params.parquet", "regimes.parquet",
-                     "rejected.parquet", "split.parquet"]
+                     "rejected.parquet", "rolling_origin.parquet", "split.parquet"]
     for name in names:
         a, b = pd.read_parquet(first / name), pd.read_parquet(second / name)
         assert len(a) > 0 or name == "rejected.parquet", name  # the sample keeps all 496 rows
