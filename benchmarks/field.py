@@ -18,8 +18,15 @@ sampled every 0.1 s), so the scaling ratio is measured in one run. Usage::
 
     .venv/bin/python benchmarks/field.py [--heliostats 2000] [--out runs/field-bench]
         [--hybrid-epochs 800]
-        [--stages ingest,split-knn,fit-coarse,fit-hybrid,pretrained-nn,sweep,plan,report]
+        [--stages ingest,split-knn,fit-coarse,fit-hybrid,pretrained-nn,sweep,plan,report | all]
         [--solver batched|scipy] [--workers 1,2] [--sweep-args "--no-warm-start"]
+
+``--stages all`` (with the last of ``--workers``, default 2) times, in one run, the full method
+and a daily update (:func:`run_all`): the field's log without the latest 5 rows of 1 % of the
+heliostats (a seeded choice, at least one) goes through ``ingest``, ``split-knn``, ``fit-coarse``,
+``sweep --study 0`` and ``report``; then those rows through ``ingest --append``, ``split-knn
+--incremental``, ``fit-coarse --incremental``, ``sweep --study 0`` and ``report``; then
+``split-knn --incremental`` and ``fit-coarse --incremental`` once more on unchanged inputs.
 
 The simulated field is cached in OUT/field (delete it to simulate again).
 """
@@ -151,20 +158,85 @@ def run_stage(args: list[str]) -> tuple[float, int]:
     return time.perf_counter() - t0, peak
 
 
+#: Heliostats of a daily update (share of the field) and new rows of each.
+UPDATE_SHARE, UPDATE_ROWS = 0.01, 5
+
+
+def split_update(field_dir: Path, seed: int = 0) -> tuple[Path, Path, int]:
+    """The field's log without the latest :data:`UPDATE_ROWS` rows of a seeded :data:`UPDATE_SHARE`
+    of its heliostats (``base.csv``), and those rows (``update.csv``); cached beside the log."""
+    base, update = field_dir / "base.csv", field_dir / "update.csv"
+    log = pd.read_csv(field_dir / "calibration_log.csv")
+    ids = np.sort(log["heliostat_id"].unique())
+    n = max(1, round(UPDATE_SHARE * len(ids)))
+    if not (base.exists() and update.exists()):
+        chosen = set(np.random.default_rng(seed).choice(ids, n, replace=False))
+        late = (log[log["heliostat_id"].isin(chosen)].sort_values("timestamp", kind="mergesort")
+                .groupby("heliostat_id").tail(UPDATE_ROWS).index)
+        log.drop(index=late).to_csv(base, index=False)
+        log.loc[late].to_csv(update, index=False)
+    return base, update, n
+
+
+def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
+    """The full method, a daily update and a rerun on unchanged inputs, timed in one run."""
+    base, update, n_update = split_update(field_dir)
+    wd = args.out / f"run-{args.heliostats}-all-w{workers}"
+    shutil.rmtree(wd, ignore_errors=True)
+    props = ["--properties", str(field_dir / "paint"), "--workdir", str(wd)]
+    w = ["--workers", str(workers)]
+    coarse = ["fit-coarse", "--workdir", str(wd), "--preset", "static-20", *w,
+              "--solver", args.solver]
+    later = [c for c in (["sweep", "--workdir", str(wd), "--study", "0", *w, *args.sweep_args.split()],
+                         ["report", "--workdir", str(wd), *w]) if c[0] in args.later.split(",")]
+    phases = {
+        "full": [["ingest", str(base), *props], ["split-knn", "--workdir", str(wd)], coarse,
+                 *later],
+        "update": [["ingest", str(update), *props, "--append"],
+                   ["split-knn", "--workdir", str(wd), "--incremental"], [*coarse, "--incremental"],
+                   *later],
+        "rerun": [["split-knn", "--workdir", str(wd), "--incremental"],
+                  [*coarse, "--incremental"]],
+    }
+    print(f"update: {n_update} heliostats x {UPDATE_ROWS} new rows; workers={workers}", flush=True)
+    table = []
+    for phase, commands in phases.items():
+        total = 0.0
+        for cmd in commands:
+            wall, peak = run_stage(cmd)
+            total += wall
+            table.append((phase, cmd[0], wall, peak))
+            print(f"  {phase:6s} {cmd[0]:11s} {wall:8.1f} s  peak {peak / 2**30:5.2f} GiB",
+                  flush=True)
+        print(f"  {phase:6s} total       {total:8.1f} s", flush=True)
+    first = {stage: wall for phase, stage, wall, _ in table if phase == "full"}
+    print(f"\n{info['heliostats']} heliostats, {workers} workers: phase, stage, wall, peak memory"
+          " (rerun: share of the stage's first run)")
+    for phase, stage, wall, peak in table:
+        share = f"  {100 * wall / first[stage]:5.1f} %" if phase == "rerun" else ""
+        print(f"{phase:7s} {stage:11s} {wall:8.1f} s  {peak / 2**30:5.2f} GiB{share}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--heliostats", type=int, default=2000)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "field-bench")
     ap.add_argument("--hybrid-epochs", type=int, default=800)
     ap.add_argument("--stages", default="ingest,split-knn,fit-coarse,fit-hybrid,sweep,report")
-    ap.add_argument("--workers", default="1,2")
+    ap.add_argument("--workers", default="1,2", help="worker counts (--stages all: the last)")
     ap.add_argument("--solver", default="batched", help="fit-coarse --solver (batched or scipy)")
     ap.add_argument("--sweep-args", default="", help="extra options of the sweep stage")
+    ap.add_argument("--later", default="sweep,report",
+                    help="--stages all: the stages after fit-coarse in the full method and the "
+                         "update ('' leaves them out: they compute the whole field either way)")
     args = ap.parse_args()
     field_dir = args.out / f"field-{args.heliostats}"
     info = write_field(field_dir, args.heliostats)
     print(f"field: {info['heliostats']} heliostats, {info['measurements']} measurements "
           f"(simulated in {info['simulate_s']} s, cached in {field_dir})", flush=True)
+    if args.stages == "all":
+        run_all(args, field_dir, info, int(args.workers.split(",")[-1]))
+        return
     stages = args.stages.split(",")
     results = {}
     sizes: dict[int, tuple[int, int, int]] = {}

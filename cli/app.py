@@ -72,6 +72,23 @@ Workdir = Annotated[Path, typer.Option(
     "--workdir", "-w", help="Work directory holding the stage artifacts.",
     file_okay=False, dir_okay=True)]
 JsonFlag = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
+def incremental_line(summary: dict) -> bool:
+    """Print what an ``--incremental`` run computed; True when it kept everything (nothing more
+    to print)."""
+    inc = summary.get("incremental") or {}
+    if inc.get("unchanged"):
+        stdout.print("unchanged: the inputs, options and code are the previous run's; its "
+                     "artifacts are kept as they are.", markup=False)
+        return True
+    if inc.get("reused") or inc.get("removed"):
+        stdout.print(f"incremental: computed {inc['computed']} heliostats, kept {inc['reused']} "
+                     f"from the previous run, dropped {inc['removed']}.", markup=False)
+    return False
+
+
+IncrementalFlag = Annotated[bool, typer.Option(
+    "--incremental", help="Compute again only the heliostats whose inputs changed since the "
+    "stage's last run (same options and code); take the others' results from its artifacts.")]
 QuietFlag = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bars or info logs.")]
 Workers = Annotated[Optional[int], typer.Option(
     "--workers", help="Local worker processes for per-heliostat work (default: the machine's cores).")]

@@ -8,14 +8,16 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
-                              SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
-                              progress_bar, stdout)
+from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, IncrementalFlag, JsonFlag, QuietFlag,
+                              Scheduler, SchedulerChoice, Workdir, Workers, command, emit,
+                              fmt_number, incremental_line, progress_bar, stdout)
 from heliocal.pipeline.vocabulary import (DEFAULT_ROLLING_ORIGINS, CoarseLoss, CoarsePreset,
                                          CoarsePrior, CoarseSolver, RobustStart)
 
 
 def _human(summary: dict) -> None:
+    if incremental_line(summary):
+        return
     table = Table(title=f"fit-coarse ({summary['preset']}, loss {summary['loss']}) -> "
                         f"{summary['workdir']}", show_edge=False)
     for col in ("heliostat", "n_train", "nominal test", "selected", "train", "validation", "test",
@@ -82,6 +84,7 @@ def fit_coarse_cmd(
     workers: Workers = None,
     scheduler: Scheduler = SchedulerChoice.local,
     dask_address: DaskAddress = None,
+    incremental: IncrementalFlag = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -95,5 +98,5 @@ def fit_coarse_cmd(
                                  dask_address=dask_address, rolling_origins=rolling_origins,
                                  prior=(prior.value if prior is not None
                                         else "field" if prior_from is not None else "none"),
-                                 prior_from=prior_from)
+                                 prior_from=prior_from, incremental=incremental)
     emit(summary, json_, _human)

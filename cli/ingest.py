@@ -87,6 +87,10 @@ def ingest_cmd(
         help="Rows of a log read and validated at a time; peak memory grows with it, not with the "
              "log (a longer log is sorted by heliostat in a hidden folder of the workdir). "
              "The artifacts do not depend on it.", min=1)] = DEFAULT_BATCH_ROWS,
+    append: Annotated[bool, typer.Option(
+        "--append", help="Add the sources' rows to the work directory's measurements instead of "
+        "replacing them (rows already ingested are rejected as duplicate_of_ingested_row).")
+    ] = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -99,5 +103,5 @@ def ingest_cmd(
                          azimuth_convention=azimuth_convention, timezone=timezone,
                          location=_parse_location(location), date_format=date_format,
                          time_min=time_min, time_max=time_max)
-    summary = run_ingest(sources, workdir, opts, batch_rows=batch_rows)
+    summary = run_ingest(sources, workdir, opts, batch_rows=batch_rows, append=append)
     emit(summary, json_, _human)

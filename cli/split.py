@@ -9,8 +9,8 @@ import typer
 from rich import box
 from rich.table import Table
 
-from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Seed, Workdir, command, emit,
-                              fmt_number, stdout)
+from heliocal.cli.app import (DEFAULT_WORKDIR, IncrementalFlag, JsonFlag, QuietFlag, Seed, Workdir,
+                              command, emit, fmt_number, incremental_line, stdout)
 from heliocal.pipeline.vocabulary import SplitMethod, SplitMetric
 
 __all__ = ["split_knn"]
@@ -24,6 +24,8 @@ Metric = SplitMetric
 
 
 def _print_summary(summary: dict) -> None:
+    if incremental_line(summary):
+        return
     table = Table(title=f"split-knn: method {summary['method']}, k={summary['k']}, metric "
                         f"{summary['metric']}", box=box.SIMPLE_HEAD, pad_edge=False)
     table.add_column("heliostat", no_wrap=True)
@@ -68,6 +70,7 @@ def split_knn(
         help="Distance in sun position: euclidean in (azimuth, elevation) degrees (paper) or "
              "great-circle angle between sun vectors.")] = Metric.euclidean,
     seed: Seed = 0,
+    incremental: IncrementalFlag = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -75,7 +78,8 @@ def split_knn(
     from heliocal.pipeline.stages.split import run_split
 
     summary = run_split(workdir, method=method.value, k=k, n_test=n_test, n_val=n_val,
-                        n_train=n_train, metric=metric.value, seed=seed)
+                        n_train=n_train, metric=metric.value, seed=seed,
+                        incremental=incremental)
     for s in summary["skipped"]:
         log.warning("skipped heliostat %s: it has %d measurements, the split needs at least %s",
                     s["heliostat_id"], s["n_measurements"], summary["requirement"])

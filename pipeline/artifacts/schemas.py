@@ -139,6 +139,9 @@ REJECTION_REASONS = {
     "steps_out_of_range": "a motor position is outside the actuator's range",
     "sun_below_horizon": "the sun elevation is not above the horizon",
     "duplicate_measurement_id": "the heliostat already has a measurement with this id",
+    "duplicate_of_ingested_row": "duplicate of an ingested row: `ingest --append` met a row "
+                                 "identical (but for its source file and row) to one the work "
+                                 "directory already holds",
     "unknown_target": "the target name is not in the tower/targets file",
     "unknown_heliostat": "no properties for this heliostat",
     "focal_spot_far_from_target": "the focal spot lies implausibly far from its target",

@@ -262,6 +262,7 @@ class StageTransaction:
         self.seed: int | None = None
         self.command: str | None = None
         self.recovered: list[str] = []
+        self.extra: dict = {}  # further manifest entries (artifacts.incremental's digests)
         self.replaces_invalid: InvalidManifest | None = None
         self._owner = None
         self._token = None
@@ -453,6 +454,7 @@ class StageTransaction:
             "inputs": {k: v for k, v in sorted(self.inputs.items())},
             "files": {k: self.files[k] for k in sorted(self.files)},
             "removed": sorted(r for r in base if r not in self.files),
+            **self.extra,
         }
         self._check_destinations(data)
         _fsync_dir(self.staging)

@@ -53,7 +53,7 @@ from ..vocabulary import CoarsePrior
 __all__ = ["PRIOR_MODES", "PRIOR_ROUNDS", "SAMPLE_SIZE", "FIELD_PRIOR_MODEL", "PriorPlan",
            "plan_field_prior", "field_prior_name", "is_field_prior", "field_prior_fit",
            "with_field_prior", "field_prior_note", "zero_row_outputs", "finish_table", "attach_prior_columns",
-           "summary_of"]
+           "prior_frame", "summary_of"]
 
 log = logging.getLogger("heliocal.coarse")
 
@@ -421,22 +421,25 @@ def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:
     return out
 
 
-def finish_table(plan: PriorPlan, helio: pd.DataFrame, summaries: Sequence[dict]) -> pd.DataFrame:
+def finish_table(plan: PriorPlan, helio: pd.DataFrame, params: pd.DataFrame,
+                 preds: pd.DataFrame) -> pd.DataFrame:
     """field_prior.parquet with each group's expected error: the median over its heliostats with
     test rows of the field-prior geometry's mean test error (each heliostat's own from the other
-    heliostats' prior), and the same median of the nominal geometry."""
+    heliostats' prior), and the same median of the nominal geometry. Read from the run's
+    coarse_params and coarse_predictions as written (an incremental run's kept heliostats
+    count as a full run's)."""
     table = plan.table.copy()
     if table.empty:
         return table
+    nominal_test = _nominal_test_error(preds)
     per_group: dict = {}
-    for s in summaries:
-        hid = s["heliostat_id"]
-        name = plan.geometry.get(hid, (None,))[0]
-        got = s["presets"].get(name) if name else None
-        if got is None or not math.isfinite(got.get("test", float("nan"))):
+    for hid, got in params.groupby("heliostat_id", sort=True):
+        name = plan.geometry.get(str(hid), (None,))[0]
+        test = got.loc[got["preset"] == name, "test_error_mrad"].to_numpy(float)[:1]
+        if not len(test) or not math.isfinite(test[0]):
             continue
         per_group.setdefault(group_key(helio.loc[hid]), []).append(
-            (got["test"], s["nominal"]["test"]))
+            (test[0], nominal_test.get(str(hid), float("nan"))))
     for key, values in per_group.items():
         sel = ((table["kinematic_type"] == key[0]) & (table["actuator_type"] == key[1])
                & (table["geometry_source"] == key[2]))
@@ -445,6 +448,23 @@ def finish_table(plan: PriorPlan, helio: pd.DataFrame, summaries: Sequence[dict]
         table.loc[sel, "nominal_error_mrad"] = float(np.nanmedian(arr[:, 1]))
         table.loc[sel, "n_evaluated"] = len(values)
     return table
+
+
+def _nominal_test_error(preds: pd.DataFrame) -> dict[str, float]:
+    """heliostat -> the nominal geometry's mean error_mrad on its test rows (coarse_predictions)."""
+    test = preds[(preds["model"] == "nominal") & (preds["split"] == "test")]
+    return {str(h): float(v) for h, v in test.groupby("heliostat_id")["error_mrad"].mean().items()}
+
+
+def prior_frame(plan: PriorPlan, ids) -> pd.DataFrame:
+    """One row per heliostat of ``ids``, preset and parameter with the prior (mean, sigma) its fit
+    is given: the part of a heliostat's inputs that comes from the field (the incremental plan
+    hashes it with the heliostat's own rows, so a moved prior fits it again)."""
+    rows = [(hid, name, i, float(mean[i]), float(sigma[i]))
+            for hid in sorted(ids) for name, (mean, sigma, *_) in
+            sorted(plan.priors.get(hid, {}).items()) for i in range(len(mean))]
+    return pd.DataFrame(rows, columns=["heliostat_id", "preset", "parameter_index", "mean",
+                                       "sigma"])
 
 
 def summary_of(plan: PriorPlan, table: pd.DataFrame, zero_rows: Sequence[str]) -> dict:

@@ -346,3 +346,24 @@ def follow_regimes(chunk: CoarseChunk, outputs: Sequence[tuple], starts: Sequenc
                 frames=frames.get(k), time=timed.get(k))
         out.append(HeliostatResult(results[k], regime_rows, flags_of[k], k in refit, notes[k]))
     return ChunkResult(_segment_errors(regimes, ids, rows, results), out)
+
+
+def regimes_summary(regimes: pd.DataFrame, regime_params: pd.DataFrame,
+                    refitted: Sequence[str], summaries: Sequence[dict]) -> dict:
+    """fit-coarse's summary of regimes.parquet and regime_params.parquet: the breaks, episodes
+    and outliers found, the heliostats fitted again without their episodes (of ``refitted``,
+    those with episode rows), and the regime-aware models fitted and selected (``summaries``:
+    the run's per-heliostat summaries)."""
+    with_episodes = {s["heliostat_id"] for s in summaries if s.get("episode_rows")}
+    return {
+        "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
+            ["detected", "renovation"]), "heliostat_id"].nunique()),
+        "detected_breaks": int((regimes["cause"] == "detected").sum()),
+        "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
+        "episodes": int((regimes["kind"] == "episode").sum()),
+        "outliers": int((regimes["kind"] == "outlier").sum()),
+        "refitted_without_episodes": sorted(h for h in refitted if h in with_episodes),
+        "regime_models_fitted": int(regime_params["heliostat_id"].nunique()),
+        "regime_models_selected": sorted(
+            s["heliostat_id"] for s in summaries
+            if s.get("regime_candidates", {}).get("selected"))}

@@ -15,6 +15,8 @@ import numpy as np
 import pandas as pd
 import torch
 
+from ..artifacts.incremental import carry_over_unchanged
+from ..artifacts.manifests import current_transaction
 from ..artifacts.paths import artifact_path
 from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, FIELD_PRIOR, HELIOSTATS,
                                  MEASUREMENTS, REGIME_PARAMS, REGIMES, ROLLING_ORIGIN)
@@ -35,9 +37,10 @@ from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
 from .coarse_prior import (PRIOR_MODES, attach_prior_columns, finish_table, plan_field_prior,
-                           summary_of, with_field_prior, zero_row_outputs)
+                           prior_frame, summary_of, with_field_prior, zero_row_outputs)
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
-                             detect_coarse_regimes, follow_regimes)
+                             detect_coarse_regimes, follow_regimes, regimes_summary)
+from .increments import coarse_plan, with_previous
 from .rolling import DEFAULT_MAX_ORIGINS, add_next_day, evaluate_rolling, rolling_chunks
 from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
                       time_labels_of)
@@ -453,24 +456,6 @@ def _write_outputs(workdir: Path, tables: dict, heliostats: Sequence[str] | None
         write_artifact(df, workdir, schema, stage="fit-coarse", options=opts)
 
 
-def _regimes_summary(fits: _FieldFits, summaries: Sequence[dict]) -> dict:
-    """The summary's counts of regimes, refits and regime-aware models."""
-    regimes = fits.regimes
-    return {
-        "heliostats_with_breaks": int(regimes.loc[regimes["cause"].isin(
-            ["detected", "renovation"]), "heliostat_id"].nunique()),
-        "detected_breaks": int((regimes["cause"] == "detected").sum()),
-        "renovation_breaks": int((regimes["cause"] == "renovation").sum()),
-        "episodes": int((regimes["kind"] == "episode").sum()),
-        "outliers": int((regimes["kind"] == "outlier").sum()),
-        "refitted_without_episodes": sorted(h for h in fits.refitted
-                                            if fits.outputs[h][2]["episode_rows"]),
-        "regime_models_fitted": int(fits.regime_params["heliostat_id"].nunique()),
-        "regime_models_selected": sorted(
-            s["heliostat_id"] for s in summaries
-            if s.get("regime_candidates", {}).get("selected"))}
-
-
 def _prior_plan(workdir: Path, presets, prior: str, prior_from, **fit_options):
     """The run's field prior (:func:`~.coarse_prior.plan_field_prior`), estimated from the whole
     field (a partial run's fits are a full run's) on every row that is no heliostat's test row
@@ -501,7 +486,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                    dask_address: str | None = None, solver: str = "batched",
                    batch_size: int = 64, regime_steps: str = "candidates",
                    rolling_origins: int = DEFAULT_MAX_ORIGINS, prior: str = "none",
-                   prior_from: str | Path | None = None) -> dict:
+                   prior_from: str | Path | None = None, incremental: bool = False) -> dict:
     """The ``fit-coarse`` stage: fit, write coarse_params and coarse_predictions, return a summary.
 
     Parameters
@@ -526,6 +511,9 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         :mod:`.coarse_prior`), ``field+spatial`` (its mean from the nearest heliostats where
         that helps) or ``none`` (the default weak prior only).
     prior_from : another work directory whose field_prior.parquet to use (``prior="field"``).
+    incremental : fit only the heliostats whose rows, split or properties changed since the last
+        committed run with the same options and code, and keep the others' rows of the five
+        artifacts (:mod:`.increments`); otherwise (and when options or code changed) all.
     """
     check_choice(preset, "preset", "fit_coarse", ("auto",) + PRESET_NAMES)
     check_choice(loss, "loss", "fit_coarse", LOSSES)
@@ -536,15 +524,29 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     batch_size = check_int(batch_size, "batch_size", "fit_coarse", 1)
     rolling_origins = check_int(rolling_origins, "rolling_origins", "fit_coarse", 0)
     steps = None if _SKIP_REGIMES else regime_steps
-    warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     workdir = Path(workdir)
+    opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
+            "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
+            "rolling_origins": rolling_origins, "prior": prior,
+            "prior_from": None if prior_from is None else str(prior_from),
+            "heliostats": list(heliostats) if heliostats else None}
+    if incremental and not heliostats and carry_over_unchanged(
+            current_transaction(workdir, "fit-coarse"), opts):
+        return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": [],
+                "regimes": None, "field_prior": None, "incremental": {"unchanged": True}}
+    warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     helio, rows_of = _read_rows(workdir, heliostats)
-    ids = list(rows_of)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
     plan, field = _prior_plan(workdir, presets, prior, prior_from, solver=solver, options=kwargs,
                               batch_size=batch_size, workers=workers, scheduler=scheduler,
                               dask_address=dask_address)
+    with_rows = set(rows_of)
+    increment = coarse_plan(workdir, helio, rows_of, opts, incremental, heliostats,
+                            priors=prior_frame(plan, rows_of))
+    if increment is not None and increment.partial:
+        rows_of = {h: rows_of[h] for h in increment.compute}
+    ids = list(rows_of)
     chunks = _chunks(solver, helio, rows_of, batch_size)
     tasks = [CoarseChunk(solver, [helio.loc[h].to_dict() for h in chunk],
                          [rows_of[h] for h in chunk], presets,
@@ -553,7 +555,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
                               dask_address=dask_address,
                               progress=(lambda done, total: progress(done, total, None))
                               if progress else None,
-                              chunks_per_worker=chunks_per_worker(solver))
+                              chunks_per_worker=chunks_per_worker(solver)) if tasks else []
     fits = _collect(chunks, chunk_results, rows_of)
     all_params, all_preds, summaries = [], [], []
     for hid in ids:
@@ -563,14 +565,12 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         all_params += params
         all_preds.append(preds)
         summaries.append(summary)
-    opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
-            "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
-            "rolling_origins": rolling_origins, "prior": prior,
-            "prior_from": None if prior_from is None else str(prior_from),
-            "heliostats": list(heliostats) if heliostats else None}
-    zero_rows, zero_ids = zero_row_outputs(field, plan, set(rows_of), heliostats)
-    params, preds = pd.DataFrame(all_params + zero_rows), pd.concat(all_preds, ignore_index=True)
-    params = attach_prior_columns(params, plan)
+    zero_rows, zero_ids = zero_row_outputs(field, plan, with_rows, heliostats)
+    params = attach_prior_columns(pd.DataFrame(all_params + zero_rows,
+                                               columns=COARSE_PARAMS.column_names()
+                                               if not all_params + zero_rows else None), plan)
+    preds = (pd.concat(all_preds, ignore_index=True) if all_preds
+             else pd.DataFrame(columns=COARSE_PREDICTIONS.column_names()))
     rolling = evaluate_rolling(
         rolling_chunks(helio, rows_of, {s["heliostat_id"]: s["selected"] for s in summaries},
                        fits.regimes, solver=solver, options=kwargs, batch_size=batch_size,
@@ -580,12 +580,14 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         workers=workers, scheduler=scheduler, dask_address=dask_address,
         chunks_per_worker=chunks_per_worker(solver))
     add_next_day(summaries, rolling)
-    _write_outputs(workdir, {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
-                             REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params,
-                             ROLLING_ORIGIN: rolling},
-                   heliostats, opts)
-    table = finish_table(plan, field, summaries)
+    tables = {schema: with_previous(workdir, schema, df, increment)
+              for schema, df in {COARSE_PARAMS: params, COARSE_PREDICTIONS: preds,
+                                 REGIMES: fits.regimes, REGIME_PARAMS: fits.regime_params,
+                                 ROLLING_ORIGIN: rolling}.items()}
+    _write_outputs(workdir, tables, heliostats, opts)
+    table = finish_table(plan, field, tables[COARSE_PARAMS], tables[COARSE_PREDICTIONS])
     write_artifact(table, workdir, FIELD_PRIOR, stage="fit-coarse", options=opts)
     return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": summaries,
-            "regimes": _regimes_summary(fits, summaries),
-            "field_prior": summary_of(plan, table, zero_ids)}
+            "regimes": regimes_summary(fits.regimes, fits.regime_params, fits.refitted, summaries),
+            "field_prior": summary_of(plan, table, zero_ids),
+            "incremental": increment.summary() if increment is not None else None}

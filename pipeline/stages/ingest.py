@@ -48,6 +48,7 @@ from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REJECTED, REJECTION_RE
 from ..artifacts.store import artifact_writer, write_artifact
 from ..artifacts.table import to_table
 from ..artifacts.leftovers import OWNER_FILENAME, SPILL_PREFIX
+from ..artifacts.manifests import current_transaction
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import InputError, check_int
@@ -59,6 +60,7 @@ from ..io.staged import IngestOptions, Staged
 from ..io.validation import SourceChecks, invalid_id_message, validate_rows
 from ..vocabulary import DEFAULT_BATCH_ROWS
 from ..runtime.process_state import restores_process_state
+from .ingest_append import merge_new_rows, previous_tables, write_appended
 
 __all__ = [
     "ingest",
@@ -412,7 +414,8 @@ class _RejectedSink:
 @stage_transaction("ingest")
 @restores_process_state
 def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
-               options: IngestOptions | None = None, batch_rows: int = DEFAULT_BATCH_ROWS) -> dict:
+               options: IngestOptions | None = None, batch_rows: int = DEFAULT_BATCH_ROWS,
+               append: bool = False) -> dict:
     """The ``ingest`` stage: read ``sources``, write the three artifacts into ``workdir``.
 
     Logs are read ``batch_rows`` rows at a time; a log longer than that is spilled, sorted by
@@ -421,6 +424,9 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
     artifacts are written chunk by chunk to temporary files that replace the previous ones only
     when the whole stage succeeded. Returns the summary (rows read, kept, rejected per reason,
     heliostats).
+
+    With ``append`` the new sources' rows are added to the work directory's measurements
+    (:mod:`.ingest_append`; rows already ingested are rejected) instead of replacing them.
     """
     opts = (options or IngestOptions()).validate()
     batch_rows = check_int(batch_rows, "batch_rows", "ingest", 1)
@@ -436,6 +442,55 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
     resolved = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(opts).items()}
     resolved["sources"] = [str(s) for s in sources]
     prov = dict(stage="ingest", options=resolved, inputs=inputs)
+    if append:
+        info = _append(sources, workdir, opts, batch_rows, prov)
+    else:
+        info = _replace(sources, workdir, opts, batch_rows, prov)
+    info["workdir"] = str(workdir)
+    info["artifacts"] = [str(artifact_path(workdir, s)) for s in (MEASUREMENTS, HELIOSTATS, REJECTED)]
+    _log_summary(info, opts)
+    return info
+
+
+def _append(sources: list[Path], workdir: Path, opts: IngestOptions, batch_rows: int,
+            prov: dict) -> dict:
+    """``ingest --append``: the new sources validated in memory (a day's rows), merged with the
+    committed artifacts (:func:`.ingest_append.merge_new_rows`) and written whole. The previous
+    runs' sources stay recorded as inputs beside the new ones."""
+    txn = current_transaction(workdir, "ingest")
+    previous = previous_tables(workdir)
+    if txn is not None and txn.previous is not None:
+        for label, rec in txn.previous.inputs.items():
+            txn.inputs.setdefault(label, rec)
+    prov = {**prov, "options": {**prov["options"], "append": True}}
+    with _SpillFolder(workdir) as spill:
+        run = _IngestRun(sources, opts, batch_rows, spill)
+        kept, helio, rejected = [], [], []
+        info = run.execute(kept.append, helio.append, rejected.append)
+    kept_df = (pd.concat(kept) if kept else run._complete(pd.DataFrame())).drop(
+        columns=["_src", "_seq"])
+    helio_df = (pd.concat(helio, ignore_index=True) if helio
+                else pd.DataFrame(columns=HELIOSTATS.column_names()))
+    rej_df = (pd.concat(rejected)[REJECTED.column_names()] if rejected
+              else pd.DataFrame(columns=REJECTED.column_names()))
+    result = merge_new_rows(previous, kept_df, helio_df, rej_df)
+    write_appended(result, workdir, prov)
+    for reason, n in result.duplicates["reason"].value_counts().items():
+        info["rejected_by_reason"][reason] = info["rejected_by_reason"].get(reason, 0) + int(n)
+    info["rejected_by_reason"] = dict(sorted(info["rejected_by_reason"].items()))
+    info["kept"] -= len(result.duplicates)
+    info["rejected"] += len(result.duplicates)
+    info["heliostats"] = {str(h): int(n) for h, n in
+                          result.added.groupby("heliostat_id").size().sort_index().items()}
+    info["appended"] = {"added_rows": len(result.added),
+                        "measurements_total": len(result.measurements),
+                        "heliostats_total": len(result.heliostats)}
+    return info
+
+
+def _replace(sources: list[Path], workdir: Path, opts: IngestOptions, batch_rows: int,
+             prov: dict) -> dict:
+    """``ingest``: the sources streamed into new artifacts that replace the previous ones."""
     with _SpillFolder(workdir) as spill, contextlib.ExitStack() as stack:
         run = _IngestRun(sources, opts, batch_rows, spill)
         rejected = _RejectedSink(spill, batch_rows)
@@ -461,8 +516,12 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
             write_artifact(next(rejected.chunks(), pd.DataFrame(columns=REJECTED.column_names())),
                            workdir, REJECTED, **prov)
         write_artifact(pd.concat(helio, ignore_index=True), workdir, HELIOSTATS, **prov)
-    info["workdir"] = str(workdir)
-    info["artifacts"] = [str(artifact_path(workdir, s)) for s in (MEASUREMENTS, HELIOSTATS, REJECTED)]
+    return info
+
+
+def _log_summary(info: dict, opts: IngestOptions) -> None:
+    """The run's notes on stderr: rejections per reason, sun mismatches, default geometries,
+    unused columns, invalid ids."""
     for reason, n in info["rejected_by_reason"].items():
         log.info("rejected %d rows: %s (%s)", n, reason, REJECTION_REASONS.get(reason, ""))
     if info["sun_mismatch_rows"]:
@@ -476,4 +535,3 @@ def run_ingest(sources: Sequence[str | os.PathLike], workdir: str | os.PathLike,
         log.info("%s: columns not used: %s", src, ", ".join(cols))
     if info["rejected_by_reason"].get("invalid_heliostat_id"):
         log.warning("%s", invalid_id_message(info["rejected_by_reason"]["invalid_heliostat_id"]))
-    return info

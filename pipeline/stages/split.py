@@ -33,8 +33,11 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from sklearn.neighbors import NearestNeighbors
 
+from ..artifacts.incremental import (carry_over_unchanged, field_key, heliostat_digests,
+                                     plan_increment, reused_rows)
+from ..artifacts.paths import artifact_path
+from ..artifacts.manifests import current_transaction
 from ..artifacts.store import read_artifact, write_artifact
 from ..errors import FitError, InputError, ParameterError, check_choice, check_int
 from ..artifacts.schemas import MEASUREMENTS
@@ -132,6 +135,8 @@ def knn_distance_deg(az_deg, el_deg, k: int = 3, metric: str = "euclidean") -> n
     if len(x) <= k:
         raise ParameterError(f"the kNN distance with k={k} needs at least {k + 1} sun positions; "
                              f"got {len(x)}")
+    from sklearn.neighbors import NearestNeighbors  # here: a kept split never loads sklearn
+
     nn = NearestNeighbors(n_neighbors=k, **nn_kw).fit(x)
     dist, _ = nn.kneighbors()  # X=None: each point's neighbours without the point itself
     return _to_deg(dist, metric).mean(axis=1)
@@ -144,6 +149,8 @@ def _nearest_distance(x_from: np.ndarray, x_to: np.ndarray, nn_kw: dict, metric:
     ``same[i]`` is the index into ``x_to`` of row i itself (or -1): that row is skipped.
     """
     n_nb = min(2, len(x_to))
+    from sklearn.neighbors import NearestNeighbors
+
     nn = NearestNeighbors(n_neighbors=n_nb, **nn_kw).fit(x_to)
     dist, idx = nn.kneighbors(x_from)
     out = dist[:, 0].copy()
@@ -527,19 +534,32 @@ def summarize_split(split_df: pd.DataFrame) -> list[dict[str, Any]]:
 @restores_process_state
 def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: int = 30,
               n_val: int = 20, n_train: int | None = None, metric: str = "euclidean",
-              seed: int = 0) -> dict[str, Any]:
+              seed: int = 0, incremental: bool = False) -> dict[str, Any]:
     """Stage ``split-knn``: read ``measurements.parquet``, split, write ``split.parquet``.
+
+    Every heliostat's split depends on its own rows only (the random methods draw from a stream
+    per heliostat), so with ``incremental`` only heliostats whose rows changed since the last
+    committed run are split again and the others' rows are taken from the previous split.parquet
+    (:mod:`heliocal.pipeline.artifacts.incremental`); the table equals a full run's.
 
     Returns a JSON-able summary: the options, the artifact path, per heliostat the output of
     :func:`summarize_split`, and the skipped heliostats with their counts and the requirement.
     """
     method, k, n_test, n_val, n_train, metric, seed = _check_options(
         method, k, n_test, n_val, n_train, metric, seed)
-    measurements = read_artifact(workdir, MEASUREMENTS, columns=_INPUT_COLUMNS)
-    table, skipped = split_measurements(measurements, method=method, k=k, n_test=n_test,
-                                        n_val=n_val, n_train=n_train, metric=metric, seed=seed)
     options = {"method": method, "k": k, "n_test": n_test, "n_val": n_val, "n_train": n_train,
                "metric": metric, "seed": seed}
+    txn = current_transaction(workdir, "split-knn")
+    if incremental and carry_over_unchanged(txn, options):
+        return {"artifact": str(artifact_path(workdir, SPLIT)), **options,
+                "required_measurements": required_measurements(k, n_test, n_val, n_train),
+                "requirement": _requirement_text(k, n_test, n_val, n_train),
+                "heliostats": [], "skipped": [], "incremental": {"unchanged": True}}
+    measurements = read_artifact(workdir, MEASUREMENTS, columns=_INPUT_COLUMNS)
+    plan = plan_increment(txn,
+                          field_key("split-knn", options, [measurements]),
+                          heliostat_digests([measurements]), incremental)
+    table, skipped = _split_increment(workdir, measurements, plan, options)
     path = write_artifact(table, workdir, SPLIT, stage="split-knn", options=options, seed=seed)
     return {
         "artifact": str(path),
@@ -548,4 +568,29 @@ def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: i
         "requirement": _requirement_text(k, n_test, n_val, n_train),
         "heliostats": summarize_split(table),
         "skipped": [{"heliostat_id": h, "n_measurements": c} for h, c in skipped],
+        "incremental": plan.summary(),
     }
+
+
+def _split_increment(workdir, measurements: pd.DataFrame, plan, options: dict
+                     ) -> tuple[pd.DataFrame, list[tuple[str, int]]]:
+    """The split of the heliostats ``plan`` computes, beside the previous split's rows of those it
+    reuses (a reused heliostat that the previous run skipped is skipped again: same rows)."""
+    if not plan.partial:
+        return split_measurements(measurements, **options)
+    previous = read_artifact(workdir, SPLIT)
+    kept = reused_rows(previous, plan.reuse)
+    ids = measurements["heliostat_id"].astype(str)
+    counts = ids.value_counts()
+    skipped = [(h, int(counts[h])) for h in plan.reuse if h not in set(kept["heliostat_id"])]
+    need = required_measurements(options["k"], options["n_test"], options["n_val"],
+                                 options["n_train"])
+    todo = [h for h in plan.compute if counts[h] >= need]
+    skipped += [(h, int(counts[h])) for h in plan.compute if counts[h] < need]
+    parts = [kept]
+    if todo:
+        fresh, _ = split_measurements(measurements[ids.isin(set(todo)).to_numpy()], **options)
+        parts.append(fresh)
+    if not sum(len(p) for p in parts):
+        return split_measurements(measurements, **options)  # raises its FitError
+    return pd.concat(parts, ignore_index=True), sorted(skipped)

@@ -1,0 +1,182 @@
+"""Incremental stage runs: which heliostats' inputs changed since a stage's last committed run.
+
+A per-heliostat stage (``split-knn``, ``fit-coarse``) records in its manifest, beside the usual
+provenance, the digest of each heliostat's inputs and one *field key*::
+
+    "incremental": {"field_key": <sha256>, "code": <revision>, "heliostats": {<id>: <sha256>}}
+
+* a heliostat's digest is the SHA-256 of its rows in every input table the stage reads for it
+  (:func:`heliostat_digests`: each row hashed by value, in the order the stage reads them);
+* the field key is the SHA-256 of everything that is not a heliostat's own: the stage, its
+  options, the heliocal version and code (:func:`code_identity`), the column names of its inputs, and any
+  field-wide value a heliostat's result depends on (a prior or a noise scale taken over the
+  field would go there).
+
+With ``--incremental`` a stage compares them with the previous run's (:func:`plan_increment`):
+when the field key is the same, only heliostats whose digest differs (or that are new) are
+computed again, the others' rows are taken from the previous committed artifacts, and heliostats
+that are gone are dropped. When the field key moved (other options, other code, a field-wide
+input), or the previous run recorded no digests, every heliostat is computed again. Either way
+the run is one stage transaction like any other, and records the digests of what it read, so a
+next ``--incremental`` run starts from it. A run whose upstream artifacts, options and code are
+all those of the previous run reads nothing: it keeps the previous run's files
+(:func:`carry_over_unchanged`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["INCREMENTAL_KEY", "Increment", "heliostat_digests", "field_key", "plan_increment",
+           "reused_rows", "carry_over_unchanged", "code_identity"]
+
+#: A stage name as manifests spell it (lower-case letters, digits and '-').
+_STAGE_NAME = re.compile(r"[a-z][a-z0-9-]{0,39}")
+
+#: Key of the per-heliostat digests in a stage's manifest.
+INCREMENTAL_KEY = "incremental"
+
+
+def heliostat_digests(frames: Sequence[pd.DataFrame]) -> dict[str, str]:
+    """heliostat id -> SHA-256 (hex) of its rows in every frame (each with a ``heliostat_id``
+    column), hashed by value in the frames' row order; a heliostat absent from a frame hashes
+    that absence. Column names are not part of it (they go into :func:`field_key`)."""
+    parts: list[dict[str, bytes]] = []
+    for df in frames:
+        ids = df["heliostat_id"].astype(str).to_numpy()
+        rows = pd.util.hash_pandas_object(df.reset_index(drop=True), index=False).to_numpy()
+        order = np.argsort(ids, kind="stable")
+        ids_sorted = ids[order]
+        cuts = np.flatnonzero(ids_sorted[1:] != ids_sorted[:-1]) + 1
+        starts = np.concatenate([[0], cuts]) if len(ids_sorted) else np.array([], int)
+        ends = np.concatenate([cuts, [len(ids_sorted)]]) if len(ids_sorted) else np.array([], int)
+        parts.append({ids_sorted[s]: rows[order[s:e]].tobytes() for s, e in zip(starts, ends)})
+    out = {}
+    for hid in sorted(set().union(*(p.keys() for p in parts))):
+        h = hashlib.sha256()
+        for k, p in enumerate(parts):
+            data = p.get(hid, b"")
+            h.update(f"{k}:{len(data)}:".encode())
+            h.update(data)
+        out[hid] = h.hexdigest()
+    return out
+
+
+_CODE: str | None = None
+
+
+def code_identity() -> str:
+    """The code a result is computed with: the SHA-256 of every ``pipeline/**/*.py`` (path and
+    bytes), so an edited library is never taken for another, whatever git says, and edits
+    elsewhere (docs, tests) do not count. Asked once per process (about 100 files)."""
+    global _CODE
+    if _CODE is None:
+        from pathlib import Path
+
+        root = Path(__file__).resolve().parents[1]
+        h = hashlib.sha256()
+        for path in sorted(root.rglob("*.py")):
+            h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+        _CODE = h.hexdigest()
+    return _CODE
+
+
+def field_key(stage: str, options: Mapping, frames: Sequence[pd.DataFrame],
+              field_inputs: Mapping | None = None) -> str:
+    """The SHA-256 (hex) of what every heliostat's result of ``stage`` shares: its options, the
+    code (heliocal version and git revision), the inputs' column names and dtypes, and
+    ``field_inputs`` (field-wide values, JSON-able)."""
+    from .. import __version__
+    from .provenance import jsonable
+
+    text = json.dumps({"stage": stage, "options": jsonable(dict(options)),
+                       "version": __version__, "revision": code_identity(),
+                       "columns": [[f"{c}:{t}" for c, t in df.dtypes.astype(str).items()]
+                                   for df in frames],
+                       "field": jsonable(dict(field_inputs or {}))}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+@dataclass
+class Increment:
+    """What an incremental run computes again and what it takes from the previous run."""
+
+    compute: list[str]                 # heliostats computed in this run (sorted)
+    reuse: list[str]                   # heliostats whose previous rows are kept (sorted)
+    removed: list[str] = field(default_factory=list)  # heliostats of the previous run now gone
+    why: str = ""                      # why everything is computed, when it is
+
+    @property
+    def partial(self) -> bool:
+        return bool(self.reuse) or bool(self.removed)
+
+    def summary(self) -> dict:
+        return {"computed": len(self.compute), "reused": len(self.reuse),
+                "removed": len(self.removed), "why_all": self.why or None}
+
+
+def plan_increment(txn, key: str, digests: Mapping[str, str], incremental: bool) -> Increment:
+    """Record ``key`` and ``digests`` in the run's manifest (``txn``: the active
+    :class:`~.transaction.StageTransaction`) and decide which heliostats to compute: all of them
+    unless ``incremental`` and the previous committed run recorded the same field key."""
+    txn.extra[INCREMENTAL_KEY] = {"field_key": key, "code": code_identity(),
+                                  "heliostats": dict(sorted(digests.items()))}
+    everything = sorted(digests)
+    if not incremental:
+        return Increment(everything, [], why="not --incremental")
+    prev = txn.previous.data.get(INCREMENTAL_KEY) if txn.previous is not None else None
+    if not isinstance(prev, dict) or not isinstance(prev.get("heliostats"), dict):
+        return Increment(everything, [], why="the previous run recorded no per-heliostat inputs")
+    if prev.get("field_key") != key:
+        return Increment(everything, [], why="a field-wide input changed (options, code or a "
+                                             "value every heliostat shares)")
+    old = prev["heliostats"]
+    compute = [h for h in everything if old.get(h) != digests[h]]
+    reuse = [h for h in everything if old.get(h) == digests[h]]
+    removed = sorted(h for h in old if h not in digests)
+    return Increment(compute, reuse, removed)
+
+
+def reused_rows(previous: pd.DataFrame, reuse: Sequence[str]) -> pd.DataFrame:
+    """The rows of the heliostats in ``reuse`` of a previous artifact."""
+    return previous[previous["heliostat_id"].astype(str).isin(set(reuse))]
+
+
+def carry_over_unchanged(txn, options: Mapping) -> bool:
+    """When the previous committed run of ``txn``'s stage had ``options`` and this code and read
+    exactly the artifacts now committed upstream (each recorded input's fingerprint equals its
+    producer's committed one; a source file is never taken as unchanged), make this run keep
+    its files, inputs and digests as they are, without reading anything, and return True."""
+    from .. import __version__
+    from .manifests import CommittedWorkdir
+    from .paths import relative_path_problem
+    from .provenance import jsonable
+
+    prev = txn.previous
+    if prev is None or not isinstance(prev.data.get(INCREMENTAL_KEY), dict) or not prev.inputs:
+        return False
+    if (prev.data.get("options") != jsonable(dict(options))
+            or prev.data[INCREMENTAL_KEY].get("code") != code_identity()
+            or prev.data.get("heliocal_version") != __version__):
+        return False
+    wd = CommittedWorkdir.of(txn.root)
+    for rec in prev.inputs.values():
+        # a manifest is untrusted input: only a stage's name and a plain relative path are looked up
+        if not (isinstance(rec, dict) and isinstance(rec.get("stage"), str)
+                and _STAGE_NAME.fullmatch(rec["stage"]) and isinstance(rec.get("path"), str)
+                and relative_path_problem(rec["path"]) is None):
+            return False
+        if wd.fingerprint(rec["stage"], rec["path"]) != rec.get("fingerprint"):
+            return False
+    txn.carry_over(txn.previous_files())
+    txn.inputs.update(prev.inputs)
+    txn.extra[INCREMENTAL_KEY] = prev.data[INCREMENTAL_KEY]
+    txn.options, txn.seed = options, prev.data.get("seed")
+    return True

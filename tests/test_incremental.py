@@ -1,0 +1,208 @@
+"""Daily updates (issue 36 part 3): ``ingest --append`` and the incremental ``split-knn`` and
+``fit-coarse``, compared with a full rerun on the same rows.
+
+The field is the bundled synthetic sample (4 simulated heliostats, 590 rows): the "old" log is
+every row but SP13's last 5, the "new" log those 5 rows, a re-sent copy of an SQ04 row and an SQ04
+row with an ingested id but another motor position.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from heliocal.pipeline.artifacts.incremental import heliostat_digests
+from heliocal.pipeline.artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, REGIME_PARAMS,
+                                                 REGIMES, ROLLING_ORIGIN, SPLIT)
+from heliocal.pipeline.errors import InputError, ParameterError
+from heliocal.pipeline.io.staged import IngestOptions
+from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
+from heliocal.pipeline.stages.ingest import run_ingest
+from heliocal.pipeline.stages.split import run_split
+
+SYNTH = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic"
+OPTIONS = IngestOptions(properties=SYNTH / "paint", tower=SYNTH / "tower-measurements.json")
+
+#: Floats of fit-coarse's artifacts, incremental against full: relative tolerance. The batched
+#: solver stops when a step, the cost or the gradient changes by less than 1e-10 relative
+#: (models.coarse's ``tolerance``); a heliostat fitted in another chunk (other padding, other
+#: rounding) can stop a few such steps from the full run's iterate, so 1e-7 leaves a margin of
+#: 1000. Absolute floor 1e-9 (mrad, m, rad) for values near zero.
+REL, ABS = 1e-7, 1e-9
+
+
+def _logs(folder: Path) -> dict[str, Path]:
+    log = pd.read_csv(SYNTH / "calibration_log.csv")
+    late = log.index[log["heliostat_id"] == "SP13"][-5:]
+    sq04 = log[log["heliostat_id"] == "SQ04"]
+    conflict = sq04.iloc[[4]].copy()
+    conflict["axis_1_motor_position"] += 7
+    paths = {"old": log.drop(index=late), "new": pd.concat([log.loc[late], sq04.iloc[[3]], conflict]),
+             "full": log}
+    out = {}
+    for name, df in paths.items():
+        out[name] = folder / f"{name}.csv"
+        df.to_csv(out[name], index=False)
+    return out
+
+
+def assert_same_artifact(a: pd.DataFrame, b: pd.DataFrame, name: str) -> None:
+    """Structure exactly (columns, dtypes, rows, every non-float value and every missing value),
+    floats within :data:`REL` / :data:`ABS`."""
+    assert list(a.columns) == list(b.columns), name
+    assert a.dtypes.astype(str).tolist() == b.dtypes.astype(str).tolist(), name
+    assert len(a) == len(b), name
+    for c in a.columns:
+        x, y = a[c].reset_index(drop=True), b[c].reset_index(drop=True)
+        assert (x.isna() == y.isna()).all(), f"{name}.{c}: missing values differ"
+        both = x.notna().to_numpy()
+        if x.dtype.kind == "f":
+            np.testing.assert_allclose(x[both].to_numpy(), y[both].to_numpy(), rtol=REL,
+                                       atol=ABS, err_msg=f"{name}.{c}")
+        else:
+            assert (x[both] == y[both]).all(), f"{name}.{c}"
+
+
+@pytest.fixture(scope="module")
+def field(tmp_path_factory):
+    """(logs, the appended workdir after the incremental stages, the full workdir, summaries)."""
+    root = tmp_path_factory.mktemp("incremental")
+    logs = _logs(root)
+    inc, full = root / "inc", root / "full"
+    coarse = dict(batch_size=2, workers=1)  # 2 chunks of 2 in a full run: SP13 alone in the update
+    run_ingest([logs["old"]], inc, OPTIONS)
+    run_split(inc)
+    run_fit_coarse(inc, **coarse)
+    appended = run_ingest([logs["new"]], inc, OPTIONS, append=True)
+    split = run_split(inc, incremental=True)
+    fit = run_fit_coarse(inc, incremental=True, **coarse)
+    run_ingest([logs["full"]], full, OPTIONS)
+    run_split(full)
+    run_fit_coarse(full, **coarse)
+    return logs, inc, full, {"ingest": appended, "split": split, "fit": fit}
+
+
+@pytest.mark.slow
+def test_append_adds_the_new_rows_and_rejects_the_ingested_ones(field):
+    _, inc, full, s = field
+    a, f = pd.read_parquet(inc / "measurements.parquet"), pd.read_parquet(full / "measurements.parquet")
+    # the rows of one ingest of the whole log, but for where each copy came from
+    same = [c for c in a.columns if c not in ("source_file", "source_row")]
+    pd.testing.assert_frame_equal(a[same], f[same])
+    assert len(a) == 590
+    assert s["ingest"]["appended"] == {"added_rows": 5, "measurements_total": 590,
+                                       "heliostats_total": 4}
+    assert s["ingest"]["heliostats"] == {"SP13": 5}
+    rejected = pd.read_parquet(inc / "rejected.parquet")
+    # new.csv rows 6 and 7 (1-based data rows): the re-sent copy and the changed copy
+    assert rejected[["source_row", "measurement_id", "reason"]].values.tolist() == [
+        [6, "100007", "duplicate_of_ingested_row"], [7, "100008", "duplicate_measurement_id"]]
+    assert rejected["detail"].iloc[0].startswith("identical to measurement 100007 of heliostat "
+                                                 "SQ04 ingested from")
+    helio = pd.read_parquet(inc / "heliostats.parquet").set_index("heliostat_id")
+    assert helio["n_measurements"].to_dict() == {"SP13": 144, "SQ04": 145, "SS48": 160, "ST20": 141}
+
+
+@pytest.mark.slow
+def test_incremental_stages_compute_only_the_changed_heliostat_and_equal_a_full_run(field):
+    _, inc, full, s = field
+    for schema in (SPLIT, COARSE_PARAMS, COARSE_PREDICTIONS, REGIMES, REGIME_PARAMS,
+                   ROLLING_ORIGIN):
+        assert_same_artifact(pd.read_parquet(inc / schema.filename),
+                             pd.read_parquet(full / schema.filename), schema.name)
+    assert s["split"]["incremental"] == {"computed": 1, "reused": 3, "removed": 0, "why_all": None}
+    assert s["fit"]["incremental"] == {"computed": 1, "reused": 3, "removed": 0, "why_all": None}
+    assert [h["heliostat_id"] for h in s["fit"]["heliostats"]] == ["SP13"]
+    # the update's manifest records the digests a next --incremental run starts from
+    m = json.loads((inc / "fit-coarse.manifest.json").read_text())
+    assert sorted(m["incremental"]["heliostats"]) == ["SP13", "SQ04", "SS48", "ST20"]
+
+
+@pytest.mark.slow
+def test_unchanged_inputs_keep_the_files_and_other_options_compute_all(field, tmp_path):
+    _, inc, _, _ = field
+    import shutil
+
+    wd = shutil.copytree(inc, tmp_path / "wd")
+    files = {stage: json.loads((wd / f"{stage}.manifest.json").read_text())["files"]
+             for stage in ("split-knn", "fit-coarse")}
+    split = run_split(wd, incremental=True)
+    fit = run_fit_coarse(wd, incremental=True, batch_size=2, workers=1)
+    assert split["incremental"] == fit["incremental"] == {"unchanged": True}
+    for stage, before in files.items():  # the same files (SHA-256), now listed by the new run
+        after = json.loads((wd / f"{stage}.manifest.json").read_text())
+        assert {k: v["sha256"] for k, v in after["files"].items()} == {
+            k: v["sha256"] for k, v in before.items()}
+        assert sorted(after["incremental"]["heliostats"]) == ["SP13", "SQ04", "SS48", "ST20"]
+    # a manifest is untrusted: an input naming a stage outside the folder is not looked up, so
+    # the run cannot take its inputs as unchanged and checks every heliostat's digest instead
+    path = wd / "fit-coarse.manifest.json"
+    m = json.loads(path.read_text())
+    m["inputs"]["measurements"]["stage"] = f"../{wd.name}/fit-coarse"  # this very file
+    path.write_text(json.dumps(m))
+    hostile = run_fit_coarse(wd, incremental=True, batch_size=2, workers=1)
+    assert hostile["incremental"] == {"computed": 0, "reused": 4, "removed": 0, "why_all": None}
+    # another option is a field-wide input: every heliostat again
+    again = run_fit_coarse(wd, incremental=True, batch_size=2, workers=1, rolling_origins=3)
+    assert again["incremental"]["computed"] == 4 and "field-wide" in again["incremental"]["why_all"]
+    assert len(pd.read_parquet(wd / "rolling_origin.parquet").groupby(
+        ["heliostat_id", "origin_date"])) <= 4 * 3
+    with pytest.raises(ParameterError, match="--incremental"):
+        run_fit_coarse(wd, incremental=True, heliostats=["SP13"])
+
+
+def test_append_without_duplicates_adds_every_row(tmp_path):
+    """The usual day: no row is ingested already (the rejection table of none is empty)."""
+    logs = _logs(tmp_path)
+    new = pd.read_csv(logs["new"]).iloc[:5]          # SP13's 5 rows only
+    new.to_csv(tmp_path / "day.csv", index=False)
+    run_ingest([logs["old"]], tmp_path / "wd", OPTIONS)
+    info = run_ingest([tmp_path / "day.csv"], tmp_path / "wd", OPTIONS, append=True)
+    assert info["appended"]["added_rows"] == 5 and info["rejected"] == 0
+    assert len(pd.read_parquet(tmp_path / "wd" / "measurements.parquet")) == 585 + 5
+    assert len(pd.read_parquet(tmp_path / "wd" / "rejected.parquet")) == 0
+
+
+def test_append_needs_an_ingested_workdir(tmp_path):
+    with pytest.raises(InputError, match="without --append first"):
+        run_ingest([SYNTH / "calibration_log.csv"], tmp_path / "empty", OPTIONS, append=True)
+
+
+def test_heliostat_digest_depends_on_its_own_rows_only():
+    df = pd.DataFrame({"heliostat_id": ["A", "B", "A", "B"], "x": [1.0, 2.0, 3.0, 4.0]})
+    base = heliostat_digests([df])
+    moved = df.assign(x=[1.0, 2.5, 3.0, 4.0])          # one of B's values
+    assert heliostat_digests([moved])["A"] == base["A"]
+    assert heliostat_digests([moved])["B"] != base["B"]
+    grown = pd.concat([df, pd.DataFrame({"heliostat_id": ["B"], "x": [5.0]})])
+    assert heliostat_digests([grown])["A"] == base["A"] != heliostat_digests([grown])["B"]
+    # a heliostat absent from the second table differs from one with an empty-hash row there
+    props = pd.DataFrame({"heliostat_id": ["A"], "y": [0.0]})
+    two = heliostat_digests([df, props])
+    assert two["A"] != base["A"] and two["B"] != base["B"]
+    assert len(set(two.values())) == 2
+
+
+def test_a_moved_field_prior_changes_that_heliostats_digest_only():
+    """fit-coarse hashes each heliostat's prior with its rows (coarse_prior.prior_frame), so a
+    prior that moved for one heliostat fits that one again and no other."""
+    from heliocal.pipeline.stages.coarse_prior import PriorPlan, prior_frame
+
+    rows = pd.DataFrame({"heliostat_id": ["A", "B", "C"], "x": [1.0, 2.0, 3.0]})
+    mean, sigma = np.zeros(28), np.full(28, 1e-3)
+    plan = PriorPlan("field", None, priors={"A": {"static-6": (mean, sigma)},
+                                            "B": {"static-6": (mean, sigma)}})
+    base = heliostat_digests([rows, prior_frame(plan, ["A", "B", "C"])])
+    moved_sigma = sigma.copy()
+    moved_sigma[3] *= 1.0 + 1e-12                           # the smallest move still counts
+    plan.priors["B"] = {"static-6": (mean, moved_sigma)}
+    moved = heliostat_digests([rows, prior_frame(plan, ["A", "B", "C"])])
+    assert moved["A"] == base["A"] and moved["C"] == base["C"] and moved["B"] != base["B"]
+    # a heliostat given no prior (C) hashes differently from one given a prior (A), rows equal
+    same_rows = pd.DataFrame({"heliostat_id": ["A", "C"], "x": [1.0, 1.0]})
+    two = heliostat_digests([same_rows, prior_frame(plan, ["A", "C"])])
+    assert two["A"] != two["C"]
