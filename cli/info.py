@@ -288,7 +288,7 @@ def describe_workdir(workdir: str | Path) -> dict:
 def _aim_models(workdir: Path) -> tuple[list, str | None]:
     """The models ``aim --model auto`` uses, or why that cannot be told (a modified or missing
     input: the artifacts' table above shows which), so that ``info`` still shows the rest."""
-    from heliocal.pipeline.stages.aim import aim_models
+    from heliocal.pipeline.stages.aim_choice import aim_models
 
     try:
         return [{k: v for k, v in m.items() if k != "model_dir"}

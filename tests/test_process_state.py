@@ -88,3 +88,26 @@ def test_a_fit_leaves_torch_and_the_environment_as_they_were(tmp_path, unusual_s
     hid = next(iter(field.heliostats))
     aim_steps(wd, hid, aim_point_enu=[0.0, 0.0, 40.0], time_utc="2023-06-21T10:00:00Z")
     assert _state() == unusual_state
+
+
+def test_a_guard_in_a_process_without_torch_does_not_import_it(tmp_path):
+    """``info`` and ``report`` ask aim_choice.aim_models, which is guarded: the guard must not
+    import torch (about a second of every such command's start). Run in a fresh interpreter,
+    since this one has torch; the same process then imports torch inside a guard, turns the
+    deterministic flag on, and must find it off again after the guard (torch's own default)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from heliocal.pipeline.runtime.process_state import restored_process_state\n"
+        "with restored_process_state():\n"
+        "    pass\n"
+        "print('torch' in sys.modules)\n"
+        "with restored_process_state():\n"
+        "    import torch\n"
+        "    torch.use_deterministic_algorithms(True)\n"
+        "print(torch.are_deterministic_algorithms_enabled())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False", "False"]

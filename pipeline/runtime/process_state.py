@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import sys
 from typing import Callable, Iterator, TypeVar
 
 __all__ = ["ProcessState", "one_thread", "single_threaded", "restored_process_state",
@@ -66,26 +67,27 @@ def single_threaded(func: F) -> F:
 class ProcessState(dict):
     """A snapshot of the settings :func:`restored_process_state` guards (comparable with ``==``):
     torch's deterministic flag and its warn-only mode, torch's thread count, and a copy of
-    ``os.environ``."""
+    ``os.environ``.
+
+    torch's settings are read only when torch is imported already (``torch`` is None otherwise):
+    a call that does not use torch (``info``, ``report``) does not pay torch's import for its
+    guard. A call that imports torch itself leaves it as torch starts, deterministic off; a
+    thread count it changes is restored by :func:`one_thread`, which every such change uses."""
 
     @classmethod
     def capture(cls) -> "ProcessState":
-        import torch
-
-        return cls(deterministic=torch.are_deterministic_algorithms_enabled(),
-                   deterministic_warn_only=torch.is_deterministic_algorithms_warn_only_enabled(),
-                   torch_threads=torch.get_num_threads(), environ=dict(os.environ))
+        torch = sys.modules.get("torch")
+        settings = None if torch is None else {
+            "deterministic": torch.are_deterministic_algorithms_enabled(),
+            "deterministic_warn_only": torch.is_deterministic_algorithms_warn_only_enabled(),
+            "threads": torch.get_num_threads()}
+        return cls(torch=settings, environ=dict(os.environ))
 
     def restore(self) -> None:
-        import torch
-
-        if (torch.are_deterministic_algorithms_enabled() != self["deterministic"]
-                or torch.is_deterministic_algorithms_warn_only_enabled()
-                != self["deterministic_warn_only"]):
-            torch.use_deterministic_algorithms(self["deterministic"],
-                                               warn_only=self["deterministic_warn_only"])
-        if torch.get_num_threads() != self["torch_threads"]:
-            torch.set_num_threads(self["torch_threads"])
+        torch = sys.modules.get("torch")
+        if torch is not None:
+            self._restore_torch(torch, self["torch"] or {"deterministic": False,
+                                                         "deterministic_warn_only": False})
         environ = self["environ"]
         if dict(os.environ) != environ:
             for key in [k for k in os.environ if k not in environ]:
@@ -93,6 +95,17 @@ class ProcessState(dict):
             for key, value in environ.items():
                 if os.environ.get(key) != value:
                     os.environ[key] = value
+
+    @staticmethod
+    def _restore_torch(torch, settings: dict) -> None:
+        if (torch.are_deterministic_algorithms_enabled() != settings["deterministic"]
+                or torch.is_deterministic_algorithms_warn_only_enabled()
+                != settings["deterministic_warn_only"]):
+            torch.use_deterministic_algorithms(settings["deterministic"],
+                                               warn_only=settings["deterministic_warn_only"])
+        threads = settings.get("threads")
+        if threads is not None and torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
 
 
 @contextlib.contextmanager
