@@ -194,9 +194,10 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
                  *later],
         "update": [["ingest", str(update), *props, "--append"],
                    ["split-knn", "--workdir", str(wd), "--incremental"], [*coarse, "--incremental"],
-                   *later],
+                   *[[*c, "--incremental"] if c[0] == "sweep" else c for c in later]],
         "rerun": [["split-knn", "--workdir", str(wd), "--incremental"],
-                  [*coarse, "--incremental"]],
+                  [*coarse, "--incremental"],
+                  *[[*c, "--incremental"] for c in later if c[0] == "sweep"]],
     }
     print(f"update: {n_update} heliostats x {UPDATE_ROWS} new rows; workers={workers}", flush=True)
     table = []

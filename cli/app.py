@@ -83,6 +83,8 @@ def incremental_line(summary: dict) -> bool:
     if inc.get("reused") or inc.get("removed"):
         stdout.print(f"incremental: computed {inc['computed']} heliostats, kept {inc['reused']} "
                      f"from the previous run, dropped {inc['removed']}.", markup=False)
+    elif inc.get("why_all") and inc["why_all"] != "not --incremental":
+        stdout.print(f"incremental: computed every heliostat: {inc['why_all']}.", markup=False)
     return False
 
 

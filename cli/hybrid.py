@@ -16,7 +16,7 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               SchedulerChoice, Seed, Workdir, Workers, command, emit, fmt_number,
-                              progress_bar, stdout)
+                              incremental_line, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.vocabulary import (HYBRID_BATCH_SIZE, AimModel, FineMode, PretrainVariant,
@@ -30,6 +30,8 @@ Mode = FineMode
 
 
 def _human(summary: dict) -> None:
+    if incremental_line(summary):
+        return
     mode = summary["mode"]
     table = Table(title=f"fit-hybrid --mode {mode} (weight decay {summary['weight_decay']:g}, seed "
                         f"{summary['seed']}) -> {summary['workdir']}", box=box.SIMPLE_HEAD,
@@ -108,6 +110,11 @@ def fit_hybrid_cmd(
     workers: Workers = None,
     scheduler: Scheduler = SchedulerChoice.local,
     dask_address: DaskAddress = None,
+    incremental: Annotated[bool, typer.Option(
+        "--incremental", help="Keep the previous run as it is when it was this mode with these "
+                              "options and seed on unchanged inputs and code; otherwise train "
+                              "every heliostat (a heliostat's networks depend on the others in "
+                              "its batch).")] = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -125,7 +132,7 @@ def fit_hybrid_cmd(
                                  pretrain_config=PretrainConfig(variant=pretrain_variant.value),
                                  heliostats=heliostat, progress=advance,
                                  workers=workers, scheduler=scheduler.value, dask_address=dask_address,
-                                 batch_size=batch_size)
+                                 batch_size=batch_size, incremental=incremental)
     emit(summary, json_, _human)
 
 

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
-                              progress_bar, stdout)
+                              incremental_line, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig
 from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT,
@@ -29,6 +29,7 @@ def _ints(text: Optional[str], name: str):
 
 
 def _human(summary: dict) -> None:
+    incremental_line(summary)   # a kept sweep still shows its selection below
     table = Table(title=f"sweep -> {summary['workdir']} (selection at the full training size)",
                   show_edge=False)
     for col in ("heliostat", "model", "preset", "weight decay", "val", "test", "coarse val",
@@ -118,6 +119,10 @@ def sweep_cmd(
     workers: Workers = None,
     scheduler: Scheduler = SchedulerChoice.local,
     dask_address: DaskAddress = None,
+    incremental: Annotated[bool, typer.Option(
+        "--incremental", help="Keep the previous sweep as it is when its inputs, options, seeds "
+                              "and code are this run's; otherwise train every heliostat (a "
+                              "heliostat's networks depend on the others in its batch).")] = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -141,5 +146,6 @@ def sweep_cmd(
                             extra_bands=(OCTAVE_BANDS,) if octaves else (), study=study,
                             study_seed=study_seed, path=path, batch_size=batch_size,
                             pretrain_config=PretrainConfig(variant=pretrain_variant.value),
-                            select_pretrained=select_pretrained, time_split=time_split, gp=gp)
+                            select_pretrained=select_pretrained, time_split=time_split, gp=gp,
+                            incremental=incremental)
     emit(summary, json_, _human)

@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 
 __all__ = ["INCREMENTAL_KEY", "Increment", "heliostat_digests", "field_key", "plan_increment",
-           "reused_rows", "carry_over_unchanged", "code_identity"]
+           "reused_rows", "carry_over_unchanged", "mark_rerunnable", "code_identity"]
 
 #: A stage name as manifests spell it (lower-case letters, digits and '-').
 _STAGE_NAME = re.compile(r"[a-z][a-z0-9-]{0,39}")
@@ -149,8 +149,17 @@ def reused_rows(previous: pd.DataFrame, reuse: Sequence[str]) -> pd.DataFrame:
     return previous[previous["heliostat_id"].astype(str).isin(set(reuse))]
 
 
-def carry_over_unchanged(txn, options: Mapping) -> bool:
-    """When the previous committed run of ``txn``'s stage had ``options`` and this code and read
+def mark_rerunnable(txn) -> None:
+    """Record the code in ``txn``'s manifest, so that a later run of a stage that is computed
+    whole (no per-heliostat digests: fit-hybrid, sweep) can keep it with
+    :func:`carry_over_unchanged`."""
+    txn.extra.setdefault(INCREMENTAL_KEY, {"code": code_identity()})
+
+
+def carry_over_unchanged(txn, options: Mapping, seed: int | None = None) -> bool:
+    """When the previous committed run of ``txn``'s stage had ``options`` (each key given here
+    equal to the recorded one; a recorded option not given must follow from the inputs, such as
+    the sweep's study heliostats), the same ``seed`` where one is given, and this code, and read
     exactly the artifacts now committed upstream (each recorded input's fingerprint equals its
     producer's committed one; a source file is never taken as unchanged), make this run keep
     its files, inputs and digests as they are, without reading anything, and return True."""
@@ -162,7 +171,11 @@ def carry_over_unchanged(txn, options: Mapping) -> bool:
     prev = txn.previous
     if prev is None or not isinstance(prev.data.get(INCREMENTAL_KEY), dict) or not prev.inputs:
         return False
-    if (prev.data.get("options") != jsonable(dict(options))
+    recorded = prev.data.get("options")
+    given = jsonable(dict(options))
+    if (not isinstance(recorded, dict)
+            or any(k not in recorded or recorded[k] != v for k, v in given.items())
+            or (seed is not None and prev.data.get("seed") != seed)
             or prev.data[INCREMENTAL_KEY].get("code") != code_identity()
             or prev.data.get("heliocal_version") != __version__):
         return False
@@ -178,5 +191,5 @@ def carry_over_unchanged(txn, options: Mapping) -> bool:
     txn.carry_over(txn.previous_files())
     txn.inputs.update(prev.inputs)
     txn.extra[INCREMENTAL_KEY] = prev.data[INCREMENTAL_KEY]
-    txn.options, txn.seed = options, prev.data.get("seed")
+    txn.options, txn.seed = recorded, prev.data.get("seed")
     return True

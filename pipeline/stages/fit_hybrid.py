@@ -80,6 +80,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from ..artifacts.incremental import carry_over_unchanged, mark_rerunnable
 from ..artifacts.manifests import current_transaction
 from ..artifacts.modelfiles import check_fine_model_inputs, write_model
 from ..artifacts.schemas import HELIOSTATS, HYBRID_PREDICTIONS, MEASUREMENTS
@@ -293,7 +294,8 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
                    pretrain_config: PretrainConfig | None = None,
                    heliostats: Sequence[str] | None = None, progress=None,
                    workers: int | None = 1, scheduler: str = "local",
-                   dask_address: str | None = None, batch_size: int = HYBRID_BATCH_SIZE) -> dict:
+                   dask_address: str | None = None, batch_size: int = HYBRID_BATCH_SIZE,
+                   incremental: bool = False) -> dict:
     """The ``fit-hybrid`` stage for one mode; writes ``DIR/hybrid/<mode>/`` and merges the mode's
     rows into ``DIR/hybrid_predictions.parquet``.
 
@@ -309,14 +311,26 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     config, pretrain_config : :class:`FineConfig` (hybrid, nn-only), :class:`PretrainConfig`.
     heliostats : restrict to these ids (other heliostats' rows of this mode are kept).
     progress : optional ``progress(done, total, heliostat_id)``.
+    incremental : keep the previous run as it is when it was this mode with these options, seed
+        and code on the inputs now committed (nothing is read or trained); otherwise train every
+        heliostat (a heliostat's networks depend on the others in its batch).
     """
     check_choice(mode, "mode", _FUNC, MODES)
     weight_decay = check_float(weight_decay, "weight_decay", _FUNC, 0.0, None)
     seed = check_int(seed, "seed", _FUNC, 0)
     config = (config or FineConfig()).validated()
     pretrain_config = pretrain_config or PretrainConfig()
-    warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
+    batch_size = check_int(batch_size, "batch_size", _FUNC, 1)
     workdir = Path(workdir)
+    opts = {"mode": mode, "weight_decay": weight_decay, "fine_config": config.to_dict(),
+            "pretrain_config": pretrain_config.to_dict(), "batch_size": batch_size,
+            "heliostats": list(heliostats) if heliostats else None}
+    txn = current_transaction(workdir, "fit-hybrid")
+    if incremental and not heliostats and carry_over_unchanged(txn, opts, seed=seed):
+        return {"workdir": str(workdir), "mode": mode, "weight_decay": weight_decay, "seed": seed,
+                "heliostats": [], "incremental": {"unchanged": True}}
+    mark_rerunnable(txn)
+    warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
     check_fine_model_inputs(workdir)
     torch.use_deterministic_algorithms(True, warn_only=True)
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
@@ -328,9 +342,7 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     if not ids:
         raise FitError(f"no heliostat in {workdir} has a coarse fit with training rows; run "
                        f"`heliocal fit-coarse --workdir {workdir}` first")
-    txn = current_transaction(workdir, "fit-hybrid")
     input_hashes = txn.input_fingerprints()  # what this run read: the models' recorded inputs
-    batch_size = check_int(batch_size, "batch_size", _FUNC, 1)
     groups = dict(tuple(measurements.groupby("heliostat_id", sort=True)))
     ids = sorted(ids, key=lambda h: (len(groups[h]), h))
     # forward in time: every heliostat with a time split is trained a second time, the same mode,
@@ -383,9 +395,6 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
                               lambda old: (old["model"] == mode) & old["heliostat_id"].isin(ids))
     if previous_run_matches(workdir, "fit-hybrid"):
         txn.carry_over(txn.previous_files("hybrid"))
-    opts = {"mode": mode, "weight_decay": weight_decay, "fine_config": config.to_dict(),
-            "pretrain_config": pretrain_config.to_dict(),
-            "heliostats": list(heliostats) if heliostats else None}
     write_artifact(new, workdir, HYBRID_PREDICTIONS, stage="fit-hybrid", options=opts, seed=seed)
     return {"workdir": str(workdir), "mode": mode, "weight_decay": weight_decay, "seed": seed,
-            "heliostats": summaries}
+            "heliostats": summaries, "incremental": None}

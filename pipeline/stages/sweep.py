@@ -45,10 +45,12 @@ import numpy as np
 import pandas as pd
 import torch
 
+from ..artifacts.incremental import carry_over_unchanged, mark_rerunnable
 from ..artifacts.manifests import current_transaction
 from ..artifacts.modelfiles import write_model
 from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
-from ..artifacts.store import merge_with_previous, previous_run_matches, write_artifact
+from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
+                               write_artifact)
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import ParameterError, check_float, check_int
@@ -424,7 +426,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               study: int | Sequence[str] | None = DEFAULT_STUDY, study_seed: int = 0,
               path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE,
               select_pretrained: bool = False, time_split: bool = False, gp: bool = True,
-              gp_config: GPConfig | None = None, rule: SelectionRule | None = None) -> dict:
+              gp_config: GPConfig | None = None, rule: SelectionRule | None = None,
+              incremental: bool = False) -> dict:
     """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
     (and ``hybrid/selected/``), return a summary.
 
@@ -450,6 +453,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         :class:`GPConfig` with the config's env columns and the first seed).
     rule : the selection rule (:class:`heliocal.pipeline.models.selection.SelectionRule`).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
+    incremental : keep the previous sweep as it is when its inputs, options, seeds and code are
+        this run's (nothing is read or trained); otherwise, and with any change, train every
+        heliostat (the summary's ``incremental`` says which).
     """
     workdir = Path(workdir)
     seeds, weight_decays = _checked_seeds(seeds), _checked_weight_decays(weight_decays)
@@ -461,6 +467,20 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     variants = hybrid_variants(config, extra_bands)
     gp_config = (gp_config or GPConfig(env=config.env, seed=seeds[0])).validated() if gp else None
     rule = (rule or SelectionRule()).validated()
+    request = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
+               "seeds": seeds, "presets": list(presets) if presets else "fit-coarse's",
+               "baselines": list(baselines), "extra_bands": [list(b) for b in extra_bands],
+               "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict(),
+               "study": (study if study is None or isinstance(study, (int, np.integer))
+                         else list(study)),
+               "study_seed": study_seed, "path": path.to_dict(), "batch_size": batch_size,
+               "select_pretrained": bool(select_pretrained), "time_split": bool(time_split),
+               "gp_config": gp_config.to_dict() if gp_config else None, "rule": rule.to_dict(),
+               "heliostats": list(heliostats) if heliostats else None}
+    txn = current_transaction(workdir, "sweep")
+    if incremental and not heliostats and carry_over_unchanged(txn, request):
+        return _kept_summary(workdir, txn)
+    mark_rerunnable(txn)
     warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
     items = read_sweep_inputs(workdir, heliostats)
     selected = {hid: item.selected for hid, item in items.items()}
@@ -487,18 +507,25 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          train_path, time_split, batch_size=batch_size, workers=workers,
                          scheduler=scheduler, dask_address=dask_address)
     apply_forward_checks(chosen, items)
-    opts = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
-            "seeds": seeds, "presets": list(presets) if presets else "fit-coarse's",
-            "baselines": list(baselines), "extra_bands": [list(b) for b in extra_bands],
-            "fine_config": config.to_dict(), "pretrain_config": pretrain_config.to_dict(),
-            "study": study if study is None or isinstance(study, (int, np.integer)) else list(study),
-            "study_seed": study_seed, "study_heliostats": studied, "path": path.to_dict(),
-            "batch_size": batch_size, "select_pretrained": bool(select_pretrained),
-            "coarse_options": coarse_options, "time_split": bool(time_split),
-            "gp_config": gp_config.to_dict() if gp_config else None, "rule": rule.to_dict(),
-            "heliostats": list(heliostats) if heliostats else None}
+    opts = {**request, "study_heliostats": studied, "coarse_options": coarse_options}
     selection = _write_outputs(workdir, results, chosen, heliostats, opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "study_heliostats": studied,
             "members_per_heliostat": {h: len(weight_decays) * len(seeds) * len(variants)
-                                      for h in sorted(items)}}
+                                      for h in sorted(items)},
+            "incremental": {"unchanged": False, "why_all": _why_all(incremental)}}
+
+
+def _why_all(incremental: bool) -> str:
+    return ("an input, an option or the code changed since the last sweep: every heliostat is "
+            "trained again (a heliostat's networks depend on the heliostats trained in its "
+            "batch, docs/experiments/incremental-updates.md)" if incremental
+            else "not --incremental")
+
+
+def _kept_summary(workdir: Path, txn) -> dict:
+    """The summary of a run that kept the previous sweep (:func:`carry_over_unchanged`)."""
+    selection = read_artifact(workdir, SELECTION)
+    return {"workdir": str(workdir), "selection": selection.to_dict("records"),
+            "study_heliostats": list(txn.options.get("study_heliostats") or []),
+            "members_per_heliostat": {}, "incremental": {"unchanged": True}}
