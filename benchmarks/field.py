@@ -10,7 +10,8 @@ every heliostat with the default weight decays, band sets and ensembles; no trai
 asked for in ``--stages``) and ``report`` (every page and figure; the size of
 ``report/index.html`` and of the report folder are printed too), and on request
 ``fit-coarse-no-rolling`` (fit-coarse without its rolling-origin evaluation, for the next-day
-error's cost) and ``aim`` (``aim --date 2024-03-01 --every 10min``: every heliostat's aims of a
+error's cost), ``fit-coarse-prior`` (fit-coarse with ``--prior field``, for the field prior's
+cost; ``fit-coarse`` itself runs with ``--prior none``) and ``aim`` (``aim --date 2024-03-01 --every 10min``: every heliostat's aims of a
 day) as separate ``heliocal`` processes, once with ``--workers 1`` and once with
 ``--workers 2``, and prints per stage the wall
 time, heliostats per second and the peak memory of the stage's whole process tree (summed RSS,
@@ -250,7 +251,8 @@ def main() -> None:
                        str(field_dir / "paint"), "--workdir", str(wd)],
             "split-knn": ["split-knn", "--workdir", str(wd)],
             "fit-coarse": ["fit-coarse", "--workdir", str(wd), "--preset", "static-20",
-                           "--workers", str(workers), "--solver", args.solver],
+                           "--workers", str(workers), "--solver", args.solver,
+                           "--prior", "none"],
             "fit-hybrid": ["fit-hybrid", "--workdir", str(wd), "--weight-decay", "1e-3",
                            "--max-epochs", str(args.hybrid_epochs), "--workers", str(workers)],
             "pretrained-nn": ["fit-hybrid", "--workdir", str(wd), "--mode", "pretrained-nn",
@@ -265,6 +267,11 @@ def main() -> None:
             "fit-coarse-no-rolling": ["fit-coarse", "--workdir", str(wd), "--preset",
                                       "static-20", "--workers", str(workers), "--solver",
                                       args.solver, "--rolling-origins", "0"],
+            # fit-coarse with the field prior (issue 34): beside fit-coarse (--prior none), the
+            # prior's cost in the same run (it replaces the fit's artifacts)
+            "fit-coarse-prior": ["fit-coarse", "--workdir", str(wd), "--preset", "static-20",
+                                 "--workers", str(workers), "--solver", args.solver,
+                                 "--prior", "field"],
             # a day of the whole field: an aim every 10 minutes while the sun is up (one process)
             "aim": ["aim", "--workdir", str(wd), "--date", "2024-03-01", "--every", "10min",
                     "--out", str(wd / "aims-2024-03-01.parquet"), "--json"],

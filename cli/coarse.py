@@ -67,9 +67,10 @@ def fit_coarse_cmd(
         help="batched (many heliostats per vectorized Levenberg-Marquardt program) or scipy "
              "(one least_squares per heliostat, the reference).")] = CoarseSolver.batched,
     prior: Annotated[Optional[CoarsePrior], typer.Option(
-        help="Prior of the fits: none (a weak prior around the nominal geometry; the default "
-             "until the field prior is measured on the real logs), field (the field's typical "
-             "geometry, learned from the well-determined heliostats of each type and geometry "
+        help="Prior of the fits: none (a weak prior around the nominal geometry; the default: "
+             "the field prior costs well-measured heliostats a few per cent), field (the "
+             "field's typical geometry, learned from the well-determined heliostats of each "
+             "type and geometry "
              "source; only where at least 8 of them determine a parameter; the default with "
              "--prior-from) or field+spatial (its mean from the nearest heliostats).")] = None,
     prior_from: Annotated[Optional[Path], typer.Option(

@@ -3,7 +3,7 @@ from the other heliostats of its group (:mod:`heliocal.pipeline.models.field_pri
 field-prior geometry (a candidate of every heliostat's selection, and the model of a heliostat
 without training rows), and ``field_prior.parquet``. :mod:`.fit_coarse` runs the stage.
 
-How (``--prior field``, the default; ``none`` fits as before; ``field+spatial`` adds the
+How (``--prior field``; ``none``, the default, fits without it; ``field+spatial`` adds the
 neighbours' mean where it helps):
 
 1. The *sample* of each group (kinematic type, actuator type, geometry source): its heliostats

@@ -506,10 +506,10 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
         (detection and the refit without episodes, no regime-aware candidates).
     rolling_origins : origins per heliostat of the rolling-origin evaluation
         (:mod:`.rolling`; rolling_origin.parquet); 0 skips it (the artifact is then empty).
-    prior : one of :data:`~.coarse_prior.PRIOR_MODES`: ``field`` (the default: the field's
-        empirical-Bayes prior where a group has enough well-determined heliostats,
-        :mod:`.coarse_prior`), ``field+spatial`` (its mean from the nearest heliostats where
-        that helps) or ``none`` (the default weak prior only).
+    prior : one of :data:`~.coarse_prior.PRIOR_MODES`: ``none`` (the default: the weak prior
+        around the nominal geometry only), ``field`` (the field's empirical-Bayes prior where a
+        group has enough well-determined heliostats, :mod:`.coarse_prior`) or ``field+spatial``
+        (its mean from the nearest heliostats where that helps).
     prior_from : another work directory whose field_prior.parquet to use (``prior="field"``).
     incremental : fit only the heliostats whose rows, split or properties changed since the last
         committed run with the same options and code, and keep the others' rows of the five
