@@ -37,7 +37,7 @@ from ..artifacts.schemas import COARSE_PREDICTIONS, MEASUREMENTS, REGIMES, ROLLI
 from ..artifacts.store import artifact_present, read_artifact
 from ..models.coarse import MeasurementBatch, normal_errors_mrad, prior_sigma
 from ..models.uncertainty import (ParameterCovariance, aim_jacobian, aim_variance_mrad2,
-                                  coarse_covariance)
+                                  covariance_from_rows, fit_row_terms)
 from ..physics.parameters import HeliostatSpec
 
 __all__ = [
@@ -109,6 +109,12 @@ def robust_noise_mrad(spec: HeliostatSpec, params: torch.Tensor, train: Measurem
     square). The coarse fit's own loss (soft L1) weighs outlying rows down likewise."""
     with torch.no_grad():
         e = normal_errors_mrad(params, spec, train).numpy()
+    return noise_from_errors(e, n_free)
+
+
+def noise_from_errors(errors_mrad, n_free: int) -> float:
+    """:func:`robust_noise_mrad` from the rows' error angles [mrad] (NaN rows left out)."""
+    e = np.asarray(errors_mrad, float)
     e = e[np.isfinite(e)]
     if not len(e):
         return float("nan")
@@ -215,20 +221,20 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
     by_roll = dict(tuple(rolling.groupby("heliostat_id")))
     by_regime = dict(tuple(regimes.groupby("heliostat_id"))) if regimes is not None else {}
     empty_pred, empty_roll = pred.iloc[:0], rolling.iloc[:0]
+    fitted = {}
+    for hid in ids:
+        h_rows = by_rows.get(hid, rows.iloc[:0])
+        train = h_rows[h_rows["split"] == "train"]
+        if models.get(hid, {}).get("model") != "nominal" and len(train):
+            fitted[hid] = MeasurementBatch.from_frame(_fitted_rows(
+                train, by_regime.get(hid), selected[hid], _fitted_regime(regime_params, hid)))
+    covariances = _covariances(specs, selected, fitted)
     out = {}
     for hid in ids:
         h_rows = by_rows.get(hid, rows.iloc[:0])
         train = h_rows[h_rows["split"] == "train"]
         nominal = models.get(hid, {}).get("model") == "nominal"
-        covariance = None
-        if not nominal and len(train):
-            sel = selected[hid]
-            fitted = MeasurementBatch.from_frame(
-                _fitted_rows(train, by_regime.get(hid), sel, _fitted_regime(regime_params, hid)))
-            free = sel["free"].numpy()
-            covariance = coarse_covariance(
-                specs[hid], sel["params"], free, fitted, prior_sigma(sel["nominal"])[free],
-                noise_mrad=robust_noise_mrad(specs[hid], sel["params"], fitted, int(free.sum())))
+        covariance = covariances.get(hid)
         noise = covariance.noise_mrad if covariance is not None else float("nan")
         level, source = _level(_level_sources(by_pred.get(hid, empty_pred),
                                               by_roll.get(hid, empty_roll), nominal), noise,
@@ -239,6 +245,24 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         out[hid] = ErrorBudget(covariance, level, source,
                                train[["sun_e", "sun_n", "sun_u"]].to_numpy(float),
                                times.max() if len(times) else None)
+    return out
+
+
+def _covariances(specs: dict, selected: dict, fitted: dict[str, MeasurementBatch]
+                 ) -> dict[str, ParameterCovariance]:
+    """Each heliostat's posterior covariance on its ``fitted`` rows with the robust noise scale
+    (:func:`robust_noise_mrad`): :func:`heliocal.pipeline.models.uncertainty.coarse_covariance`,
+    its chain evaluated for all heliostats in batches (:func:`fit_row_terms`)."""
+    ids = list(fitted)
+    terms = fit_row_terms([specs[h] for h in ids], [selected[h]["params"] for h in ids],
+                          [fitted[h] for h in ids])
+    out = {}
+    for hid, t in zip(ids, terms):
+        free_idx = np.flatnonzero(selected[hid]["free"].numpy())
+        r, j = t.finite(free_idx)
+        out[hid] = covariance_from_rows(
+            r, j, free_idx, prior_sigma(selected[hid]["nominal"])[free_idx],
+            noise_mrad=noise_from_errors(t.error_mrad, len(free_idx)))
     return out
 
 
