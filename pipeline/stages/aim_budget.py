@@ -176,12 +176,13 @@ def _fitted_rows(rows: pd.DataFrame, regimes: pd.DataFrame | None, selected: dic
     return rows[inside] if inside.any() else rows
 
 
-def _fitted_regime(regime_params: pd.DataFrame | None, hid: str) -> int | None:
+def _fitted_regimes(regime_params: pd.DataFrame | None) -> dict[str, int]:
+    """heliostat -> the regime its selected model's latest parameters were fitted on."""
     if regime_params is None:
-        return None
-    p = regime_params[(regime_params["heliostat_id"] == hid) & regime_params["selected"]
-                      & regime_params["latest"]]
-    return int(p["fitted_regime"].iloc[0]) if len(p) else None
+        return {}
+    p = regime_params[regime_params["selected"] & regime_params["latest"]]
+    p = p.drop_duplicates("heliostat_id")        # a heliostat's first such row
+    return {str(h): int(v) for h, v in zip(p["heliostat_id"], p["fitted_regime"])}
 
 
 def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
@@ -221,13 +222,13 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
     by_roll = dict(tuple(rolling.groupby("heliostat_id")))
     by_regime = dict(tuple(regimes.groupby("heliostat_id"))) if regimes is not None else {}
     empty_pred, empty_roll = pred.iloc[:0], rolling.iloc[:0]
-    fitted = {}
+    fitted, fitted_regime = {}, _fitted_regimes(regime_params)
     for hid in ids:
         h_rows = by_rows.get(hid, rows.iloc[:0])
         train = h_rows[h_rows["split"] == "train"]
         if models.get(hid, {}).get("model") != "nominal" and len(train):
             fitted[hid] = MeasurementBatch.from_frame(_fitted_rows(
-                train, by_regime.get(hid), selected[hid], _fitted_regime(regime_params, hid)))
+                train, by_regime.get(hid), selected[hid], fitted_regime.get(hid)))
     covariances = _covariances(specs, selected, fitted)
     out = {}
     for hid in ids:
