@@ -147,33 +147,55 @@ def _held_out(wd: CommittedWorkdir, ids) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pred, rolling
 
 
-def _level_sources(pred: pd.DataFrame, rolling: pd.DataFrame, nominal: bool) -> dict:
+def _grouped(keys, values) -> dict[str, np.ndarray]:
+    """``values`` (N,) split by heliostat ``keys`` (N,), each heliostat's in their order."""
+    keys = np.asarray(pd.Series(keys, dtype=object).astype(str))
+    values = np.asarray(values)
+    order = np.argsort(keys, kind="stable")
+    keys, values = keys[order], values[order]
+    bounds = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1], True]) if len(keys) else [0]
+    return {keys[a]: values[a:b] for a, b in zip(bounds[:-1], bounds[1:])}
+
+
+def _level_sources(pred: pd.DataFrame, rolling: pd.DataFrame) -> dict[str, dict]:
+    """Per level source (and ``nominal validation``, the nominal geometry's validation rows)
+    each heliostat's held-out errors: its selected model's."""
+    p = pred[pred["selected"].astype(bool)]
+    val = p[p["split"] == "validation"]
+    time_val = p[p["time_split"] == "validation"]
+    nominal = pred[(pred["model"] == "nominal") & (pred["split"] == "validation")]
+    return {"next-day": _grouped(rolling["heliostat_id"], rolling["error_mrad"].to_numpy(float)),
+            "time-split validation": _grouped(time_val["heliostat_id"],
+                                              time_val["time_error_mrad"].to_numpy(float)),
+            "validation": _grouped(val["heliostat_id"], val["error_mrad"].to_numpy(float)),
+            "nominal validation": _grouped(nominal["heliostat_id"],
+                                           nominal["error_mrad"].to_numpy())}
+
+
+def _heliostat_sources(sources: dict[str, dict], hid: str, nominal: bool) -> dict:
     """A heliostat's held-out errors per level source: its selected model's (or, ``nominal``,
     the nominal geometry's validation rows)."""
     if nominal:
-        p = pred[pred["model"] == "nominal"]
-        return {"validation": p.loc[p["split"] == "validation", "error_mrad"].to_numpy()}
-    p = pred[pred["selected"]]
-    return {"next-day": rolling["error_mrad"].to_numpy(float),
-            "time-split validation":
-                p.loc[p["time_split"] == "validation", "time_error_mrad"].to_numpy(float),
-            "validation": p.loc[p["split"] == "validation", "error_mrad"].to_numpy(float)}
+        return {"validation": sources["nominal validation"].get(hid, ())}
+    return {name: sources[name].get(hid, ()) for name in LEVEL_SOURCES[:-1]}
 
 
-def _fitted_rows(rows: pd.DataFrame, regimes: pd.DataFrame | None, selected: dict,
-                 fitted_regime: int | None) -> pd.DataFrame:
-    """The training rows the parameters aim uses rest on: all of them, or for a regime-aware
-    model those of the regime its latest parameters were fitted on."""
+def _fitted_mask(times: pd.Series, regimes: pd.DataFrame | None, selected: dict,
+                 fitted_regime: int | None) -> np.ndarray:
+    """Which of a heliostat's training rows (at UTC ``times``) the parameters aim uses rest on:
+    all of them, or for a regime-aware model those of the regime its latest parameters were
+    fitted on (all of them when none is)."""
+    everything = np.ones(len(times), bool)
     if selected.get("regime_table") is None or regimes is None or fitted_regime is None:
-        return rows
+        return everything
     seg = regimes[(regimes["kind"] == "regime") & (regimes["regime"] == fitted_regime)]
     if seg.empty:
-        return rows
-    t = pd.to_datetime(rows["timestamp"], utc=True)
-    inside = np.zeros(len(rows), bool)
+        return everything
+    t = pd.to_datetime(times, utc=True)
+    inside = np.zeros(len(times), bool)
     for start, end in zip(pd.to_datetime(seg["start"], utc=True), pd.to_datetime(seg["end"], utc=True)):
         inside |= ((t >= start) & (t <= end)).to_numpy()
-    return rows[inside] if inside.any() else rows
+    return inside if inside.any() else everything
 
 
 def _fitted_regimes(regime_params: pd.DataFrame | None) -> dict[str, int]:
@@ -214,38 +236,36 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
              .rename(columns={split_column: "split"}) if artifact_present(wd, SPLIT)
              else rows[["heliostat_id", "measurement_id"]].assign(split="train"))
     rows = rows.merge(split, on=["heliostat_id", "measurement_id"], how="left")
-    pred, rolling = _held_out(wd, ids)
+    sources = _level_sources(*_held_out(wd, ids))
     regimes = read_artifact(wd, REGIMES, heliostats=ids) if artifact_present(wd, REGIMES) else None
     regime_params = (read_artifact(wd, REGIME_PARAMS, heliostats=ids)
                      if artifact_present(wd, REGIME_PARAMS) else None)
-    by_rows, by_pred = dict(tuple(rows.groupby("heliostat_id"))), dict(tuple(pred.groupby("heliostat_id")))
-    by_roll = dict(tuple(rolling.groupby("heliostat_id")))
     by_regime = dict(tuple(regimes.groupby("heliostat_id"))) if regimes is not None else {}
-    empty_pred, empty_roll = pred.iloc[:0], rolling.iloc[:0]
-    fitted, fitted_regime = {}, _fitted_regimes(regime_params)
+    positions = _grouped(rows["heliostat_id"], np.arange(len(rows)))
+    is_train = (rows["split"] == "train").to_numpy(bool)
+    times = pd.to_datetime(rows["timestamp"], utc=True)
+    last = times.groupby(rows["heliostat_id"].astype(str).to_numpy()).max()
+    batch, sun = MeasurementBatch.from_frame(rows), rows[["sun_e", "sun_n", "sun_u"]].to_numpy(float)
+    fitted, fitted_regime, train = {}, _fitted_regimes(regime_params), {}
     for hid in ids:
-        h_rows = by_rows.get(hid, rows.iloc[:0])
-        train = h_rows[h_rows["split"] == "train"]
-        if models.get(hid, {}).get("model") != "nominal" and len(train):
-            fitted[hid] = MeasurementBatch.from_frame(_fitted_rows(
-                train, by_regime.get(hid), selected[hid], fitted_regime.get(hid)))
+        idx = positions.get(hid, np.zeros(0, np.int64))
+        train[hid] = idx[is_train[idx]]
+        if models.get(hid, {}).get("model") != "nominal" and len(train[hid]):
+            keep = _fitted_mask(times.iloc[train[hid]], by_regime.get(hid), selected[hid],
+                                fitted_regime.get(hid))
+            fitted[hid] = batch.take(train[hid][keep])
     covariances = _covariances(specs, selected, fitted)
     out = {}
     for hid in ids:
-        h_rows = by_rows.get(hid, rows.iloc[:0])
-        train = h_rows[h_rows["split"] == "train"]
         nominal = models.get(hid, {}).get("model") == "nominal"
         covariance = covariances.get(hid)
         noise = covariance.noise_mrad if covariance is not None else float("nan")
-        level, source = _level(_level_sources(by_pred.get(hid, empty_pred),
-                                              by_roll.get(hid, empty_roll), nominal), noise,
-                               level_sources)
+        level, source = _level(_heliostat_sources(sources, hid, nominal), noise, level_sources)
         if nominal:
             source = "nominal validation" if source == "validation" else source
-        times = pd.to_datetime(h_rows["timestamp"], utc=True).dropna()
-        out[hid] = ErrorBudget(covariance, level, source,
-                               train[["sun_e", "sun_n", "sun_u"]].to_numpy(float),
-                               times.max() if len(times) else None)
+        latest = last.get(hid, pd.NaT)
+        out[hid] = ErrorBudget(covariance, level, source, sun[train[hid]],
+                               None if pd.isna(latest) else latest)
     return out
 
 
