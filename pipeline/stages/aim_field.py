@@ -3,11 +3,13 @@
 A schedule is a table of aims, one row each: ``heliostat_id``, ``time_utc`` and the aim point,
 either a calibration target's name (``target``) or ``aim_e_m, aim_n_m, aim_u_m`` [m ENU];
 ``env_<name>`` columns give the env inputs of fine models that use them. :func:`aim_schedule`
-reads the work directory once, takes every heliostat's model and error budget once, and aims
-each heliostat's rows together: the sun from NREL SPA at the heliostat for all its times in
-one call, and for the coarse model (and the nominal geometry) the inverse kinematics and the
-expected error as one tensor operation over the rows. A fine model's steps are a fixed point
-per row (:mod:`.aim`), solved row by row.
+reads the work directory once, takes every heliostat's model and error budget once (the
+covariances from one batched chain evaluation, :func:`.aim_budget.error_budgets`), and aims all
+rows as arrays: the sun from NREL SPA for every row in one call (each at its heliostat's site),
+and for the coarse model (and the nominal geometry) the inverse kinematics and the expected
+error's Jacobian as tensor operations over the rows of one kinematic type, each row a batch of
+one with its own parameters and spec, so that each row's numbers are those of one ``aim``.
+A fine model's steps are a fixed point per row (:mod:`.aim`), solved row by row.
 
 Every row of the schedule gets one output row: ``status`` ``ok``, or ``rejected`` with the
 reason (an unknown heliostat or target, a heliostat without a coarse fit or location, the sun
