@@ -135,13 +135,6 @@ class MeasurementBatch:
                                 self.sun[m], self.focal_spot[m], self.target_center[m],
                                 self.target_normal[m])
 
-    def take(self, index) -> "MeasurementBatch":
-        """The rows at the integer positions ``index``, in that order."""
-        index = np.asarray(index, dtype=np.int64)
-        i = torch.from_numpy(index)
-        return MeasurementBatch(self.measurement_id[index], self.steps[i], self.sun[i],
-                                self.focal_spot[i], self.target_center[i], self.target_normal[i])
-
     def __len__(self) -> int:
         return int(self.steps.shape[0])
 

@@ -198,6 +198,13 @@ def _fitted_mask(times: pd.Series, regimes: pd.DataFrame | None, selected: dict,
     return inside if inside.any() else everything
 
 
+def _take(batch: MeasurementBatch, index: np.ndarray) -> MeasurementBatch:
+    """The rows of ``batch`` at the integer positions ``index``, in that order."""
+    i = torch.from_numpy(np.asarray(index, dtype=np.int64))
+    return MeasurementBatch(batch.measurement_id[i.numpy()], batch.steps[i], batch.sun[i],
+                            batch.focal_spot[i], batch.target_center[i], batch.target_normal[i])
+
+
 def _fitted_regimes(regime_params: pd.DataFrame | None) -> dict[str, int]:
     """heliostat -> the regime its selected model's latest parameters were fitted on."""
     if regime_params is None:
@@ -253,7 +260,7 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         if models.get(hid, {}).get("model") != "nominal" and len(train[hid]):
             keep = _fitted_mask(times.iloc[train[hid]], by_regime.get(hid), selected[hid],
                                 fitted_regime.get(hid))
-            fitted[hid] = batch.take(train[hid][keep])
+            fitted[hid] = _take(batch, train[hid][keep])
     covariances = _covariances(specs, selected, fitted)
     out = {}
     for hid in ids:
