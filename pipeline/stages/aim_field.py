@@ -228,6 +228,12 @@ class _Rows:
         self.reason[mask] = reason
 
 
+def _among(hid: np.ndarray, ids) -> np.ndarray:
+    """(R,) bool: which heliostat ids ``hid`` (str or None) are in ``ids`` (a hash lookup per
+    row; numpy's isin sorts object arrays, seconds for a field's day)."""
+    return pd.Series(hid, dtype=object).isin(set(ids)).to_numpy(bool)
+
+
 def _per_row(values: dict, hid: np.ndarray, default=None) -> np.ndarray:
     """(R,) object array: each row's heliostat's entry of ``values``."""
     return np.array([values.get(h, default) for h in hid], object)
@@ -308,7 +314,7 @@ def _coarse_aims(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray
     for members in groups.values():
         spec_all = stack_specs([field.specs[h] for h in members])
         code = {h: k for k, h in enumerate(members)}
-        idx = todo[np.isin(rows.hid[todo], members)]
+        idx = todo[_among(rows.hid[todo], members)]
         p_all = torch.cat([params[h] for h in members])
         for start in range(0, len(idx), AIM_CHUNK_ROWS):
             part = idx[start:start + AIM_CHUNK_ROWS]
@@ -397,9 +403,9 @@ def _aim_rows(field: _Field, schedule: pd.DataFrame,
               max_expected_error_mrad: float | None) -> pd.DataFrame:
     """Every row of the (normalised) schedule aimed, in schedule order (module docstring)."""
     rows = _Rows.of(schedule)
-    known = np.isin(rows.hid.astype(str), list(field.helio.index)) & (rows.hid != None)  # noqa: E711
+    known = _among(rows.hid, field.helio.index)
     rows.reject(~known, "unknown heliostat: not in heliostats.parquet")
-    fitted = known & np.isin(rows.hid.astype(str), list(field.selected))
+    fitted = known & _among(rows.hid, field.selected)
     rows.reject(~fitted, "the heliostat has no coarse fit (run fit-coarse)")
     _aim_points(field, rows, fitted)
     angles, sun = _sun(field, rows, fitted)
