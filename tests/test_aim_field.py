@@ -71,6 +71,43 @@ def test_batch_rows_equal_single_aims_and_bad_rows_get_reasons(fitted):
 
 
 @pytest.mark.slow
+def test_batch_rows_of_regime_aware_models_equal_single_aims(tmp_path):
+    """Regime-aware models (a step and a drift: each row's parameters are those of its time's
+    regime and drift) aim in the batch, where every row is a batch of one with its own
+    parameters, as one aim at a time does; times in both regimes and after the last row (the
+    drift held)."""
+    from heliocal.pipeline.models.changes import Changes
+    from heliocal.pipeline.stages.aim import aim_steps
+    from heliocal.pipeline.stages.aim_field import aim_schedule
+    from heliocal.pipeline.stages.fit_coarse import load_selected_parameters
+
+    field, work = fitted_simulation(tmp_path, n_heliostats=2, seed=3, measurements=(160, 160),
+                                    dynamic_fraction=0.0, noise_mrad=0.3,
+                                    changes=Changes(step_fraction=1.0, steps=(1, 1),
+                                                    step_mrad=(3.0, 4.0), drift_fraction=1.0))
+    selected = load_selected_parameters(work)
+    regime_aware = sorted(h for h, s in selected.items() if s["regime_table"] is not None)
+    assert regime_aware, {h: s["preset"] for h, s in selected.items()}   # the test's premise
+    target = _target(work)
+    times = ["2023-02-15T11:00Z", "2023-06-21T08:30Z", "2023-06-21T15:00Z", "2023-10-02T12:00Z",
+             "2024-03-01T10:00Z"]
+    ids = sorted(selected)
+    schedule = pd.DataFrame({"heliostat_id": np.repeat(ids, len(times)),
+                             "time_utc": np.tile(times, len(ids)), "target": target})
+    got = aim_schedule(work, schedule)
+    ok = got[got["status"] == "ok"]
+    assert set(ok["heliostat_id"]) >= set(regime_aware) and len(ok) >= len(times)
+    for _, row in ok.iterrows():
+        one = aim_steps(work, row["heliostat_id"], target=target, time_utc=row["time_utc"])
+        # the same float64 chain at the same parameters: rounding only (see the first test)
+        assert row["model"] == one["model"]
+        assert row["axis_1_steps"] == pytest.approx(one["axis_1_steps"], abs=1e-6)
+        assert row["axis_2_steps"] == pytest.approx(one["axis_2_steps"], abs=1e-6)
+        assert row["expected_error_mrad"] == pytest.approx(one["expected_error_mrad"], rel=1e-9)
+        assert row["sun_distance_deg"] == pytest.approx(one["sun_distance_deg"], abs=1e-9)
+
+
+@pytest.mark.slow
 def test_a_day_of_the_field_and_the_expected_error_limit(fitted, runner, tmp_path):
     field, work = fitted
     out = tmp_path / "day.parquet"

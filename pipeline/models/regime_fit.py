@@ -388,14 +388,18 @@ def table_row_parameters(params: torch.Tensor, table: pd.DataFrame, regimes: pd.
                  if table["latest"].any() else table["regime"].max())
     seconds = seconds_utc(times)
     out = params.to(torch.float64).expand(len(regime), len(PARAMETER_NAMES)).clone()
-    for name, g in table.groupby("parameter", sort=False):
-        g = g.drop_duplicates("regime").set_index("regime")
-        row = g.loc[np.where(np.isin(regime, g.index), regime, latest)]
-        rate = row["drift_rad_per_year"].to_numpy(np.float64)
-        held = drift_time_s(seconds, seconds_utc(row["drift_from"]), seconds_utc(row["drift_to"]))
-        years = np.nan_to_num((held - seconds_utc(row["drift_reference"])) / _YEAR_S)
-        out[:, PARAMETER_INDEX[name]] = torch.as_tensor(row["value_rad"].to_numpy(np.float64)
-                                                        + rate * years)
+    t = table.drop_duplicates(["parameter", "regime"])      # per parameter, a regime's first row
+    names, numbers = t["parameter"].to_numpy(object), t["regime"].to_numpy(np.int64)
+    value, rate = t["value_rad"].to_numpy(np.float64), t["drift_rad_per_year"].to_numpy(np.float64)
+    first, last, reference = (seconds_utc(t[c]) for c in ("drift_from", "drift_to",
+                                                          "drift_reference"))
+    for name in pd.unique(names):
+        mine = np.flatnonzero(names == name)
+        at = dict(zip(numbers[mine].tolist(), mine.tolist()))
+        k = np.array([at.get(r, at[latest]) for r in regime.tolist()], dtype=np.int64)
+        held = drift_time_s(seconds, first[k], last[k])
+        years = np.nan_to_num((held - reference[k]) / _YEAR_S)
+        out[:, PARAMETER_INDEX[name]] = torch.as_tensor(value[k] + rate[k] * years)
     return out
 
 

@@ -23,17 +23,22 @@ units (:data:`heliocal.pipeline.physics.parameters.PARAMETER_UNITS`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
 
-from ..physics.jacobian import residual_and_jacobian
+from ..physics.jacobian import forward_state, residual_and_jacobian
+from ..physics.metrics import error_mrad, measured_normal
 from ..physics.parameters import HeliostatSpec
 from .coarse import MeasurementBatch
 
 __all__ = [
     "ParameterCovariance",
     "coarse_covariance",
+    "covariance_from_rows",
+    "RowTerms",
+    "fit_row_terms",
     "aim_jacobian",
     "aim_variance_mrad2",
     "covariance_after",
@@ -87,6 +92,13 @@ def coarse_covariance(spec: HeliostatSpec, params: torch.Tensor, free, train: Me
     """
     free_idx = np.flatnonzero(np.asarray(free, bool))
     r, j = _data_jacobian(params, spec, train, free_idx)
+    return covariance_from_rows(r, j, free_idx, prior_sigma_free, noise_mrad=noise_mrad)
+
+
+def covariance_from_rows(r: np.ndarray, j: np.ndarray, free_idx: np.ndarray, prior_sigma_free,
+                         *, noise_mrad: float | None = None) -> ParameterCovariance:
+    """:func:`coarse_covariance` from the training rows' finite residuals ``r`` (N, 3) [mrad]
+    and the free parameters' Jacobian ``j`` (N, 3, P) [mrad per parameter unit]."""
     n_rows = len(r)
     if noise_mrad is None:
         # a row's residual lies in the plane of the normal: two components carry its noise
@@ -96,6 +108,83 @@ def coarse_covariance(spec: HeliostatSpec, params: torch.Tensor, free, train: Me
     jf = j.reshape(-1, len(free_idx))
     information = jf.T @ jf / s2 + np.diag(1.0 / np.asarray(prior_sigma_free, float) ** 2)
     return ParameterCovariance(free_idx, _inverse_spd(information), float(noise_mrad), n_rows)
+
+
+@dataclass(frozen=True)
+class RowTerms:
+    """One heliostat's training rows at its fitted parameters: ``residual`` (N, 3) [mrad],
+    ``jacobian`` (N, 3, 28) [mrad per parameter unit] (both as :func:`coarse_covariance` takes
+    them, before the non-finite rows are dropped) and ``error_mrad`` (N,) (the angle between
+    the predicted and the measured normal, :func:`heliocal.pipeline.models.coarse.normal_errors_mrad`)."""
+
+    residual: np.ndarray
+    jacobian: np.ndarray
+    error_mrad: np.ndarray
+
+    def finite(self, free_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(residuals, free parameters' Jacobian) of the rows whose chain is finite, as
+        :func:`coarse_covariance` uses them."""
+        j = self.jacobian[..., free_idx]
+        ok = np.isfinite(self.residual).all(axis=1) & np.isfinite(j).all(axis=(1, 2))
+        return self.residual[ok], j[ok]
+
+
+#: Rows (heliostats times their padded row count) per batched chain evaluation of
+#: :func:`fit_row_terms`: large enough that torch's per-call cost vanishes, small enough that the
+#: Jacobian (rows x 3 x 28 float64) stays near 40 MB.
+ROW_TERMS_CHUNK_ROWS = 20_000
+
+
+def fit_row_terms(specs: Sequence[HeliostatSpec], params: Sequence[torch.Tensor],
+                  data: Sequence[MeasurementBatch]) -> list[RowTerms]:
+    """:class:`RowTerms` of many heliostats (``specs``, fitted ``params`` (28,) and rows
+    ``data``, one each), evaluated in batches of one kinematic and actuator type (rows padded
+    with copies of the heliostat's first row and cut off again): the same chain as one
+    heliostat at a time, without torch's cost per call for each."""
+    out: list[RowTerms | None] = [None] * len(specs)
+    groups: dict[tuple, list[int]] = {}
+    for k, spec in enumerate(specs):
+        if len(data[k]) == 0:
+            out[k] = RowTerms(np.zeros((0, 3)), np.zeros((0, 3, 28)), np.zeros(0))
+        else:
+            groups.setdefault((spec.kinematic_type, spec.actuator_type), []).append(k)
+    for members in groups.values():
+        members = sorted(members, key=lambda k: len(data[k]))    # similar lengths: little padding
+        start = 0
+        while start < len(members):
+            stop = start + 1
+            while (stop < len(members)
+                   and (stop + 1 - start) * len(data[members[stop]]) <= ROW_TERMS_CHUNK_ROWS):
+                stop += 1
+            chunk = members[start:stop]
+            for k, terms in zip(chunk, _row_terms_batch([specs[k] for k in chunk],
+                                                        [params[k] for k in chunk],
+                                                        [data[k] for k in chunk])):
+                out[k] = terms
+            start = stop
+    return out
+
+
+def _row_terms_batch(specs, params, data) -> list[RowTerms]:
+    """:func:`fit_row_terms` of heliostats of one type in one batched evaluation."""
+    from ..physics.lm import stack_specs
+
+    n_rows = [len(d) for d in data]
+    n_max = max(n_rows)
+
+    def padded(field: str) -> torch.Tensor:
+        return torch.stack([torch.cat([getattr(d, field), getattr(d, field)[:1].expand(
+            n_max - n, -1)]) if n < n_max else getattr(d, field) for d, n in zip(data, n_rows)])
+
+    spec = stack_specs(list(specs))
+    p = torch.stack([x.to(torch.float64) for x in params]).detach()
+    steps, sun, spot = padded("steps"), padded("sun"), padded("focal_spot")
+    with torch.no_grad():
+        state = forward_state(p, spec, steps)
+        r, j = residual_and_jacobian(p, spec, steps, sun, spot, state=state)
+        e = error_mrad(state[1], measured_normal(sun, state[2], spot))
+    r, j, e = r.numpy(), j.numpy(), e.numpy()
+    return [RowTerms(r[h, :n], j[h, :n], e[h, :n]) for h, n in enumerate(n_rows)]
 
 
 def _inverse_spd(a: np.ndarray) -> np.ndarray:

@@ -49,15 +49,17 @@ def sun_angles_from_vector(vector_enu):
     return az, el
 
 
-def spa_sun_position(timestamps_utc, latitude_deg: float, longitude_deg: float,
-                     altitude_m: float = 0.0, refraction: bool = True):
+def spa_sun_position(timestamps_utc, latitude_deg, longitude_deg, altitude_m=0.0,
+                     refraction: bool = True):
     """Sun azimuth and elevation in heliocal's convention from NREL's SPA (pvlib).
 
     Parameters
     ----------
     timestamps_utc : UTC timestamps (anything :func:`pandas.to_datetime` reads with utc=True).
-    latitude_deg, longitude_deg : site [deg].
-    altitude_m : site height [m].
+    latitude_deg, longitude_deg : site [deg]: one site (floats), or one per timestamp (arrays;
+        SPA's site terms are elementwise, so many sites' times take one call, each row as it
+        would alone).
+    altitude_m : site height [m] (a float or one per timestamp).
     refraction : return the apparent (refraction-corrected) elevation, as camera-target
         logs record it; ``False`` gives the geometric elevation.
 

@@ -37,7 +37,7 @@ from ..artifacts.schemas import COARSE_PREDICTIONS, MEASUREMENTS, REGIMES, ROLLI
 from ..artifacts.store import artifact_present, read_artifact
 from ..models.coarse import MeasurementBatch, normal_errors_mrad, prior_sigma
 from ..models.uncertainty import (ParameterCovariance, aim_jacobian, aim_variance_mrad2,
-                                  coarse_covariance)
+                                  covariance_from_rows, fit_row_terms)
 from ..physics.parameters import HeliostatSpec
 
 __all__ = [
@@ -109,6 +109,12 @@ def robust_noise_mrad(spec: HeliostatSpec, params: torch.Tensor, train: Measurem
     square). The coarse fit's own loss (soft L1) weighs outlying rows down likewise."""
     with torch.no_grad():
         e = normal_errors_mrad(params, spec, train).numpy()
+    return noise_from_errors(e, n_free)
+
+
+def noise_from_errors(errors_mrad, n_free: int) -> float:
+    """:func:`robust_noise_mrad` from the rows' error angles [mrad] (NaN rows left out)."""
+    e = np.asarray(errors_mrad, float)
     e = e[np.isfinite(e)]
     if not len(e):
         return float("nan")
@@ -141,41 +147,71 @@ def _held_out(wd: CommittedWorkdir, ids) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pred, rolling
 
 
-def _level_sources(pred: pd.DataFrame, rolling: pd.DataFrame, nominal: bool) -> dict:
+def _grouped(keys, values) -> dict[str, np.ndarray]:
+    """``values`` (N,) split by heliostat ``keys`` (N,), each heliostat's in their order."""
+    keys = np.asarray(pd.Series(keys, dtype=object).astype(str))
+    values = np.asarray(values)
+    order = np.argsort(keys, kind="stable")
+    keys, values = keys[order], values[order]
+    bounds = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1], True]) if len(keys) else [0]
+    return {keys[a]: values[a:b] for a, b in zip(bounds[:-1], bounds[1:])}
+
+
+def _level_sources(pred: pd.DataFrame, rolling: pd.DataFrame) -> dict[str, dict]:
+    """Per level source (and ``nominal validation``, the nominal geometry's validation rows)
+    each heliostat's held-out errors: its selected model's."""
+    p = pred[pred["selected"].astype(bool)]
+    val = p[p["split"] == "validation"]
+    time_val = p[p["time_split"] == "validation"]
+    nominal = pred[(pred["model"] == "nominal") & (pred["split"] == "validation")]
+    return {"next-day": _grouped(rolling["heliostat_id"], rolling["error_mrad"].to_numpy(float)),
+            "time-split validation": _grouped(time_val["heliostat_id"],
+                                              time_val["time_error_mrad"].to_numpy(float)),
+            "validation": _grouped(val["heliostat_id"], val["error_mrad"].to_numpy(float)),
+            "nominal validation": _grouped(nominal["heliostat_id"],
+                                           nominal["error_mrad"].to_numpy())}
+
+
+def _heliostat_sources(sources: dict[str, dict], hid: str, nominal: bool) -> dict:
     """A heliostat's held-out errors per level source: its selected model's (or, ``nominal``,
     the nominal geometry's validation rows)."""
     if nominal:
-        p = pred[pred["model"] == "nominal"]
-        return {"validation": p.loc[p["split"] == "validation", "error_mrad"].to_numpy()}
-    p = pred[pred["selected"]]
-    return {"next-day": rolling["error_mrad"].to_numpy(float),
-            "time-split validation":
-                p.loc[p["time_split"] == "validation", "time_error_mrad"].to_numpy(float),
-            "validation": p.loc[p["split"] == "validation", "error_mrad"].to_numpy(float)}
+        return {"validation": sources["nominal validation"].get(hid, ())}
+    return {name: sources[name].get(hid, ()) for name in LEVEL_SOURCES[:-1]}
 
 
-def _fitted_rows(rows: pd.DataFrame, regimes: pd.DataFrame | None, selected: dict,
-                 fitted_regime: int | None) -> pd.DataFrame:
-    """The training rows the parameters aim uses rest on: all of them, or for a regime-aware
-    model those of the regime its latest parameters were fitted on."""
+def _fitted_mask(times: pd.Series, regimes: pd.DataFrame | None, selected: dict,
+                 fitted_regime: int | None) -> np.ndarray:
+    """Which of a heliostat's training rows (at UTC ``times``) the parameters aim uses rest on:
+    all of them, or for a regime-aware model those of the regime its latest parameters were
+    fitted on (all of them when none is)."""
+    everything = np.ones(len(times), bool)
     if selected.get("regime_table") is None or regimes is None or fitted_regime is None:
-        return rows
+        return everything
     seg = regimes[(regimes["kind"] == "regime") & (regimes["regime"] == fitted_regime)]
     if seg.empty:
-        return rows
-    t = pd.to_datetime(rows["timestamp"], utc=True)
-    inside = np.zeros(len(rows), bool)
+        return everything
+    t = pd.to_datetime(times, utc=True)
+    inside = np.zeros(len(times), bool)
     for start, end in zip(pd.to_datetime(seg["start"], utc=True), pd.to_datetime(seg["end"], utc=True)):
         inside |= ((t >= start) & (t <= end)).to_numpy()
-    return rows[inside] if inside.any() else rows
+    return inside if inside.any() else everything
 
 
-def _fitted_regime(regime_params: pd.DataFrame | None, hid: str) -> int | None:
+def _take(batch: MeasurementBatch, index: np.ndarray) -> MeasurementBatch:
+    """The rows of ``batch`` at the integer positions ``index``, in that order."""
+    i = torch.from_numpy(np.asarray(index, dtype=np.int64))
+    return MeasurementBatch(batch.measurement_id[i.numpy()], batch.steps[i], batch.sun[i],
+                            batch.focal_spot[i], batch.target_center[i], batch.target_normal[i])
+
+
+def _fitted_regimes(regime_params: pd.DataFrame | None) -> dict[str, int]:
+    """heliostat -> the regime its selected model's latest parameters were fitted on."""
     if regime_params is None:
-        return None
-    p = regime_params[(regime_params["heliostat_id"] == hid) & regime_params["selected"]
-                      & regime_params["latest"]]
-    return int(p["fitted_regime"].iloc[0]) if len(p) else None
+        return {}
+    p = regime_params[regime_params["selected"] & regime_params["latest"]]
+    p = p.drop_duplicates("heliostat_id")        # a heliostat's first such row
+    return {str(h): int(v) for h, v in zip(p["heliostat_id"], p["fitted_regime"])}
 
 
 def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
@@ -207,38 +243,54 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
              .rename(columns={split_column: "split"}) if artifact_present(wd, SPLIT)
              else rows[["heliostat_id", "measurement_id"]].assign(split="train"))
     rows = rows.merge(split, on=["heliostat_id", "measurement_id"], how="left")
-    pred, rolling = _held_out(wd, ids)
+    sources = _level_sources(*_held_out(wd, ids))
     regimes = read_artifact(wd, REGIMES, heliostats=ids) if artifact_present(wd, REGIMES) else None
     regime_params = (read_artifact(wd, REGIME_PARAMS, heliostats=ids)
                      if artifact_present(wd, REGIME_PARAMS) else None)
-    by_rows, by_pred = dict(tuple(rows.groupby("heliostat_id"))), dict(tuple(pred.groupby("heliostat_id")))
-    by_roll = dict(tuple(rolling.groupby("heliostat_id")))
     by_regime = dict(tuple(regimes.groupby("heliostat_id"))) if regimes is not None else {}
-    empty_pred, empty_roll = pred.iloc[:0], rolling.iloc[:0]
+    positions = _grouped(rows["heliostat_id"], np.arange(len(rows)))
+    is_train = (rows["split"] == "train").to_numpy(bool)
+    times = pd.to_datetime(rows["timestamp"], utc=True)
+    last = times.groupby(rows["heliostat_id"].astype(str).to_numpy()).max()
+    batch, sun = MeasurementBatch.from_frame(rows), rows[["sun_e", "sun_n", "sun_u"]].to_numpy(float)
+    fitted, fitted_regime, train = {}, _fitted_regimes(regime_params), {}
+    for hid in ids:
+        idx = positions.get(hid, np.zeros(0, np.int64))
+        train[hid] = idx[is_train[idx]]
+        if models.get(hid, {}).get("model") != "nominal" and len(train[hid]):
+            keep = _fitted_mask(times.iloc[train[hid]], by_regime.get(hid), selected[hid],
+                                fitted_regime.get(hid))
+            fitted[hid] = _take(batch, train[hid][keep])
+    covariances = _covariances(specs, selected, fitted)
     out = {}
     for hid in ids:
-        h_rows = by_rows.get(hid, rows.iloc[:0])
-        train = h_rows[h_rows["split"] == "train"]
         nominal = models.get(hid, {}).get("model") == "nominal"
-        covariance = None
-        if not nominal and len(train):
-            sel = selected[hid]
-            fitted = MeasurementBatch.from_frame(
-                _fitted_rows(train, by_regime.get(hid), sel, _fitted_regime(regime_params, hid)))
-            free = sel["free"].numpy()
-            covariance = coarse_covariance(
-                specs[hid], sel["params"], free, fitted, prior_sigma(sel["nominal"])[free],
-                noise_mrad=robust_noise_mrad(specs[hid], sel["params"], fitted, int(free.sum())))
+        covariance = covariances.get(hid)
         noise = covariance.noise_mrad if covariance is not None else float("nan")
-        level, source = _level(_level_sources(by_pred.get(hid, empty_pred),
-                                              by_roll.get(hid, empty_roll), nominal), noise,
-                               level_sources)
+        level, source = _level(_heliostat_sources(sources, hid, nominal), noise, level_sources)
         if nominal:
             source = "nominal validation" if source == "validation" else source
-        times = pd.to_datetime(h_rows["timestamp"], utc=True).dropna()
-        out[hid] = ErrorBudget(covariance, level, source,
-                               train[["sun_e", "sun_n", "sun_u"]].to_numpy(float),
-                               times.max() if len(times) else None)
+        latest = last.get(hid, pd.NaT)
+        out[hid] = ErrorBudget(covariance, level, source, sun[train[hid]],
+                               None if pd.isna(latest) else latest)
+    return out
+
+
+def _covariances(specs: dict, selected: dict, fitted: dict[str, MeasurementBatch]
+                 ) -> dict[str, ParameterCovariance]:
+    """Each heliostat's posterior covariance on its ``fitted`` rows with the robust noise scale
+    (:func:`robust_noise_mrad`): :func:`heliocal.pipeline.models.uncertainty.coarse_covariance`,
+    its chain evaluated for all heliostats in batches (:func:`fit_row_terms`)."""
+    ids = list(fitted)
+    terms = fit_row_terms([specs[h] for h in ids], [selected[h]["params"] for h in ids],
+                          [fitted[h] for h in ids])
+    out = {}
+    for hid, t in zip(ids, terms):
+        free_idx = np.flatnonzero(selected[hid]["free"].numpy())
+        r, j = t.finite(free_idx)
+        out[hid] = covariance_from_rows(
+            r, j, free_idx, prior_sigma(selected[hid]["nominal"])[free_idx],
+            noise_mrad=noise_from_errors(t.error_mrad, len(free_idx)))
     return out
 
 

@@ -3,11 +3,13 @@
 A schedule is a table of aims, one row each: ``heliostat_id``, ``time_utc`` and the aim point,
 either a calibration target's name (``target``) or ``aim_e_m, aim_n_m, aim_u_m`` [m ENU];
 ``env_<name>`` columns give the env inputs of fine models that use them. :func:`aim_schedule`
-reads the work directory once, takes every heliostat's model and error budget once, and aims
-each heliostat's rows together: the sun from NREL SPA at the heliostat for all its times in
-one call, and for the coarse model (and the nominal geometry) the inverse kinematics and the
-expected error as one tensor operation over the rows. A fine model's steps are a fixed point
-per row (:mod:`.aim`), solved row by row.
+reads the work directory once, takes every heliostat's model and error budget once (the
+covariances from one batched chain evaluation, :func:`.aim_budget.error_budgets`), and aims all
+rows as arrays: the sun from NREL SPA for every row in one call (each at its heliostat's site),
+and for the coarse model (and the nominal geometry) the inverse kinematics and the expected
+error's Jacobian as tensor operations over the rows of one kinematic type, each row a batch of
+one with its own parameters and spec, so that each row's numbers are those of one ``aim``.
+A fine model's steps are a fixed point per row (:mod:`.aim`), solved row by row.
 
 Every row of the schedule gets one output row: ``status`` ``ok``, or ``rejected`` with the
 reason (an unknown heliostat or target, a heliostat without a coarse fit or location, the sun
@@ -17,6 +19,7 @@ limit); a bad row never stops the others. The output's columns are :data:`AIM_CO
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,11 +34,13 @@ from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from ..artifacts.store import read_artifact
 from ..errors import InputError, ParameterError, StageInputError, check_choice
 from ..models.network import MODES
+from ..physics.jacobian import residual_and_jacobian
 from ..physics.kinematics import inverse_kinematics
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.sun import spa_sun_position, sun_vector_enu
 from ..runtime.process_state import one_thread, restores_process_state
-from .aim_budget import ErrorBudget, error_budgets, expected_error_mrad, sun_distance_deg
+from ..models.uncertainty import aim_variance_mrad2
+from .aim_budget import ErrorBudget, error_budgets, sun_distance_deg
 from .fit_coarse import coarse_row_parameters
 
 __all__ = [
@@ -198,131 +203,236 @@ def _latest_regimes(wd: CommittedWorkdir, ids) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------
-# one heliostat's aims
+# the schedule's rows as arrays
 # ------------------------------------------------------------------------------------------------
-def _reject(out: pd.DataFrame, mask, reason: str) -> None:
-    """Mark the rows ``mask`` of ``out`` that are still ``ok`` as rejected for ``reason``."""
-    mask = np.asarray(mask, bool) & (out["status"] == "ok").to_numpy()
-    out.loc[mask, "status"] = "rejected"
-    out.loc[mask, "reason"] = reason
+@dataclass
+class _Rows:
+    """The schedule's rows as arrays, in schedule order, and what is known of each so far."""
+
+    frame: pd.DataFrame                 # the normalised schedule
+    hid: np.ndarray                     # (R,) heliostat ids (str; None where missing)
+    ok: np.ndarray                      # (R,) bool: not rejected (yet)
+    reason: np.ndarray                  # (R,) object: why a row is rejected (None while ok)
+    point: np.ndarray                   # (R, 3) aim points [m ENU]
+
+    @classmethod
+    def of(cls, frame: pd.DataFrame) -> "_Rows":
+        hid = np.array([None if pd.isna(h) else str(h) for h in frame["heliostat_id"]], object)
+        return cls(frame, hid, np.ones(len(frame), bool), np.full(len(frame), None, object),
+                   frame[_POINT].to_numpy(float).copy())
+
+    def reject(self, mask, reason: str) -> None:
+        """Reject the rows ``mask`` that are still ok for ``reason``."""
+        mask = np.asarray(mask, bool) & self.ok
+        self.ok[mask] = False
+        self.reason[mask] = reason
 
 
-def _aim_points(field: _Field, out: pd.DataFrame) -> None:
-    """Fill the aim point columns from the target names; unknown names are rejected."""
-    named = out["target"].notna().to_numpy()
-    for name in out.loc[named, "target"].unique():
-        rows = named & (out["target"] == name).to_numpy()
+def _among(hid: np.ndarray, ids) -> np.ndarray:
+    """(R,) bool: which heliostat ids ``hid`` (str or None) are in ``ids`` (a hash lookup per
+    row; numpy's isin sorts object arrays, seconds for a field's day)."""
+    return pd.Series(hid, dtype=object).isin(set(ids)).to_numpy(bool)
+
+
+def _per_row(values: dict, hid: np.ndarray, default=None) -> np.ndarray:
+    """(R,) object array: each row's heliostat's entry of ``values``."""
+    return np.array([values.get(h, default) for h in hid], object)
+
+
+def _aim_points(field: _Field, rows: _Rows, fitted: np.ndarray) -> None:
+    """Fill the aim points of the ``fitted`` rows from their target names; unknown names and
+    rows without a finite point are rejected."""
+    target = rows.frame["target"]
+    named = fitted & target.notna().to_numpy()
+    names = target.to_numpy(object, na_value=None)
+    for name in pd.unique(names[named]):
+        these = named & (names == name)
         point = field.target_points.get(str(name))
         if point is None:
-            _reject(out, rows, f"unknown target {name!r}: give one of the measurements' targets "
+            rows.reject(these, f"unknown target {name!r}: give one of the measurements' targets "
                                "or aim_e_m, aim_n_m, aim_u_m")
         else:
-            out.loc[rows, _POINT] = point
-    _reject(out, ~np.isfinite(out[_POINT].to_numpy(float)).all(axis=1),
-            "no aim point: give a target or finite aim_e_m, aim_n_m, aim_u_m")
+            rows.point[these] = point
+    rows.reject(fitted & ~np.isfinite(rows.point).all(axis=1),
+                "no aim point: give a target or finite aim_e_m, aim_n_m, aim_u_m")
 
 
-def _sun(field: _Field, hid: str, out: pd.DataFrame) -> np.ndarray:
-    """(M, 3) unit sun vectors of the rows (NaN where rejected); fills the sun angles."""
-    row = field.helio.loc[hid]
-    lat, lon, alt = row["latitude_deg"], row["longitude_deg"], row["altitude_m"]
-    if lat is None or not np.isfinite(lat):
-        _reject(out, np.ones(len(out), bool), "the heliostat has no WGS84 location for the sun")
-        return np.full((len(out), 3), np.nan)
-    _reject(out, out["time_utc"].isna().to_numpy(), "time_utc is not a time")
-    ok = (out["status"] == "ok").to_numpy()
-    az, el = np.full(len(out), np.nan), np.full(len(out), np.nan)
+def _sun(field: _Field, rows: _Rows, fitted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((R, 2) sun azimuth and elevation [deg], (R, 3) unit sun vectors), NaN where not
+    computed: NREL SPA at each row's heliostat, all rows in one call."""
+    site = field.helio.reindex(pd.Index(rows.hid[fitted], dtype=object))
+    lat = np.full(len(rows.hid), np.nan)
+    lat[fitted] = pd.to_numeric(site["latitude_deg"], errors="coerce").to_numpy(float)
+    lon, alt = np.full(len(lat), np.nan), np.full(len(lat), np.nan)
+    lon[fitted] = pd.to_numeric(site["longitude_deg"], errors="coerce").to_numpy(float)
+    alt[fitted] = pd.to_numeric(site["altitude_m"], errors="coerce").to_numpy(float)
+    located = fitted & np.isfinite(lat)
+    rows.reject(fitted & ~located, "the heliostat has no WGS84 location for the sun")
+    rows.reject(located & rows.frame["time_utc"].isna().to_numpy(), "time_utc is not a time")
+    angles = np.full((len(lat), 2), np.nan)
+    ok = rows.ok.copy()
     if ok.any():
-        alt = float(alt) if alt is not None and np.isfinite(alt) else 0.0
-        az[ok], el[ok] = spa_sun_position(out.loc[ok, "time_utc"], float(lat), float(lon), alt)
-    out["sun_azimuth_deg"], out["sun_elevation_deg"] = az, el
-    _reject(out, ~(el > 0), "the sun is below the horizon")
-    return sun_vector_enu(az, el)
+        az, el = spa_sun_position(rows.frame["time_utc"][ok], lat[ok], lon[ok],
+                                  np.where(np.isfinite(alt[ok]), alt[ok], 0.0))
+        angles[ok, 0], angles[ok, 1] = az, el
+    rows.reject(located & ~(angles[:, 1] > 0), "the sun is below the horizon")
+    return angles, sun_vector_enu(angles[:, 0], angles[:, 1])
 
 
 def _row_parameters(field: _Field, hid: str, chosen: str, times: pd.Series) -> torch.Tensor:
-    """The coarse parameters of each row: (28,) for one geometry, (M, 28) for a regime-aware
-    model (its regime and drift at each row's time, as one aim takes them)."""
+    """(M, 28) coarse parameters of a heliostat's rows at ``times``: its one geometry, or for a
+    regime-aware model each row's regime and drift, as one aim takes them."""
     if chosen == "nominal":
-        return nominal_parameters(field.helio.loc[hid])
+        return nominal_parameters(field.helio.loc[hid]).expand(len(times), 28)
     sel = field.selected[hid]
     if sel.get("regime_table") is None:
-        return sel["params"]
-    t = times.where(times.notna(), pd.Timestamp("1970-01-01", tz="UTC"))
-    return coarse_row_parameters(sel, t.to_numpy())
+        return sel["params"].to(torch.float64).expand(len(times), 28)
+    return coarse_row_parameters(sel, times.to_numpy())
 
 
-def _coarse_aims(params: torch.Tensor, spec: HeliostatSpec, sun, aim, budget: ErrorBudget
+#: Aims per batched inverse kinematics and Jacobian (rows x 3 x 28 float64: about 40 MB).
+AIM_CHUNK_ROWS = 20_000
+
+
+def _coarse_aims(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """(steps (M, 2), expected error (M,)) of the coarse model: one geometry for all rows
-    (``params`` (28,)), or each row its own (``params`` (M, 28), rows as a batch of one)."""
-    if params.dim() == 1:
-        steps = inverse_kinematics(params, spec, sun, aim)
-        safe = torch.nan_to_num(steps)
-        return steps.numpy(), expected_error_mrad(budget, spec, params, safe, sun, aim)
-    steps = inverse_kinematics(params, spec, sun[:, None], aim[:, None])
-    safe = torch.nan_to_num(steps)
-    expected = expected_error_mrad(budget, spec, params, safe, sun[:, None], aim[:, None])
-    return steps[:, 0].numpy(), expected.reshape(-1)
+    """((R, 2) steps, (R,) expected error [mrad]) of the ok rows under the coarse model (or the
+    nominal geometry) of their heliostat, NaN elsewhere: each row a batch of one with its own
+    parameters and spec, the rows of one kinematic type in batches of :data:`AIM_CHUNK_ROWS`,
+    so the numbers are those of one aim at a time."""
+    from ..physics.lm import SPEC_TENSORS, stack_specs
+
+    steps, expected = np.full((len(rows.hid), 2), np.nan), np.full(len(rows.hid), np.nan)
+    todo = np.flatnonzero(rows.ok)
+    todo = todo[np.argsort(rows.hid[todo].astype(str), kind="stable")]   # a heliostat's rows together
+    helio_ids = list(pd.unique(rows.hid[todo]))
+    params = {h: _row_parameters(field, h, chosen[i], rows.frame["time_utc"].iloc[i_rows])
+              for h, i, i_rows in _heliostat_rows(rows.hid, todo, helio_ids)}
+    groups: dict[tuple, list[str]] = {}
+    for h in helio_ids:
+        groups.setdefault((field.specs[h].kinematic_type, field.specs[h].actuator_type), []).append(h)
+    for members in groups.values():
+        spec_all = stack_specs([field.specs[h] for h in members])
+        code = {h: k for k, h in enumerate(members)}
+        idx = todo[_among(rows.hid[todo], members)]
+        p_all = torch.cat([params[h] for h in members])
+        for start in range(0, len(idx), AIM_CHUNK_ROWS):
+            part = idx[start:start + AIM_CHUNK_ROWS]
+            which = torch.as_tensor([code[h] for h in rows.hid[part]])
+            spec = copy.copy(spec_all)
+            for name in SPEC_TENSORS:
+                object.__setattr__(spec, name, getattr(spec_all, name)[which])
+            s, e = _aim_batch(field, rows.hid[part], spec,
+                              p_all[start:start + AIM_CHUNK_ROWS],
+                              torch.as_tensor(sun[part], dtype=torch.float64)[:, None],
+                              torch.as_tensor(rows.point[part], dtype=torch.float64)[:, None])
+            steps[part], expected[part] = s, e
+    return steps, expected
 
 
-def _fine_steps(field: _Field, hid: str, model: str, out: pd.DataFrame, sun, aim) -> np.ndarray:
-    """(M, 2) steps of a fine model: :func:`.aim.aim_steps` row by row (its fixed point is
-    per aim; NaN where it fails, and the failure is the row's reason)."""
+def _heliostat_rows(hid: np.ndarray, todo: np.ndarray, helio_ids):
+    """(heliostat, index of its first row, its rows' indices) for the rows ``todo`` (sorted by
+    heliostat)."""
+    bounds = np.flatnonzero(np.r_[True, hid[todo][1:] != hid[todo][:-1], True])
+    for h, a, b in zip(helio_ids, bounds[:-1], bounds[1:]):
+        yield h, todo[a], todo[a:b]
+
+
+def _aim_batch(field: _Field, hid: np.ndarray, spec: HeliostatSpec, params: torch.Tensor,
+               sun: torch.Tensor, aim: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(steps (K, 2), expected error (K,)) of K rows of one type, each a batch of one (``params``
+    (K, 28), ``sun`` and ``aim`` (K, 1, 3)); rows of one heliostat are contiguous."""
+    steps = inverse_kinematics(params, spec, sun, aim)
+    with torch.no_grad():
+        _, jac = residual_and_jacobian(params, spec, torch.nan_to_num(steps), sun, aim)
+    jac = jac.numpy()
+    expected = np.empty(len(hid))
+    bounds = np.flatnonzero(np.r_[True, hid[1:] != hid[:-1], True])
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        budget = field.budgets[hid[a]]
+        variance = np.zeros(b - a)
+        if budget.covariance is not None:
+            j = jac[a:b, 0][..., budget.covariance.free_idx]
+            variance = aim_variance_mrad2(j, budget.covariance)
+        expected[a:b] = np.sqrt(variance + budget.level_mrad ** 2)
+    return steps[:, 0].numpy(), expected
+
+
+def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
+                steps: np.ndarray) -> None:
+    """The steps of the ok rows whose heliostat aims with a fine model, in place in ``steps``:
+    :func:`.aim.aim_steps` row by row (its fixed point is per aim; a failure is the row's
+    reason)."""
+    fine = np.flatnonzero(rows.ok & ~np.isin(chosen.astype(str), ["coarse", "nominal", "None"]))
+    if not len(fine):
+        return
     from ..errors import HeliocalError
     from .aim import aim_steps
 
-    env_cols = [c for c in out.columns if str(c).startswith("env_")]
-    steps = np.full((len(out), 2), np.nan)
-    for i in np.flatnonzero((out["status"] == "ok").to_numpy()):
-        env = {c[4:]: float(out.at[i, c]) for c in env_cols if pd.notna(out.at[i, c])}
+    env_cols = [c for c in rows.frame.columns if str(c).startswith("env_")]
+    for i in fine:
+        env = {c[4:]: float(rows.frame[c].iat[i]) for c in env_cols
+               if pd.notna(rows.frame[c].iat[i])}
         try:
-            one = aim_steps(field.wd, hid, aim_point_enu=aim[i].numpy(),
-                            sun_vector_enu=sun[i].numpy(), time_utc=out.at[i, "time_utc"],
-                            env=env, model=model)
+            one = aim_steps(field.wd, rows.hid[i], aim_point_enu=rows.point[i],
+                            sun_vector_enu=sun[i], time_utc=rows.frame["time_utc"].iat[i],
+                            env=env, model="auto" if field.auto else chosen[i])
             steps[i] = one["axis_1_steps"], one["axis_2_steps"]
         except HeliocalError as exc:
-            out.at[i, "status"], out.at[i, "reason"] = "rejected", str(exc)
-    return steps
+            steps[i] = np.nan
+            rows.reject(np.arange(len(steps)) == i, str(exc))
 
 
-def _aim_heliostat(field: _Field, hid: str, rows: pd.DataFrame,
-                   max_expected_error_mrad: float | None) -> pd.DataFrame:
-    out = rows.copy().reset_index(drop=True)
-    out["status"], out["reason"] = "ok", None
-    if hid not in field.helio.index:
-        _reject(out, np.ones(len(out), bool), "unknown heliostat: not in heliostats.parquet")
-        return out
-    if hid not in field.selected:
-        _reject(out, np.ones(len(out), bool), "the heliostat has no coarse fit (run fit-coarse)")
-        return out
-    _aim_points(field, out)
-    sun_np = _sun(field, hid, out)
-    ok = (out["status"] == "ok").to_numpy()
-    chosen = field.models.get(hid, {}).get("model", "coarse")
-    requested = "auto" if field.auto else chosen
-    params = _row_parameters(field, hid, chosen, out["time_utc"])
-    sun = torch.tensor(np.where(ok[:, None], sun_np, [0.0, 0.0, 1.0]), dtype=torch.float64)
-    aim = torch.tensor(np.nan_to_num(out[_POINT].to_numpy(float)), dtype=torch.float64)
-    budget = field.budgets[hid]
-    steps, expected = _coarse_aims(params, field.specs[hid], sun, aim, budget)
-    if chosen not in ("coarse", "nominal"):   # the expected error stays the coarse model's
-        steps = _fine_steps(field, hid, requested, out, sun, aim)
-    steps[~ok] = np.nan
-    _reject(out, ~np.isfinite(steps).all(axis=1), "the aim point is out of the actuators' reach")
-    out["axis_1_steps"], out["axis_2_steps"] = steps[:, 0], steps[:, 1]
-    out["model"] = chosen
-    out["regime"] = field.regimes.get(hid)
-    out["expected_error_mrad"] = np.where(np.isfinite(steps).all(axis=1), expected, np.nan)
-    out["level_source"] = budget.level_source
-    out["sun_distance_deg"] = sun_distance_deg(budget, sun_np)
-    out["days_since_last_row"] = ((out["time_utc"] - budget.last_row_utc) / pd.Timedelta(days=1)
-                                  if budget.last_row_utc is not None else np.nan)
+def _flags(field: _Field, rows: _Rows, fitted: np.ndarray, sun: np.ndarray) -> dict:
+    """The fitted rows' ``level_source``, ``sun_distance_deg`` and ``days_since_last_row``."""
+    distance = np.full(len(rows.hid), np.nan)
+    todo = np.flatnonzero(fitted)
+    todo = todo[np.argsort(rows.hid[todo].astype(str), kind="stable")]
+    for h, _, idx in _heliostat_rows(rows.hid, todo, list(pd.unique(rows.hid[todo]))):
+        distance[idx] = sun_distance_deg(field.budgets[h], sun[idx])
+    last = _per_row({h: b.last_row_utc for h, b in field.budgets.items()}, rows.hid)
+    last = pd.to_datetime(pd.Series(np.where(fitted, last, None)), utc=True)
+    days = ((rows.frame["time_utc"].reset_index(drop=True) - last) / pd.Timedelta(days=1)
+            ).to_numpy(float)
+    source = _per_row({h: b.level_source for h, b in field.budgets.items()}, rows.hid, np.nan)
+    return {"level_source": np.where(fitted, source, np.nan), "sun_distance_deg": distance,
+            "days_since_last_row": days}
+
+
+def _aim_rows(field: _Field, schedule: pd.DataFrame,
+              max_expected_error_mrad: float | None) -> pd.DataFrame:
+    """Every row of the (normalised) schedule aimed, in schedule order (module docstring)."""
+    rows = _Rows.of(schedule)
+    known = _among(rows.hid, field.helio.index)
+    rows.reject(~known, "unknown heliostat: not in heliostats.parquet")
+    fitted = known & _among(rows.hid, field.selected)
+    rows.reject(~fitted, "the heliostat has no coarse fit (run fit-coarse)")
+    _aim_points(field, rows, fitted)
+    angles, sun = _sun(field, rows, fitted)
+    chosen = _per_row({h: field.models.get(h, {}).get("model", "coarse") for h in field.selected},
+                      rows.hid)
+    steps, expected = _coarse_aims(field, rows, chosen, np.where(rows.ok[:, None], sun, 0.0))
+    _fine_steps(field, rows, chosen, sun, steps)
+    steps[~rows.ok] = np.nan
+    rows.reject(~np.isfinite(steps).all(axis=1), "the aim point is out of the actuators' reach")
+    expected = np.where(np.isfinite(steps).all(axis=1), expected, np.nan)
     if max_expected_error_mrad is not None:
-        _reject(out, ~(out["expected_error_mrad"] <= max_expected_error_mrad),
-                f"expected error above --max-expected-error {max_expected_error_mrad:g} mrad")
-    bad = (out["status"] != "ok").to_numpy()
-    out.loc[bad, ["axis_1_steps", "axis_2_steps", "expected_error_mrad"]] = np.nan
+        rows.reject(~(expected <= max_expected_error_mrad),
+                    f"expected error above --max-expected-error {max_expected_error_mrad:g} mrad")
+    steps[~rows.ok], expected[~rows.ok] = np.nan, np.nan
+    out = schedule.copy()
+    out[_POINT] = rows.point
+    out["sun_azimuth_deg"], out["sun_elevation_deg"] = angles[:, 0], angles[:, 1]
+    out["axis_1_steps"], out["axis_2_steps"] = steps[:, 0], steps[:, 1]
+    out["model"] = pd.Series(np.where(fitted, chosen, np.nan), dtype="str")
+    out["regime"] = pd.to_numeric(pd.Series(np.where(fitted, _per_row(field.regimes, rows.hid),
+                                                     np.nan)), errors="coerce")
+    out["expected_error_mrad"] = expected
+    for name, values in _flags(field, rows, fitted, sun).items():
+        out[name] = values
+    out["level_source"] = out["level_source"].astype("str")
+    out["status"] = pd.Series(np.where(rows.ok, "ok", "rejected"), dtype="str")
+    out["reason"] = rows.reason
     return out
 
 
@@ -354,17 +464,14 @@ def aim_schedule(workdir, schedule: pd.DataFrame, *, model: str = "auto",
         raise ParameterError(f"--max-expected-error must be a positive number of mrad. Got "
                              f"{max_expected_error_mrad!r} instead.")
     wd = CommittedWorkdir.of(workdir)
-    schedule = _normalised(schedule).assign(_order=np.arange(len(schedule)))
+    schedule = _normalised(schedule)
     ids = sorted(schedule["heliostat_id"].dropna().unique())
     field = _read_field(wd, ids, model)
     if not field.selected and ids and any(h in field.helio.index for h in ids):
         raise StageInputError(f"no coarse fit in {wd}: run `heliocal fit-coarse --workdir {wd}` "
                               "first")
-    parts = []
     with one_thread():
-        for hid, rows in schedule.groupby("heliostat_id", sort=True, dropna=False):
-            parts.append(_aim_heliostat(field, str(hid), rows, max_expected_error_mrad))
-    out = pd.concat(parts, ignore_index=True).sort_values("_order").drop(columns="_order")
+        out = _aim_rows(field, schedule, max_expected_error_mrad)
     if daylight_only:
         out = out[out["reason"] != "the sun is below the horizon"]
     extra = [c for c in out.columns if c not in AIM_COLUMNS]
