@@ -162,6 +162,12 @@ def test_a_schedule_without_its_columns_is_refused(fitted, runner, tmp_path):
     bad.write_text("heliostat,time\nA,2023-06-21T10:00Z\n")
     r = runner.invoke(app, ["aim", "--workdir", str(work), "--schedule", str(bad)])
     assert r.exit_code == 1 and "a schedule needs the columns heliostat_id, time_utc" in r.stderr
+    # a header without rows (an export of an empty day) is one line too, not a traceback
+    empty = tmp_path / "empty.csv"
+    empty.write_text("heliostat_id,time_utc,target\n")
+    r = runner.invoke(app, ["aim", "--workdir", str(work), "--schedule", str(empty)])
+    assert r.exit_code == 1 and r.stderr.count("\n") == 1, r.stderr
+    assert "the schedule has no rows" in r.stderr
 
 
 @pytest.mark.slow

@@ -87,6 +87,9 @@ def read_schedule(path: str | Path) -> pd.DataFrame:
     if missing or not ("target" in df.columns or has_point):
         raise InputError(f"{path}: a schedule needs the columns heliostat_id, time_utc and target "
                          f"(or aim_e_m, aim_n_m, aim_u_m); it has {list(df.columns)}")
+    if df.empty:
+        raise InputError(f"{path}: the schedule has no rows; give one row per aim "
+                         "(heliostat_id, time_utc, target)")
     return _normalised(df)
 
 
