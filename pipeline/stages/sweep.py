@@ -53,7 +53,7 @@ from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import ParameterError, check_float, check_int
 from ..models.coarse import fit_presets, normal_errors_mrad
-from ..models.config import FineConfig, PathConfig, ensemble_seeds
+from ..models.config import FineConfig, PathConfig, ScreenConfig, ensemble_seeds
 from ..models.fade import TIME_FADE_DAYS
 from ..models.gp import GPConfig
 from ..models.gp_heliostat import fit_heliostat_gps
@@ -70,6 +70,7 @@ from .fit_hybrid import hybrid_chunks
 from .forward import add_sweep_time_split
 from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
+from .sweep_screen import SCREEN_FAILED, screen_chunk
 from .sweep_inputs import (SweepHeliostat, SweepInputs, fit_pretrained_errors, read_sweep_inputs,
                            sweep_row)
 
@@ -146,25 +147,10 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
 # ------------------------------------------------------------------------------------------------
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
-def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, path,
-                  pretrain_config: PretrainConfig | None = None,
-                  gp_config: GPConfig | None = None,
-                  rule: SelectionRule = SelectionRule()) -> list[dict]:
-    """The full-size candidates and the selection of a chunk of heliostats that share one
-    kinematic type, actuator type and coarse preset (one batched program per weight decay);
-    with ``gp_config`` the GP correction, with ``pretrain_config`` the pre-trained network (first
-    seed) are candidates too. Each heliostat's choice is its :class:`CandidatePool`'s."""
-    helios = [SweepHeliostat.of(item) for item in items]
-    pools = [CandidatePool(h, rule) for h in helios]
-    out_rows: list[list[dict]] = [[] for _ in helios]
-    for h, rows in zip(helios, out_rows):
-        # the coarse presets exactly as fit-coarse fitted them (its predictions)
-        for model, frame in h.coarse.items():
-            if model == "nominal":
-                continue
-            rows.append(sweep_row(h.hid, model, h.n_full, float("nan"), 0,
-                             frame["error_mrad"].to_numpy(np.float64), h.labels, h.train,
-                             h.test_distance, model, 0.0))
+def _train_path_candidates(helios, pools, out_rows, variants, weight_decays, seeds, path) -> None:
+    """Train the weight-decay path of every band set of ``variants`` for ``helios`` (one batched
+    program per weight decay) and add each ensemble to its heliostat's pool and sweep rows (in
+    place; the three lists in the same order)."""
     n_seeds = len(seeds)
     for kind, cfg in variants:
         k_ens = cfg.ensemble
@@ -191,6 +177,37 @@ def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, 
                     out_rows[i].append(sweep_row(h.hid, kind, h.n_full, wd, s, err, h.labels,
                                                  h.train, h.test_distance, h.selected["preset"],
                                                  wall, length))
+
+
+def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, path,
+                  pretrain_config: PretrainConfig | None = None,
+                  gp_config: GPConfig | None = None,
+                  rule: SelectionRule = SelectionRule(),
+                  screen: ScreenConfig = ScreenConfig(enabled=False)) -> list[dict]:
+    """The full-size candidates and the selection of a chunk of heliostats that share one
+    kinematic type, actuator type and coarse preset (one batched program per weight decay);
+    with ``gp_config`` the GP correction, with ``pretrain_config`` the pre-trained network (first
+    seed) are candidates too. With ``screen`` enabled only the heliostats whose screen passes
+    (:func:`heliocal.pipeline.stages.sweep_screen.screen_chunk`) train the weight-decay path.
+    Each heliostat's choice is its :class:`CandidatePool`'s."""
+    helios = [SweepHeliostat.of(item) for item in items]
+    pools = [CandidatePool(h, rule) for h in helios]
+    out_rows: list[list[dict]] = [[] for _ in helios]
+    for h, rows in zip(helios, out_rows):
+        # the coarse presets exactly as fit-coarse fitted them (its predictions)
+        for model, frame in h.coarse.items():
+            if model == "nominal":
+                continue
+            rows.append(sweep_row(h.hid, model, h.n_full, float("nan"), 0,
+                             frame["error_mrad"].to_numpy(np.float64), h.labels, h.train,
+                             h.test_distance, model, 0.0))
+    verdicts = screen_chunk(helios, pools, variants[0][1], seeds[0], screen, rule)
+    for pool, verdict in zip(pools, verdicts):
+        pool.screen, pool.screen_gain = verdict.status, verdict.gain
+    keep = [i for i, v in enumerate(verdicts) if v.trains_path]
+    if keep:
+        _train_path_candidates([helios[i] for i in keep], [pools[i] for i in keep],
+                               [out_rows[i] for i in keep], variants, weight_decays, seeds, path)
     for i, h in enumerate(helios):
         if gp_config is not None:
             fits = fit_heliostat_gps(h.rows, h.labels, h.spec, h.data, coarse_row_parameters(
@@ -424,7 +441,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               study: int | Sequence[str] | None = DEFAULT_STUDY, study_seed: int = 0,
               path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE,
               select_pretrained: bool = False, time_split: bool = False, gp: bool = True,
-              gp_config: GPConfig | None = None, rule: SelectionRule | None = None) -> dict:
+              gp_config: GPConfig | None = None, rule: SelectionRule | None = None,
+              screen: ScreenConfig | None = None) -> dict:
     """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
     (and ``hybrid/selected/``), return a summary.
 
@@ -449,6 +467,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     gp, gp_config : the GP correction is a candidate and a line of the study (settings: default
         :class:`GPConfig` with the config's env columns and the first seed).
     rule : the selection rule (:class:`heliocal.pipeline.models.selection.SelectionRule`).
+    screen : the screen that decides per heliostat whether its weight-decay path is trained
+        (default :class:`ScreenConfig`, on; ``ScreenConfig(enabled=False)`` trains every path;
+        :mod:`.sweep_screen`).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     """
     workdir = Path(workdir)
@@ -461,6 +482,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     variants = hybrid_variants(config, extra_bands)
     gp_config = (gp_config or GPConfig(env=config.env, seed=seeds[0])).validated() if gp else None
     rule = (rule or SelectionRule()).validated()
+    screen = (screen or ScreenConfig()).validated()
     warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
     items = read_sweep_inputs(workdir, heliostats)
     selected = {hid: item.selected for hid, item in items.items()}
@@ -468,7 +490,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          index=list(items)) if items else None
     ids = sorted(items, key=lambda h: (len(items[h].rows), h))
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
-                         pretrain_config if select_pretrained else None, gp_config, rule))
+                         pretrain_config if select_pretrained else None, gp_config, rule,
+                         screen))
              for chunk in hybrid_chunks(ids, selected, helio, batch_size)]
     studied = study_heliostats(list(items), study, study_seed)
     coarse_options = coarse_fit_options(workdir)
@@ -496,9 +519,12 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "batch_size": batch_size, "select_pretrained": bool(select_pretrained),
             "coarse_options": coarse_options, "time_split": bool(time_split),
             "gp_config": gp_config.to_dict() if gp_config else None, "rule": rule.to_dict(),
+            "screen": screen.to_dict(),
             "heliostats": list(heliostats) if heliostats else None}
     selection = _write_outputs(workdir, results, chosen, heliostats, opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "study_heliostats": studied,
-            "members_per_heliostat": {h: len(weight_decays) * len(seeds) * len(variants)
-                                      for h in sorted(items)}}
+            "members_per_heliostat": {
+                r["heliostat_id"]: 0 if r["screen"] == SCREEN_FAILED
+                else len(weight_decays) * len(seeds) * len(variants)
+                for r in (res["selection"] for res in chosen)}}
