@@ -21,6 +21,7 @@ plus ``--sweep-args`` in it, timed (wall clock of the process); its selection.pa
     flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/sweep_screen.py \\
         --datasets sample,paint --arm off --sweep-args "--screen off" [--out runs/screen]
     .venv/bin/python benchmarks/sweep_screen.py --out runs/screen --compare off on
+    .venv/bin/python benchmarks/sweep_screen.py --compare-selections OFF.parquet ON.parquet
 """
 
 from __future__ import annotations
@@ -142,6 +143,30 @@ def compare(out: Path, before: str, after: str) -> None:
                   f"{b['wall_s'][name] / wall:.2f} |")
 
 
+def compare_selections(before: Path, after: Path) -> None:
+    """Summarise two selection.parquet files of one field (e.g. benchmarks/field.py's with
+    ``--sweep-args "--screen off"`` and without): models chosen, the screen's verdicts, and
+    every heliostat whose selected model or test error changed."""
+    a = pd.read_parquet(before).set_index("heliostat_id")
+    b = pd.read_parquet(after).set_index("heliostat_id")
+    t = a.join(b, how="inner", suffixes=("_a", "_b"))
+    t["ratio"] = t["test_error_mrad_b"] / t["test_error_mrad_a"]
+    print(f"{len(t)} heliostats; before: {a['model'].value_counts().to_dict()}; "
+          f"after: {b['model'].value_counts().to_dict()}; screen: "
+          f"{b['screen'].value_counts().to_dict() if 'screen' in b else 'n/a'}")
+    changed = t[(t["model_a"] != t["model_b"]) | (t["ratio"] - 1).abs().gt(1e-9)]
+    print(f"changed: {len(changed)}; worse on test by more than 2 %: "
+          f"{int((t['ratio'] > 1.02).sum())}; largest ratio {t['ratio'].max():.3f}; mean test "
+          f"{t['test_error_mrad_a'].mean():.4f} -> {t['test_error_mrad_b'].mean():.4f} mrad")
+    if len(changed):
+        print("| heliostat | before: model | test | after: model | test | screen | gain | ratio |")
+        print("|---|---|---|---|---|---|---|---|")
+        for hid, r in changed.iterrows():
+            print(f"| {hid} | {r['model_a']} | {r['test_error_mrad_a']:.3f} | {r['model_b']} | "
+                  f"{r['test_error_mrad_b']:.3f} | {r.get('screen_b', '')} | "
+                  f"{r.get('screen_gain_b', float('nan')):.3f} | {r['ratio']:.3f} |")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", default="sample,paint,csv,synthetic,sim")
@@ -149,7 +174,12 @@ def main(argv=None) -> None:
     ap.add_argument("--sweep-args", default="", help="options of this arm's sweep")
     ap.add_argument("--out", default="runs/screen")
     ap.add_argument("--compare", nargs=2, metavar=("BEFORE", "AFTER"))
+    ap.add_argument("--compare-selections", nargs=2, type=Path, metavar=("BEFORE", "AFTER"),
+                    help="two selection.parquet files of one field")
     args = ap.parse_args(argv)
+    if args.compare_selections:
+        compare_selections(*args.compare_selections)
+        return
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     if args.compare:
