@@ -1,6 +1,7 @@
 """Settings of the fine model and its training (:class:`FineConfig`), of the training along the
-weight-decay path (:class:`PathConfig`) and of the sweep's screen (:class:`ScreenConfig`): plain frozen dataclasses, light to import (the CLI
-reads their defaults for ``--help`` without loading torch).
+weight-decay path (:class:`PathConfig`) and of the sweep's screen (:class:`ScreenConfig`): plain
+frozen dataclasses, light to import (the CLI reads their defaults for ``--help`` without loading
+torch).
 """
 
 from __future__ import annotations
@@ -139,32 +140,28 @@ class PathConfig:
 
 @dataclass(frozen=True)
 class ScreenConfig:
-    """The sweep's screen: whether a heliostat's weight-decay path is worth training
-    (:mod:`heliocal.pipeline.stages.sweep_screen`, docs/hybrid.md "The screen").
+    """The sweep's screen: how far a heliostat's weight-decay path is trained before the sweep
+    asks whether the rest is worth it (:mod:`heliocal.pipeline.stages.sweep_screen`,
+    docs/hybrid.md "The screen").
 
     Attributes
     ----------
     enabled : ``False`` trains every heliostat's full path (``sweep --screen off``).
-    weight_decay : the one weight decay of the screen's ensemble (the sweep's first band set and
-        ensemble size, first seed), trained from its seeded initial weights.
-    epochs, patience : its budget: at most ``epochs`` epochs, stopping after ``patience`` without a
-        validation improvement (one stage of the path's default budget).
+    stages : the screen is the first band set's path up to its ``stages``-th weight decay (3: 1,
+        0.1 and 0.01 on the default grid); where it passes, the path goes on from there and the
+        other band sets are trained, so the screen costs a passing heliostat nothing.
     share : the screen's margin is ``share`` x the rule's network margin
-        (``SelectionRule.min_improvement``): the path's best ensemble may gain more than the
-        screen's, so the screen asks for part of the margin only. A rule whose network margin is
-        not positive cannot be screened for (every heliostat trains its path).
+        (``SelectionRule.min_improvement``): the rest of the path may gain more than its start,
+        so the screen asks for part of the margin only. A rule whose network margin is not
+        positive cannot be screened for (every heliostat trains its path).
     """
 
     enabled: bool = True
-    weight_decay: float = 1e-3
-    epochs: int = 200
-    patience: int = 50
+    stages: int = 3
     share: float = 0.5
 
     def validated(self) -> "ScreenConfig":
-        check_float(self.weight_decay, "weight_decay", "sweep_screen", 0.0, None)
-        check_int(self.epochs, "epochs", "sweep_screen", 1)
-        check_int(self.patience, "patience", "sweep_screen", 1)
+        check_int(self.stages, "stages", "sweep_screen", 1)
         check_float(self.share, "share", "sweep_screen", 0.0, 1.0)
         return self
 
