@@ -94,10 +94,11 @@ def sweep_cmd(
         help="The Gaussian-process correction of the coarse model is a candidate (and a line "
              "of the training-size study).")] = True,
     screen: Annotated[SweepScreen, typer.Option(
-        "--screen", help="on: per heliostat one ensemble at one weight decay first; the full "
-                         "weight-decay path only where it gains at least half the networks' "
-                         "margin on the weighted validation rows (selection.parquet screen). "
-                         "off: the full path for every heliostat.")] = SweepScreen.on,
+        "--screen", help="on: the integer bands' path up to its third weight decay first, "
+                         "the rest of the path and the octave bands only where that gains at "
+                         "least half the networks' margin on the weighted validation rows "
+                         "(selection.parquet screen). off: the full path for every "
+                         "heliostat.")] = SweepScreen.on,
     pretrain_variant: Annotated[PretrainVariant, typer.Option(
         "--pretrain-variant", help="Variant of the pre-trained network (candidate and "
                                    "baseline): residual (correction to the coarse inverse "
