@@ -12,10 +12,10 @@ from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag,
                               SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
                               incremental_line, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
-from heliocal.pipeline.models.config import FineConfig, PathConfig
+from heliocal.pipeline.models.config import FineConfig, PathConfig, ScreenConfig
 from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT,
                                          OCTAVE_BANDS, NeuralBaseline, PretrainVariant,
-                                         TrainingDtype)
+                                         SweepScreen, TrainingDtype)
 
 
 def _ints(text: Optional[str], name: str):
@@ -94,6 +94,12 @@ def sweep_cmd(
         "--gp/--no-gp",
         help="The Gaussian-process correction of the coarse model is a candidate (and a line "
              "of the training-size study).")] = True,
+    screen: Annotated[SweepScreen, typer.Option(
+        "--screen", help="on: the integer bands' path up to its third weight decay first, "
+                         "the rest of the path and the octave bands only where that gains at "
+                         "least half the networks' margin on the weighted validation rows "
+                         "(selection.parquet screen). off: the full path for every "
+                         "heliostat.")] = SweepScreen.on,
     pretrain_variant: Annotated[PretrainVariant, typer.Option(
         "--pretrain-variant", help="Variant of the pre-trained network (candidate and "
                                    "baseline): residual (correction to the coarse inverse "
@@ -147,5 +153,6 @@ def sweep_cmd(
                             study_seed=study_seed, path=path, batch_size=batch_size,
                             pretrain_config=PretrainConfig(variant=pretrain_variant.value),
                             select_pretrained=select_pretrained, time_split=time_split, gp=gp,
-                            incremental=incremental)
+                            incremental=incremental,
+                            screen=ScreenConfig(enabled=screen == SweepScreen.on))
     emit(summary, json_, _human)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import enum
 
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
-           "PretrainVariant", "NeuralBaseline", "AimModel", "CoarseLoss", "CoarseSolver",
+           "PretrainVariant", "NeuralBaseline", "SweepScreen", "AimModel", "CoarseLoss", "CoarseSolver",
            "CoarsePrior", "SimulatedMounting",
            "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "FocalSpotDetector",
            "AzimuthConvention", "DEFAULT_BATCH_ROWS", "DEFAULT_TIME_MIN",
@@ -110,6 +110,14 @@ class NeuralBaseline(Choice):
 
     nn_only = "nn-only"
     pretrained_nn = "pretrained-nn"
+
+
+class SweepScreen(Choice):
+    """``sweep --screen``: train one ensemble per heliostat first and the full weight-decay path
+    only where it gains enough (on), or the full path everywhere (off)."""
+
+    on = "on"
+    off = "off"
 
 
 class AimModel(Choice):

@@ -29,7 +29,7 @@ from heliocal.pipeline.stages.simulate import write_field
 from heliocal.pipeline.stages.split import run_split
 from heliocal.pipeline.stages.sweep import (MIN_IMPROVEMENT, default_ladder, run_sweep,
                                             study_heliostats, weight_decay_grid)
-from heliocal.pipeline.models.config import PathConfig
+from heliocal.pipeline.models.config import PathConfig, ScreenConfig
 from heliocal.pipeline.models.selection import SelectionRule
 from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 
@@ -59,10 +59,11 @@ def static_workdir(tmp_path_factory):
 def test_network_that_can_only_overfit_falls_back_to_coarse(static_workdir):
     # SP13 is static: the rigid body fitted on all its training rows reaches the noise floor,
     # so an unregularised network can only fit noise; the selection must keep the coarse model
-    # (the paper's worst-case guarantee).
+    # (the paper's worst-case guarantee). The screen is off: this is the rule's test, so the
+    # network must be trained (tests/test_sweep_screen.py: the screen would skip it).
     run_sweep(static_workdir, n_train=[10_000], weight_decays=[0.0], presets=("static-20",),
               baselines=(), config=FineConfig(max_epochs=150, patience=150),
-              heliostats=["SP13"], study=0)
+              heliostats=["SP13"], study=0, screen=ScreenConfig(enabled=False))
     sel = pd.read_parquet(static_workdir / SELECTION.filename)
     assert list(sel["model"]) == ["coarse"]
     row = sel.iloc[0]
@@ -80,7 +81,8 @@ def test_network_that_can_only_overfit_falls_back_to_coarse(static_workdir):
 def test_training_size_study_rows(static_workdir):
     run_sweep(static_workdir, n_train=[10, 40], weight_decays=[1.0, 0.0], seeds=[0, 1],
               presets=("static-6", "stone-8"), baselines=("nn-only",),
-              config=FineConfig(max_epochs=20, patience=20), heliostats=["SP13"])
+              config=FineConfig(max_epochs=20, patience=20), heliostats=["SP13"],
+              screen=ScreenConfig(enabled=False))   # the production path's rows are counted
     sweep = pd.read_parquet(static_workdir / SWEEP.filename)
     counts = sweep.groupby("model").size().to_dict()
     # the study's sizes are 10, 40 and the full one (fit-coarse's training rows). Presets: 3
@@ -144,7 +146,8 @@ def test_static_heliostat_whose_validation_improves_keeps_coarse(temperature_wor
     # (docs/hybrid.md, "Selection"); the 20 % margin keeps the coarse model.
     config = FineConfig(env=("temperature",))
     run_sweep(temperature_workdir, n_train=[10_000], weight_decays=[0.0], baselines=(),
-              config=config, heliostats=["SQ04"], extra_bands=(), study=0)
+              config=config, heliostats=["SQ04"], extra_bands=(), study=0,
+              screen=ScreenConfig(enabled=False))   # the rule's test: the path must be trained
     sel = pd.read_parquet(temperature_workdir / SELECTION.filename).iloc[0]
     sweep = pd.read_parquet(temperature_workdir / SWEEP.filename)
     hyb = sweep[sweep["model"] == "hybrid"].iloc[0]

@@ -512,6 +512,11 @@ SELECTION = ArtifactSchema(
         C("coarse_weighted_val_error_mrad", "float64", "mrad", "The same for the coarse model."),
         C("n_candidates", "int64", "", "Fine candidates compared (each fade length counted): "
           "the m of the rule's Bonferroni margin."),
+        C("screen", "string", "", "The sweep's screen (docs/hybrid.md \"The screen\"): off "
+          "(not run: every candidate trained), passed (the whole path trained) or failed (the "
+          "path's first weight decays gained less than half the networks' margin: stopped)."),
+        C("screen_gain", "float64", "", "The best relative gain of the screen's ensembles over "
+          "the coarse model on the weighted validation rows (missing: not run).", nullable=True),
         C("forward_check", "string", "", "Forward-in-time check of a selected model with date "
           "inputs (empty: none needed): passed, failed (the static choice is selected instead), "
           "or not checked (no time split, or a sweep without its forward pass)."),

@@ -1,6 +1,7 @@
-"""Settings of the fine model and its training (:class:`FineConfig`) and of the training along the
-weight-decay path (:class:`PathConfig`): plain frozen dataclasses, light to import (the CLI
-reads their defaults for ``--help`` without loading torch).
+"""Settings of the fine model and its training (:class:`FineConfig`), of the training along the
+weight-decay path (:class:`PathConfig`) and of the sweep's screen (:class:`ScreenConfig`): plain
+frozen dataclasses, light to import (the CLI reads their defaults for ``--help`` without loading
+torch).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from ..vocabulary import DEFAULT_FOURIER_BANDS, TrainingDtype
 
 __all__ = [
     "PathConfig",
+    "ScreenConfig",
     "FineConfig",
     "TRAINING_DTYPES",
     "ensemble_seeds",
@@ -130,6 +132,37 @@ class PathConfig:
     def validated(self) -> "PathConfig":
         check_int(self.stage_epochs, "stage_epochs", "sweep", 0)
         check_int(self.stage_patience, "stage_patience", "sweep", 1)
+        return self
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class ScreenConfig:
+    """The sweep's screen: how far a heliostat's weight-decay path is trained before the sweep
+    asks whether the rest is worth it (:mod:`heliocal.pipeline.stages.sweep_screen`,
+    docs/hybrid.md "The screen").
+
+    Attributes
+    ----------
+    enabled : ``False`` trains every heliostat's full path (``sweep --screen off``).
+    stages : the screen is the first band set's path up to its ``stages``-th weight decay (3: 1,
+        0.1 and 0.01 on the default grid); where it passes, the path goes on from there and the
+        other band sets are trained, so the screen costs a passing heliostat nothing.
+    share : the screen's margin is ``share`` x the rule's network margin
+        (``SelectionRule.min_improvement``): the rest of the path may gain more than its start,
+        so the screen asks for part of the margin only. A rule whose network margin is not
+        positive cannot be screened for (every heliostat trains its path).
+    """
+
+    enabled: bool = True
+    stages: int = 3
+    share: float = 0.5
+
+    def validated(self) -> "ScreenConfig":
+        check_int(self.stages, "stages", "sweep_screen", 1)
+        check_float(self.share, "share", "sweep_screen", 0.0, 1.0)
         return self
 
     def to_dict(self) -> dict:

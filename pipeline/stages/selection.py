@@ -111,12 +111,16 @@ class CandidatePool:
     """One heliostat's candidates and the rule that chooses among them (module docstring).
 
     ``h`` is the sweep's heliostat (:class:`heliocal.pipeline.stages.sweep_inputs.SweepHeliostat`:
-    its rows and labels, fit-coarse's selected fit and predictions, its time-split fit).
+    its rows and labels, fit-coarse's selected fit and predictions, its time-split fit);
+    ``screen`` and ``screen_gain`` its screen's verdict (:mod:`.sweep_screen`), written with the
+    choice.
     """
 
     h: object
     rule: SelectionRule = SelectionRule()
     candidates: list = field(default_factory=list)
+    screen: str = "off"
+    screen_gain: float = math.nan
 
     def __post_init__(self):
         h = self.h
@@ -248,7 +252,8 @@ class CandidatePool:
                      "coarse_val_error_mrad": h.coarse_val,
                      "coarse_test_error_mrad": h.coarse_test,
                      "coarse_weighted_val_error_mrad": coarse_w,
-                     "n_candidates": self.n_compared, "forward_check": "",
+                     "n_candidates": self.n_compared, "screen": self.screen,
+                     "screen_gain": self.screen_gain, "forward_check": "",
                      "time_val_error_mrad": math.nan, "coarse_time_val_error_mrad": math.nan}
         if chosen is None:
             selection.update(model="coarse", weight_decay=math.nan, seed=0,

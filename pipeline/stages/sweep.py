@@ -55,7 +55,7 @@ from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import ParameterError, check_float, check_int
 from ..models.coarse import fit_presets, normal_errors_mrad
-from ..models.config import FineConfig, PathConfig, ensemble_seeds
+from ..models.config import FineConfig, PathConfig, ScreenConfig, ensemble_seeds
 from ..models.fade import TIME_FADE_DAYS
 from ..models.gp import GPConfig
 from ..models.gp_heliostat import fit_heliostat_gps
@@ -72,6 +72,7 @@ from .fit_hybrid import hybrid_chunks
 from .forward import add_sweep_time_split
 from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
+from .sweep_screen import SCREEN_FAILED, ScreenVerdict, screen_margin, screen_verdicts
 from .sweep_inputs import (SweepHeliostat, SweepInputs, fit_pretrained_errors, read_sweep_inputs,
                            sweep_row)
 
@@ -123,39 +124,113 @@ def _path_order(weight_decays: Sequence[float]) -> list[float]:
 
 def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
                weight_decays: Sequence[float], config: FineConfig,
-               path: PathConfig = PathConfig()) -> Iterator[tuple[float, MemberResult]]:
+               path: PathConfig = PathConfig(),
+               initial=None) -> Iterator[tuple[float, MemberResult]]:
     """Train M networks at every weight decay, strong to weak; yield ``(weight_decay, result)``.
 
     Each weight decay is one :func:`heliocal.pipeline.models.training.train_members` program of the M
     networks (``seeds`` (M,), masks as there). With ``path.warm_start`` the first weight decay
-    starts from the seeded weights and every later one from the previous weight decay's
-    best-validation weights, each with the budget of ``path``; since the start is the epoch-0
-    candidate of the early stopping, a network's validation error never rises along the path.
-    Without warm start every weight decay is an independent training with ``config``'s budget.
+    starts from the seeded weights (or from ``initial``, the layers of the M networks where an
+    earlier call left the path: the path goes on from there) and every later one from the
+    previous weight decay's best-validation weights, each with the budget of ``path``; since the
+    start is the epoch-0 candidate of the early stopping, a network's validation error never
+    rises along the path. Without warm start every weight decay is an independent training with
+    ``config``'s budget.
     """
-    previous = None
+    previous = initial
     if path.warm_start:
         config = dataclasses.replace(config, max_epochs=path.stage_epochs,
                                      patience=path.stage_patience)
     for wd in _path_order(weight_decays):
         warm = path.warm_start and previous is not None
         result = train_members(problem, train_mask, val_mask, [wd] * len(seeds), list(seeds),
-                               config, initial=previous.layers if warm else None)
-        previous = result
+                               config, initial=previous if warm else None)
+        previous = result.layers
         yield wd, result
 
 
 # ------------------------------------------------------------------------------------------------
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
+def _train_variant(helios, pools, out_rows, kind, cfg, weight_decays, seeds, path,
+                   initial=None):
+    """Train one band set's weight-decay path (``weight_decays``, strong to weak) for ``helios``
+    (one batched program per weight decay), add each ensemble to its heliostat's pool and sweep
+    rows (in place; the three lists in the same order) and return the last weight decay's
+    layers, or ``initial`` when there was none. ``initial``: the layers to go on from (the
+    members in the order this call stacks them: heliostat, seed, ensemble network)."""
+    n_seeds, k_ens = len(seeds), cfg.ensemble
+    problems = [build_problem(h.rows, h.hrow, coarse_row_parameters(   # each row its regime's
+        h.selected, h.rows["timestamp"]), h.selected["free"], cfg) for h in helios]
+    fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
+    taken = [take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
+    per_h = n_seeds * k_ens           # networks per heliostat: seeds x ensemble
+    stacked, valid = stack_problems([t for t in taken for _ in range(per_h)])
+    n = stacked.data.steps.shape[1]
+    labels_fit = np.array([np.resize(h.labels[f], n) for h, f in zip(helios, fitting)
+                           for _ in range(per_h)])
+    net_seeds = [x for _ in helios for s in seeds for x in ensemble_seeds(s, k_ens)]
+    last = initial
+    for wd, result in train_path(stacked, torch.as_tensor(labels_fit == "train") & valid,
+                                 torch.as_tensor(labels_fit == "validation") & valid,
+                                 net_seeds, weight_decays, cfg, path, initial=initial):
+        wall = result.wall_time_s / (len(helios) * n_seeds)
+        last = result.layers
+        for i, (h, problem) in enumerate(zip(helios, problems)):
+            for j, s in enumerate(seeds):
+                ens = slice(i * per_h + j * k_ens, i * per_h + (j + 1) * k_ens)
+                err, length = pools[i].add_network(
+                    kind, cfg, wd, s, problem, [(w[ens], b[ens]) for w, b in result.layers],
+                    path)
+                out_rows[i].append(sweep_row(h.hid, kind, h.n_full, wd, s, err, h.labels,
+                                             h.train, h.test_distance, h.selected["preset"],
+                                             wall, length))
+    return last
+
+
+def _members_of(layers, keep: Sequence[int], per_h: int):
+    """The layers of the networks of the heliostats ``keep`` (indices into the stacking order,
+    ``per_h`` networks each), stacked in that order."""
+    if layers is None:
+        return None
+    index = torch.as_tensor([i * per_h + k for i in keep for k in range(per_h)])
+    return [(w[index], b[index]) for w, b in layers]
+
+
+def _train_candidates(helios, pools, out_rows, variants, weight_decays, seeds, path,
+                      screen: ScreenConfig, rule: SelectionRule) -> list[ScreenVerdict]:
+    """Every band set's weight-decay path for the heliostats that pass the screen (in place, as
+    :func:`_train_variant`); return each heliostat's :class:`ScreenVerdict`. The screen is the
+    first band set's path up to its ``screen.stages``-th weight decay, trained for every
+    heliostat; the path goes on from there only where it passes
+    (:func:`heliocal.pipeline.stages.sweep_screen.screen_verdicts`)."""
+    (kind, cfg), others = variants[0], variants[1:]
+    order = _path_order(weight_decays)
+    margin = screen_margin(screen, rule)
+    n_first = len(order) if margin is None else min(screen.stages, len(order))
+    last = _train_variant(helios, pools, out_rows, kind, cfg, order[:n_first], seeds, path)
+    verdicts = screen_verdicts(pools, margin)
+    keep = [i for i, v in enumerate(verdicts) if v.trains_path]
+    if keep:
+        sub = ([helios[i] for i in keep], [pools[i] for i in keep], [out_rows[i] for i in keep])
+        _train_variant(*sub, kind, cfg, order[n_first:], seeds, path,
+                       initial=_members_of(last, keep, len(seeds) * cfg.ensemble))
+        for kind_, cfg_ in others:
+            _train_variant(*sub, kind_, cfg_, order, seeds, path)
+    return verdicts
+
+
 def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, path,
                   pretrain_config: PretrainConfig | None = None,
                   gp_config: GPConfig | None = None,
-                  rule: SelectionRule = SelectionRule()) -> list[dict]:
+                  rule: SelectionRule = SelectionRule(),
+                  screen: ScreenConfig = ScreenConfig(enabled=False)) -> list[dict]:
     """The full-size candidates and the selection of a chunk of heliostats that share one
     kinematic type, actuator type and coarse preset (one batched program per weight decay);
     with ``gp_config`` the GP correction, with ``pretrain_config`` the pre-trained network (first
-    seed) are candidates too. Each heliostat's choice is its :class:`CandidatePool`'s."""
+    seed) are candidates too. With ``screen`` enabled only the heliostats whose screen passes
+    train the whole weight-decay path (:func:`_train_candidates`).
+    Each heliostat's choice is its :class:`CandidatePool`'s."""
     helios = [SweepHeliostat.of(item) for item in items]
     pools = [CandidatePool(h, rule) for h in helios]
     out_rows: list[list[dict]] = [[] for _ in helios]
@@ -167,32 +242,10 @@ def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, 
             rows.append(sweep_row(h.hid, model, h.n_full, float("nan"), 0,
                              frame["error_mrad"].to_numpy(np.float64), h.labels, h.train,
                              h.test_distance, model, 0.0))
-    n_seeds = len(seeds)
-    for kind, cfg in variants:
-        k_ens = cfg.ensemble
-        problems = [build_problem(h.rows, h.hrow, coarse_row_parameters(   # each row its regime's
-            h.selected, h.rows["timestamp"]), h.selected["free"], cfg) for h in helios]
-        fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
-        taken = [take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
-        per_h = n_seeds * k_ens           # networks per heliostat: seeds x ensemble
-        stacked, valid = stack_problems([t for t in taken for _ in range(per_h)])
-        n = stacked.data.steps.shape[1]
-        labels_fit = np.array([np.resize(h.labels[f], n) for h, f in zip(helios, fitting)
-                               for _ in range(per_h)])
-        net_seeds = [x for _ in helios for s in seeds for x in ensemble_seeds(s, k_ens)]
-        for wd, result in train_path(stacked, torch.as_tensor(labels_fit == "train") & valid,
-                                     torch.as_tensor(labels_fit == "validation") & valid,
-                                     net_seeds, weight_decays, cfg, path):
-            wall = result.wall_time_s / (len(helios) * n_seeds)
-            for i, (h, problem) in enumerate(zip(helios, problems)):
-                for j, s in enumerate(seeds):
-                    ens = slice(i * per_h + j * k_ens, i * per_h + (j + 1) * k_ens)
-                    err, length = pools[i].add_network(
-                        kind, cfg, wd, s, problem, [(w[ens], b[ens]) for w, b in result.layers],
-                        path)
-                    out_rows[i].append(sweep_row(h.hid, kind, h.n_full, wd, s, err, h.labels,
-                                                 h.train, h.test_distance, h.selected["preset"],
-                                                 wall, length))
+    verdicts = _train_candidates(helios, pools, out_rows, variants, weight_decays, seeds, path,
+                                 screen, rule)
+    for pool, verdict in zip(pools, verdicts):
+        pool.screen, pool.screen_gain = verdict.status, verdict.gain
     for i, h in enumerate(helios):
         if gp_config is not None:
             fits = fit_heliostat_gps(h.rows, h.labels, h.spec, h.data, coarse_row_parameters(
@@ -427,7 +480,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
               path: PathConfig | None = None, batch_size: int = HYBRID_BATCH_SIZE,
               select_pretrained: bool = False, time_split: bool = False, gp: bool = True,
               gp_config: GPConfig | None = None, rule: SelectionRule | None = None,
-              incremental: bool = False) -> dict:
+              incremental: bool = False, screen: ScreenConfig | None = None) -> dict:
     """The ``sweep`` stage: write sweep.parquet, selection.parquet and selected_predictions.parquet
     (and ``hybrid/selected/``), return a summary.
 
@@ -452,6 +505,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     gp, gp_config : the GP correction is a candidate and a line of the study (settings: default
         :class:`GPConfig` with the config's env columns and the first seed).
     rule : the selection rule (:class:`heliocal.pipeline.models.selection.SelectionRule`).
+    screen : the screen that decides per heliostat whether its weight-decay path is trained
+        (default :class:`ScreenConfig`, on; ``ScreenConfig(enabled=False)`` trains every path;
+        :mod:`.sweep_screen`).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     incremental : keep the previous sweep as it is when its inputs, options, seeds and code are
         this run's (nothing is read or trained); otherwise, and with any change, train every
@@ -467,6 +523,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     variants = hybrid_variants(config, extra_bands)
     gp_config = (gp_config or GPConfig(env=config.env, seed=seeds[0])).validated() if gp else None
     rule = (rule or SelectionRule()).validated()
+    screen = (screen or ScreenConfig()).validated()
     request = {"n_train": list(n_train) if n_train else "ladder", "weight_decays": weight_decays,
                "seeds": seeds, "presets": list(presets) if presets else "fit-coarse's",
                "baselines": list(baselines), "extra_bands": [list(b) for b in extra_bands],
@@ -476,6 +533,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                "study_seed": study_seed, "path": path.to_dict(), "batch_size": batch_size,
                "select_pretrained": bool(select_pretrained), "time_split": bool(time_split),
                "gp_config": gp_config.to_dict() if gp_config else None, "rule": rule.to_dict(),
+               "screen": screen.to_dict(),
                "heliostats": list(heliostats) if heliostats else None}
     txn = current_transaction(workdir, "sweep")
     if incremental and not heliostats and carry_over_unchanged(txn, request):
@@ -488,7 +546,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          index=list(items)) if items else None
     ids = sorted(items, key=lambda h: (len(items[h].rows), h))
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
-                         pretrain_config if select_pretrained else None, gp_config, rule))
+                         pretrain_config if select_pretrained else None, gp_config, rule,
+                         screen))
              for chunk in hybrid_chunks(ids, selected, helio, batch_size)]
     studied = study_heliostats(list(items), study, study_seed)
     coarse_options = coarse_fit_options(workdir)
@@ -511,8 +570,11 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     selection = _write_outputs(workdir, results, chosen, heliostats, opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "study_heliostats": studied,
-            "members_per_heliostat": {h: len(weight_decays) * len(seeds) * len(variants)
-                                      for h in sorted(items)},
+            "members_per_heliostat": {   # ensembles trained: the screen's alone where it failed
+                r["heliostat_id"]: len(seeds) * (
+                    min(screen.stages, len(weight_decays)) if r["screen"] == SCREEN_FAILED
+                    else len(weight_decays) * len(variants))
+                for r in (res["selection"] for res in chosen)},
             "incremental": {"unchanged": False, "why_all": _why_all(incremental)}}
 
 
