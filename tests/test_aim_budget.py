@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from conftest import fitted_simulation
 
-from heliocal.pipeline.stages.aim_budget import (ErrorBudget, error_level_mrad,
+from heliocal.pipeline.stages.aim_budget import (ErrorBudget, LevelGrowth, error_level_mrad,
                                                  expected_error_mrad, sun_distance_deg)
 from heliocal.pipeline.stages.aim_choice import nominal_fallback
 
@@ -34,6 +34,48 @@ def test_without_a_covariance_the_expected_error_is_the_level():
     budget = ErrorBudget(None, 1.7, "nominal validation", np.zeros((0, 3)), None)
     got = expected_error_mrad(budget, None, None, np.zeros((4, 2)), None, None)
     assert got.tolist() == [1.7] * 4
+
+
+def _rolling(scale_by_days: dict, heliostats=("A", "B", "C"), rows_per_bin=10):
+    """Rolling-origin rows whose errors are the heliostat's own scale times a known factor per
+    days since the fit's last row (every row of a bin the same)."""
+    import pandas as pd
+
+    rows = []
+    for k, hid in enumerate(heliostats):
+        for days, factor in scale_by_days.items():
+            rows += [(hid, days, (k + 1) * factor)] * rows_per_bin
+    return pd.DataFrame(rows, columns=["heliostat_id", "days_since_last_row", "error_mrad"])
+
+
+def test_the_level_growth_is_the_field_s_normalised_error_by_days():
+    # per heliostat half its rows at 0.5 d with error s, half at 20 d with 2 s: the heliostat's
+    # root mean square is s sqrt(5/2), so the normalised bins are 1/sqrt(2.5) and 2/sqrt(2.5);
+    # the bins between (1-3, 3-10 d) have no rows and keep the first's, the later ones the 20 d
+    # bin's (the heliostats' different scales k s cancel)
+    g = LevelGrowth.from_rolling(_rolling({0.5: 1.0, 20.0: 2.0}))
+    low, high = 1 / math.sqrt(2.5), 2 / math.sqrt(2.5)
+    assert g.factor == pytest.approx([low, low, low, high, high, high])
+    assert g.at([0.0, 2.0, 29.0, 400.0]) == pytest.approx([low, low, high, high])
+    # errors that shrink with time do not make a later aim expect less (non-decreasing)
+    assert LevelGrowth.from_rolling(_rolling({0.5: 2.0, 20.0: 1.0})).factor == pytest.approx(
+        [2 / math.sqrt(2.5)] * 6)
+    # a bin of two heliostats is too few (MIN_GROWTH_HELIOSTATS = 3): no growth measured there
+    two = LevelGrowth.from_rolling(_rolling({0.5: 1.0, 20.0: 2.0}, heliostats=("A", "B")))
+    assert np.ptp(two.factor) == 0.0
+    assert LevelGrowth.from_rolling(_rolling({})).factor.tolist() == [1.0] * 6
+
+
+def test_an_aim_s_level_grows_from_its_source_s_days_to_its_own():
+    g = LevelGrowth.from_rolling(_rolling({0.5: 1.0, 20.0: 2.0}))
+    # a level of 1.5 mrad measured on rows at 0.5 d (reference = the first bin's growth):
+    # 1.5 mrad for an aim a day after the last row, 3.0 mrad twenty days after, never below
+    # the noise floor, and as measured without a time
+    budget = ErrorBudget(None, 1.5, "validation", np.zeros((0, 3)), None, growth=g,
+                         growth_reference=g.reference([0.5]), noise_floor_mrad=1.6)
+    got = expected_error_mrad(budget, None, None, np.zeros((3, 2)), None, None,
+                              [0.8, 20.0, float("nan")])
+    assert got == pytest.approx([1.6, 3.0, 1.6])
 
 
 def test_the_sun_distance_is_the_angle_to_the_nearest_training_sun():

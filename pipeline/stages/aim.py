@@ -389,13 +389,16 @@ def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iter
                         tolerance_steps)
 
 
-def _expected_error(wd: CommittedWorkdir, h: _Heliostat, chosen: str, steps, sun, aim) -> dict:
-    """``expected_error_mrad``, ``level_source`` and ``sun_distance_deg`` of one aim."""
-    from .aim_budget import error_budgets, expected_error_mrad, sun_distance_deg
+def _expected_error(wd: CommittedWorkdir, h: _Heliostat, chosen: str, steps, sun, aim,
+                    time_utc) -> dict:
+    """``expected_error_mrad``, ``level_source`` and ``sun_distance_deg`` of one aim (its level
+    at the aim's days since the heliostat's last row, when the aim has a time)."""
+    from .aim_budget import days_since, error_budgets, expected_error_mrad, sun_distance_deg
 
     models = {h.id: {"model": "nominal" if chosen == "nominal" else "coarse"}}
     budget = error_budgets(wd, {h.id: h.spec}, {h.id: h.selected}, models)[h.id]
-    expected = expected_error_mrad(budget, h.spec, h.coarse, steps, sun, aim)
+    expected = expected_error_mrad(budget, h.spec, h.coarse, steps, sun, aim,
+                                   [days_since(budget, time_utc)])
     return {"expected_error_mrad": float(expected[0]), "level_source": budget.level_source,
             "sun_distance_deg": float(sun_distance_deg(budget, sun.numpy())[0])}
 
@@ -460,7 +463,7 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
         inverse_residual = float(error_mrad(reflect(-sun, normal), aim - position)[0])
     if not math.isfinite(inverse_residual):
         raise _unreachable(h.id)
-    expected = _expected_error(wd, h, chosen, steps, sun, aim)
+    expected = _expected_error(wd, h, chosen, steps, sun, aim, time_utc)
     if max_expected_error_mrad is not None and not expected["expected_error_mrad"] <= max_expected_error_mrad:
         raise FitError(f"the aim of {h.id} is expected to be off by "
                        f"{expected['expected_error_mrad']:.3g} mrad, more than "

@@ -16,6 +16,13 @@ one the spot reveals, as ``error_mrad`` everywhere in heliocal). Two parts add i
   two components of a normal's error carry the noise). It holds what the covariance cannot see:
   the measurement noise, drift and steps between calibration days, model error.
 
+The level grows with the time since the model's last row (re-mounting, drift, seasons the rows
+did not see): :class:`LevelGrowth` learns from the field's rolling-origin rows how the error of a
+fitted model grows with ``days_since_last_row`` (each heliostat's errors divided by their own root
+mean square, pooled over the field, in bins of :data:`GROWTH_EDGES_DAYS`, never decreasing with
+time), and an aim's level is the source's level times the growth at the aim's days over the
+growth at the days of the rows the level was measured on (:meth:`ErrorBudget.level_at`).
+
 The level is at least the noise term, so an aim never expects less than its measurements'
 scatter. The nominal geometry (the fallback when a fit is worse than it, :mod:`.aim_choice`)
 has no covariance; its level comes from its own validation rows.
@@ -26,7 +33,7 @@ nearest training row's sun, and ``days_since_last_row``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -47,6 +54,8 @@ __all__ = [
     "error_level_mrad",
     "error_budgets",
     "expected_error_mrad",
+    "days_since",
+    "LevelGrowth",
     "sun_distance_deg",
     "calibration_rows",
     "calibration_summary",
@@ -57,6 +66,67 @@ LEVEL_SOURCES = ("next-day", "time-split validation", "validation", "training no
 
 #: Held-out rows a level source needs to be used.
 MIN_LEVEL_ROWS = 3
+
+#: Edges [d] of the bins of days since the model's last row in which :class:`LevelGrowth` is
+#: measured: a day, then steps of about 3x (a calibration campaign, a week, a month, a season).
+GROWTH_EDGES_DAYS = (1.0, 3.0, 10.0, 30.0, 100.0)
+
+#: Rolling-origin rows (and heliostats) a growth bin needs; a bin with fewer takes the previous
+#: bin's growth.
+MIN_GROWTH_ROWS, MIN_GROWTH_HELIOSTATS = 30, 3
+
+
+@dataclass(frozen=True)
+class LevelGrowth:
+    """How the held-out error grows with the days since a model's last row, field-wide.
+
+    ``factor`` (len(:data:`GROWTH_EDGES_DAYS`) + 1,): the root mean square of the normalised
+    rolling-origin errors (each heliostat's divided by its own root mean square) in each bin of
+    days, non-decreasing (a bin below the one before takes its value); 1 everywhere without
+    rolling-origin rows (no growth known: the level as measured)."""
+
+    factor: np.ndarray
+
+    @classmethod
+    def none(cls) -> "LevelGrowth":
+        return cls(np.ones(len(GROWTH_EDGES_DAYS) + 1))
+
+    @classmethod
+    def from_rolling(cls, rolling: pd.DataFrame) -> "LevelGrowth":
+        """From rolling_origin.parquet's ``heliostat_id``, ``days_since_last_row`` and
+        ``error_mrad``."""
+        r = rolling[["heliostat_id", "days_since_last_row", "error_mrad"]].dropna()
+        if r.empty:
+            return cls.none()
+        rms = r.groupby("heliostat_id")["error_mrad"].transform(lambda e: np.sqrt(np.mean(e ** 2)))
+        r = r[rms > 0]
+        norm = (r["error_mrad"] / rms[rms > 0]).to_numpy(float)
+        bins = _growth_bin(r["days_since_last_row"].to_numpy(float))
+        factor = np.ones(len(GROWTH_EDGES_DAYS) + 1)
+        for b in range(len(factor)):
+            inside = bins == b
+            enough = (inside.sum() >= MIN_GROWTH_ROWS
+                      and r["heliostat_id"][inside].nunique() >= MIN_GROWTH_HELIOSTATS)
+            factor[b] = (float(np.sqrt(np.mean(norm[inside] ** 2))) if enough
+                         else factor[b - 1] if b else np.nan)
+        if np.isnan(factor[0]):      # too few rows in the first bin: start at the first measured
+            measured = factor[np.isfinite(factor)]
+            factor = np.where(np.isfinite(factor), factor, measured[0] if len(measured) else 1.0)
+        return cls(np.maximum.accumulate(factor))
+
+    def at(self, days) -> np.ndarray:
+        """The growth at ``days`` (array; NaN days: the first bin's)."""
+        return self.factor[_growth_bin(np.nan_to_num(np.asarray(days, float), nan=0.0))]
+
+    def reference(self, days) -> float:
+        """The growth a level measured on rows at ``days`` carries: the root mean square of
+        :meth:`at` over them (the first bin's without rows)."""
+        g = self.at(days)
+        return float(np.sqrt(np.mean(g ** 2))) if len(g) else float(self.factor[0])
+
+
+def _growth_bin(days: np.ndarray) -> np.ndarray:
+    return np.searchsorted(np.asarray(GROWTH_EDGES_DAYS), days, side="left")
 
 _BATCH_COLUMNS = ["heliostat_id", "measurement_id", "timestamp", "axis_1_steps", "axis_2_steps",
                   "sun_e", "sun_n", "sun_u", "focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m",
@@ -72,10 +142,13 @@ class ErrorBudget:
     ----------
     covariance : the free parameters' posterior covariance of the parameters aim uses; None for
         the nominal geometry.
-    level_mrad : the held-out error level [mrad].
+    level_mrad : the held-out error level [mrad], as measured on the source's rows.
     level_source : one of :data:`LEVEL_SOURCES`, or ``nominal validation``.
     train_sun_enu : (N, 3) unit sun vectors of the training rows.
     last_row_utc : time of the heliostat's last measurement (None without one).
+    growth : the field's :class:`LevelGrowth` (none: the level at every time).
+    growth_reference : the growth the level's rows carry (:meth:`LevelGrowth.reference`).
+    noise_floor_mrad : the level never goes below it (``sqrt(2)`` times the training noise).
     """
 
     covariance: ParameterCovariance | None
@@ -83,6 +156,17 @@ class ErrorBudget:
     level_source: str
     train_sun_enu: np.ndarray
     last_row_utc: pd.Timestamp | None
+    growth: LevelGrowth = field(default_factory=LevelGrowth.none)
+    growth_reference: float = 1.0
+    noise_floor_mrad: float = 0.0
+
+    def level_at(self, days_since_last_row) -> np.ndarray:
+        """(M,) the level [mrad] of aims ``days_since_last_row`` (M,) after the heliostat's last
+        row: the measured level times the growth from its rows' days to the aims' (NaN days:
+        the level as measured)."""
+        days = np.asarray(days_since_last_row, float).reshape(-1)
+        scale = np.where(np.isfinite(days), self.growth.at(days) / self.growth_reference, 1.0)
+        return np.maximum(self.level_mrad * scale, self.noise_floor_mrad)
 
 
 def error_level_mrad(held_out_mrad, noise_mrad: float) -> float:
@@ -133,18 +217,20 @@ def _level(sources: dict[str, np.ndarray], noise_mrad: float,
     return error_level_mrad((), noise_mrad), LEVEL_SOURCES[-1]
 
 
-def _held_out(wd: CommittedWorkdir, ids) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _held_out(wd: CommittedWorkdir, ids) -> tuple[pd.DataFrame, pd.DataFrame, LevelGrowth]:
     """(the coarse predictions of every model with each row's kNN and time split label, the
-    rolling-origin rows' errors) of the heliostats ``ids``."""
+    rolling-origin rows' errors and days of the heliostats ``ids``, the field's
+    :class:`LevelGrowth`: from every heliostat's rolling-origin rows, so one heliostat's budget
+    is the same alone as in the field's)."""
     from .aim_choice import time_labelled_predictions
 
     pred = time_labelled_predictions(wd, ids, ["split", "model", "selected", "error_mrad",
                                                "time_error_mrad"])
-    rolling = (read_artifact(wd, ROLLING_ORIGIN, heliostats=ids,
-                             columns=["heliostat_id", "error_mrad"])
-               if artifact_present(wd, ROLLING_ORIGIN)
-               else pd.DataFrame(columns=["heliostat_id", "error_mrad"]))
-    return pred, rolling
+    columns = ["heliostat_id", "days_since_last_row", "error_mrad"]
+    every = (read_artifact(wd, ROLLING_ORIGIN, columns=columns)
+             if artifact_present(wd, ROLLING_ORIGIN) else pd.DataFrame(columns=columns))
+    rolling = every[every["heliostat_id"].astype(str).isin(set(map(str, ids)))]
+    return pred, rolling, LevelGrowth.from_rolling(every)
 
 
 def _grouped(keys, values) -> dict[str, np.ndarray]:
@@ -157,27 +243,50 @@ def _grouped(keys, values) -> dict[str, np.ndarray]:
     return {keys[a]: values[a:b] for a, b in zip(bounds[:-1], bounds[1:])}
 
 
-def _level_sources(pred: pd.DataFrame, rolling: pd.DataFrame) -> dict[str, dict]:
+def _level_sources(pred: pd.DataFrame, rolling: pd.DataFrame, times: pd.DataFrame
+                   ) -> tuple[dict[str, dict], dict[str, dict]]:
     """Per level source (and ``nominal validation``, the nominal geometry's validation rows)
-    each heliostat's held-out errors: its selected model's."""
+    each heliostat's held-out errors (its selected model's), and per source with a time each
+    heliostat's days of those rows since the model's last row: the rolling-origin rows' own;
+    the time split's validation rows' since its last training row (``times``: every row's
+    ``heliostat_id``, ``measurement_id`` and ``timestamp``). The kNN validation rows lie among
+    the training rows (no days: the growth's first bin)."""
     p = pred[pred["selected"].astype(bool)]
     val = p[p["split"] == "validation"]
     time_val = p[p["time_split"] == "validation"]
     nominal = pred[(pred["model"] == "nominal") & (pred["split"] == "validation")]
-    return {"next-day": _grouped(rolling["heliostat_id"], rolling["error_mrad"].to_numpy(float)),
-            "time-split validation": _grouped(time_val["heliostat_id"],
-                                              time_val["time_error_mrad"].to_numpy(float)),
-            "validation": _grouped(val["heliostat_id"], val["error_mrad"].to_numpy(float)),
-            "nominal validation": _grouped(nominal["heliostat_id"],
-                                           nominal["error_mrad"].to_numpy())}
+    errors = {"next-day": _grouped(rolling["heliostat_id"], rolling["error_mrad"].to_numpy(float)),
+              "time-split validation": _grouped(time_val["heliostat_id"],
+                                                time_val["time_error_mrad"].to_numpy(float)),
+              "validation": _grouped(val["heliostat_id"], val["error_mrad"].to_numpy(float)),
+              "nominal validation": _grouped(nominal["heliostat_id"],
+                                             nominal["error_mrad"].to_numpy())}
+    days = {"next-day": _grouped(rolling["heliostat_id"],
+                                 rolling["days_since_last_row"].to_numpy(float)),
+            "time-split validation": _time_split_days(p, time_val, times)}
+    return errors, days
+
+
+def _time_split_days(selected: pd.DataFrame, time_val: pd.DataFrame, times: pd.DataFrame
+                     ) -> dict[str, np.ndarray]:
+    """heliostat -> days [d] from its time split's last training row to each of its time split's
+    validation rows (in ``time_val``'s order)."""
+    keys = ["heliostat_id", "measurement_id"]
+    t = selected[keys + ["time_split"]].merge(times, on=keys, how="left")
+    t["timestamp"] = pd.to_datetime(t["timestamp"], utc=True)
+    last = t[t["time_split"] == "train"].groupby("heliostat_id")["timestamp"].max()
+    v = time_val[keys].merge(times, on=keys, how="left")
+    v_time = pd.to_datetime(v["timestamp"], utc=True)
+    days = ((v_time - v["heliostat_id"].map(last)) / pd.Timedelta(days=1)).to_numpy(float)
+    return _grouped(v["heliostat_id"], days)
 
 
 def _heliostat_sources(sources: dict[str, dict], hid: str, nominal: bool) -> dict:
-    """A heliostat's held-out errors per level source: its selected model's (or, ``nominal``,
-    the nominal geometry's validation rows)."""
+    """A heliostat's held-out errors (or days) per level source: its selected model's (or,
+    ``nominal``, the nominal geometry's validation rows)."""
     if nominal:
-        return {"validation": sources["nominal validation"].get(hid, ())}
-    return {name: sources[name].get(hid, ()) for name in LEVEL_SOURCES[:-1]}
+        return {"validation": sources.get("nominal validation", {}).get(hid, ())}
+    return {name: sources[name].get(hid, ()) for name in LEVEL_SOURCES[:-1] if name in sources}
 
 
 def _fitted_mask(times: pd.Series, regimes: pd.DataFrame | None, selected: dict,
@@ -243,7 +352,9 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
              .rename(columns={split_column: "split"}) if artifact_present(wd, SPLIT)
              else rows[["heliostat_id", "measurement_id"]].assign(split="train"))
     rows = rows.merge(split, on=["heliostat_id", "measurement_id"], how="left")
-    sources = _level_sources(*_held_out(wd, ids))
+    pred, rolling, growth = _held_out(wd, ids)
+    sources, source_days = _level_sources(pred, rolling,
+                                          rows[["heliostat_id", "measurement_id", "timestamp"]])
     regimes = read_artifact(wd, REGIMES, heliostats=ids) if artifact_present(wd, REGIMES) else None
     regime_params = (read_artifact(wd, REGIME_PARAMS, heliostats=ids)
                      if artifact_present(wd, REGIME_PARAMS) else None)
@@ -271,8 +382,12 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         if nominal:
             source = "nominal validation" if source == "validation" else source
         latest = last.get(hid, pd.NaT)
+        days = _heliostat_sources(source_days, hid, nominal).get(source, ())
+        grows = LevelGrowth.none() if nominal else growth   # no fit whose age could grow
         out[hid] = ErrorBudget(covariance, level, source, sun[train[hid]],
-                               None if pd.isna(latest) else latest)
+                               None if pd.isna(latest) else latest, growth=grows,
+                               growth_reference=grows.reference(days),
+                               noise_floor_mrad=error_level_mrad((), noise))
     return out
 
 
@@ -295,18 +410,27 @@ def _covariances(specs: dict, selected: dict, fitted: dict[str, MeasurementBatch
 
 
 def expected_error_mrad(budget: ErrorBudget, spec: HeliostatSpec, params: torch.Tensor,
-                        steps: torch.Tensor, sun: torch.Tensor, aim_point_enu: torch.Tensor
-                        ) -> np.ndarray:
+                        steps: torch.Tensor, sun: torch.Tensor, aim_point_enu: torch.Tensor,
+                        days_since_last_row=None) -> np.ndarray:
     """(M,) expected error [mrad] of aims at ``steps`` (M, 2) for unit sun vectors ``sun`` (M, 3)
     and aim points (M, 3) [m ENU] with parameters ``params`` (28,): ``sqrt(trace(J_a C J_a^T)
-    + level^2)`` (module docstring); NaN where the chain is not finite. With each aim's own
-    parameters (``params`` (M, 28)) the aims come as batches of one: ``steps`` (M, 1, 2),
-    ``sun`` and ``aim_point_enu`` (M, 1, 3)."""
+    + level^2)`` (module docstring), the level at ``days_since_last_row`` (M,) [d] (None: as
+    measured); NaN where the chain is not finite. With each aim's own parameters (``params``
+    (M, 28)) the aims come as batches of one: ``steps`` (M, 1, 2), ``sun`` and
+    ``aim_point_enu`` (M, 1, 3)."""
     variance = np.zeros(len(steps))
     if budget.covariance is not None:
         jac = aim_jacobian(spec, params, budget.covariance.free_idx, steps, sun, aim_point_enu)
         variance = aim_variance_mrad2(jac.reshape(-1, *jac.shape[-2:]), budget.covariance)
-    return np.sqrt(variance + budget.level_mrad ** 2)
+    days = np.full(len(steps), np.nan) if days_since_last_row is None else days_since_last_row
+    return np.sqrt(variance + budget.level_at(days) ** 2)
+
+
+def days_since(budget: ErrorBudget, time_utc) -> float:
+    """Days [d] from the heliostat's last row to ``time_utc`` (NaN without either)."""
+    if time_utc is None or budget.last_row_utc is None:
+        return float("nan")
+    return float((pd.Timestamp(time_utc) - budget.last_row_utc) / pd.Timedelta(days=1))
 
 
 def sun_distance_deg(budget: ErrorBudget, sun_enu: np.ndarray) -> np.ndarray:
@@ -362,20 +486,35 @@ def calibration_rows(workdir, setting: str) -> pd.DataFrame:
     pred = read_artifact(workdir, COARSE_PREDICTIONS,
                          columns=["heliostat_id", "measurement_id", "selected", actual])
     pred = pred[pred["selected"]].merge(split, on=["heliostat_id", "measurement_id"])
+    measurements = read_artifact(workdir, MEASUREMENTS)
+    last_train = _last_training_time(measurements, pred, label)
     pred = pred[pred[label] == "test"]
-    rows = read_artifact(workdir, MEASUREMENTS).merge(
+    rows = measurements.merge(
         pred[["heliostat_id", "measurement_id", actual]], on=["heliostat_id", "measurement_id"])
     out = []
     for hid, g in rows.groupby("heliostat_id"):
         if hid not in budgets or not np.isfinite(g[actual]).any():
             continue
         b = MeasurementBatch.from_frame(g)
+        # forward: the test rows' days since the time split's last training row (the level
+        # grows to them); kNN: test rows lie among the training rows (the level as measured)
+        days = ((pd.to_datetime(g["timestamp"], utc=True) - last_train.get(hid, pd.NaT))
+                / pd.Timedelta(days=1)).to_numpy(float) if setting == "forward" else None
         expected = expected_error_mrad(budgets[hid], specs[hid], selected[hid]["params"],
-                                       b.steps, b.sun, b.focal_spot)
+                                       b.steps, b.sun, b.focal_spot, days)
         out.append(pd.DataFrame({"heliostat_id": hid, "actual_mrad": g[actual].to_numpy(float),
                                  "expected_mrad": expected,
                                  "level_source": budgets[hid].level_source}))
     return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
+
+
+def _last_training_time(measurements: pd.DataFrame, labelled: pd.DataFrame, label: str
+                        ) -> pd.Series:
+    """heliostat -> the time [UTC] of its last row labelled ``train`` in ``labelled[label]``."""
+    keys = ["heliostat_id", "measurement_id"]
+    train = labelled.loc[labelled[label] == "train", keys].merge(
+        measurements[keys + ["timestamp"]], on=keys)
+    return pd.to_datetime(train["timestamp"], utc=True).groupby(train["heliostat_id"]).max()
 
 
 def calibration_summary(rows: pd.DataFrame) -> dict:

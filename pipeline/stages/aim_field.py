@@ -299,13 +299,14 @@ AIM_CHUNK_ROWS = 20_000
 
 def _coarse_aims(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """((R, 2) steps, (R,) expected error [mrad]) of the ok rows under the coarse model (or the
-    nominal geometry) of their heliostat, NaN elsewhere: each row a batch of one with its own
+    """((R, 2) steps, (R,) the parameters' part of the expected error's variance [mrad^2]) of
+    the ok rows under the coarse model (or the nominal geometry) of their heliostat, NaN
+    elsewhere: each row a batch of one with its own
     parameters and spec, the rows of one kinematic type in batches of :data:`AIM_CHUNK_ROWS`,
     so the numbers are those of one aim at a time."""
     from ..physics.lm import SPEC_TENSORS, stack_specs
 
-    steps, expected = np.full((len(rows.hid), 2), np.nan), np.full(len(rows.hid), np.nan)
+    steps, variance = np.full((len(rows.hid), 2), np.nan), np.full(len(rows.hid), np.nan)
     todo = np.flatnonzero(rows.ok)
     todo = todo[np.argsort(rows.hid[todo].astype(str), kind="stable")]   # a heliostat's rows together
     helio_ids = list(pd.unique(rows.hid[todo]))
@@ -329,8 +330,8 @@ def _coarse_aims(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray
                               p_all[start:start + AIM_CHUNK_ROWS],
                               torch.as_tensor(sun[part], dtype=torch.float64)[:, None],
                               torch.as_tensor(rows.point[part], dtype=torch.float64)[:, None])
-            steps[part], expected[part] = s, e
-    return steps, expected
+            steps[part], variance[part] = s, e
+    return steps, variance
 
 
 def _heliostat_rows(hid: np.ndarray, todo: np.ndarray, helio_ids):
@@ -343,22 +344,21 @@ def _heliostat_rows(hid: np.ndarray, todo: np.ndarray, helio_ids):
 
 def _aim_batch(field: _Field, hid: np.ndarray, spec: HeliostatSpec, params: torch.Tensor,
                sun: torch.Tensor, aim: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """(steps (K, 2), expected error (K,)) of K rows of one type, each a batch of one (``params``
-    (K, 28), ``sun`` and ``aim`` (K, 1, 3)); rows of one heliostat are contiguous."""
+    """(steps (K, 2), the parameters' part of the expected error's variance (K,) [mrad^2]) of K
+    rows of one type, each a batch of one (``params`` (K, 28), ``sun`` and ``aim`` (K, 1, 3));
+    rows of one heliostat are contiguous."""
     steps = inverse_kinematics(params, spec, sun, aim)
     with torch.no_grad():
         _, jac = residual_and_jacobian(params, spec, torch.nan_to_num(steps), sun, aim)
     jac = jac.numpy()
-    expected = np.empty(len(hid))
+    variance = np.zeros(len(hid))
     bounds = np.flatnonzero(np.r_[True, hid[1:] != hid[:-1], True])
     for a, b in zip(bounds[:-1], bounds[1:]):
         budget = field.budgets[hid[a]]
-        variance = np.zeros(b - a)
         if budget.covariance is not None:
             j = jac[a:b, 0][..., budget.covariance.free_idx]
-            variance = aim_variance_mrad2(j, budget.covariance)
-        expected[a:b] = np.sqrt(variance + budget.level_mrad ** 2)
-    return steps[:, 0].numpy(), expected
+            variance[a:b] = aim_variance_mrad2(j, budget.covariance)
+    return steps[:, 0].numpy(), variance
 
 
 def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
@@ -402,6 +402,18 @@ def _flags(field: _Field, rows: _Rows, fitted: np.ndarray, sun: np.ndarray) -> d
             "days_since_last_row": days}
 
 
+def _expected(field: _Field, rows: _Rows, variance: np.ndarray, days: np.ndarray) -> np.ndarray:
+    """(R,) expected error [mrad]: the parameters' variance plus each row's level at its days
+    since its heliostat's last row (:meth:`.aim_budget.ErrorBudget.level_at`); NaN where the
+    variance is."""
+    level = np.full(len(rows.hid), np.nan)
+    todo = np.flatnonzero(np.isfinite(variance))
+    todo = todo[np.argsort(rows.hid[todo].astype(str), kind="stable")]
+    for h, _, idx in _heliostat_rows(rows.hid, todo, list(pd.unique(rows.hid[todo]))):
+        level[idx] = field.budgets[h].level_at(days[idx])
+    return np.sqrt(variance + level ** 2)
+
+
 def _aim_rows(field: _Field, schedule: pd.DataFrame,
               max_expected_error_mrad: float | None) -> pd.DataFrame:
     """Every row of the (normalised) schedule aimed, in schedule order (module docstring)."""
@@ -414,10 +426,12 @@ def _aim_rows(field: _Field, schedule: pd.DataFrame,
     angles, sun = _sun(field, rows, fitted)
     chosen = _per_row({h: field.models.get(h, {}).get("model", "coarse") for h in field.selected},
                       rows.hid)
-    steps, expected = _coarse_aims(field, rows, chosen, np.where(rows.ok[:, None], sun, 0.0))
+    steps, variance = _coarse_aims(field, rows, chosen, np.where(rows.ok[:, None], sun, 0.0))
     _fine_steps(field, rows, chosen, sun, steps)
     steps[~rows.ok] = np.nan
     rows.reject(~np.isfinite(steps).all(axis=1), "the aim point is out of the actuators' reach")
+    flags = _flags(field, rows, fitted, sun)
+    expected = _expected(field, rows, variance, flags["days_since_last_row"])
     expected = np.where(np.isfinite(steps).all(axis=1), expected, np.nan)
     if max_expected_error_mrad is not None:
         rows.reject(~(expected <= max_expected_error_mrad),
@@ -431,7 +445,7 @@ def _aim_rows(field: _Field, schedule: pd.DataFrame,
     out["regime"] = pd.to_numeric(pd.Series(np.where(fitted, _per_row(field.regimes, rows.hid),
                                                      np.nan)), errors="coerce")
     out["expected_error_mrad"] = expected
-    for name, values in _flags(field, rows, fitted, sun).items():
+    for name, values in flags.items():
         out[name] = values
     out["level_source"] = out["level_source"].astype("str")
     out["status"] = pd.Series(np.where(rows.ok, "ok", "rejected"), dtype="str")
