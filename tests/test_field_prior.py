@@ -121,8 +121,9 @@ def test_a_parameter_without_enough_determined_heliostats_keeps_the_default_prio
     fewer = estimate_prior(sample, keep=np.arange(MIN_HELIOSTATS) > 0)
     assert not fewer.used.any()
     nominal = np.ones(N)
-    mean, sigma = est.heliostat_prior(nominal)
+    mean, sigma, noise = est.heliostat_prior(nominal)
     assert sigma[5] == default_sigma(nominal)[5] and mean[5] == nominal[5]
+    assert noise[5] == 1.0      # the default prior keeps its 1 mrad scale
 
 
 def test_a_heliostats_own_fit_never_enters_its_own_prior():
@@ -208,3 +209,33 @@ def test_field_mounting_is_systematic_per_type_and_spatially_correlated():
     dev_i = np.array([float(h.true[i] - h.nominal[i]) for h in independent.heliostats.values()])
     diff_i = (dev_i[:, None] - dev_i[None]) ** 2
     assert diff_i[(d > 0) & (d < CORRELATION_LENGTH_M / 4)].mean() > 0.5 * diff_i[d > 3 * CORRELATION_LENGTH_M].mean()
+
+
+def test_the_prior_is_weighed_against_the_measurements_noise():
+    """A field prior is a statement in parameter units; the data rows are in mrad, so it must be
+    weighed against the measurements' noise ``s``. Expected value: in the linearised Gaussian
+    problem a prior N(m, sigma^2) on one parameter moves its estimate from the fit without it,
+    ``x`` (standard error ``se``), by ``se^2 / (se^2 + sigma^2) (m - x)`` (the precision-weighted
+    mean of two Gaussians); with ``sigma = se`` that is half the way. Stated against 1 mrad
+    instead of the actual 0.1 mrad the prior would be 100 times too strong: 0.99 of the way."""
+    field = simulate_field(1, seed=4, measurements=(80, 80), kinematic_types=("juelich",),
+                           dynamic_fraction=0.0, noise_mrad=0.1, deviations="static-6")
+    sim = next(iter(field.heliostats.values()))
+    spec, nominal = sim.spec, sim.nominal
+    data = MeasurementBatch.from_frame(field.measurements)
+    plain = fit_heliostat(spec, nominal, data, "static-6", loss="linear", robust_start=False)
+    j = PARAMETER_INDEX["concentrator_tilt_e_rad"]
+    x, se, s = plain.params.numpy(), plain.std_error, plain.noise_mrad
+    # the simulator's 0.1 mrad of beam noise: the normal (the bisector) moves by half of it,
+    # spread over the residual's three components
+    assert 0.02 < s < 0.1
+    mean = x.copy()
+    mean[j] += 3 * se[j]
+    sigma = default_sigma(nominal.numpy())
+    sigma[j] = se[j]
+    noise = np.ones(N)
+    noise[j] = s
+    fit = fit_heliostat(spec, nominal, data, "static-6", loss="linear", robust_start=False,
+                        prior=(mean, sigma, noise))
+    moved = (fit.params.numpy()[j] - x[j]) / (3 * se[j])
+    assert moved == pytest.approx(0.5, abs=0.03)

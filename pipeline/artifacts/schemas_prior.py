@@ -39,6 +39,10 @@ FIELD_PRIOR = ArtifactSchema(
           "without the fits' noise, plus the median's uncertainty); missing: default prior.",
           nullable=True),
         C("n_heliostats", "int64", "", "Well-determined heliostats that estimate it."),
+        C("noise_mrad", "float64", "mrad", "The measurements' noise the prior is weighed "
+          "against (median over the estimating fits of their RMS data residual per component): "
+          "a fit's prior rows are `(p - mean) / (scale / noise_mrad)`, as its data rows are "
+          "unweighted mrad (missing: 1 mrad).", nullable=True),
         C("spatial", "bool", "", "True where the prior mean is the nearest heliostats' "
           "(`--prior field+spatial`, only where that reduces the spread)."),
         C("expected_error_mrad", "float64", "mrad", "The group's field-prior geometry (nominal "

@@ -188,6 +188,7 @@ class CoarseFit:
     status: str
     implausible: list[str]
     wall_time_s: float
+    noise_mrad: float = float("nan")  # RMS data residual per component, on the dof [mrad]
 
 
 def prior_sigma(nominal: torch.Tensor) -> np.ndarray:
@@ -278,6 +279,8 @@ def _fit_setup(spec: HeliostatSpec, nominal: torch.Tensor, train: MeasurementBat
     sigma = prior_sigma(nominal)
     centre = nominal if prior is None else torch.as_tensor(prior[0], dtype=torch.float64)
     sig_prior = sigma.copy() if prior is None else np.asarray(prior[1], np.float64).copy()
+    if prior is not None and len(prior) > 2:  # weighed against noise s: data rows are in mrad
+        sig_prior = sig_prior / np.asarray(prior[2], np.float64)
     x0_full = start.clone() if start is not None else centre.clone()
     mode = {True: "always", False: "never"}.get(robust_start, robust_start)
     check_choice(mode, "robust_start", "fit_heliostat", ("always", "auto", "never"))
@@ -328,9 +331,11 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     tolerance : xtol = ftol = gtol of the solver (relative changes of step, cost, gradient).
     prior_weight : multiplier of the prior's curvature (1 = :data:`PRIOR_SIGMA`; 0 = no prior,
         plain least squares, as in the noiseless recovery tests).
-    prior : (mean (28,), sigma (28,)) [parameter units]: a Gaussian prior (e.g. the field's,
-        :mod:`.field_prior`) instead of :data:`PRIOR_SIGMA` around the nominal values; its mean
-        is the start. None: the default.
+    prior : (mean (28,), sigma (28,)[, noise (28,)]) [parameter units; noise mrad]: a Gaussian
+        prior (e.g. the field's, :mod:`.field_prior`) instead of :data:`PRIOR_SIGMA` around the
+        nominal values; its mean is the start. ``noise``: the measurement noise per residual
+        component it is weighed against (rows ``sigma / noise``; the data rows are unweighted
+        mrad); without it 1 mrad, as the default prior's. None: the default.
     """
     check_choice(preset, "preset", "fit_heliostat", PRESET_NAMES)
     check_choice(loss, "loss", "fit_heliostat", LOSSES)
@@ -413,7 +418,7 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     implausible = _implausible(fitted, nominal, free_idx)
     return CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined, nfev, cost,
                      d.condition_number, d.flag_status(status), implausible,
-                     time.perf_counter() - t0)
+                     time.perf_counter() - t0, d.noise_mrad)
 
 
 def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
@@ -506,7 +511,7 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
         fits[k] = CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined,
                             int(sol.njev[j]), float(sol.cost[j]), d.condition_number,
                             d.flag_status(f"batched LM: {sol.status[j]}"),
-                            _implausible(fitted, nominal, free_idx), wall)
+                            _implausible(fitted, nominal, free_idx), wall, d.noise_mrad)
     return fits
 
 

@@ -21,7 +21,14 @@ robust location and scale:
   shrunk toward it) it is ``scale^2 + median(std_error^2)`` (the EM update of a normal
   hierarchical model). At least :data:`SCALE_FLOOR`;
 * the prior sigma a heliostat gets adds the uncertainty of the median itself:
-  ``sigma^2 = tau^2 + (pi / 2) scale^2 / n``.
+  ``sigma^2 = tau^2 + (pi / 2) scale^2 / n``;
+* the measurements' noise ``s``: the median over the sample's fits of their RMS data residual
+  per component [mrad]. A fit's data rows are unweighted mrad, so its prior rows must be
+  ``(p - mean) / (sigma / s)`` for the MAP to be the Gaussian posterior (data rows over ``s``,
+  the common factor taken out). Stated against 1 mrad, as the weak default prior is, a field
+  prior would weigh ``(1 mrad / s)^2`` times too much where the noise is below 1 mrad (on a
+  simulated field with ``s`` near 0.15 mrad, about 40 times), and pull even heliostats with
+  hundreds of rows toward the field's typical geometry.
 
 **Leave-out.** A heliostat's own fit never enters its own prior: the heliostats whose fits
 estimate the prior (the group's *sample*) are cut into ``K = min(n, MAX_FOLDS)`` folds by the
@@ -154,6 +161,7 @@ class FitSample:
     std_errors : (n, 28) their standard errors in the same units (NaN where fixed).
     determined : (n, 28) bool: free, and determined by the heliostat's data.
     positions : (n, 2) east, north [m].
+    noise_mrad : (n,) each fit's RMS data residual per component [mrad] (NaN: unknown).
     """
 
     heliostat_ids: np.ndarray
@@ -161,6 +169,11 @@ class FitSample:
     std_errors: np.ndarray
     determined: np.ndarray
     positions: np.ndarray
+    noise_mrad: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.noise_mrad is None:
+            self.noise_mrad = np.full(len(self.deviations), np.nan)
 
     @classmethod
     def of(cls, ids: Sequence[str], fits: Sequence[CoarseFit], positions) -> "FitSample":
@@ -168,14 +181,15 @@ class FitSample:
         if not len(fits):
             empty = np.zeros((0, len(PARAMETER_NAMES)))
             return cls(np.array([], dtype=object), empty, empty, empty.astype(bool),
-                       np.zeros((0, 2)))
+                       np.zeros((0, 2)), np.zeros(0))
         fitted = np.stack([f.params.numpy() for f in fits])
         nominal = np.stack([f.nominal.numpy() for f in fits])
         ok = np.isfinite(fitted).all(axis=1)
         return cls(np.asarray(ids, dtype=object), deviation(fitted, nominal),
                    np.stack([f.std_error for f in fits]) / _relative(nominal),
                    np.stack([f.free & f.determined for f in fits]) & ok[:, None],
-                   np.asarray(positions, np.float64).reshape(-1, 2))
+                   np.asarray(positions, np.float64).reshape(-1, 2),
+                   np.array([f.noise_mrad for f in fits], np.float64))
 
 
 @dataclass
@@ -190,6 +204,8 @@ class PriorEstimate:
     n : (28,) well-determined heliostats that estimate it.
     spatial : (28,) bool, the parameter's mean is the neighbours' (``field+spatial``).
     local_mean : (m, 28) with ``spatial``: the prior mean of each queried heliostat.
+    noise_mrad : the measurements' noise the prior is weighed against [mrad per residual
+        component]: the median of the sample fits' (NaN: unknown, 1 mrad is assumed).
     """
 
     mean: np.ndarray
@@ -198,23 +214,27 @@ class PriorEstimate:
     n: np.ndarray
     spatial: np.ndarray = field(default_factory=lambda: np.zeros(len(PARAMETER_NAMES), bool))
     local_mean: np.ndarray | None = None
+    noise_mrad: float = float("nan")
 
     @property
     def used(self) -> np.ndarray:
         """(28,) bool: the parameter has a field prior."""
         return np.isfinite(self.sigma)
 
-    def heliostat_prior(self, nominal, k: int | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-        """(mean (28,), sigma (28,)) [parameter units] for a heliostat with ``nominal`` (28,):
-        the field's where estimated, the default prior elsewhere; ``k``: its row of
-        ``local_mean``. None when no parameter has a field prior."""
+    def heliostat_prior(self, nominal, k: int | None = None) -> tuple | None:
+        """(mean (28,), sigma (28,), noise (28,)) [parameter units; mrad] for a heliostat with
+        ``nominal`` (28,): the field's where estimated, the default prior elsewhere (noise 1
+        mrad, the scale the default prior is stated in); ``k``: its row of ``local_mean``.
+        None when no parameter has a field prior."""
         if not self.used.any():
             return None
         mean = self.mean if self.local_mean is None or k is None else self.local_mean[k]
         nominal = np.asarray(nominal, np.float64)
         sigma = np.where(self.used, np.nan_to_num(self.sigma) * _relative(nominal),
                          default_sigma(nominal))
-        return absolute(nominal, np.where(self.used, mean, 0.0)), sigma
+        noise = self.noise_mrad if np.isfinite(self.noise_mrad) and self.noise_mrad > 0 else 1.0
+        return (absolute(nominal, np.where(self.used, mean, 0.0)), sigma,
+                np.where(self.used, noise, 1.0))
 
 
 def _robust(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -249,8 +269,10 @@ def estimate_prior(sample: FitSample, *, keep: np.ndarray | None = None, posteri
     used = n >= min_heliostats
     with np.errstate(all="ignore"):
         sigma = np.sqrt(tau ** 2 + (math.pi / 2) * np.nan_to_num(scale) ** 2 / np.maximum(n, 1))
+    noise = sample.noise_mrad[keep]
+    noise = float(np.median(noise[np.isfinite(noise)])) if np.isfinite(noise).any() else math.nan
     return PriorEstimate(np.where(used, med, 0.0), np.where(used, sigma, np.nan),
-                         np.where(used, tau, np.nan), n)
+                         np.where(used, tau, np.nan), n, noise_mrad=noise)
 
 
 def _local_medians(sample: FitSample, candidates: np.ndarray, queries: np.ndarray,
@@ -294,7 +316,8 @@ def spatial_prior(sample: FitSample, base: PriorEstimate, fold: np.ndarray, *, k
     with np.errstate(all="ignore"):
         sigma = np.sqrt(tau ** 2 + (math.pi / 2) * np.nan_to_num(scale) ** 2 / k)
     return PriorEstimate(base.mean, np.where(spatial, sigma, base.sigma),
-                         np.where(spatial, tau, base.tau), base.n, spatial, local_mean)
+                         np.where(spatial, tau, base.tau), base.n, spatial, local_mean,
+                         base.noise_mrad)
 
 
 def fold_of(ids: Sequence[str], max_folds: int = MAX_FOLDS) -> np.ndarray:
@@ -368,4 +391,5 @@ class GroupPrior:
             "parameter_index": np.arange(len(PARAMETER_NAMES)), "parameter": PARAMETER_NAMES,
             "unit": [DEVIATION_UNITS[n] for n in PARAMETER_NAMES],
             "mean": w.mean, "scale": w.sigma, "n_heliostats": w.n.astype(np.int64),
+            "noise_mrad": np.where(w.used, w.noise_mrad, np.nan),
             "spatial": w.spatial})

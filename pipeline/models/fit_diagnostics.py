@@ -3,6 +3,7 @@ parameters the data determine, and the condition number (:func:`fit_diagnostics`
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,7 @@ class FitDiagnostics:
     determined: np.ndarray      # (28,) bool: the data, not the prior, pin the parameter
     condition_number: float     # of the scaled data Jacobian
     pseudo_inverse: bool        # J^T J was singular: std_error from its pseudo-inverse
+    noise_mrad: float = float("nan")  # s: RMS data residual per component [mrad], on the dof
 
     def flag_status(self, status: str) -> str:
         """The fit's status, with :data:`~heliocal.pipeline.vocabulary.STD_ERROR_PSEUDO_INVERSE`
@@ -42,6 +44,7 @@ def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
     determined = np.ones(len(PARAMETER_NAMES), bool)
     cond = float("nan")
     pseudo = False
+    s2 = float("nan")
     if J is not None:
         dof = max(n_data - len(free_idx), 1)
         s2 = float((r[:n_data] ** 2).sum() / dof)
@@ -74,4 +77,4 @@ def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
         except np.linalg.LinAlgError:  # pragma: no cover
             data_only, null = np.full(len(free_idx), np.inf), np.ones(len(free_idx), bool)
         determined[free_idx] = (data_only < 0.5) & ~null
-    return FitDiagnostics(std, determined, cond, pseudo)
+    return FitDiagnostics(std, determined, cond, pseudo, math.sqrt(s2))

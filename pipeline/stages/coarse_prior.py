@@ -264,8 +264,10 @@ def _estimate_from_rows(rows: pd.DataFrame, preset: str, key: tuple
     if not ok.any():
         return None, f"has no parameter with a scale for preset {preset}"
     n = by_name["n_heliostats"].to_numpy(np.int64)
+    noise = by_name["noise_mrad"].to_numpy(float)[ok] if "noise_mrad" in by_name else []
+    noise = float(np.nanmedian(noise)) if np.isfinite(noise).any() else math.nan
     return PriorEstimate(np.where(ok, mean, 0.0), np.where(ok, sigma, np.nan),
-                         np.where(ok, sigma, np.nan), n), ""
+                         np.where(ok, sigma, np.nan), n, noise_mrad=noise), ""
 
 
 def plan_field_prior(helio: pd.DataFrame, rows_of: dict, presets: Sequence[str], *, mode: str,
@@ -459,9 +461,10 @@ def _nominal_test_error(preds: pd.DataFrame) -> dict[str, float]:
 def prior_frame(plan: PriorPlan, ids) -> pd.DataFrame:
     """One row per heliostat of ``ids``, preset and parameter with the prior (mean, sigma) its fit
     is given: the part of a heliostat's inputs that comes from the field (the incremental plan
-    hashes it with the heliostat's own rows, so a moved prior fits it again)."""
-    rows = [(hid, name, i, float(mean[i]), float(sigma[i]))
-            for hid in sorted(ids) for name, (mean, sigma, *_) in
+    hashes it with the heliostat's own rows, so a moved prior fits it again); ``sigma`` as the
+    fit weighs it (over the measurements' noise the prior is weighed against, in mrad)."""
+    rows = [(hid, name, i, float(mean[i]), float(sigma[i] / (rest[0][i] if rest else 1.0)))
+            for hid in sorted(ids) for name, (mean, sigma, *rest) in
             sorted(plan.priors.get(hid, {}).items()) for i in range(len(mean))]
     return pd.DataFrame(rows, columns=["heliostat_id", "preset", "parameter_index", "mean",
                                        "sigma"])
