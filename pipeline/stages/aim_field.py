@@ -307,18 +307,16 @@ def _coarse_aims(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray
     from ..physics.lm import SPEC_TENSORS, stack_specs
 
     steps, variance = np.full((len(rows.hid), 2), np.nan), np.full(len(rows.hid), np.nan)
-    todo = np.flatnonzero(rows.ok)
-    todo = todo[np.argsort(rows.hid[todo].astype(str), kind="stable")]   # a heliostat's rows together
-    helio_ids = list(pd.unique(rows.hid[todo]))
-    params = {h: _row_parameters(field, h, chosen[i], rows.frame["time_utc"].iloc[i_rows])
-              for h, i, i_rows in _heliostat_rows(rows.hid, todo, helio_ids)}
+    rows_of = dict(_heliostat_rows(rows.hid, rows.ok))
+    params = {h: _row_parameters(field, h, chosen[idx[0]], rows.frame["time_utc"].iloc[idx])
+              for h, idx in rows_of.items()}
     groups: dict[tuple, list[str]] = {}
-    for h in helio_ids:
+    for h in rows_of:
         groups.setdefault((field.specs[h].kinematic_type, field.specs[h].actuator_type), []).append(h)
     for members in groups.values():
         spec_all = stack_specs([field.specs[h] for h in members])
         code = {h: k for k, h in enumerate(members)}
-        idx = todo[_among(rows.hid[todo], members)]
+        idx = np.concatenate([rows_of[h] for h in members])
         p_all = torch.cat([params[h] for h in members])
         for start in range(0, len(idx), AIM_CHUNK_ROWS):
             part = idx[start:start + AIM_CHUNK_ROWS]
@@ -334,12 +332,14 @@ def _coarse_aims(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray
     return steps, variance
 
 
-def _heliostat_rows(hid: np.ndarray, todo: np.ndarray, helio_ids):
-    """(heliostat, index of its first row, its rows' indices) for the rows ``todo`` (sorted by
-    heliostat)."""
+def _heliostat_rows(hid: np.ndarray, mask: np.ndarray):
+    """(heliostat, its rows' indices in schedule order) of the rows ``mask``, heliostat by
+    heliostat in the order of their ids."""
+    todo = np.flatnonzero(mask)
+    todo = todo[np.argsort(hid[todo].astype(str), kind="stable")]
     bounds = np.flatnonzero(np.r_[True, hid[todo][1:] != hid[todo][:-1], True])
-    for h, a, b in zip(helio_ids, bounds[:-1], bounds[1:]):
-        yield h, todo[a], todo[a:b]
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        yield hid[todo[a]], todo[a:b]
 
 
 def _aim_batch(field: _Field, hid: np.ndarray, spec: HeliostatSpec, params: torch.Tensor,
@@ -389,9 +389,7 @@ def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
 def _flags(field: _Field, rows: _Rows, fitted: np.ndarray, sun: np.ndarray) -> dict:
     """The fitted rows' ``level_source``, ``sun_distance_deg`` and ``days_since_last_row``."""
     distance = np.full(len(rows.hid), np.nan)
-    todo = np.flatnonzero(fitted)
-    todo = todo[np.argsort(rows.hid[todo].astype(str), kind="stable")]
-    for h, _, idx in _heliostat_rows(rows.hid, todo, list(pd.unique(rows.hid[todo]))):
+    for h, idx in _heliostat_rows(rows.hid, fitted):
         distance[idx] = sun_distance_deg(field.budgets[h], sun[idx])
     last = _per_row({h: b.last_row_utc for h, b in field.budgets.items()}, rows.hid)
     last = pd.to_datetime(pd.Series(np.where(fitted, last, None)), utc=True)
@@ -407,9 +405,7 @@ def _expected(field: _Field, rows: _Rows, variance: np.ndarray, days: np.ndarray
     since its heliostat's last row (:meth:`.aim_budget.ErrorBudget.level_at`); NaN where the
     variance is."""
     level = np.full(len(rows.hid), np.nan)
-    todo = np.flatnonzero(np.isfinite(variance))
-    todo = todo[np.argsort(rows.hid[todo].astype(str), kind="stable")]
-    for h, _, idx in _heliostat_rows(rows.hid, todo, list(pd.unique(rows.hid[todo]))):
+    for h, idx in _heliostat_rows(rows.hid, np.isfinite(variance)):
         level[idx] = field.budgets[h].level_at(days[idx])
     return np.sqrt(variance + level ** 2)
 
