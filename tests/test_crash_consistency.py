@@ -2,16 +2,21 @@
 and removals, and every reader must then see the complete previous run or the complete new one.
 
 How (no timing involved): a *zygote* child process imports heliocal once; for each run it forks,
-and the fork replaces ``heliocal.pipeline.artifacts.transaction._write_point`` (called after every write of a
-transaction) by a counter that SIGKILLs the process at the N-th write point. A complete run first
-lists the stage's write points; then the stage is run once per write point on a fresh copy of the
-work directory and killed there (two such runs at a time, one per core). After each kill the test
-reads the stage's outputs the way every reader does (``read_artifact``, ``load_model``,
-``aim_steps``, ``check_fresh``, ``heliocal info``'s ``describe_workdir``) and compares the *content* it gets (table fingerprints, model tensors,
-report bytes) with the previous run (before the kill point of the manifest rename) and with an
-uninterrupted new run (from it on). Then it completes the interrupted commit the way the next run
-does (``transaction.recover``) and checks that nothing changes for the readers and nothing is
-left behind.
+and the fork replaces ``heliocal.pipeline.artifacts.transaction._write_point`` (called after every
+write of a transaction). The complete run of a case lists the stage's write points and, at each,
+copies the work directory as it is at that moment: a SIGKILL there would leave exactly that copy
+(the stages write from one thread, and nothing of the process survives a SIGKILL), so every write
+point is checked on its copy without running the stage once per point. At a few points (the
+first, the two around the manifest's rename, the last) the stage is also really killed: the
+fork's write-point hook SIGKILLs it at the N-th point, on a fresh copy of the work directory
+(two such runs at a time, one per core), and the killed run must have reached the same points
+and leave what the copy showed. After each kill (and on each copy) the test reads the stage's
+outputs the way every reader does (``read_artifact``, ``load_model``, ``aim_steps``,
+``check_fresh``, ``heliocal info``'s ``describe_workdir``) and compares the *content* it gets
+(table fingerprints, model tensors, report bytes) with the previous run (before the kill point of
+the manifest rename) and with an uninterrupted new run (from it on). Then it completes the
+interrupted commit the way the next run does (``transaction.recover``) and checks that nothing
+changes for the readers and nothing is left behind.
 
 Data: ``sample_data/juelich/paint/BE36`` (one heliostat, 177 measurements); small stage options
 (static-6, 20 epochs) so one run takes about a second. Run with ``-s`` to see the table
@@ -80,7 +85,7 @@ CASES = [
 
 
 ZYGOTE = textwrap.dedent("""
-    import json, os, signal, sys
+    import json, os, shutil, signal, sys
     import heliocal.cli.main  # registers every command (the CLI imports the stages lazily)
     # the stages and with them torch, once before forking; no torch op runs here
     import heliocal.pipeline.stages.ingest, heliocal.pipeline.stages.split
@@ -103,6 +108,9 @@ ZYGOTE = textwrap.dedent("""
                 count[0] += 1
                 events.write(f"{event}\\t{os.path.relpath(path, job['workdir'])}\\n")
                 events.flush()
+                if job["snapshots"]:  # the work directory as a SIGKILL here would leave it
+                    shutil.copytree(job["workdir"], os.path.join(job["snapshots"], str(count[0])),
+                                    symlinks=True)
                 if count[0] == job["kill_at"]:
                     os.kill(os.getpid(), signal.SIGKILL)
 
@@ -136,13 +144,15 @@ class Zygote:
                                      stdout=subprocess.PIPE, text=True)
         self.n = 0
 
-    def run(self, argv: list[str], workdir: Path, kill_at: int = 0) -> tuple[dict, list[tuple]]:
-        """Run ``heliocal ARGV --workdir WORKDIR``, killed at write point ``kill_at`` (0: never).
+    def run(self, argv: list[str], workdir: Path, kill_at: int = 0,
+            snapshots: Path | None = None) -> tuple[dict, list[tuple]]:
+        """Run ``heliocal ARGV --workdir WORKDIR``, killed at write point ``kill_at`` (0: never);
+        with ``snapshots``, the work directory is copied to ``snapshots/N`` at write point N.
         Returns the exit status and the write points reached, as (event, path) pairs."""
         self.n += 1
         events, log = self.tmp / f"events-{self.n}.txt", self.tmp / f"log-{self.n}.txt"
         job = {"argv": argv, "workdir": str(workdir), "kill_at": kill_at, "events": str(events),
-               "log": str(log)}
+               "log": str(log), "snapshots": str(snapshots) if snapshots else ""}
         self.proc.stdin.write(json.dumps(job) + "\n")
         self.proc.stdin.flush()
         status = json.loads(self.proc.stdout.readline())
@@ -164,10 +174,11 @@ def _root(workdir: Path, stage: str) -> Path:
     return workdir / "report" if stage == "report" else workdir
 
 
-def _content(rel: str, data: bytes, workdir: Path) -> str:
+def _content(rel: str, data: bytes, written_in: tuple[Path, ...]) -> str:
     """A digest of what a reader gets from a file: a table's content fingerprint (timing columns
     left out), a model's tensors, a JSON document's parsed value, other files' bytes (the text
-    files of the report with the work directory's path, which they name, replaced)."""
+    files of the report with the path of the work directory they were written in, which they
+    name, replaced)."""
     from heliocal.pipeline.artifacts.provenance import table_fingerprint
     from heliocal.pipeline.artifacts.schemas import all_schemas
 
@@ -188,19 +199,23 @@ def _content(rel: str, data: bytes, workdir: Path) -> str:
         cfg.pop("weights_sha256")  # the .pt bytes' hash: compared through the tensors above
         return hashlib.sha256(json.dumps(cfg, sort_keys=True).encode()).hexdigest()
     if name.endswith((".html", ".md", ".json")):
-        data = data.replace(str(workdir).encode(), b"<workdir>")
+        for path in written_in:
+            data = data.replace(str(path).encode(), b"<workdir>")
     return hashlib.sha256(data).hexdigest()
 
 
-def reader_view(workdir: Path, stage: str, fresh: bool = True) -> dict:
+def reader_view(workdir: Path, stage: str, fresh: bool = True,
+                copy_of: Path | None = None) -> dict:
     """Everything the readers get from ``stage``'s outputs: ``files``: {file: content digest}
     read through the manifest (the committed run); ``readers``: what the stage's high-level
-    readers return (those that check freshness only when the inputs are ``fresh``)."""
+    readers return (those that check freshness only when the inputs are ``fresh``). A
+    ``copy_of`` work directory is where the files of a snapshot were written."""
     from heliocal.pipeline.artifacts.manifests import load_manifest, read_committed
 
     root = _root(workdir, stage)
     m = load_manifest(root, stage)
-    files = {rel: _content(rel, read_committed(root, stage, rel).data, workdir)
+    written_in = (workdir,) if copy_of is None else (workdir, copy_of)
+    files = {rel: _content(rel, read_committed(root, stage, rel).data, written_in)
              for rel in sorted(m.files)}
     readers: dict = {}
     _high_level_readers(workdir, stage, readers, fresh)
@@ -290,17 +305,10 @@ def zygotes(zygote, tmp_path_factory):
     z.close()
 
 
-def _kill_points(n_points: int, commit_at: int, every: int = 20) -> list[int]:
-    """The write points a case is killed at: all of them when there are at most ``every``;
-    else the first and last three, the five on either side of the manifest's rename (the
-    commit) and every third in between (the report's 37 points are mostly one more figure file
-    written the same way; killing at each took 40 s of the suite)."""
-    if n_points <= every:
-        return list(range(1, n_points + 1))
-    keep = {1, 2, 3, n_points - 2, n_points - 1, n_points}
-    keep |= set(range(max(1, commit_at - 5), min(n_points, commit_at + 5) + 1))
-    keep |= set(range(1, n_points + 1, 3))
-    return sorted(keep)
+def _real_kill_points(n_points: int, commit_at: int) -> list[int]:
+    """The write points where a case is also killed for real (every point is checked on its
+    snapshot): the first, the two around the manifest's rename (the commit), the last."""
+    return sorted({1, max(1, commit_at - 1), commit_at, n_points})
 
 
 def _killed_runs(zygotes: list, template: Path, tmp_path: Path, argv: list[str], kill_points):
@@ -359,9 +367,9 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
     old_view = reader_view(template, stage, fresh)
     old_run = load_manifest(_root(template, stage), stage).run_id
 
-    complete = tmp_path / "complete"
+    complete, snapshots = tmp_path / "complete", tmp_path / "snapshots"
     shutil.copytree(template, complete)
-    status, points = zygote.run(argv, complete)
+    status, points = zygote.run(argv, complete, snapshots=snapshots)
     assert status["code"] == 0, status["log"]
     new_view = reader_view(complete, stage, fresh)
     # every file the two runs share differs between them, so a mix would be seen (the report's
@@ -379,18 +387,17 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
     commit_at = events.index("commit") + 1  # the write point number of the manifest's rename
     assert events.count("commit") == 1 and events[-1] == "cleanup"
 
-    kill_points = _kill_points(len(points), commit_at)
-    runs = _killed_runs(zygotes, template, tmp_path, argv, kill_points)
-    for n, workdir, status, reached in runs:
+    def check(n: int, workdir: Path, how: str) -> None:
+        """What a run stopped at write point ``n`` left in ``workdir``: the old run before the
+        commit, the new one from it on, for every reader, before and after recovery."""
         event, path = points[n - 1]
-        assert status["signal"] == signal.SIGKILL, (n, status)
-        assert reached == points[:n]  # the same write points, up to the kill
         expected = "new" if n >= commit_at else "old"
-        view = reader_view(workdir, stage, fresh)
+        copy_of = complete if how == "snapshot" else None
+        view = reader_view(workdir, stage, fresh, copy_of)
         seen = "new" if view == new_view else "old" if view == old_view else "MIX"
         run = load_manifest(_root(workdir, stage), stage).run_id
-        assert seen == expected, (n, event, path, _differences(view, new_view if
-                                                           expected == "new" else old_view))
+        assert seen == expected, (how, n, event, path, _differences(
+            view, new_view if expected == "new" else old_view))
         assert (run == old_run) == (expected == "old")
         if stage == "sweep":  # issue 22's case 3 at every write point (see _check_one_sweep_run)
             _check_one_sweep_run(workdir, [60] if expected == "old" else [100])
@@ -398,16 +405,24 @@ def test_kill_after_every_write_point_leaves_old_or_new(name, stage, prepare, ar
         # the next run completes an interrupted commit or removes an uncommitted staging folder;
         # the readers see the same afterwards, and nothing is left
         recover(_root(workdir, stage))
-        assert reader_view(workdir, stage, fresh) == view
+        assert reader_view(workdir, stage, fresh, copy_of) == view
         root = _root(workdir, stage)
         assert not [m for m in all_manifests(root) if m.pending()]
         assert stale_staging_folders(root) == []
         assert not list(root.glob(".*.tmp-*"))
-        TABLE.append((name, n, event, path, expected, seen))
+        TABLE.append((name, n, event, path, expected, seen, how))
+
+    for n in range(1, len(points) + 1):
+        check(n, snapshots / str(n), "snapshot")
+    for n, workdir, status, reached in _killed_runs(
+            zygotes, template, tmp_path, argv, _real_kill_points(len(points), commit_at)):
+        assert status["signal"] == signal.SIGKILL, (n, status)
+        assert reached == points[:n]  # the same write points, up to the kill
+        check(n, workdir, "SIGKILL")
     print(f"\n{name}: {len(points)} write points, commit point = #{commit_at}")
-    print(f"{'#':>3}  {'write point':<14} {'file':<52} expected  readers see")
+    print(f"{'#':>3}  {'write point':<14} {'file':<52} expected  readers see  stopped by")
     for row in [r for r in TABLE if r[0] == name]:
-        print(f"{row[1]:>3}  {row[2]:<14} {row[3]:<52} {row[4]:<9} {row[5]}")
+        print(f"{row[1]:>3}  {row[2]:<14} {row[3]:<52} {row[4]:<9} {row[5]:<12} {row[6]}")
     if same:
         print(f"(equal in both runs: {', '.join(same)})")
 
