@@ -9,9 +9,13 @@ regeneration in docs/report.md) and links to the Makefile, the code and ``.venv`
 are listed in NOT_RUN with the reason; a test keeps that list short and current.
 
 The commands form *chains*, one per work directory (:func:`chain_of`): `make sample` and every
-later command on ``runs/sample``, the README's typical run on ``runs/juelich``, ... Each chain runs
+later command on ``runs/sample``, the simulated field on ``runs/simulated``, ... Each chain runs
 in order in a sandbox of its own, as a test class of its own (a unit of work of ``pytest -n 2
---dist loadscope``), so that the typical run and ``make sample`` run side by side, each in order.
+--dist loadscope``), so that chains run side by side, each in order.
+
+The README's typical run is the list of commands `make sample` runs: those lines are not run a
+second time after `make sample` (the chain's first command), and a test checks that they are
+exactly what the Makefile runs (``make -n``), option for option.
 
 A second, quick test checks the command lines that are not run (NOT_RUN, usage synopses in
 plain ``` blocks, commands quoted inline in the text): every ``--option`` they name exists on
@@ -114,6 +118,17 @@ def _strip_comment(command: str) -> str:
     return re.sub(r"\s+#.*$", "", command).strip()
 
 
+def make_sample_commands() -> list[str]:
+    """The heliocal commands `make sample` runs, as a user types them: the Makefile's recipes as
+    ``make -n -B`` prints them (nothing runs), without the venv's path and ``--quiet``."""
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}
+    proc = subprocess.run(["make", "-n", "-B", "sample"], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    return [re.sub(r"\s+--quiet\b", "", line.removeprefix(".venv/bin/"))
+            for line in proc.stdout.splitlines() if line.startswith(".venv/bin/heliocal ")]
+
+
 _WITH_BLOCKS = [c for p in DOCS for c in _shell_commands_with_blocks(p)]
 COMMANDS = [c[:3] for c in _WITH_BLOCKS]
 CHAINS = chain_of(_WITH_BLOCKS)
@@ -128,14 +143,31 @@ def test_commands_are_found_and_the_not_run_list_is_short_and_current():
 
 
 def test_chains_keep_each_work_directory_in_one_order():
-    """make sample and the commands on runs/sample are one chain, the README's typical run
-    another, and a block is never split (input_formats.md ingests what its simulate wrote)."""
+    """make sample and the commands on runs/sample (the README's typical run among them) are one
+    chain that starts with make sample, and a block is never split (input_formats.md ingests what
+    its simulate wrote)."""
     runs = [(command, chain) for (_, _, command), chain in zip(COMMANDS, CHAINS)]
     assert {c for command, c in runs if command == "make sample"} == {"runs/sample"}
     assert {c for command, c in runs if "runs/sample" in command} == {"runs/sample"}
-    assert {c for command, c in runs if "runs/juelich" in command} == {"runs/juelich"}
+    assert [command for command, c in runs if c == "runs/sample"][0] == "make sample"
     simulated = [c for command, c in runs if "runs/simulated" in command]
     assert len(simulated) >= 2 and set(simulated) == {"runs/simulated"}
+
+
+#: The README's typical run: the commands `make sample` runs (checked below), not run again.
+MADE_BY_MAKE_SAMPLE = make_sample_commands()
+
+
+def test_readme_typical_run_is_what_make_sample_runs():
+    """The README's typical run lists, in order, exactly the stage commands of `make sample`
+    (ingest, split-knn, fit-coarse, sweep, report; from the Makefile's recipes), so running
+    `make sample` runs each of its lines as documented."""
+    readme = [_strip_comment(c) for s, _, c in COMMANDS if s == "README.md"]
+    assert [c.split()[1] for c in MADE_BY_MAKE_SAMPLE] == [
+        "ingest", "split-knn", "fit-coarse", "sweep", "report"]
+    start = readme.index(MADE_BY_MAKE_SAMPLE[0])
+    assert readme[start:start + len(MADE_BY_MAKE_SAMPLE)] == MADE_BY_MAKE_SAMPLE
+    assert readme.index("make sample") < start
 
 
 @pytest.fixture(scope="module")
@@ -180,6 +212,9 @@ def _chain_class(chain: str) -> type:
     def test_documented_command_runs(self, sandboxes, source, line, command):
         if _strip_comment(command) in NOT_RUN:
             pytest.skip(f"not run: {NOT_RUN[_strip_comment(command)]}")
+        if chain == "runs/sample" and _strip_comment(command) in MADE_BY_MAKE_SAMPLE:
+            pytest.skip("run by `make sample`, this chain's first command "
+                        "(test_readme_typical_run_is_what_make_sample_runs)")
         sandbox = sandboxes(chain)
         t0 = time.monotonic()
         proc = subprocess.run(["bash", "-c", command], cwd=sandbox["dir"], env=sandbox["env"],
