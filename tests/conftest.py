@@ -8,6 +8,7 @@ How the suite runs (``make test``; docs/experiments/test-durations.md has the me
   fixture is built once; modules with slow tests start first (``pytest_collection_modifyitems``);
   a module whose slow tests are independent chains can put each in a class of its own
   (test_docs_commands.py does);
+  each worker runs torch and the BLAS libraries on one thread (two workers, two cores);
 * a serial pass, ``pytest -m alone``: tests that need the machine to themselves (time windows,
   watchdogs, a worker pool they count) run there, with nothing beside them.
 
@@ -29,6 +30,14 @@ from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
+
+# In a worker process of the parallel pass, torch and the BLAS pools behind numpy and scipy run
+# one thread each (and so do the commands the tests start, which inherit the environment): the
+# workers are as many as the cores, and a second thread per worker only makes the threads wait on
+# each other's cores. Set before anything imports torch; the serial pass keeps the defaults.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_name, "1")
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
