@@ -209,3 +209,37 @@ def test_a_fit_worse_than_the_nominal_geometry_never_reaches_aim(tmp_path):
                                              "target": [target]}))
     assert batch["model"].tolist() == ["nominal"]
     assert batch["axis_1_steps"].iloc[0] == pytest.approx(one["axis_1_steps"], abs=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["gp", "hybrid"])
+def test_batch_rows_of_fine_models_equal_single_aims(fitted, tmp_path, mode):
+    """Rows aimed with a fine model (the GP correction, the hybrid's fixed point) are solved per
+    heliostat with its model read once: the same steps as one aim at a time, a failing row (an
+    unknown target) rejected beside them."""
+    import shutil
+
+    from heliocal.pipeline.models.config import FineConfig
+    from heliocal.pipeline.stages.aim import aim_steps
+    from heliocal.pipeline.stages.aim_field import aim_schedule
+    from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
+
+    field, base = fitted
+    work = tmp_path / "work"
+    shutil.copytree(base, work)
+    run_fit_hybrid(work, mode=mode, config=FineConfig(max_epochs=20, ensemble=1))
+    ids = sorted(field.heliostats)
+    target = _target(work)
+    times = ["2023-06-21T08:00Z", "2023-06-21T12:00Z", "2023-06-21T15:30Z"]
+    schedule = pd.DataFrame({"heliostat_id": [h for h in ids for _ in times] + [ids[0]],
+                             "time_utc": times * len(ids) + [times[0]],
+                             "target": [target] * (len(ids) * len(times)) + ["no-such-target"]})
+    got = aim_schedule(work, schedule, model=mode)
+    assert got["status"].tolist() == ["ok"] * (len(ids) * len(times)) + ["rejected"]
+    for _, row in got.iloc[:-1].iterrows():
+        one = aim_steps(work, row["heliostat_id"], target=target, time_utc=row["time_utc"],
+                        model=mode)
+        assert row["model"] == one["model"] == mode
+        # the same chain in float64; 1e-6 steps is the fixed point's tolerance
+        assert row["axis_1_steps"] == pytest.approx(one["axis_1_steps"], abs=1e-6)
+        assert row["axis_2_steps"] == pytest.approx(one["axis_2_steps"], abs=1e-6)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping
 
 import numpy as np
@@ -23,7 +23,8 @@ from ..artifacts.manifests import CommittedWorkdir
 from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs, read_model
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REGIME_PARAMS, REGIMES
 from ..artifacts.store import artifact_columns, artifact_present, read_artifact
-from ..errors import FitError, InputError, ParameterError, StageInputError, check_choice
+from ..errors import (FitError, HeliocalError, InputError, ParameterError, StageInputError,
+                      check_choice)
 from ..models.fade import epoch_seconds, fade_weights
 from ..models.gp import GPCorrection
 from ..models.gp_heliostat import gp_aim_steps
@@ -389,6 +390,52 @@ def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iter
                         tolerance_steps)
 
 
+def solve_aim(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env,
+              max_iterations: int = 50, tolerance_steps: float = 1e-6):
+    """(steps (1, 2), iterations, inverse residual [mrad]) of one aim of ``h`` with the chosen
+    model (:func:`_choose_model`), :func:`_solve` on the parameters at ``time_utc`` (a
+    regime-aware coarse model's regime and drift then; ``h.coarse`` is set to them, for the
+    expected error). An aim the forward model cannot reach (non-finite residual) raises."""
+    if chosen != "nominal" and time_utc is not None and h.selected.get("regime_table") is not None:
+        h.coarse = coarse_row_parameters(h.selected, [time_utc])[0]   # its regime, its drift
+    steps, params, iterations, corrected = _solve(h, chosen, fitted, sun, aim, time_utc, env,
+                                                  max_iterations, tolerance_steps)
+    with torch.no_grad():
+        normal, position = forward_kinematics(params, h.spec, steps)
+        normal = normal if corrected is None else corrected
+        inverse_residual = float(error_mrad(reflect(-sun, normal), aim - position)[0])
+    if not math.isfinite(inverse_residual):
+        raise _unreachable(h.id)
+    return steps, iterations, inverse_residual
+
+
+def heliostat_aims(workdir, heliostat_id: str, model: str, sun_enu: np.ndarray,
+                   aim_point_enu: np.ndarray, times_utc, envs: list[Mapping[str, float]]
+                   ) -> list[np.ndarray | HeliocalError]:
+    """The steps (2,) of many aims of one heliostat, as :func:`aim_steps` gives them, with its
+    heliostat and model read once (the batch aim's rows with a fine model: each needs its own
+    fixed point). ``sun_enu`` (N, 3) unit vectors toward the sun, ``aim_point_enu`` (N, 3) [m]
+    ENU, ``times_utc`` and ``envs`` per aim. A row's own failure (its env inputs, an unreachable
+    aim) is its entry; one of the heliostat (no fit, a stale model) is every row's."""
+    wd = CommittedWorkdir.of(workdir)
+    try:
+        h = _read_heliostat(wd, heliostat_id)
+        chosen, fitted = _choose_model(wd, h, model)
+    except HeliocalError as exc:
+        return [exc] * len(sun_enu)
+    out: list[np.ndarray | HeliocalError] = []
+    for sun, point, time_utc, env in zip(sun_enu, aim_point_enu, times_utc, envs):
+        try:
+            steps, _, _ = solve_aim(replace(h), chosen, fitted,
+                                    _unit(torch.tensor(sun, dtype=torch.float64).reshape(1, 3)),
+                                    torch.tensor(point, dtype=torch.float64).reshape(1, 3),
+                                    utc_time(time_utc), _check_env(wd, env))
+            out.append(steps[0].numpy())
+        except HeliocalError as exc:
+            out.append(exc)
+    return out
+
+
 def _expected_error(wd: CommittedWorkdir, h: _Heliostat, chosen: str, steps, sun, aim,
                     time_utc) -> dict:
     """``expected_error_mrad``, ``level_source`` and ``sun_distance_deg`` of one aim (its level
@@ -452,17 +499,9 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
     sun = _sun(h, sun_vector_enu, time_utc)
     aim = torch.tensor(point, dtype=torch.float64).reshape(1, 3)
     chosen, fitted = _choose_model(wd, h, model)
-    if chosen != "nominal" and time_utc is not None and h.selected.get("regime_table") is not None:
-        h.coarse = coarse_row_parameters(h.selected, [time_utc])[0]   # its regime, its drift
     days = _time_warnings(wd, h, time_utc)
-    steps, params, iterations, corrected = _solve(h, chosen, fitted, sun, aim, time_utc, env,
-                                                  max_iterations, tolerance_steps)
-    with torch.no_grad():
-        normal, position = forward_kinematics(params, h.spec, steps)
-        normal = normal if corrected is None else corrected
-        inverse_residual = float(error_mrad(reflect(-sun, normal), aim - position)[0])
-    if not math.isfinite(inverse_residual):
-        raise _unreachable(h.id)
+    steps, iterations, inverse_residual = solve_aim(h, chosen, fitted, sun, aim, time_utc, env,
+                                                    max_iterations, tolerance_steps)
     expected = _expected_error(wd, h, chosen, steps, sun, aim, time_utc)
     if max_expected_error_mrad is not None and not expected["expected_error_mrad"] <= max_expected_error_mrad:
         raise FitError(f"the aim of {h.id} is expected to be off by "

@@ -364,26 +364,27 @@ def _aim_batch(field: _Field, hid: np.ndarray, spec: HeliostatSpec, params: torc
 def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
                 steps: np.ndarray) -> None:
     """The steps of the ok rows whose heliostat aims with a fine model, in place in ``steps``:
-    :func:`.aim.aim_steps` row by row (its fixed point is per aim; a failure is the row's
-    reason)."""
-    fine = np.flatnonzero(rows.ok & ~np.isin(chosen.astype(str), ["coarse", "nominal", "None"]))
-    if not len(fine):
+    :func:`.aim.heliostat_aims` per heliostat (its model read once, a fixed point per aim); a
+    failure is the row's reason."""
+    fine = rows.ok & ~np.isin(chosen.astype(str), ["coarse", "nominal", "None"])
+    if not fine.any():
         return
-    from ..errors import HeliocalError
-    from .aim import aim_steps
+    from .aim import heliostat_aims
 
     env_cols = [c for c in rows.frame.columns if str(c).startswith("env_")]
-    for i in fine:
-        env = {c[4:]: float(rows.frame[c].iat[i]) for c in env_cols
-               if pd.notna(rows.frame[c].iat[i])}
-        try:
-            one = aim_steps(field.wd, rows.hid[i], aim_point_enu=rows.point[i],
-                            sun_vector_enu=sun[i], time_utc=rows.frame["time_utc"].iat[i],
-                            env=env, model="auto" if field.auto else chosen[i])
-            steps[i] = one["axis_1_steps"], one["axis_2_steps"]
-        except HeliocalError as exc:
-            steps[i] = np.nan
-            rows.reject(np.arange(len(steps)) == i, str(exc))
+    times = rows.frame["time_utc"]
+    for hid, idx in _heliostat_rows(rows.hid, fine):
+        envs = [{c[4:]: float(rows.frame[c].iat[i]) for c in env_cols
+                 if pd.notna(rows.frame[c].iat[i])} for i in idx]
+        model = "auto" if field.auto else str(chosen[idx[0]])
+        results = heliostat_aims(field.wd, hid, model, sun[idx], rows.point[idx],
+                                 [times.iat[i] for i in idx], envs)
+        for i, result in zip(idx, results):
+            if isinstance(result, Exception):
+                steps[i] = np.nan
+                rows.reject(np.arange(len(steps)) == i, str(result))
+            else:
+                steps[i] = result
 
 
 def _flags(field: _Field, rows: _Rows, fitted: np.ndarray, sun: np.ndarray) -> dict:
