@@ -6,8 +6,8 @@ and the fork replaces ``heliocal.pipeline.artifacts.transaction._write_point`` (
 write of a transaction). The complete run of a case lists the stage's write points and, at each,
 copies the work directory as it is at that moment: a SIGKILL there would leave exactly that copy
 (the stages write from one thread, and nothing of the process survives a SIGKILL), so every write
-point is checked on its copy without running the stage once per point. At a few points (the
-first, the two around the manifest's rename, the last) the stage is also really killed: the
+point is checked on its copy without running the stage once per point. At two points (the two
+around the manifest's rename, one of each side) the stage is also really killed: the
 fork's write-point hook SIGKILLs it at the N-th point, on a fresh copy of the work directory
 (two such runs at a time, one per core), and the killed run must have reached the same points
 and leave what the copy showed. After each kill (and on each copy) the test reads the stage's
@@ -307,8 +307,9 @@ def zygotes(zygote, tmp_path_factory):
 
 def _real_kill_points(n_points: int, commit_at: int) -> list[int]:
     """The write points where a case is also killed for real (every point is checked on its
-    snapshot): the first, the two around the manifest's rename (the commit), the last."""
-    return sorted({1, max(1, commit_at - 1), commit_at, n_points})
+    snapshot): the two around the manifest's rename (the commit), the last before it and the
+    commit itself, one run of each side, run side by side on the two zygotes."""
+    return sorted({max(1, commit_at - 1), commit_at})
 
 
 def _killed_runs(zygotes: list, template: Path, tmp_path: Path, argv: list[str], kill_points):
