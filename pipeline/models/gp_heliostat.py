@@ -131,73 +131,101 @@ def fit_heliostat_gp(rows: pd.DataFrame, labels: np.ndarray, spec, data,
 # ------------------------------------------------------------------------------------------------
 @dataclass
 class GPAim:
-    """Steps that aim with a GP-corrected coarse model (:func:`gp_aim_steps`).
+    """Steps that aim with a GP-corrected coarse model (:func:`gp_aim_steps`), for K aims.
 
     Attributes
     ----------
-    steps : (1, 2) motor steps; iterations : fixed-point iterations used.
-    normal, position : (1, 3) the corrected mirror normal and the mirror centre at ``steps``.
+    steps : (K, 2) motor steps (NaN where an aim is not reachable); iterations : (K,) the
+    fixed-point iterations each aim used.
+    normal, position : (K, 3) the corrected mirror normal and the mirror centre at ``steps``.
     prediction : the correction there (mean [mrad], variance [mrad^2], fade).
     """
 
     steps: torch.Tensor
-    iterations: int
+    iterations: np.ndarray
     normal: torch.Tensor
     position: torch.Tensor
     prediction: GPPrediction
 
 
 def gp_aim_steps(model: GPCorrection, params: torch.Tensor, spec, sun: torch.Tensor,
-                 aim_point: torch.Tensor, time_s: float | None, env_values=None, *,
+                 aim_point: torch.Tensor, time_s=None, env_values=None, *,
                  max_iterations: int = 50, tolerance_steps: float = 1e-6) -> GPAim:
-    """Motor steps whose GP-corrected normal reflects the sun onto ``aim_point``.
+    """Motor steps whose GP-corrected normal reflects the sun onto ``aim_point``, for K aims.
 
     The correction ``g`` depends on the sun, the time and env, not on the steps, so the coarse
     model must point its normal at ``n_c`` with ``correct(n_c, g) = n*`` (``n*`` the bisector of
     the sun and the direction to the aim point): the coarse inverse kinematics aims at the point
     the normal ``n_c`` reflects the sun to, at the aim point's distance. The mirror centre moves
-    with the steps, so this is iterated until the steps change by less than ``tolerance_steps``.
+    with the steps, so this is iterated until the steps change by less than ``tolerance_steps``;
+    each aim stops on its own (the K aims are a batch of independent fixed points: an aim's steps
+    are those it would get alone), and one that becomes unreachable is NaN.
 
     Parameters
     ----------
-    model : the heliostat's correction; params : (28,) its coarse parameters.
-    sun : (1, 3) unit vector toward the sun; aim_point : (1, 3) [m] ENU.
-    time_s : time of the aim [s since 1970 UTC] (None: the median training time).
-    env_values : (E,) raw env values of the model's env inputs.
+    model : the heliostat's correction; params : (28,) its coarse parameters, or (K, 28) one
+        vector per aim (a regime-aware model's).
+    sun : (K, 3) unit vectors toward the sun; aim_point : (K, 3) [m] ENU.
+    time_s : time of each aim [s since 1970 UTC], a number or (K,) (None or NaN: the median
+        training time).
+    env_values : (K, E) raw env values of the model's env inputs ((E,) for one aim).
     """
-    sun = sun.reshape(1, 3)
-    az, el = (float(a[0]) for a in sun_angles_from_vector(sun.numpy()))
-    t = np.array([np.nan if time_s is None else float(time_s)])
-    x = model.inputs.encode([az], [el], t, None if env_values is None
-                            else np.asarray(env_values, np.float64).reshape(1, -1))
-    pred = model.predict(x, model.fade.weights([az], [el], None if time_s is None else t))
+    sun = sun.reshape(-1, 3)
+    k = len(sun)
+    aim_point = aim_point.reshape(-1, 3).expand(k, 3)
+    params = params.reshape(-1, params.shape[-1]).expand(k, params.shape[-1])
+    az, el = sun_angles_from_vector(sun.numpy())
+    t = np.broadcast_to(np.asarray(np.nan if time_s is None else time_s, np.float64), (k,))
+    env = None if env_values is None else np.asarray(env_values, np.float64).reshape(k, -1)
+    x = model.inputs.encode(az, el, t, env)
+    pred = model.predict(x, _fade_weights(model.fade, az, el, t))
     g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
-    steps = inverse_kinematics(params, spec, sun, aim_point)
-    iterations = 0
-    for iterations in range(1, max_iterations + 1):
-        with torch.no_grad():
-            _, position = forward_kinematics(params, spec, steps)
-            to_aim = aim_point - position
-            wanted = sun + to_aim / torch.linalg.vector_norm(to_aim, dim=-1, keepdim=True)
-            wanted = wanted / torch.linalg.vector_norm(wanted, dim=-1, keepdim=True)
-            coarse_normal = wanted
-            for _ in range(3):            # the frame of n_c, not of n*: second order, converges
-                h, v = pointing_frame(coarse_normal)
-                coarse_normal = wanted - 1e-3 * (g[:, :1] * h + g[:, 1:] * v)
-                coarse_normal = coarse_normal / torch.linalg.vector_norm(coarse_normal, dim=-1,
-                                                                         keepdim=True)
-            beam = reflect(-sun, coarse_normal)
-            target = position + torch.linalg.vector_norm(to_aim, dim=-1, keepdim=True) * beam
-            new = inverse_kinematics(params, spec, sun, target)
-        if not bool(torch.isfinite(new).all()):
-            return GPAim(new, iterations, torch.full((1, 3), float("nan")), position, pred)
-        delta = float((new - steps).abs().max())
-        steps = new
-        if delta < tolerance_steps:
+    rows = (params, sun[:, None], aim_point[:, None])      # each aim a batch of one
+    steps = inverse_kinematics(params, spec, sun[:, None], aim_point[:, None])[:, 0]
+    iterations = np.zeros(k, np.int64)
+    todo = torch.isfinite(steps).all(-1)
+    for it in range(1, max_iterations + 1):
+        if not bool(todo.any()):
             break
+        idx = torch.nonzero(todo).flatten()
+        new = _gp_step(params[idx], spec, sun[idx], aim_point[idx], g[idx], steps[idx])
+        delta = (new - steps[idx]).abs().amax(-1)
+        steps[idx] = new
+        iterations[idx.numpy()] = it
+        done = ~torch.isfinite(new).all(-1) | (delta < tolerance_steps)
+        todo[idx[done]] = False
     with torch.no_grad():
-        normal, position = forward_kinematics(params, spec, steps)
-    return GPAim(steps, iterations, correct_normals(normal, g.numpy()), position, pred)
+        normal, position = forward_kinematics(rows[0], spec, steps[:, None])
+    return GPAim(steps, iterations, correct_normals(normal[:, 0], g.numpy()), position[:, 0],
+                 pred)
+
+
+def _fade_weights(fade, az, el, t: np.ndarray) -> np.ndarray:
+    """The fade at each aim: with its time where it has one, else by the sun alone."""
+    w = fade.weights(az, el, None)
+    timed = np.isfinite(t)
+    if timed.any():
+        w[timed] = fade.weights(az[timed], el[timed], t[timed])
+    return w
+
+
+def _gp_step(params, spec, sun, aim_point, g, steps) -> torch.Tensor:
+    """One fixed-point update (K, 2) of :func:`gp_aim_steps` for K aims (each a batch of one)."""
+    with torch.no_grad():
+        _, position = forward_kinematics(params, spec, steps[:, None])
+        position = position[:, 0]
+        to_aim = aim_point - position
+        wanted = sun + to_aim / torch.linalg.vector_norm(to_aim, dim=-1, keepdim=True)
+        wanted = wanted / torch.linalg.vector_norm(wanted, dim=-1, keepdim=True)
+        coarse_normal = wanted
+        for _ in range(3):            # the frame of n_c, not of n*: second order, converges
+            h, v = pointing_frame(coarse_normal)
+            coarse_normal = wanted - 1e-3 * (g[:, :1] * h + g[:, 1:] * v)
+            coarse_normal = coarse_normal / torch.linalg.vector_norm(coarse_normal, dim=-1,
+                                                                     keepdim=True)
+        beam = reflect(-sun, coarse_normal)
+        target = position + torch.linalg.vector_norm(to_aim, dim=-1, keepdim=True) * beam
+        return inverse_kinematics(params, spec, sun[:, None], target[:, None])[:, 0]
 
 
 def correction_grid(model: GPCorrection, time_s: float | None = None, *, n_azimuth: int = 64,

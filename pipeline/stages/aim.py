@@ -365,7 +365,7 @@ def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: in
                        max_iterations=max_iterations, tolerance_steps=tolerance_steps)
     if not bool(torch.isfinite(fit.steps).all()):
         raise _unreachable(h.id)
-    return fit.steps, h.coarse, fit.iterations, fit.normal
+    return fit.steps, h.coarse, int(fit.iterations[0]), fit.normal
 
 
 def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iterations: int,
@@ -423,6 +423,8 @@ def heliostat_aims(workdir, heliostat_id: str, model: str, sun_enu: np.ndarray,
         chosen, fitted = _choose_model(wd, h, model)
     except HeliocalError as exc:
         return [exc] * len(sun_enu)
+    if chosen == "gp":
+        return _gp_aims(wd, h, fitted, sun_enu, aim_point_enu, times_utc, envs)
     out: list[np.ndarray | HeliocalError] = []
     for sun, point, time_utc, env in zip(sun_enu, aim_point_enu, times_utc, envs):
         try:
@@ -433,6 +435,48 @@ def heliostat_aims(workdir, heliostat_id: str, model: str, sun_enu: np.ndarray,
             out.append(steps[0].numpy())
         except HeliocalError as exc:
             out.append(exc)
+    return out
+
+
+def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu, times_utc,
+             envs) -> list[np.ndarray | HeliocalError]:
+    """:func:`heliostat_aims` of a GP correction: its fixed points solved together
+    (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`, each aim on its own), after each
+    aim's inputs are checked as :func:`_gp_solve` checks them."""
+    cfg, state = fitted
+    names = cfg["gp"]["inputs"].get("env", ())
+    out: list[np.ndarray | HeliocalError | None] = [None] * len(sun_enu)
+    times, env_rows = [], []
+    for i, (time_utc, env) in enumerate(zip(times_utc, envs)):
+        try:
+            env, time_utc = _check_env(wd, env), utc_time(time_utc)
+            missing = [e for e in names if e not in env]
+            if missing:
+                raise ParameterError(f"the gp model of {h.id} uses env inputs {missing}: give "
+                                     "them with --env NAME=VALUE")
+            if time_utc is None and "time" in cfg["gp"]["structure"]:
+                raise ParameterError(f"the gp model of {h.id} uses the date as input: give --time")
+        except HeliocalError as exc:
+            out[i] = exc
+            continue
+        times.append(time_utc)
+        env_rows.append([float(env[e]) for e in names])
+    ok = [i for i, o in enumerate(out) if o is None]
+    if not ok:
+        return out
+    timed = [t for t in times if t is not None]
+    params = (coarse_row_parameters(h.selected, times) if len(timed) == len(times)
+              and h.selected.get("regime_table") is not None else h.coarse)
+    time_s = np.array([np.nan if t is None else epoch_seconds([t])[0] for t in times])
+    sun = _unit(torch.tensor(np.asarray(sun_enu, np.float64)[ok]))
+    aim = torch.tensor(np.asarray(aim_point_enu, np.float64)[ok])
+    fit = gp_aim_steps(GPCorrection.from_model(cfg, state), params, h.spec, sun, aim, time_s,
+                       np.array(env_rows) if names else None)
+    with torch.no_grad():
+        residual = error_mrad(reflect(-sun, fit.normal), aim - fit.position)
+    for k, i in enumerate(ok):
+        reachable = bool(torch.isfinite(fit.steps[k]).all()) and math.isfinite(residual[k])
+        out[i] = fit.steps[k].numpy() if reachable else _unreachable(h.id)
     return out
 
 
