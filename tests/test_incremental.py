@@ -355,3 +355,26 @@ def test_incremental_sweep_trains_the_changed_chunk_and_equals_a_full_rerun(fiel
         assert len(old) != len(new) or not old.equals(new), name
         others = lambda t: t[~t["heliostat_id"].isin(trained)].reset_index(drop=True)  # noqa: E731
         pd.testing.assert_frame_equal(others(df), others(inc_tables[name]), check_exact=True)
+
+
+def test_value_digest_tells_values_apart_and_equal_values_alike():
+    """The digest the sweep's chunks and the report's figures are kept by: equal values (built
+    anew) hash alike; the smallest change of a value, a dtype, a column name or a key does not."""
+    from heliocal.pipeline.artifacts.incremental import value_digest
+
+    def build():
+        return {"frame": pd.DataFrame({"x": [1.0, 2.0], "t": pd.to_datetime(["2024-01-01"] * 2)}),
+                "array": np.arange(3.0), "tensor": torch.tensor([0.5, 1.5]), "n": 3,
+                "series": pd.Series({"a": 1.0}), "none": None, "nested": [("a", 1.0)]}
+
+    base = value_digest(build())
+    assert value_digest(build()) == base
+    changes = [("frame", pd.DataFrame({"x": [1.0, np.nextafter(2.0, 3.0)],
+                                       "t": pd.to_datetime(["2024-01-01"] * 2)})),
+               ("frame", pd.DataFrame({"y": [1.0, 2.0], "t": pd.to_datetime(["2024-01-01"] * 2)})),
+               ("array", np.arange(3.0).astype(np.float32)), ("array", np.arange(4.0)),
+               ("tensor", torch.tensor([0.5, 1.5], dtype=torch.float64)), ("n", 3.0),
+               ("series", pd.Series({"b": 1.0})), ("none", 0), ("nested", [("a", 1)])]
+    for key, value in changes:
+        assert value_digest({**build(), key: value}) != base, key
+    assert value_digest({**build(), "other": None}) != base

@@ -35,7 +35,8 @@ import numpy as np
 import pandas as pd
 
 __all__ = ["INCREMENTAL_KEY", "Increment", "heliostat_digests", "field_key", "plan_increment",
-           "reused_rows", "carry_over_unchanged", "mark_rerunnable", "code_identity"]
+           "reused_rows", "carry_over_unchanged", "mark_rerunnable", "code_identity",
+           "value_digest"]
 
 #: A stage name as manifests spell it (lower-case letters, digits and '-').
 _STAGE_NAME = re.compile(r"[a-z][a-z0-9-]{0,39}")
@@ -67,6 +68,62 @@ def heliostat_digests(frames: Sequence[pd.DataFrame]) -> dict[str, str]:
             h.update(data)
         out[hid] = h.hexdigest()
     return out
+
+
+def _hash_into(h, obj) -> None:
+    """Feed ``obj`` into hash ``h`` by value, with its type and shape, so that different values
+    never feed the same bytes: frames (column names, dtypes, every row hashed by value), series,
+    indexes, arrays, tensors, mappings (keys sorted), sequences, and scalars by their exact
+    ``repr``; anything else by its pickle, or, when it has none, by its identity (then it is
+    never taken for an earlier value)."""
+    import pickle
+
+    if isinstance(obj, pd.DataFrame):
+        h.update(f"frame:{obj.shape}:".encode())
+        h.update(json.dumps([[str(c), str(t)] for c, t in obj.dtypes.items()]).encode())
+        try:
+            h.update(pd.util.hash_pandas_object(obj.reset_index(drop=True), index=False)
+                     .to_numpy().tobytes())
+        except TypeError:   # unhashable cells (lists): column by column
+            for c in obj.columns:
+                _hash_into(h, obj[c].to_numpy())
+    elif isinstance(obj, pd.Series):
+        h.update(f"series:{obj.name!r}:{obj.dtype}:".encode())
+        _hash_into(h, obj.index)
+        _hash_into(h, obj.to_numpy())
+    elif isinstance(obj, pd.Index):
+        h.update(f"index:{obj.name!r}:{obj.dtype}:".encode())
+        _hash_into(h, obj.to_numpy())
+    elif isinstance(obj, np.ndarray):
+        h.update(f"ndarray:{obj.dtype}:{obj.shape}:".encode())
+        h.update(np.ascontiguousarray(obj).tobytes() if obj.dtype != object
+                 else pickle.dumps(obj.tolist(), protocol=4))
+    elif type(obj).__module__.startswith("torch") and hasattr(obj, "detach"):
+        _hash_into(h, obj.detach().cpu().numpy())
+    elif isinstance(obj, Mapping):
+        h.update(f"mapping:{len(obj)}:".encode())
+        for key in sorted(obj, key=repr):
+            h.update(f"{key!r}=".encode())
+            _hash_into(h, obj[key])
+    elif isinstance(obj, (list, tuple)):
+        h.update(f"{type(obj).__name__}:{len(obj)}:".encode())
+        for x in obj:
+            _hash_into(h, x)
+    elif obj is None or isinstance(obj, (bool, int, float, complex, str, bytes, np.generic,
+                                         pd.Timestamp, pd.Timedelta)):
+        h.update(f"{type(obj).__name__}:{obj!r};".encode())
+    else:
+        try:
+            h.update(b"pickle:" + pickle.dumps(obj, protocol=4))
+        except Exception:  # noqa: BLE001 - an object without a pickle is hashed by identity
+            h.update(f"id:{id(obj)}:{type(obj).__name__};".encode())
+
+
+def value_digest(obj) -> str:
+    """SHA-256 (hex) of ``obj`` by value (:func:`_hash_into`): equal digests, equal values."""
+    h = hashlib.sha256()
+    _hash_into(h, obj)
+    return h.hexdigest()
 
 
 _CODE: str | None = None

@@ -28,11 +28,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
 
-import numpy as np
 import pandas as pd
-import torch
 
-from ..artifacts.incremental import INCREMENTAL_KEY, code_identity, reused_rows
+from ..artifacts.incremental import INCREMENTAL_KEY, code_identity, reused_rows, value_digest
 from ..artifacts.manifests import current_transaction
 from ..artifacts.modelfiles import read_model, write_model
 from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
@@ -48,44 +46,11 @@ __all__ = ["ROW_BAND", "SweepPlan", "sweep_chunks", "sweep_digests", "plan_sweep
 ROW_BAND = 100
 
 
-def _hash_into(h, obj) -> None:
-    """Feed ``obj`` (frames, arrays, tensors, mappings, sequences, scalars) into hash ``h`` by
-    value, with its type and shape, so that different values never feed the same bytes."""
-    if isinstance(obj, pd.DataFrame):
-        h.update(json.dumps([[str(c), str(t)] for c, t in obj.dtypes.items()]).encode())
-        h.update(pd.util.hash_pandas_object(obj.reset_index(drop=True), index=False)
-                 .to_numpy().tobytes())
-    elif isinstance(obj, pd.Series):
-        _hash_into(h, obj.to_dict())
-    elif isinstance(obj, torch.Tensor):
-        _hash_into(h, obj.detach().cpu().numpy())
-    elif isinstance(obj, np.ndarray):
-        h.update(f"ndarray:{obj.dtype}:{obj.shape}:".encode())
-        h.update(np.ascontiguousarray(obj).tobytes() if obj.dtype != object
-                 else repr(obj.tolist()).encode())
-    elif isinstance(obj, Mapping):
-        h.update(f"mapping:{len(obj)}:".encode())
-        for key in sorted(obj, key=str):
-            h.update(f"{key!r}=".encode())
-            _hash_into(h, obj[key])
-    elif isinstance(obj, (list, tuple)):
-        h.update(f"sequence:{len(obj)}:".encode())
-        for x in obj:
-            _hash_into(h, x)
-    else:
-        h.update(f"{type(obj).__name__}:{obj!r};".encode())
-
-
 def sweep_digests(items: Mapping) -> dict[str, str]:
     """heliostat id -> SHA-256 (hex) of everything the sweep reads for it (its
     :class:`~.sweep_inputs.SweepInputs`: rows, split rows, heliostats.parquet row, selected coarse
     fit with its regimes, coarse predictions and errors, time-split fit)."""
-    out = {}
-    for hid in sorted(items):
-        h = hashlib.sha256()
-        _hash_into(h, vars(items[hid]))
-        out[hid] = h.hexdigest()
-    return out
+    return {hid: value_digest(vars(items[hid])) for hid in sorted(items)}
 
 
 def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
