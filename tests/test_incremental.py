@@ -378,3 +378,50 @@ def test_value_digest_tells_values_apart_and_equal_values_alike():
     for key, value in changes:
         assert value_digest({**build(), key: value}) != base, key
     assert value_digest({**build(), "other": None}) != base
+
+
+def _report_files(wd: Path) -> dict[str, bytes]:
+    """Every file of ``wd``'s report but its manifest, with the work directory's path (in
+    titles and hints) replaced by ``WD``."""
+    rep = wd / "report"
+    return {p.relative_to(rep).as_posix(): p.read_bytes().replace(str(wd).encode(), b"WD")
+            for p in sorted(rep.rglob("*")) if p.is_file() and not p.name.endswith(".json")
+            or p.name == "metrics.json"}
+
+
+@pytest.mark.slow
+def test_incremental_report_keeps_unchanged_figures_and_equals_a_full_report(field, tmp_path):
+    """The report of the day before, then the update (SP13 gains 5 rows, every stage
+    incremental) with ``report --incremental``, against a full report of the updated work
+    directory (a copy). Compared: every file of the report (pages, report.md, metrics.json and
+    the figures' PNG bytes; matplotlib draws the same pixels for the same data), the work
+    directory's path aside. Kept: SQ04's, SS48's and ST20's own figures; drawn: SP13's and the
+    field figures, which hold every heliostat's numbers."""
+    from heliocal.pipeline.models.config import FineConfig, PathConfig
+    from heliocal.pipeline.stages.report import run_report
+    from heliocal.pipeline.stages.sweep import run_sweep
+
+    root = Path(field[1]).parent
+    wd = shutil.copytree(root / "before-update", tmp_path / "wd")
+    sweep = dict(weight_decays=[1e-2, 0.0], config=FineConfig(max_epochs=20, ensemble=1),
+                 extra_bands=(), study=0, baselines=(), path=PathConfig(stage_epochs=20),
+                 workers=1, batch_size=1)
+    run_sweep(wd, **sweep)
+    first = run_report(wd, workers=1)
+    assert first["figures_kept"] == 0 and first["figures_drawn"] > 0
+    run_ingest([field[0]["new"]], wd, OPTIONS, append=True)
+    run_split(wd, incremental=True)
+    run_fit_coarse(wd, incremental=True, batch_size=2, workers=1)
+    run_sweep(wd, incremental=True, **sweep)
+    update = run_report(wd, workers=1, incremental=True)
+    full = shutil.copytree(wd, tmp_path / "full", ignore=shutil.ignore_patterns("report"))
+    rerun = run_report(full, workers=1)
+    inc_files, full_files = _report_files(wd), _report_files(full)
+    assert sorted(inc_files) == sorted(full_files)
+    for name, data in inc_files.items():
+        assert data == full_files[name], name
+    figures = sorted(Path(f).name for f in update["figures"])
+    assert update["figures_drawn"] + update["figures_kept"] == rerun["figures_drawn"]
+    own = lambda hid: {f for f in figures if hid in f}  # noqa: E731
+    assert own("SP13") and own("SQ04") and own("SS48") and own("ST20")
+    assert update["figures_kept"] == len(own("SQ04") | own("SS48") | own("ST20"))
