@@ -267,6 +267,9 @@ def test_fit_hybrid_and_sweep_keep_an_unchanged_run_and_retrain_all_after_a_chan
     assert again["incremental"]["computed"] == 4
     assert "field-wide" in again["incremental"]["why_all"]
     assert _files(wd, "sweep") != before["sweep"]
+    # a run of some heliostats records no digests, so it cannot be incremental: one clear error
+    with pytest.raises(ParameterError, match="leave out --heliostat, or leave out --incremental"):
+        run_sweep(wd, incremental=True, heliostats=["SP13"], **sweep)
 
 
 #: Columns of the sweep's artifacts that are measurements of the run, not results: each kept

@@ -484,6 +484,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         every chunk). The summary's ``incremental`` says which.
     """
     workdir = Path(workdir)
+    if heliostats and incremental:
+        raise ParameterError("--incremental works out itself which heliostats to train again; "
+                             "leave out --heliostat, or leave out --incremental")
     seeds, weight_decays = _checked_seeds(seeds), _checked_weight_decays(weight_decays)
     baselines = _checked_baselines(baselines)
     config = (config or FineConfig()).validated()
@@ -557,9 +560,6 @@ def _plan(txn, request: dict, items: dict, chunks: list[list[str]], studied: lis
     ``incremental``, for a run restricted to ``heliostats`` (which records no digests) and with
     ``time_split`` (the forward-in-time training batches the field's selected hybrids together)."""
     if heliostats:
-        if incremental:
-            raise ParameterError("--incremental works out itself which heliostats to train "
-                                 "again; leave out --heliostat, or leave out --incremental")
         return SweepPlan(chunks, why="a run of some heliostats (--heliostat)")
     key = field_key("sweep", request, [], {"study_heliostats": studied,
                                           "coarse_options": coarse_options})
