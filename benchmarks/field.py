@@ -25,9 +25,9 @@ sampled every 0.1 s), so the scaling ratio is measured in one run. Usage::
 ``--stages all`` (with the last of ``--workers``, default 2) times, in one run, the full method
 and a daily update (:func:`run_all`): the field's log without the latest 5 rows of 1 % of the
 heliostats (a seeded choice, at least one) goes through ``ingest``, ``split-knn``, ``fit-coarse``,
-``sweep --study 0`` and ``report``; then those rows through ``ingest --append``, ``split-knn
---incremental``, ``fit-coarse --incremental``, ``sweep --study 0`` and ``report``; then
-``split-knn --incremental`` and ``fit-coarse --incremental`` once more on unchanged inputs.
+``sweep --study 0`` and ``report``; then those rows through ``ingest --append`` and every
+later stage with ``--incremental``; then ``split-knn``, ``fit-coarse``, ``sweep`` and ``report``
+with ``--incremental`` once more on unchanged inputs.
 
 The simulated field is cached in OUT/field (delete it to simulate again).
 """
@@ -195,10 +195,9 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
                  *later],
         "update": [["ingest", str(update), *props, "--append"],
                    ["split-knn", "--workdir", str(wd), "--incremental"], [*coarse, "--incremental"],
-                   *[[*c, "--incremental"] if c[0] == "sweep" else c for c in later]],
+                   *[[*c, "--incremental"] for c in later]],
         "rerun": [["split-knn", "--workdir", str(wd), "--incremental"],
-                  [*coarse, "--incremental"],
-                  *[[*c, "--incremental"] for c in later if c[0] == "sweep"]],
+                  [*coarse, "--incremental"], *[[*c, "--incremental"] for c in later]],
     }
     print(f"update: {n_update} heliostats x {UPDATE_ROWS} new rows; workers={workers}", flush=True)
     table = []
@@ -229,8 +228,8 @@ def main() -> None:
     ap.add_argument("--solver", default="batched", help="fit-coarse --solver (batched or scipy)")
     ap.add_argument("--sweep-args", default="", help="extra options of the sweep stage")
     ap.add_argument("--later", default="sweep,report",
-                    help="--stages all: the stages after fit-coarse in the full method and the "
-                         "update ('' leaves them out: they compute the whole field either way)")
+                    help="--stages all: the stages after fit-coarse in the full method, the "
+                         "update and the rerun ('' leaves them out)")
     args = ap.parse_args()
     field_dir = args.out / f"field-{args.heliostats}"
     info = write_field(field_dir, args.heliostats)

@@ -30,7 +30,9 @@ def _human(summary: dict) -> None:
                      f"{fmt_number(f['median_test_error_mrad'])} mrad, p95 "
                      f"{fmt_number(f['p95_test_error_mrad'])} mrad; {f['n_on_alert']} on alert",
                      markup=False)
-    stdout.print(f"wrote {summary['report']} ({len(summary['figures'])} figures, "
+    kept = f", {summary['figures_kept']} kept from the last report" if summary.get(
+        "figures_kept") else ""
+    stdout.print(f"wrote {summary['report']} ({len(summary['figures'])} figures{kept}, "
                  f"{len(summary.get('heliostat_pages', []))} heliostat pages), "
                  f"{summary['markdown']}, {summary['metrics']}", markup=False)
 
@@ -50,6 +52,10 @@ def report_cmd(
         "--floor-mrad", min=0.0, help="Measurement floor drawn on the error distribution [mrad] "
                                       "(default: the simulator's noise floor for a simulated "
                                       "field, else none).")] = None,
+    incremental: Annotated[bool, typer.Option(
+        "--incremental", help="Draw only the figures whose data changed since the last report "
+                              "and keep the others' images; pages, tables and metrics are "
+                              "computed again.")] = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -58,7 +64,8 @@ def report_cmd(
     from heliocal.pipeline.report.regression import compare_metrics, format_report, load_metrics
     from heliocal.pipeline.stages.report import run_report
 
-    summary = run_report(workdir, workers=workers, alert_mrad=alert_mrad, floor_mrad=floor_mrad)
+    summary = run_report(workdir, workers=workers, alert_mrad=alert_mrad, floor_mrad=floor_mrad,
+                         incremental=incremental)
     if compare is not None:
         try:
             diffs = compare_metrics(load_metrics(summary["metrics"]), load_metrics(compare))

@@ -126,9 +126,10 @@ def sweep_cmd(
     scheduler: Scheduler = SchedulerChoice.local,
     dask_address: DaskAddress = None,
     incremental: Annotated[bool, typer.Option(
-        "--incremental", help="Keep the previous sweep as it is when its inputs, options, seeds "
-                              "and code are this run's; otherwise train every heliostat (a "
-                              "heliostat's networks depend on the others in its batch).")] = False,
+        "--incremental", help="Train again only the batches holding a heliostat whose inputs "
+                              "(rows, split, coarse fit) changed since the last sweep and keep "
+                              "the others' results; every batch when an option, a seed or the "
+                              "code changed, or with --time-split.")] = False,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:

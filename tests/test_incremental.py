@@ -9,11 +9,13 @@ row with an ingested id but another motor position.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from heliocal.pipeline.artifacts.incremental import heliostat_digests
 from heliocal.pipeline.artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, REGIME_PARAMS,
@@ -77,6 +79,7 @@ def field(tmp_path_factory):
     run_ingest([logs["old"]], inc, OPTIONS)
     run_split(inc)
     run_fit_coarse(inc, **coarse)
+    shutil.copytree(inc, root / "before-update")   # the work directory of the day before
     appended = run_ingest([logs["new"]], inc, OPTIONS, append=True)
     split = run_split(inc, incremental=True)
     fit = run_fit_coarse(inc, incremental=True, **coarse)
@@ -217,11 +220,13 @@ def _files(wd: Path, stage: str) -> dict:
 @pytest.mark.slow
 def test_fit_hybrid_and_sweep_keep_an_unchanged_run_and_retrain_all_after_a_change(field,
                                                                                   tmp_path):
-    """fit-hybrid and sweep train heliostats in batches, so they cannot keep some heliostats
-    and train others (a heliostat's networks depend on its batch-mates); what ``--incremental``
-    does for them is keep a run whose inputs, options, seed and code are unchanged, and train
-    all otherwise. Small settings: the check is what is kept, not the models' quality."""
-    import shutil
+    """fit-hybrid trains heliostats in batches whose membership follows the row counts, so it
+    cannot keep some heliostats and train others (a heliostat's networks depend on its
+    batch-mates); what ``--incremental`` does for it is keep a run whose inputs, options, seed and
+    code are unchanged, and train all otherwise. The sweep keeps such a run the same way, keeps
+    every chunk when an upstream run changed none of its inputs, and trains every chunk when an
+    option changed (the chunks that change with rows: the test above). Small settings: the check
+    is what is kept, not the models' quality."""
 
     from heliocal.pipeline.models.config import FineConfig, PathConfig
     from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
@@ -246,9 +251,180 @@ def test_fit_hybrid_and_sweep_keep_an_unchanged_run_and_retrain_all_after_a_chan
     reseeded = run_fit_hybrid(wd, incremental=True, seed=1, **hybrid)
     assert reseeded["incremental"] is None and len(reseeded["heliostats"]) == 4
     assert _files(wd, "fit-hybrid") != before["fit-hybrid"]
-    # an upstream change (fit-coarse with other options): the sweep trains every heliostat
+    # an upstream run with other options that changed none of the sweep's inputs (fit-coarse's
+    # rolling origins): the sweep reads its inputs again and keeps every chunk, every row as it
+    # was (the files' provenance records the new upstream run)
+    tables = {name: pd.read_parquet(wd / name) for name in before["sweep"]
+              if name.endswith(".parquet")}
     run_fit_coarse(wd, batch_size=2, workers=1, rolling_origins=2)
-    again = run_sweep(wd, incremental=True, **sweep)
-    assert again["incremental"]["unchanged"] is False
-    assert "every heliostat is trained again" in again["incremental"]["why_all"]
+    kept = run_sweep(wd, incremental=True, **sweep)
+    assert kept["incremental"] == {"unchanged": False, "computed": 0, "reused": 4, "removed": 0,
+                                   "chunks_computed": 0, "chunks_reused": 2, "why_all": None}
+    for name, df in tables.items():
+        pd.testing.assert_frame_equal(pd.read_parquet(wd / name), df, check_exact=True, obj=name)
+    # another seed of the sweep is field-wide: every chunk is trained again
+    again = run_sweep(wd, incremental=True, **{**sweep, "seeds": [1]})
+    assert again["incremental"]["computed"] == 4
+    assert "field-wide" in again["incremental"]["why_all"]
     assert _files(wd, "sweep") != before["sweep"]
+    # a run of some heliostats records no digests, so it cannot be incremental: one clear error
+    with pytest.raises(ParameterError, match="leave out --heliostat, or leave out --incremental"):
+        run_sweep(wd, incremental=True, heliostats=["SP13"], **sweep)
+
+
+#: Columns of the sweep's artifacts that are measurements of the run, not results: each kept
+#: row carries the wall time of the run that trained it.
+WALL_COLUMNS = ("wall_time_s",)
+
+
+def _sweep_tables(wd: Path) -> dict[str, pd.DataFrame]:
+    from heliocal.pipeline.artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
+
+    return {s.name: pd.read_parquet(wd / s.filename).drop(columns=list(WALL_COLUMNS),
+                                                          errors="ignore")
+            for s in (SWEEP, SELECTION, SELECTED_PREDICTIONS)}
+
+
+def _selected_models(wd: Path) -> dict[str, tuple[dict, dict]]:
+    """heliostat -> (configuration, weights) of the sweep's selected models, as ``aim`` reads
+    them (through the sweep's manifest, weights checked against the configuration)."""
+    from heliocal.pipeline.artifacts.modelfiles import read_model
+
+    out = {}
+    for path in sorted((wd / "hybrid" / "selected").glob("*.json")):
+        got = read_model(wd, "sweep", "selected", path.stem, hint="sweep")
+        if got is not None:
+            cfg, state = got
+            out[path.stem] = ({k: v for k, v in cfg.items() if k != "weights_sha256"}, state)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("batch_size, chunks", [(1, (1, 3)), (32, (1, 1))])
+def test_incremental_sweep_trains_the_changed_chunk_and_equals_a_full_rerun(field, tmp_path,
+                                                                            batch_size, chunks):
+    """The sweep of the day before, then the update (SP13 gains 5 rows) with ``sweep
+    --incremental``, against a full sweep of the updated work directory (a copy). With
+    ``batch_size=1`` every heliostat is its own chunk, so the update trains SP13 alone and keeps
+    the other three; with 32 the field's two groups are one chunk each, so the update trains SP13
+    and SS48 (its chunk-mate, whose networks depend on SP13's padding) and keeps SQ04 and ST20.
+    ST20 is a study heliostat: its study rows are kept with its chunk. Every
+    artifact equals the full rerun's bit for bit (structure and every value; only ``wall_time_s``,
+    the run's own timing, is left out), and so do the selected models' weights and
+    configurations (whose recorded inputs are the updated work directory's)."""
+    from heliocal.pipeline.models.config import FineConfig, PathConfig
+    from heliocal.pipeline.stages.sweep import run_sweep
+
+    root = Path(field[1]).parent
+    wd = shutil.copytree(root / "before-update", tmp_path / "wd")
+    config = FineConfig(max_epochs=30, ensemble=2)
+    sweep = dict(weight_decays=[1e-2, 0.0], config=config, extra_bands=(), study=["ST20"],
+                 n_train=[20], baselines=(), path=PathConfig(stage_epochs=30), workers=1,
+                 batch_size=batch_size)
+    first = run_sweep(wd, **sweep)
+    assert first["incremental"]["why_all"] == "not --incremental"
+    day_before = _sweep_tables(wd)
+    logs = field[0]
+    run_ingest([logs["new"]], wd, OPTIONS, append=True)
+    run_split(wd, incremental=True)
+    run_fit_coarse(wd, incremental=True, batch_size=2, workers=1)
+    update = run_sweep(wd, incremental=True, **sweep)
+    trained = ["SP13"] if batch_size == 1 else ["SP13", "SS48"]
+    assert update["incremental"] == {"unchanged": False, "computed": len(trained),
+                                     "reused": 4 - len(trained), "removed": 0,
+                                     "chunks_computed": chunks[0], "chunks_reused": chunks[1],
+                                     "why_all": None}
+    assert sorted(update["members_per_heliostat"]) == trained
+    full = shutil.copytree(wd, tmp_path / "full")
+    rerun = run_sweep(full, **sweep)
+    assert rerun["incremental"]["computed"] == 4
+    inc_tables, full_tables = _sweep_tables(wd), _sweep_tables(full)
+    for name in inc_tables:
+        pd.testing.assert_frame_equal(inc_tables[name], full_tables[name], check_exact=True,
+                                      obj=name)
+    assert (inc_tables["sweep"]["n_train"] == 20).any()        # ST20's study rows are there
+    inc_models, full_models = _selected_models(wd), _selected_models(full)
+    assert sorted(inc_models) == sorted(full_models)
+    for hid, (cfg, state) in inc_models.items():
+        assert cfg == full_models[hid][0], hid
+        assert sorted(state) == sorted(full_models[hid][1]), hid
+        for k, t in state.items():
+            assert torch.equal(t, full_models[hid][1][k]), (hid, k)
+    # SP13's results moved with its rows (so keeping its chunk by mistake would fail above);
+    # the others' are the day before's
+    for name, df in day_before.items():
+        old, new = (t[t["heliostat_id"] == "SP13"].reset_index(drop=True)
+                    for t in (df, inc_tables[name]))
+        assert len(old) != len(new) or not old.equals(new), name
+        others = lambda t: t[~t["heliostat_id"].isin(trained)].reset_index(drop=True)  # noqa: E731
+        pd.testing.assert_frame_equal(others(df), others(inc_tables[name]), check_exact=True)
+
+
+def test_value_digest_tells_values_apart_and_equal_values_alike():
+    """The digest the sweep's chunks and the report's figures are kept by: equal values (built
+    anew) hash alike; the smallest change of a value, a dtype, a column name or a key does not."""
+    from heliocal.pipeline.artifacts.incremental import value_digest
+
+    def build():
+        return {"frame": pd.DataFrame({"x": [1.0, 2.0], "t": pd.to_datetime(["2024-01-01"] * 2)}),
+                "array": np.arange(3.0), "tensor": torch.tensor([0.5, 1.5]), "n": 3,
+                "series": pd.Series({"a": 1.0}), "none": None, "nested": [("a", 1.0)]}
+
+    base = value_digest(build())
+    assert value_digest(build()) == base
+    changes = [("frame", pd.DataFrame({"x": [1.0, np.nextafter(2.0, 3.0)],
+                                       "t": pd.to_datetime(["2024-01-01"] * 2)})),
+               ("frame", pd.DataFrame({"y": [1.0, 2.0], "t": pd.to_datetime(["2024-01-01"] * 2)})),
+               ("array", np.arange(3.0).astype(np.float32)), ("array", np.arange(4.0)),
+               ("tensor", torch.tensor([0.5, 1.5], dtype=torch.float64)), ("n", 3.0),
+               ("series", pd.Series({"b": 1.0})), ("none", 0), ("nested", [("a", 1)])]
+    for key, value in changes:
+        assert value_digest({**build(), key: value}) != base, key
+    assert value_digest({**build(), "other": None}) != base
+
+
+def _report_files(wd: Path) -> dict[str, bytes]:
+    """Every file of ``wd``'s report but its manifest, with the work directory's path (in
+    titles and hints) replaced by ``WD``."""
+    rep = wd / "report"
+    return {p.relative_to(rep).as_posix(): p.read_bytes().replace(str(wd).encode(), b"WD")
+            for p in sorted(rep.rglob("*")) if p.is_file() and not p.name.endswith(".json")
+            or p.name == "metrics.json"}
+
+
+@pytest.mark.slow
+def test_incremental_report_keeps_unchanged_figures_and_equals_a_full_report(field, tmp_path):
+    """The report of the day before, then the update (SP13 gains 5 rows, every stage
+    incremental) with ``report --incremental``, against a full report of the updated work
+    directory (a copy). Compared: every file of the report (pages, report.md, metrics.json and
+    the figures' PNG bytes; matplotlib draws the same pixels for the same data), the work
+    directory's path aside. Kept: SQ04's, SS48's and ST20's own figures; drawn: SP13's and the
+    field figures, which hold every heliostat's numbers."""
+    from heliocal.pipeline.models.config import FineConfig, PathConfig
+    from heliocal.pipeline.stages.report import run_report
+    from heliocal.pipeline.stages.sweep import run_sweep
+
+    root = Path(field[1]).parent
+    wd = shutil.copytree(root / "before-update", tmp_path / "wd")
+    sweep = dict(weight_decays=[1e-2, 0.0], config=FineConfig(max_epochs=20, ensemble=1),
+                 extra_bands=(), study=0, baselines=(), path=PathConfig(stage_epochs=20),
+                 workers=1, batch_size=1)
+    run_sweep(wd, **sweep)
+    first = run_report(wd, workers=1)
+    assert first["figures_kept"] == 0 and first["figures_drawn"] > 0
+    run_ingest([field[0]["new"]], wd, OPTIONS, append=True)
+    run_split(wd, incremental=True)
+    run_fit_coarse(wd, incremental=True, batch_size=2, workers=1)
+    run_sweep(wd, incremental=True, **sweep)
+    update = run_report(wd, workers=1, incremental=True)
+    full = shutil.copytree(wd, tmp_path / "full", ignore=shutil.ignore_patterns("report"))
+    rerun = run_report(full, workers=1)
+    inc_files, full_files = _report_files(wd), _report_files(full)
+    assert sorted(inc_files) == sorted(full_files)
+    for name, data in inc_files.items():
+        assert data == full_files[name], name
+    figures = sorted(Path(f).name for f in update["figures"])
+    assert update["figures_drawn"] + update["figures_kept"] == rerun["figures_drawn"]
+    own = lambda hid: {f for f in figures if hid in f}  # noqa: E731
+    assert own("SP13") and own("SQ04") and own("SS48") and own("ST20")
+    assert update["figures_kept"] == len(own("SQ04") | own("SS48") | own("ST20"))

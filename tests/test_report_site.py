@@ -19,6 +19,7 @@ from heliocal.pipeline.artifacts.schemas import all_schemas
 from heliocal.pipeline.artifacts.store import write_artifact
 from heliocal.pipeline.report.field import svg_field_map, worst
 from heliocal.pipeline.stages import report as report_stage
+from heliocal.pipeline.stages import report_figures
 from heliocal.pipeline.stages.aim import aim_models
 from heliocal.pipeline.stages.report import run_report
 from test_report import COARSE_TEST, COARSE_VAL, HIDS, make_workdir
@@ -146,7 +147,7 @@ def test_field_map_escapes_and_orders():
 def test_figures_drawn_in_worker_processes_equal_those_drawn_here(tmp_path, monkeypatch):
     wd = make_workdir(tmp_path, "sweep")
     here = run_report(wd, tmp_path / "here", workers=1)
-    monkeypatch.setattr(report_stage, "MIN_PARALLEL_FIGURES", 0)
+    monkeypatch.setattr(report_figures, "MIN_PARALLEL_FIGURES", 0)
     pool = run_report(wd, tmp_path / "pool", workers=2)
     # 13 figures of the sweep workdir plus one regime figure per heliostat (its regimes.parquet)
     names = sorted(Path(f).name for f in here["figures"])

@@ -35,7 +35,8 @@ import numpy as np
 import pandas as pd
 
 __all__ = ["INCREMENTAL_KEY", "Increment", "heliostat_digests", "field_key", "plan_increment",
-           "reused_rows", "carry_over_unchanged", "mark_rerunnable", "code_identity"]
+           "reused_rows", "carry_over_unchanged", "mark_rerunnable", "code_identity",
+           "value_digest"]
 
 #: A stage name as manifests spell it (lower-case letters, digits and '-').
 _STAGE_NAME = re.compile(r"[a-z][a-z0-9-]{0,39}")
@@ -67,6 +68,80 @@ def heliostat_digests(frames: Sequence[pd.DataFrame]) -> dict[str, str]:
             h.update(data)
         out[hid] = h.hexdigest()
     return out
+
+
+def _hash_into(h, obj) -> None:
+    """Feed ``obj`` into hash ``h`` by value, with its type and shape, so that different values
+    never feed the same bytes: frames (column names, dtypes, every row hashed by value), series,
+    indexes, arrays, tensors, mappings (keys sorted), sequences, and scalars by their exact
+    ``repr``; anything else by its pickle, or, when it has none, by its identity (then it is
+    never taken for an earlier value)."""
+    import pickle
+
+    if isinstance(obj, pd.DataFrame):
+        h.update(f"frame:{obj.shape}:".encode())
+        h.update(json.dumps([[str(c), str(t)] for c, t in obj.dtypes.items()]).encode())
+        _hash_frame_values(h, obj)
+    elif isinstance(obj, pd.Series):
+        h.update(f"series:{obj.name!r}:{obj.dtype}:".encode())
+        _hash_into(h, obj.index)
+        _hash_into(h, obj.to_numpy())
+    elif isinstance(obj, pd.Index):
+        h.update(f"index:{obj.name!r}:{obj.dtype}:".encode())
+        _hash_into(h, obj.to_numpy())
+    elif isinstance(obj, np.ndarray):
+        h.update(f"ndarray:{obj.dtype}:{obj.shape}:".encode())
+        h.update(np.ascontiguousarray(obj).tobytes() if obj.dtype != object
+                 else pickle.dumps(obj.tolist(), protocol=4))
+    elif type(obj).__module__.startswith("torch") and hasattr(obj, "detach"):
+        _hash_into(h, obj.detach().cpu().numpy())
+    elif isinstance(obj, Mapping):
+        h.update(f"mapping:{len(obj)}:".encode())
+        for key in sorted(obj, key=repr):
+            h.update(f"{key!r}=".encode())
+            _hash_into(h, obj[key])
+    elif isinstance(obj, (list, tuple)):
+        h.update(f"{type(obj).__name__}:{len(obj)}:".encode())
+        for x in obj:
+            _hash_into(h, x)
+    elif obj is None or isinstance(obj, (bool, int, float, complex, str, bytes, np.generic,
+                                         pd.Timestamp, pd.Timedelta)):
+        h.update(f"{type(obj).__name__}:{obj!r};".encode())
+    else:
+        try:
+            h.update(b"pickle:" + pickle.dumps(obj, protocol=4))
+        except Exception:  # noqa: BLE001 - an object without a pickle is hashed by identity
+            h.update(f"id:{id(obj)}:{type(obj).__name__};".encode())
+
+
+def _hash_frame_values(h, df: pd.DataFrame) -> None:
+    """A frame's values (its header, with names and dtypes in order, is hashed apart): the
+    columns of each numpy dtype as one block of bytes, dtype by dtype, then the other columns
+    (strings, objects, categories) hashed by pandas row by row, or, for cells pandas cannot hash
+    (lists), column by column with :func:`_hash_into`. One call per dtype, not per column: the
+    report hashes some 30,000 small columns per run."""
+    kinds = [str(t) if isinstance(t, np.dtype) and t != object else None for t in df.dtypes]
+    for kind in sorted({k for k in kinds if k is not None}):
+        cols = [i for i, k in enumerate(kinds) if k == kind]
+        h.update(f"{kind}:{cols}:".encode())
+        h.update(np.ascontiguousarray(df.iloc[:, cols].to_numpy()).tobytes())
+    others = [i for i, k in enumerate(kinds) if k is None]
+    if not others:
+        return
+    rest = df.iloc[:, others].reset_index(drop=True)
+    h.update(f"other:{others}:".encode())
+    try:
+        h.update(pd.util.hash_pandas_object(rest, index=False).to_numpy().tobytes())
+    except TypeError:
+        for c in range(rest.shape[1]):
+            _hash_into(h, rest.iloc[:, c].to_numpy(dtype=object))
+
+
+def value_digest(obj) -> str:
+    """SHA-256 (hex) of ``obj`` by value (:func:`_hash_into`): equal digests, equal values."""
+    h = hashlib.sha256()
+    _hash_into(h, obj)
+    return h.hexdigest()
 
 
 _CODE: str | None = None

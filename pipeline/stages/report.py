@@ -57,12 +57,13 @@ from ..report.metrics import compute_metrics, metrics_json
 from ..report.pages import (build_report, figure_tasks, parameter_tables, render_html,
                             render_markdown, resolve_figures)
 from ..report.forward import svg_next_day
-from ..report.render import FigureTask, ReportFigure, by_heliostat, render_task
+from ..report.render import FigureTask, ReportFigure, by_heliostat
 from ..report.regimes import regime_alerts
 from ..report.site import (SORT_JS, field_page_blocks, heliostat_html, heliostats_list_html,
                            index_html, nav_html, why_text)
-from ..runtime.parallel import default_workers, map_tasks
+from ..runtime.parallel import default_workers
 from ..runtime.process_state import restores_process_state
+from .report_figures import drawn_or_kept
 
 __all__ = [
     "measurement_floor",
@@ -72,11 +73,6 @@ __all__ = [
 log = logging.getLogger("heliocal.report")
 
 
-#: Fewer figures than this are drawn in this process: starting worker processes (each imports
-#: matplotlib) costs more than it saves.
-MIN_PARALLEL_FIGURES = 40
-
-
 # ------------------------------------------------------------------------------------------------
 # the stage
 # ------------------------------------------------------------------------------------------------
@@ -84,7 +80,7 @@ MIN_PARALLEL_FIGURES = 40
 @restores_process_state
 def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
                workers: int | None = None, alert_mrad: float = ALERT_MRAD,
-               floor_mrad: float | None = None) -> dict:
+               floor_mrad: float | None = None, incremental: bool = False) -> dict:
     """The ``report`` stage: write the pages, report.md, figures/*.png and metrics.json.
 
     Parameters
@@ -99,6 +95,9 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
     floor_mrad : the measurement floor drawn on the error distribution [mrad]; default: the
         simulator's noise floor when the sources are a simulated field (ground_truth.json next
         to them), else none.
+    incremental : take each figure whose task (its data, caption and the code) is the one the
+        previous report recorded from that report instead of drawing it again
+        (:mod:`.report_figures`); pages, tables and metrics are computed again either way.
 
     Returns
     -------
@@ -108,7 +107,8 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
     workers = default_workers() if workers is None else check_int(workers, "workers", "report", 1)
     workdir = Path(workdir)
     out = Path(out_dir) if out_dir is not None else workdir / "report"
-    summary = _write_report(workdir, out, workers, float(alert_mrad), floor_mrad)
+    summary = _write_report(workdir, out, workers, float(alert_mrad), floor_mrad,
+                            bool(incremental))
     keep = {Path(f).name for f in summary["figures"]}
     pages = {Path(p).name for p in summary["heliostat_pages"]}
     for folder, kept, pattern in ((out / "figures", keep, "*.png"),
@@ -190,7 +190,7 @@ def _noise_floors_mrad(truth: Path) -> list[float]:
 
 @stage_transaction("report", root=lambda a: a["out"], consistent_inputs=False)
 def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
-                  floor_mrad: float | None) -> dict:
+                  floor_mrad: float | None, incremental: bool) -> dict:
     from .aim_choice import aim_models  # the one answer to "which model does aim use"
 
     txn = current_transaction(out, "report")
@@ -223,9 +223,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     field_plan = _field_plan(inp, wd_frame, training_size_frame(inp.sweep),
                              comparison_table(wd_frame, inp.selection))
     tasks = [cdf_task] + figure_tasks(blocks) + figure_tasks(field_plan)
-    n_workers = workers if len(tasks) >= MIN_PARALLEL_FIGURES else 1
-    results = map_tasks(render_task, tasks, workers=n_workers)
-    drawn = {t.filename: r for t, r in zip(tasks, results)}
+    drawn, counts = drawn_or_kept(txn, out, tasks, workers, incremental)
     blocks = resolve_figures(blocks, drawn)
     field_blocks = resolve_figures(field_plan, drawn)
     figs = [b[1] for b in blocks + field_blocks if b[0] == "figure"]
@@ -275,7 +273,8 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
             "figures": [str(fig_dir / f.filename) for f in figs], "notes": notes,
             "measurement_floor": {"value_mrad": floor, "source": floor_source,
                                   "problems": measured_floor.problems},
-            "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats}
+            "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats,
+            "figures_drawn": counts["drawn"], "figures_kept": counts["kept"]}
 
 
 def _gp_maps(workdir: Path, choices: dict) -> dict[str, dict]:

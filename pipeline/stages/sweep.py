@@ -45,12 +45,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..artifacts.incremental import carry_over_unchanged, mark_rerunnable
+from ..artifacts.incremental import carry_over_unchanged, field_key, mark_rerunnable
 from ..artifacts.manifests import current_transaction
-from ..artifacts.modelfiles import write_model
-from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
-from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
-                               write_artifact)
+from ..artifacts.schemas import SELECTION
+from ..artifacts.store import read_artifact
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import ParameterError, check_float, check_int
@@ -68,11 +66,12 @@ from ..runtime.process_state import restores_process_state
 from ..vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCTAVE_BANDS,
                           NeuralBaseline)
 from .fit_coarse import coarse_fit_options, coarse_row_parameters
-from .fit_hybrid import hybrid_chunks
 from .forward import add_sweep_time_split
 from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
 from .sweep_screen import SCREEN_FAILED, ScreenVerdict, screen_margin, screen_verdicts
+from .sweep_increment import (SweepPlan, plan_sweep, sweep_chunks, sweep_digests,
+                              write_sweep_outputs)
 from .sweep_inputs import (SweepHeliostat, SweepInputs, fit_pretrained_errors, read_sweep_inputs,
                            sweep_row)
 
@@ -435,37 +434,6 @@ def _study_presets(item: SweepInputs, presets: Sequence[str] | None) -> tuple[st
         m for m in item.coarse if m != "nominal" and "+" not in m)
 
 
-def _write_outputs(workdir: Path, results: list[dict], chosen: list[dict],
-                   heliostats: Sequence[str] | None, opts: dict, seed: int) -> pd.DataFrame:
-    """Write the selected models, sweep.parquet, selection.parquet and
-    selected_predictions.parquet of a run's results; return the selection."""
-    rows = [r for res in results for r in res["rows"]]
-    selection = pd.DataFrame([res["selection"] for res in chosen])
-    txn = current_transaction(workdir, "sweep")
-    hashes = txn.input_fingerprints()  # what this run read: the selected models' recorded inputs
-    for res in chosen:
-        st = res["selected_state"]
-        if st is None:
-            continue
-        hid = st["config"]["heliostat_id"]
-        write_model(txn, "selected", hid, st["state"], {**st["config"], "inputs": hashes})
-    # a partial run (--heliostat) keeps the other heliostats' rows and selected models when the
-    # previous sweep read the same inputs (artifacts.merge_with_previous)
-    tables = {SWEEP: pd.DataFrame(rows), SELECTION: selection,
-              SELECTED_PREDICTIONS: pd.concat([res["predictions"] for res in chosen],
-                                              ignore_index=True)}
-    if heliostats:
-        requested = set(heliostats)
-        replaced = lambda old: old["heliostat_id"].isin(requested)  # noqa: E731
-        tables = {s: merge_with_previous(workdir, s, df, replaced) for s, df in tables.items()}
-        if previous_run_matches(workdir, "sweep"):
-            txn.carry_over(r for r in txn.previous_files("hybrid/selected")
-                           if r.rsplit("/", 1)[-1].rsplit(".", 1)[0] not in requested)
-    for schema, df in tables.items():
-        write_artifact(df, workdir, schema, stage="sweep", options=opts, seed=seed)
-    return selection
-
-
 @locks_workdir("sweep")
 @stage_transaction("sweep")
 @restores_process_state
@@ -510,10 +478,15 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         :mod:`.sweep_screen`).
     workers, scheduler, dask_address, progress : as for ``fit-hybrid``.
     incremental : keep the previous sweep as it is when its inputs, options, seeds and code are
-        this run's (nothing is read or trained); otherwise, and with any change, train every
-        heliostat (the summary's ``incremental`` says which).
+        this run's (nothing is read or trained); otherwise train again only the chunks holding a
+        heliostat whose inputs changed, and keep the others' rows and models
+        (:mod:`.sweep_increment`; with another option, seed or code, or with ``time_split``,
+        every chunk). The summary's ``incremental`` says which.
     """
     workdir = Path(workdir)
+    if heliostats and incremental:
+        raise ParameterError("--incremental works out itself which heliostats to train again; "
+                             "leave out --heliostat, or leave out --incremental")
     seeds, weight_decays = _checked_seeds(seeds), _checked_weight_decays(weight_decays)
     baselines = _checked_baselines(baselines)
     config = (config or FineConfig()).validated()
@@ -544,14 +517,16 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     selected = {hid: item.selected for hid, item in items.items()}
     helio = pd.DataFrame([item.hrow for item in items.values()],
                          index=list(items)) if items else None
-    ids = sorted(items, key=lambda h: (len(items[h].rows), h))
+    studied = study_heliostats(list(items), study, study_seed)
+    coarse_options = coarse_fit_options(workdir)
+    plan = _plan(txn, request, items, sweep_chunks(items, selected, helio, batch_size), studied,
+                 coarse_options, incremental, heliostats, time_split)
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
                          pretrain_config if select_pretrained else None, gp_config, rule,
                          screen))
-             for chunk in hybrid_chunks(ids, selected, helio, batch_size)]
-    studied = study_heliostats(list(items), study, study_seed)
-    coarse_options = coarse_fit_options(workdir)
-    for hid in studied:
+             for chunk in plan.compute]
+    computed = {h for chunk in plan.compute for h in chunk}
+    for hid in (h for h in studied if h in computed):
         tasks.append(("study", (items[hid], _study_sizes(items[hid], n_train),
                                 _study_presets(items[hid], presets), variants, weight_decays,
                                 seeds, path, pretrain_config, baselines, coarse_options,
@@ -567,7 +542,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          scheduler=scheduler, dask_address=dask_address)
     apply_forward_checks(chosen, items)
     opts = {**request, "study_heliostats": studied, "coarse_options": coarse_options}
-    selection = _write_outputs(workdir, results, chosen, heliostats, opts, seed=seeds[0])
+    selection = write_sweep_outputs(workdir, results, chosen, heliostats,
+                                    plan if not heliostats else None, opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "study_heliostats": studied,
             "members_per_heliostat": {   # ensembles trained: the screen's alone where it failed
@@ -575,14 +551,23 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                     min(screen.stages, len(weight_decays)) if r["screen"] == SCREEN_FAILED
                     else len(weight_decays) * len(variants))
                 for r in (res["selection"] for res in chosen)},
-            "incremental": {"unchanged": False, "why_all": _why_all(incremental)}}
+            "incremental": plan.summary()}
 
 
-def _why_all(incremental: bool) -> str:
-    return ("an input, an option or the code changed since the last sweep: every heliostat is "
-            "trained again (a heliostat's networks depend on the heliostats trained in its "
-            "batch, docs/experiments/incremental-updates.md)" if incremental
-            else "not --incremental")
+def _plan(txn, request: dict, items: dict, chunks: list[list[str]], studied: list[str],
+          coarse_options: dict, incremental: bool, heliostats, time_split: bool) -> SweepPlan:
+    """Which chunks the run trains (:mod:`.sweep_increment`): all of them without
+    ``incremental``, for a run restricted to ``heliostats`` (which records no digests) and with
+    ``time_split`` (the forward-in-time training batches the field's selected hybrids together)."""
+    if heliostats:
+        return SweepPlan(chunks, why="a run of some heliostats (--heliostat)")
+    key = field_key("sweep", request, [], {"study_heliostats": studied,
+                                          "coarse_options": coarse_options})
+    plan = plan_sweep(txn, key, sweep_digests(items), chunks, incremental)
+    if plan.partial and time_split:
+        return plan.everything("--time-split trains the field's selected hybrids forward in "
+                               "time in batches of one another: every heliostat is trained again")
+    return plan
 
 
 def _kept_summary(workdir: Path, txn) -> dict:
