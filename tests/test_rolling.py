@@ -129,31 +129,3 @@ def test_a_warm_started_origin_fit_is_the_cold_fit_of_its_rows(rolled):
            .set_index("measurement_id").loc[data.subset(scored).measurement_id, "error_mrad"])
     np.testing.assert_allclose(got.to_numpy(), want, atol=1e-5)
 
-
-# --------------------------------------------------------------------------------------------
-# Real heliostats whose origin fits have more than one minimum (the shared Jülich CSV log)
-# --------------------------------------------------------------------------------------------
-@pytest.mark.slow
-def test_each_origin_keeps_the_better_of_the_cold_and_the_warm_start(juelich_dir, tmp_path):
-    """AH33's nominal geometry is about 100 mrad off; the robust start its first origin found
-    on 11 rows, kept for later origins together with a warm start from that origin's fit, held
-    every next-day error at 8-290 mrad (mean 164) where a cold fit of each origin's rows gives
-    0.6-1.4 mrad after the first origin (mean 6.4). AQ32 is the other way round: its cold fits
-    reach a minimum with a mean next-day error of 17.1 mrad, the warm starts one of 0.47-0.59.
-    Keeping the start with the lower objective must give both their low figure (expected values:
-    the rolling evaluation run with each start alone, docs/experiments/forward-vs-nominal.md)."""
-    from heliocal.pipeline.artifacts.schemas import ROLLING_ORIGIN
-    from heliocal.pipeline.artifacts.store import read_artifact
-    from heliocal.pipeline.io.staged import IngestOptions
-    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
-    from heliocal.pipeline.stages.ingest import run_ingest
-    from heliocal.pipeline.stages.split import run_split
-
-    work = tmp_path / "work"
-    run_ingest([juelich_dir / "csv" / "juelich_calibration_log.csv"], work,
-               IngestOptions(properties=juelich_dir / "paint"))
-    run_split(work)
-    run_fit_coarse(work, heliostats=["AH33", "AQ32"])
-    mean = read_artifact(work, ROLLING_ORIGIN).groupby("heliostat_id")["error_mrad"].mean()
-    assert mean["AH33"] < 10.0, mean.to_dict()
-    assert mean["AQ32"] < 1.0, mean.to_dict()
