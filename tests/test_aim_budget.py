@@ -110,6 +110,29 @@ def test_a_fit_worse_than_the_nominal_geometry_on_held_out_rows_falls_back():
     assert nominal_fallback(_entry(2.5), 3.5, nan)["model"] == "coarse"
 
 
+def test_a_fit_worse_than_the_nominal_geometry_next_day_falls_back():
+    """The rolling-origin rows are forward evidence of their own: a fit better than the nominal
+    geometry on both validations but worse on the next-day rows (the shared CSV log's AH48 after
+    its two-month gap: 75.1 against the nominal geometry's 71.5 mrad on the same 12 rows, while
+    12.5 against 108 on the time split's validation) falls back; one better there is kept."""
+    nominal = {"val_error_mrad": 83.0, "test_error_mrad": 80.0, "time_val_error_mrad": 107.8,
+               "time_test_error_mrad": 56.5, "next_day_error_mrad": 71.5}
+    worse = {**_entry(32.1), "next_day_error_mrad": 75.1}
+    got = nominal_fallback(worse, 12.5, nominal)
+    assert got["model"] == "nominal" and got["forward_error_mrad"] == 56.5
+    assert got["next_day_error_mrad"] == 71.5
+    assert "next day 75.1 vs 71.5 mrad on the rolling-origin rows" in got["fallback"]
+    assert "validation" not in got["fallback"] and "forward in time" not in got["fallback"]
+    # better next day (and on both validations): the fitted model stays
+    better = {**_entry(32.1), "next_day_error_mrad": 46.5}
+    assert nominal_fallback(better, 12.5, nominal) == better
+    # no rolling-origin rows (NaN on either side): the next day decides nothing
+    assert nominal_fallback({**worse, "next_day_error_mrad": float("nan")}, 12.5,
+                            nominal)["model"] == "coarse"
+    assert nominal_fallback(worse, 12.5, {**nominal, "next_day_error_mrad": float("nan")}
+                            )["model"] == "coarse"
+
+
 # --------------------------------------------------------------------------------------------
 # simulated heliostats, end to end
 # --------------------------------------------------------------------------------------------

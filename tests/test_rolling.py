@@ -128,3 +128,4 @@ def test_a_warm_started_origin_fit_is_the_cold_fit_of_its_rows(rolled):
     got = (rolling[(rolling["heliostat_id"] == hid) & (rolling["origin_date"] == last)]
            .set_index("measurement_id").loc[data.subset(scored).measurement_id, "error_mrad"])
     np.testing.assert_allclose(got.to_numpy(), want, atol=1e-5)
+

@@ -49,7 +49,8 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
     Returns
     -------
     dict heliostat_id -> {``model`` (``coarse``, ``hybrid``, ``pretrained-nn``, ``gp``, or
-    ``nominal`` where the fitted model is worse than the nominal geometry on held-out rows:
+    ``nominal`` where the fitted model is not better than the nominal geometry on held-out
+    rows (kNN validation, the time split's validation, the rolling-origin next-day rows):
     :func:`nominal_fallback`, whose sentence is in ``fallback``, else None), ``variant``
     (``hybrid``, ``hybrid-octaves``, ``pretrained-nn``, ``gp``, ``gp-sun``; None for coarse),
     ``source`` (the stage that chose it: ``sweep``,
@@ -130,10 +131,18 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
 
 def nominal_fallback(entry: dict, time_val_error_mrad: float, nominal: dict | None) -> dict:
     """``entry`` (an :func:`aim_models` value), or the nominal geometry in its place when the
-    fitted model is worse than the nominal geometry on rows it had not seen: its validation mean
-    above the nominal geometry's on the same rows, or the coarse model fitted on the time split's
-    training rows above the nominal geometry on the time split's validation rows. Validation
-    rows decide (the test rows stay a measurement); ``fallback`` says why in one sentence."""
+    fitted model is not better than the nominal geometry on rows it had not seen, any of:
+
+    - its mean on the kNN validation rows above the nominal geometry's on the same rows;
+    - the coarse model fitted on the time split's training rows (``time_val_error_mrad``) above
+      the nominal geometry on the time split's validation rows;
+    - its mean next-day error (``entry["next_day_error_mrad"]``: fit-coarse's rolling-origin
+      evaluation, each day's rows scored by a fit on the rows before that day) above the
+      nominal geometry's on the same rows: the forward evidence of a plant that keeps
+      calibrating, which the time split's one validation period can miss.
+
+    Held-out rows decide (the test rows stay a measurement); a NaN figure (no such rows)
+    decides nothing. ``fallback`` says why in one sentence."""
     if not nominal:
         return entry
     worse = []
@@ -142,6 +151,10 @@ def nominal_fallback(entry: dict, time_val_error_mrad: float, nominal: dict | No
     if time_val_error_mrad > nominal["time_val_error_mrad"]:
         worse.append(f"forward in time {time_val_error_mrad:.3g} vs "
                      f"{nominal['time_val_error_mrad']:.3g} mrad")
+    next_day = entry.get("next_day_error_mrad", float("nan"))
+    if next_day > nominal.get("next_day_error_mrad", float("nan")):
+        worse.append(f"next day {next_day:.3g} vs {nominal['next_day_error_mrad']:.3g} mrad on "
+                     "the rolling-origin rows")
     if not worse:
         return entry
     model = entry["variant"] or entry["preset"]
@@ -149,7 +162,7 @@ def nominal_fallback(entry: dict, time_val_error_mrad: float, nominal: dict | No
             "val_error_mrad": nominal["val_error_mrad"],
             "test_error_mrad": nominal["test_error_mrad"],
             "forward_error_mrad": nominal["time_test_error_mrad"],
-            "next_day_error_mrad": float("nan"),
+            "next_day_error_mrad": nominal.get("next_day_error_mrad", float("nan")),
             "fallback": (f"the fitted {model} is worse than the nominal geometry on held-out "
                          f"rows ({'; '.join(worse)}): aim uses the nominal geometry; add "
                          "calibration rows and refit")}
@@ -171,8 +184,9 @@ def time_labelled_predictions(workdir: CommittedWorkdir, heliostats, columns) ->
 
 def _nominal_errors(workdir: CommittedWorkdir, heliostats) -> dict:
     """heliostat -> the nominal geometry's mean error on its validation and test rows of the
-    kNN split and of the time split (NaN without such rows)."""
-    from ..artifacts.schemas import COARSE_PREDICTIONS
+    kNN split and of the time split, and on its rolling-origin rows (``next_day_error_mrad``:
+    the rows rolling_origin.parquet scores; NaN without such rows)."""
+    from ..artifacts.schemas import COARSE_PREDICTIONS, ROLLING_ORIGIN
 
     if not artifact_present(workdir, COARSE_PREDICTIONS):
         return {}
@@ -181,10 +195,17 @@ def _nominal_errors(workdir: CommittedWorkdir, heliostats) -> dict:
     nan = float("nan")
     knn = p.groupby(["heliostat_id", "split"])["error_mrad"].mean()
     fwd = p.groupby(["heliostat_id", "time_split"])["error_mrad"].mean()
+    rolling = pd.Series(dtype=float)
+    if artifact_present(workdir, ROLLING_ORIGIN):
+        keys = ["heliostat_id", "measurement_id"]
+        scored = read_artifact(workdir, ROLLING_ORIGIN, heliostats=heliostats, columns=keys)
+        rolling = scored.merge(p[keys + ["error_mrad"]], on=keys).groupby(
+            "heliostat_id")["error_mrad"].mean()
     return {str(h): {"val_error_mrad": float(knn.get((h, "validation"), nan)),
                      "test_error_mrad": float(knn.get((h, "test"), nan)),
                      "time_val_error_mrad": float(fwd.get((h, "validation"), nan)),
-                     "time_test_error_mrad": float(fwd.get((h, "test"), nan))}
+                     "time_test_error_mrad": float(fwd.get((h, "test"), nan)),
+                     "next_day_error_mrad": float(rolling.get(h, nan))}
             for h in p["heliostat_id"].unique()}
 
 
