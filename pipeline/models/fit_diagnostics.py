@@ -23,6 +23,8 @@ class FitDiagnostics:
     condition_number: float     # of the scaled data Jacobian
     pseudo_inverse: bool        # J^T J was singular: std_error from its pseudo-inverse
     noise_mrad: float = float("nan")  # s: RMS data residual per component [mrad], on the dof
+    data_rss_mrad2: float = float("nan")  # sum of the squared data residuals [mrad^2]
+    data_dof: float = float("nan")  # their effective degrees of freedom (see fit_diagnostics)
 
     def flag_status(self, status: str) -> str:
         """The fit's status, with :data:`~heliocal.pipeline.vocabulary.STD_ERROR_PSEUDO_INVERSE`
@@ -39,15 +41,22 @@ def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
     ``cov = s^2 (J^T J)^-1`` with ``s^2`` the data residual variance. When ``J^T J`` cannot be
     inverted the pseudo-inverse stands in and ``pseudo_inverse`` says so: such standard errors
     are finite but not trustworthy (a direction the data and the prior both leave free gets
-    none)."""
+    none).
+
+    ``data_dof``: the data rows minus their share of the fitted parameters, the trace of the data
+    rows' block of the hat matrix ``J (J^T J)^-1 J^T`` (the prior rows take the rest): ``n_data -
+    P`` without a prior, up to ``n_data`` where the prior pins every parameter. ``data_rss_mrad2 /
+    data_dof`` estimates the noise variance of a MAP fit, which ``noise_mrad`` (on ``n_data - P``)
+    underestimates when the prior, not the data, fixes some parameters."""
     std = np.full(len(PARAMETER_NAMES), np.nan)
     determined = np.ones(len(PARAMETER_NAMES), bool)
     cond = float("nan")
     pseudo = False
-    s2 = float("nan")
+    s2 = rss = dof_eff = float("nan")
     if J is not None:
         dof = max(n_data - len(free_idx), 1)
-        s2 = float((r[:n_data] ** 2).sum() / dof)
+        rss = float((r[:n_data] ** 2).sum())
+        s2 = rss / dof
         scale = sigma[free_idx]
         Js = J * scale  # scaled columns: comparable units
         # singular values of the scaled data Jacobian from the small normal matrix (a tall SVD
@@ -64,6 +73,7 @@ def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
             cov_scaled, pseudo = np.linalg.pinv(JtJ), True
         # data-noise covariance; the prior rows stay in (they keep it invertible)
         std_free = np.sqrt(np.clip(np.diag(cov_scaled), 0, None) * max(s2, 1e-300)) * scale
+        dof_eff = n_data - float(((Js[:n_data] @ cov_scaled) * Js[:n_data]).sum())
         std[free_idx] = std_free
         # "determined": the data alone pin the parameter to well within its prior sigma, for a
         # unit (1 mrad) measurement noise; otherwise the prior, not the data, fixes it.
@@ -77,4 +87,4 @@ def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
         except np.linalg.LinAlgError:  # pragma: no cover
             data_only, null = np.full(len(free_idx), np.inf), np.ones(len(free_idx), bool)
         determined[free_idx] = (data_only < 0.5) & ~null
-    return FitDiagnostics(std, determined, cond, pseudo, math.sqrt(s2))
+    return FitDiagnostics(std, determined, cond, pseudo, math.sqrt(s2), rss, dof_eff)
