@@ -292,3 +292,28 @@ def test_each_heliostat_weighs_the_field_prior_against_its_own_noise():
              for f, p in zip(fits, plain)]
     assert expected[0] == pytest.approx(0.6, abs=0.1) and expected[1] > 0.9
     np.testing.assert_allclose(moved, expected, atol=0.03)
+
+
+def test_only_field_entries_are_reweighed_and_only_beyond_the_factor():
+    """reweighed: the moderated own noise ``sqrt((d0 s_f^2 + RSS) / (d0 + dof))`` replaces the
+    field's noise on the field's entries only (the default prior stays stated against 1 mrad),
+    and only when it differs from ``s_f`` by more than NOISE_REFIT_FACTOR. With d0 = 30, s_f =
+    0.2 mrad and 300 dof at 0.1 mrad (RSS 3.0 mrad^2): sqrt((1.2 + 3.0) / 330) = 0.1128 mrad."""
+    from types import SimpleNamespace
+
+    from heliocal.pipeline.models.prior_noise import (NOISE_PRIOR_DOF, HeliostatPrior,
+                                                      reweighed)
+
+    assert NOISE_PRIOR_DOF == 30.0
+    mask = np.zeros(N, bool)
+    mask[:4] = True
+    prior = HeliostatPrior(np.zeros(N), np.ones(N), np.where(mask, 0.2, 1.0), mask)
+    precise = SimpleNamespace(data_rss_mrad2=3.0, data_dof=300.0)
+    got = reweighed(prior, precise)
+    np.testing.assert_allclose(got.noise[mask], np.sqrt(4.2 / 330), rtol=1e-12)
+    np.testing.assert_array_equal(got.noise[~mask], 1.0)
+    # like the field's (0.19 mrad): no second solve; no field mask, or no residuals: none either
+    assert reweighed(prior, SimpleNamespace(data_rss_mrad2=0.19 ** 2 * 300, data_dof=300.0)) is None
+    assert reweighed(prior._replace(field=None), precise) is None
+    assert reweighed(tuple(prior[:3]), precise) is None
+    assert reweighed(prior, SimpleNamespace(data_rss_mrad2=float("nan"), data_dof=0.0)) is None
