@@ -415,7 +415,8 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         J = jac(res_x)
     fitted = full(torch.as_tensor(res_x, dtype=torch.float64)).detach()
 
-    d = fit_diagnostics(J, fun(res_x) if J is not None else None, n_data, free_idx, sigma)
+    d = fit_diagnostics(J, fun(res_x) if J is not None else None, n_data, free_idx, sigma,
+                        loss, f_scale_mrad)
     implausible = _implausible(fitted, nominal, free_idx)
     return CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined, nfev, cost,
                      d.condition_number, d.flag_status(status), implausible,
@@ -508,7 +509,7 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
         J = sol.jacobian[j].numpy()[keep]
         r = sol.residual[j].numpy()[keep]
         fitted = x0_full.index_put((free_idx_t,), sol.x[j])
-        d = fit_diagnostics(J, r, n_data, free_idx, sig)
+        d = fit_diagnostics(J, r, n_data, free_idx, sig, loss, f_scale_mrad)
         fits[k] = CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined,
                             int(sol.njev[j]), float(sol.cost[j]), d.condition_number,
                             d.flag_status(f"batched LM: {sol.status[j]}"),

@@ -19,12 +19,14 @@ scale ``s_f^2`` (the field's median; Smyth 2004's moderated variance)::
 
     s^2 = (d0 s_f^2 + RSS) / (d0 + dof)
 
-``RSS`` [mrad^2] is the sum of the squared data residuals and ``dof`` their effective degrees of
-freedom under the prior (data rows minus the trace of their hat matrix,
+``RSS`` [mrad^2] is the sum of the squared data residuals, each weighed as the fit's loss weighs
+it at the solution (``rho'``, :func:`~.fit_diagnostics.loss_weights`: under the default soft-l1
+loss with a 1 mrad scale a residual of 0.2 mrad counts 0.98 of its square, one of 5 mrad about
+its size, not its square: the robust fit is the weighted least-squares problem with those
+weights, and its noise is that problem's), and ``dof`` their effective degrees of freedom
+under the prior (data rows minus the trace of their hat matrix,
 :func:`~.fit_diagnostics.fit_diagnostics`). A heliostat with a handful of rows keeps about the
-field's noise (its few residuals say little), one with hundreds of rows gets its own. RSS is not
-robust: a heliostat with outliers gets a larger noise, so a stronger prior (the soft-l1 loss
-bounds their pull on the fit, not on this estimate).
+field's noise (its few residuals say little), one with hundreds of rows gets its own.
 """
 
 from __future__ import annotations
