@@ -29,7 +29,8 @@ _DAY_S = 86400.0
 
 
 def _heliostat_errors(work, hid, rows, hrow, regimes, preset) -> dict | None:
-    from heliocal.pipeline.models.coarse import MeasurementBatch, fit_presets
+    from heliocal.pipeline.models.coarse import MeasurementBatch
+    from heliocal.pipeline.models.coarse_presets import fit_presets
     from heliocal.pipeline.models.regime_fit import fit_regime_model, predict_rows
     from heliocal.pipeline.models.regimes import regime_arrays
     from heliocal.pipeline.physics.parameters import HeliostatSpec, nominal_parameters

@@ -7,7 +7,7 @@ and ``fit-coarse --preset PRESET`` (default ``auto``: each heliostat's preset ch
 validation rows; the point the plan's covariance is linearized at, and its noise scale). It keeps the heliostats whose pool has at least ``--min-pool`` rows (enough to choose
 from), then ``plan --from-existing --budget 10*H --max-per-heliostat 10`` over the logs' whole
 span chooses 10 pool rows per heliostat. Each choice of 10 rows is fitted with fit-coarse's fit
-(``models.coarse.fit_presets``: the heliostat's selected preset, the one the plan's covariance
+(``models.coarse_presets.fit_presets``: the heliostat's selected preset, the one the plan's covariance
 rests on, fit-coarse's loss and robust start) and scored on the heliostat's test rows (mean
 error_mrad):
 
@@ -62,7 +62,8 @@ def _test_errors(work: Path, choices: dict, presets: dict) -> pd.Series:
     ``choices[hid]`` (measurement ids) the way fit-coarse fits (batched, its loss and start)."""
     from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, SPLIT
     from heliocal.pipeline.artifacts.store import read_artifact
-    from heliocal.pipeline.models.coarse import MeasurementBatch, fit_presets, predict
+    from heliocal.pipeline.models.coarse import MeasurementBatch, predict
+    from heliocal.pipeline.models.coarse_presets import fit_presets
     from heliocal.pipeline.physics.parameters import HeliostatSpec, nominal_parameters
     from heliocal.pipeline.stages.fit_coarse import coarse_fit_options
 

@@ -70,7 +70,8 @@ import torch
 
 from heliocal.pipeline.artifacts.schemas import HELIOSTATS, MEASUREMENTS, SPLIT
 from heliocal.pipeline.artifacts.store import read_artifact
-from heliocal.pipeline.models.coarse import MeasurementBatch, fit_presets, normal_errors_mrad
+from heliocal.pipeline.models.coarse import MeasurementBatch, normal_errors_mrad
+from heliocal.pipeline.models.coarse_presets import fit_presets
 from heliocal.pipeline.models.network import init_mlp, mlp_forward
 from heliocal.pipeline.models.pretrained import (PretrainConfig, fit_pretrained, huber,
                                                  rotate_between, simulate_pretraining)

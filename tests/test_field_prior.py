@@ -20,6 +20,8 @@ Expected values and their sources:
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -121,7 +123,7 @@ def test_a_parameter_without_enough_determined_heliostats_keeps_the_default_prio
     fewer = estimate_prior(sample, keep=np.arange(MIN_HELIOSTATS) > 0)
     assert not fewer.used.any()
     nominal = np.ones(N)
-    mean, sigma, noise = est.heliostat_prior(nominal)
+    mean, sigma, noise, _ = est.heliostat_prior(nominal)
     assert sigma[5] == default_sigma(nominal)[5] and mean[5] == nominal[5]
     assert noise[5] == 1.0      # the default prior keeps its 1 mrad scale
 
@@ -239,3 +241,83 @@ def test_the_prior_is_weighed_against_the_measurements_noise():
                         prior=(mean, sigma, noise))
     moved = (fit.params.numpy()[j] - x[j]) / (3 * se[j])
     assert moved == pytest.approx(0.5, abs=0.03)
+
+
+def test_each_heliostat_weighs_the_field_prior_against_its_own_noise():
+    """Two heliostats, one measured five times more precisely than the other, get the same field
+    prior N(m, sigma^2) on one parameter, weighed against the field's noise ``s_f`` (the two
+    heliostats' mean noise). Expected value (the precision-weighted mean of two Gaussians, the
+    linearised posterior): from its fit without the prior ``x`` (standard error ``se`` for noise
+    ``s``) a heliostat moves by ``se'^2 / (se'^2 + sigma^2) (m - x)`` with ``se' = se s' / s``,
+    ``s'`` its own noise as prior_noise estimates it (``sqrt((d0 s_f^2 + RSS) / (d0 + dof))``
+    from the residuals, within 25 % of ``s`` here, and at most ``s_f``). With ``sigma = se`` of
+    the precise one and ``m - x = 3 se``, the precise heliostat (s 0.019 mrad) moves 0.60 of the
+    way; the noisy one (0.094 mrad, above ``s_f`` = 0.056 mrad, so it keeps ``s_f``) 0.90, as
+    both did before each was weighed against its own noise. Tolerance 0.03 of the
+    way: the MAP fit's residuals and dof differ a little from the plain fit's."""
+    from heliocal.pipeline.models.coarse_presets import fit_presets
+    from heliocal.pipeline.models.prior_noise import NOISE_PRIOR_DOF, HeliostatPrior
+
+    j = PARAMETER_INDEX["concentrator_tilt_e_rad"]
+    sims = []
+    for name, noise in (("PRECISE", 0.04), ("NOISY", 0.2)):
+        field = simulate_field(1, seed=4, measurements=(150, 150), kinematic_types=("juelich",),
+                               dynamic_fraction=0.0, noise_mrad=noise, deviations="static-6")
+        sim = next(iter(field.heliostats.values()))
+        sims.append((dataclasses.replace(sim.spec, heliostat_id=name), sim.nominal,
+                     MeasurementBatch.from_frame(field.measurements)))
+    options = dict(solver="batched", loss="linear", robust_start=False)
+    plain = [f[0] for f in fit_presets(*zip(*sims), ["static-6"], **options)]
+    s_field = float(np.mean([f.noise_mrad for f in plain]))
+    precise = plain[0]
+    sigma_j = precise.std_error[j]
+    priors, expected = {}, []
+    for k, ((spec, nominal, data), fit) in enumerate(zip(sims, plain)):
+        x, se, s = fit.params.numpy(), fit.std_error[j], fit.noise_mrad
+        rss = s ** 2 * (3 * len(data) - int(fit.free.sum()))
+        s_own = np.sqrt((NOISE_PRIOR_DOF * s_field ** 2 + rss) / (NOISE_PRIOR_DOF
+                                                                 + 3 * len(data) - fit.free.sum()))
+        assert abs(s_own / s - 1) < 0.25
+        se_own = se * min(s_own, s_field) / s    # never above the field's noise
+        expected.append(se_own ** 2 / (se_own ** 2 + sigma_j ** 2))
+        mean, sigma = x.copy(), default_sigma(nominal.numpy())
+        mean[j] += 3 * sigma_j
+        sigma[j] = sigma_j
+        mask = np.zeros(N, bool)
+        mask[j] = True
+        priors[spec.heliostat_id] = {"static-6": HeliostatPrior(
+            mean, sigma, np.where(mask, s_field, 1.0), mask)}
+    assert len(priors) == 2 and plain[1].noise_mrad > 3 * precise.noise_mrad
+    fits = [f[0] for f in fit_presets(*zip(*sims), ["static-6"], priors=priors, **options)]
+    moved = [(f.params.numpy()[j] - p.params.numpy()[j]) / (3 * sigma_j)
+             for f, p in zip(fits, plain)]
+    assert expected[0] == pytest.approx(0.60, abs=0.05)
+    assert expected[1] == pytest.approx(0.90, abs=0.01)
+    np.testing.assert_allclose(moved, expected, atol=0.03)
+
+
+def test_only_field_entries_are_reweighed_and_only_beyond_the_factor():
+    """reweighed: the moderated own noise ``sqrt((d0 s_f^2 + RSS) / (d0 + dof))`` replaces the
+    field's noise on the field's entries only (the default prior stays stated against 1 mrad),
+    and only when it differs from ``s_f`` by more than NOISE_REFIT_FACTOR. With d0 = 30, s_f =
+    0.2 mrad and 300 dof at 0.1 mrad (RSS 3.0 mrad^2): sqrt((1.2 + 3.0) / 330) = 0.1128 mrad."""
+    from types import SimpleNamespace
+
+    from heliocal.pipeline.models.prior_noise import (NOISE_PRIOR_DOF, HeliostatPrior,
+                                                      reweighed)
+
+    assert NOISE_PRIOR_DOF == 30.0
+    mask = np.zeros(N, bool)
+    mask[:4] = True
+    prior = HeliostatPrior(np.zeros(N), np.ones(N), np.where(mask, 0.2, 1.0), mask)
+    precise = SimpleNamespace(data_rss_mrad2=3.0, data_dof=300.0)
+    got = reweighed(prior, precise)
+    np.testing.assert_allclose(got.noise[mask], np.sqrt(4.2 / 330), rtol=1e-12)
+    np.testing.assert_array_equal(got.noise[~mask], 1.0)
+    # like the field's (0.19 mrad), or noisier (at most the field's noise counts): no second
+    # solve; no field mask, or no residuals: none either
+    assert reweighed(prior, SimpleNamespace(data_rss_mrad2=0.19 ** 2 * 300, data_dof=300.0)) is None
+    assert reweighed(prior, SimpleNamespace(data_rss_mrad2=1.0 ** 2 * 300, data_dof=300.0)) is None
+    assert reweighed(prior._replace(field=None), precise) is None
+    assert reweighed(tuple(prior[:3]), precise) is None
+    assert reweighed(prior, SimpleNamespace(data_rss_mrad2=float("nan"), data_dof=0.0)) is None

@@ -16,7 +16,8 @@ import pytest
 import torch
 
 from heliocal.pipeline.models.changes import Changes
-from heliocal.pipeline.models.coarse import MeasurementBatch, fit_presets, normal_errors_mrad
+from heliocal.pipeline.models.coarse import MeasurementBatch, normal_errors_mrad
+from heliocal.pipeline.models.coarse_presets import fit_presets
 from heliocal.pipeline.models.regime_candidates import regime_candidates
 from heliocal.pipeline.models.regime_fit import DRIFT_PARAMETERS, fit_regime_model, predict_rows
 from heliocal.pipeline.models.simulator import simulate_field

@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 import pandas as pd
@@ -61,7 +61,6 @@ __all__ = [
     "predict",
     "metrics_frame",
     "normal_errors_mrad",
-    "fit_presets",
     "LOSSES",
     "data_degeneracy",
     "parameter_kind",
@@ -189,6 +188,8 @@ class CoarseFit:
     implausible: list[str]
     wall_time_s: float
     noise_mrad: float = float("nan")  # RMS data residual per component, on the dof [mrad]
+    data_rss_mrad2: float = float("nan")  # squared data residuals' sum [mrad^2] (fit_diagnostics)
+    data_dof: float = float("nan")  # their effective degrees of freedom (fit_diagnostics)
 
 
 def prior_sigma(nominal: torch.Tensor) -> np.ndarray:
@@ -414,11 +415,12 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
         J = jac(res_x)
     fitted = full(torch.as_tensor(res_x, dtype=torch.float64)).detach()
 
-    d = fit_diagnostics(J, fun(res_x) if J is not None else None, n_data, free_idx, sigma)
+    d = fit_diagnostics(J, fun(res_x) if J is not None else None, n_data, free_idx, sigma,
+                        loss, f_scale_mrad)
     implausible = _implausible(fitted, nominal, free_idx)
     return CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined, nfev, cost,
                      d.condition_number, d.flag_status(status), implausible,
-                     time.perf_counter() - t0, d.noise_mrad)
+                     time.perf_counter() - t0, d.noise_mrad, d.data_rss_mrad2, d.data_dof)
 
 
 def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
@@ -507,11 +509,12 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
         J = sol.jacobian[j].numpy()[keep]
         r = sol.residual[j].numpy()[keep]
         fitted = x0_full.index_put((free_idx_t,), sol.x[j])
-        d = fit_diagnostics(J, r, n_data, free_idx, sig)
+        d = fit_diagnostics(J, r, n_data, free_idx, sig, loss, f_scale_mrad)
         fits[k] = CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined,
                             int(sol.njev[j]), float(sol.cost[j]), d.condition_number,
                             d.flag_status(f"batched LM: {sol.status[j]}"),
-                            _implausible(fitted, nominal, free_idx), wall, d.noise_mrad)
+                            _implausible(fitted, nominal, free_idx), wall, d.noise_mrad,
+                            d.data_rss_mrad2, d.data_dof)
     return fits
 
 
@@ -565,45 +568,3 @@ def _implausible(fitted: torch.Tensor, nominal: torch.Tensor, free_idx: np.ndarr
             unit = PARAMETER_UNITS[name].split(" ")[0]
             implausible.append(f"{name} {delta:+.4g} {unit}")
     return implausible
-
-
-def fit_presets(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
-                trains: Sequence[MeasurementBatch], presets: Sequence[str], *,
-                solver: str = "batched", loss: str = "soft_l1", f_scale_mrad: float = 1.0,
-                robust_start: bool | str = "auto",
-                priors: Mapping[str, Mapping[str, tuple]] | None = None) -> list[list[CoarseFit]]:
-    """Every preset for each heliostat on its training rows, exactly as ``fit-coarse`` fits them.
-
-    This is the one fitting function of ``fit-coarse`` (:func:`run_fit_coarse`) and of the
-    training-size study of ``sweep``, so a study point is what ``fit-coarse`` gives with that
-    many training rows. Each heliostat (each entry of the lists; the same heliostat may appear
-    several times with different training rows) has its own robust start, shared only by its
-    presets.
-
-    Parameters
-    ----------
-    specs, nominals, trains : per heliostat its spec, nominal parameters (28,) and training rows.
-        With ``solver="batched"`` all must share one kinematic and actuator type.
-    presets : preset names.
-    solver : ``batched`` (per preset one :func:`fit_heliostats_batched` program for all) or
-        ``scipy`` (one :func:`fit_heliostat` per heliostat and preset).
-    loss, f_scale_mrad, robust_start : see :func:`fit_heliostat`.
-    priors : heliostat id -> preset -> :func:`fit_heliostat`'s ``prior`` (mean (28,), sigma
-        (28,)); a heliostat or preset it does not name gets the default prior.
-
-    Returns
-    -------
-    Per heliostat, its fits in the order of ``presets``.
-    """
-    check_choice(solver, "solver", "fit_presets", SOLVERS)
-    caches = [{} for _ in specs]
-    kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}
-    own = [(priors or {}).get(spec.heliostat_id) or {} for spec in specs]
-    if solver == "scipy":
-        return [[fit_heliostat(spec, nominal, train, preset, start_cache=cache,
-                               prior=mine.get(preset), **kwargs) for preset in presets]
-                for spec, nominal, train, cache, mine in zip(specs, nominals, trains, caches, own)]
-    per_preset = [fit_heliostats_batched(specs, nominals, trains, preset, start_caches=caches,
-                                         priors=[mine.get(preset) for mine in own], **kwargs)
-                  for preset in presets]
-    return [[fits[k] for fits in per_preset] for k in range(len(specs))]

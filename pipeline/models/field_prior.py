@@ -28,7 +28,8 @@ robust location and scale:
   the common factor taken out). Stated against 1 mrad, as the weak default prior is, a field
   prior would weigh ``(1 mrad / s)^2`` times too much where the noise is below 1 mrad (on a
   simulated field with ``s`` near 0.15 mrad, about 40 times), and pull even heliostats with
-  hundreds of rows toward the field's typical geometry.
+  hundreds of rows toward the field's typical geometry. The field's median is where each fit
+  starts: :mod:`.prior_noise` re-weighs the prior against the heliostat's own noise.
 
 **Leave-out.** A heliostat's own fit never enters its own prior: the heliostats whose fits
 estimate the prior (the group's *sample*) are cut into ``K = min(n, MAX_FOLDS)`` folds by the
@@ -57,6 +58,7 @@ import pandas as pd
 
 from ..physics.parameters import PARAMETER_NAMES
 from .coarse import PRIOR_SIGMA, CoarseFit, parameter_kind
+from .prior_noise import HeliostatPrior
 
 __all__ = [
     "GEOMETRY_SOURCES",
@@ -221,20 +223,23 @@ class PriorEstimate:
         """(28,) bool: the parameter has a field prior."""
         return np.isfinite(self.sigma)
 
-    def heliostat_prior(self, nominal, k: int | None = None) -> tuple | None:
-        """(mean (28,), sigma (28,), noise (28,)) [parameter units; mrad] for a heliostat with
-        ``nominal`` (28,): the field's where estimated, the default prior elsewhere (noise 1
-        mrad, the scale the default prior is stated in); ``k``: its row of ``local_mean``.
-        None when no parameter has a field prior."""
+    def heliostat_prior(self, nominal, k: int | None = None) -> HeliostatPrior | None:
+        """(mean (28,), sigma (28,), noise (28,), field (28,)) [parameter units; mrad] for a
+        heliostat with ``nominal`` (28,): the field's where estimated (``field``; weighed
+        against the field's noise, and by the fit against the heliostat's own,
+        :mod:`.prior_noise`), the default prior elsewhere (noise 1 mrad, the scale the default
+        prior is stated in); ``k``: its row of ``local_mean``. None when no parameter has a
+        field prior. With the field's noise unknown (1 mrad assumed) ``field`` is None."""
         if not self.used.any():
             return None
         mean = self.mean if self.local_mean is None or k is None else self.local_mean[k]
         nominal = np.asarray(nominal, np.float64)
         sigma = np.where(self.used, np.nan_to_num(self.sigma) * _relative(nominal),
                          default_sigma(nominal))
-        noise = self.noise_mrad if np.isfinite(self.noise_mrad) and self.noise_mrad > 0 else 1.0
-        return (absolute(nominal, np.where(self.used, mean, 0.0)), sigma,
-                np.where(self.used, noise, 1.0))
+        known = bool(np.isfinite(self.noise_mrad) and self.noise_mrad > 0)
+        noise = self.noise_mrad if known else 1.0
+        return HeliostatPrior(absolute(nominal, np.where(self.used, mean, 0.0)), sigma,
+                              np.where(self.used, noise, 1.0), self.used.copy() if known else None)
 
 
 def _robust(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -42,7 +42,8 @@ from ..artifacts.manifests import ACTIVE_TRANSACTION
 from ..artifacts.paths import artifact_path
 from ..artifacts.store import read_artifact
 from ..errors import ParameterError, StageInputError
-from ..models.coarse import CoarseFit, MeasurementBatch, fit_presets, predict
+from ..models.coarse import CoarseFit, MeasurementBatch, predict
+from ..models.coarse_presets import fit_presets
 from ..models.field_prior import (MIN_HELIOSTATS, FitSample, GroupPrior, PriorEstimate,
                                   group_key)
 from ..physics.metrics import mean_or_nan as _mean

@@ -29,7 +29,8 @@ from ..models.regime_fit import base_preset, table_row_parameters
 from ..models.regimes import COMPONENTS as REGIME_COMPONENTS
 from ..models.regimes import detect_field
 from ..models.coarse import (AUTO_PRESETS, LOSSES, SOLVERS, CoarseFit, MeasurementBatch,
-                             data_degeneracy, fit_presets, predict)
+                             data_degeneracy, predict)
+from ..models.coarse_presets import fit_presets
 from ..physics.jacobian import residual_and_jacobian
 from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,

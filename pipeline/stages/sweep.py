@@ -23,7 +23,7 @@ the coarse model is always a candidate, so the selected model is never worse tha
 **Training-size study** (paper 000, figs. 6 and 9a; a seeded sample of ``study`` heliostats,
 :func:`study_heliostats`). Per training size below the full one (the ``n_train`` training rows
 with the largest kNN distance, :func:`heliocal.pipeline.stages.split.restrict_training`) every coarse
-preset is refitted with :func:`heliocal.pipeline.models.coarse.fit_presets`, the function
+preset is refitted with :func:`heliocal.pipeline.models.coarse_presets.fit_presets`, the function
 ``fit-coarse`` fits with, with the solver and options ``fit-coarse`` recorded in
 coarse_params.parquet and each size its own robust start, so a study point is what
 ``fit-coarse`` would give with that many rows. The hybrid of each size trains on that size's
@@ -52,7 +52,8 @@ from ..artifacts.store import read_artifact
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import ParameterError, check_float, check_int
-from ..models.coarse import fit_presets, normal_errors_mrad
+from ..models.coarse import normal_errors_mrad
+from ..models.coarse_presets import fit_presets
 from ..models.config import FineConfig, PathConfig, ScreenConfig, ensemble_seeds
 from ..models.fade import TIME_FADE_DAYS
 from ..models.gp import GPConfig
