@@ -347,11 +347,9 @@ def _fixed_point(h: _Heliostat, chosen: str, fitted: tuple, sun, aim, steps, tim
                    "or refit the heliostat")
 
 
-def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: int,
-              tolerance_steps: float):
-    """(steps, coarse parameters, iterations, corrected normal) of a GP correction
-    (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`)."""
-    cfg, state = fitted
+def _gp_env_values(h: _Heliostat, cfg: dict, env: Mapping[str, float], time_utc) -> list[float]:
+    """The values of the GP model's env inputs (in its order) for one aim, which must give every
+    one of them, and a time when the model has the date as input."""
     names = cfg["gp"]["inputs"].get("env", ())
     missing = [e for e in names if e not in env]
     if missing:
@@ -359,9 +357,18 @@ def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: in
                              "--env NAME=VALUE")
     if time_utc is None and "time" in cfg["gp"]["structure"]:
         raise ParameterError(f"the gp model of {h.id} uses the date as input: give --time")
+    return [float(env[e]) for e in names]
+
+
+def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: int,
+              tolerance_steps: float):
+    """(steps, coarse parameters, iterations, corrected normal) of a GP correction
+    (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`)."""
+    cfg, state = fitted
+    env_values = _gp_env_values(h, cfg, env, time_utc)
     fit = gp_aim_steps(GPCorrection.from_model(cfg, state), h.coarse, h.spec, sun, aim,
                        None if time_utc is None else epoch_seconds([time_utc])[0],
-                       [float(env[e]) for e in names] if names else None,
+                       env_values or None,
                        max_iterations=max_iterations, tolerance_steps=tolerance_steps)
     if not bool(torch.isfinite(fit.steps).all()):
         raise _unreachable(h.id)
@@ -444,23 +451,15 @@ def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu
     (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`, each aim on its own), after each
     aim's inputs are checked as :func:`_gp_solve` checks them."""
     cfg, state = fitted
-    names = cfg["gp"]["inputs"].get("env", ())
     out: list[np.ndarray | HeliocalError | None] = [None] * len(sun_enu)
     times, env_rows = [], []
     for i, (time_utc, env) in enumerate(zip(times_utc, envs)):
         try:
-            env, time_utc = _check_env(wd, env), utc_time(time_utc)
-            missing = [e for e in names if e not in env]
-            if missing:
-                raise ParameterError(f"the gp model of {h.id} uses env inputs {missing}: give "
-                                     "them with --env NAME=VALUE")
-            if time_utc is None and "time" in cfg["gp"]["structure"]:
-                raise ParameterError(f"the gp model of {h.id} uses the date as input: give --time")
+            time_utc = utc_time(time_utc)
+            env_rows.append(_gp_env_values(h, cfg, _check_env(wd, env), time_utc))
+            times.append(time_utc)
         except HeliocalError as exc:
             out[i] = exc
-            continue
-        times.append(time_utc)
-        env_rows.append([float(env[e]) for e in names])
     ok = [i for i, o in enumerate(out) if o is None]
     if not ok:
         return out
@@ -471,7 +470,7 @@ def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu
     sun = _unit(torch.tensor(np.asarray(sun_enu, np.float64)[ok]))
     aim = torch.tensor(np.asarray(aim_point_enu, np.float64)[ok])
     fit = gp_aim_steps(GPCorrection.from_model(cfg, state), params, h.spec, sun, aim, time_s,
-                       np.array(env_rows) if names else None)
+                       np.array(env_rows) if env_rows[0] else None)
     with torch.no_grad():
         residual = error_mrad(reflect(-sun, fit.normal), aim - fit.position)
     for k, i in enumerate(ok):
