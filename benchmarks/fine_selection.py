@@ -60,6 +60,21 @@ def _heliocal(*args: str) -> None:
     subprocess.run([str(Path(sys.executable).parent / "heliocal"), *args, "--quiet"], check=True)
 
 
+def simulated_field(out: Path, seed: int) -> Path:
+    """The simulated field of ``seed`` (4 heliostats, half dynamic) under ``out``, simulated
+    once, and the ingest arguments that read it."""
+    field = out / f"sim-{seed}"
+    if not (field / "ground_truth.json").exists():
+        _heliocal("simulate", "--out", str(field), "--heliostats", "4", "--measurements",
+                  "140,160", "--seed", str(seed), "--dynamic-fraction", "0.5")
+    return field
+
+
+def simulated_ingest(field: Path) -> list[str]:
+    """``heliocal ingest`` arguments of a :func:`simulated_field`."""
+    return ["ingest", str(field / "calibration_log.csv"), "--properties", str(field / "paint")]
+
+
 def prepare(name: str, out: Path) -> list[tuple[str, Path, dict]]:
     """(label, workdir, noise floors by heliostat (simulated only)) of a dataset, ingested,
     split and fitted (cached). A suffix ``-nN`` restricts the training rows to N
@@ -81,12 +96,8 @@ def prepare(name: str, out: Path) -> list[tuple[str, Path, dict]]:
         jobs = []
         seeds = SIM_SEEDS if name == "sim" else (int(name.split("-")[1]),)
         for seed in seeds:
-            field = out / f"sim-{seed}"
-            if not (field / "ground_truth.json").exists():
-                _heliocal("simulate", "--out", str(field), "--heliostats", "4", "--measurements",
-                          "140,160", "--seed", str(seed), "--dynamic-fraction", "0.5")
-            jobs.append((f"sim-{seed}", ["ingest", str(field / "calibration_log.csv"),
-                                         "--properties", str(field / "paint")], field))
+            field = simulated_field(out, seed)
+            jobs.append((f"sim-{seed}", simulated_ingest(field), field))
     done = []
     for label, ingest, field in jobs:
         label = f"{label}-n{n_train}" if n_train else label

@@ -35,10 +35,10 @@ import time
 from pathlib import Path
 
 import pandas as pd
+from fine_selection import SIM_SEEDS, simulated_field, simulated_ingest  # the same datasets
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data" / "juelich"
-SIM_SEEDS = (11, 12, 13, 14, 15, 16)
 HELIOCAL = str(Path(sys.executable).parent / "heliocal")
 
 
@@ -62,14 +62,8 @@ def prepare(name: str, out: Path) -> list[tuple[str, Path, dict, list[str]]]:
         jobs = [("synthetic", ["ingest", str(synthetic / "calibration_log.csv"), "--properties",
                                str(synthetic / "paint")], synthetic, env)]
     elif name == "sim":
-        jobs = []
-        for seed in SIM_SEEDS:
-            field = out / f"sim-{seed}"
-            if not (field / "ground_truth.json").exists():
-                _heliocal("simulate", "--out", str(field), "--heliostats", "4", "--measurements",
-                          "140,160", "--seed", str(seed), "--dynamic-fraction", "0.5")
-            jobs.append((f"sim-{seed}", ["ingest", str(field / "calibration_log.csv"),
-                                         "--properties", str(field / "paint")], field, env))
+        jobs = [(f"sim-{seed}", simulated_ingest(field), field, env)
+                for seed in SIM_SEEDS for field in [simulated_field(out, seed)]]
     else:
         raise SystemExit(f"Error: unknown dataset {name!r}; use sample, paint, csv, synthetic "
                          "or sim.")
