@@ -463,9 +463,10 @@ def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu
     ok = [i for i, o in enumerate(out) if o is None]
     if not ok:
         return out
-    timed = [t for t in times if t is not None]
-    params = (coarse_row_parameters(h.selected, times) if len(timed) == len(times)
-              and h.selected.get("regime_table") is not None else h.coarse)
+    params = h.coarse.expand(len(times), h.coarse.shape[-1]).clone()
+    timed = [k for k, t in enumerate(times) if t is not None]
+    if timed and h.selected.get("regime_table") is not None:   # as solve_aim: per aim's time
+        params[timed] = coarse_row_parameters(h.selected, [times[k] for k in timed])
     time_s = np.array([np.nan if t is None else epoch_seconds([t])[0] for t in times])
     sun = _unit(torch.tensor(np.asarray(sun_enu, np.float64)[ok]))
     aim = torch.tensor(np.asarray(aim_point_enu, np.float64)[ok])
