@@ -9,8 +9,10 @@ How the suite runs (``make test``; docs/experiments/test-durations.md has the me
   a module whose slow tests are independent chains can put each in a class of its own
   (test_docs_commands.py does);
   each worker runs torch and the BLAS libraries on one thread (two workers, two cores);
-* a serial pass, ``pytest -m alone``: tests that need the machine to themselves (time windows,
-  watchdogs, a worker pool they count) run there, with nothing beside them.
+* a serial pass, ``pytest -m alone`` over the modules of the Makefile's ``ALONE_TESTS``: tests
+  that need the machine to themselves (time windows, watchdogs, a worker pool they count) run
+  there, with nothing beside them (a module with such a test joins that list;
+  tests/test_suite_layout.py fails until it does).
 
 A new test that runs stages end to end is marked ``slow`` (``make test-fast`` skips it); one whose
 checks depend on time (a deadline, a window in seconds) is marked ``alone`` as well. A work
@@ -57,7 +59,21 @@ def _scope(item) -> str:
     return item.nodeid.rsplit("::", 1)[0]
 
 
+#: The test modules, by path relative to the repository, that hold a test marked ``alone``, as
+#: collected (before ``-m`` deselects any): the Makefile's serial pass collects only the modules of
+#: its ``ALONE_TESTS`` list, and tests/test_suite_layout.py checks that the two agree.
+ALONE_MODULES = pytest.StashKey[set]()
+
+
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
+    """Record :data:`ALONE_MODULES`; in a worker process of xdist, put the slow units first."""
+    config.stash[ALONE_MODULES] = {
+        item.path.relative_to(REPO).as_posix() for item in items if item.get_closest_marker("alone")}
+    _slow_units_first(items)
+
+
+def _slow_units_first(items):
     """In a worker process of xdist the units of work (modules, classes) that hold slow tests
     come first, in file order, so that the long ones start early and the short ones fill in at
     the end (``--no-loadscope-reorder`` keeps this order; xdist's own would put the units with
