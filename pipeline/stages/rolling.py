@@ -12,17 +12,20 @@ optimistic. Every row before the origin is fitted, episodes included (a plant do
 the day which rows will later look like an episode; the robust loss discounts them).
 
 Each origin's fit minimises the objective of a cold fit on that origin's rows (the prior centred
-on the nominal geometry, or on the robust start searched on those rows), from two starts: the
-cold fit's own and the previous origin's fit; the lower objective is kept
-(:func:`_origin_fits`). One start alone is not enough on real heliostats with a badly wrong
-nominal geometry: the robust start of a first origin's few rows, kept for every later origin,
-and a warm start from a poor early fit held the Jülich log's AH33 at a mean next-day error of
-164 mrad where the cold fits of the same rows give 6.4 (and 0.6-1.4 mrad after the first
-origin), while a cold start alone lands AQ32's origins in a minimum 30 times worse than the warm
-start's (docs/experiments/forward-vs-nominal.md). Each step is one batched Levenberg-Marquardt
-program for the heliostats of a chunk (one kinematic type, actuator type and preset), both
-starts in it; the reference solver (scipy) fits each origin cold, since its explicit start
-would also move the prior's centre.
+on the nominal geometry, or on the robust start searched on those rows), from the previous
+origin's fit (warm start), and also from the cold fit's own start where there is no previous
+fit or where the warm fit leaves its rows unexplained: data residuals above
+:data:`COLD_RETRY_SCALES` loss scales; the lower objective is kept (:func:`_origin_fits`). One
+start alone is not enough on real heliostats with a badly wrong nominal geometry: the robust
+start of a first origin's few rows, kept for every later origin, and a warm start from a poor
+early fit held the Jülich log's AH33 at a mean next-day error of 164 mrad (residuals of tens of
+mrad) where the cold fits of the same rows give 6.4, while a cold start alone lands AQ32's
+origins in a minimum 30 times worse than the warm start's
+(docs/experiments/forward-vs-nominal.md). A warm fit at the noise lands where the cold one
+would (tests/test_rolling.py), so the cold start, the slower of the two, is spent where it can
+change the fit. Each step is one batched Levenberg-Marquardt program per start for the
+heliostats of a chunk (one kinematic type, actuator type and preset); the reference solver
+(scipy) fits each origin cold, since its explicit start would also move the prior's centre.
 """
 
 from __future__ import annotations
@@ -46,6 +49,10 @@ from .coarse_prior import is_field_prior
 __all__ = ["RollingChunk", "rolling_chunks", "evaluate_rolling", "add_next_day",
            "ROLLING_COLUMNS",
            "DEFAULT_MAX_ORIGINS"]
+
+#: A warm-started origin fit whose data residuals' RMS exceeds this many loss scales
+#: (``f_scale_mrad``) is fitted from the cold start too (:func:`_needs_cold_start`).
+COLD_RETRY_SCALES = 3.0
 
 #: rolling_origin.parquet's columns, in order (pipeline/artifacts/schemas.py declares them).
 ROLLING_COLUMNS = ("heliostat_id", "measurement_id", "origin_date", "model", "n_train",
@@ -124,27 +131,40 @@ def _rolling_task(chunk: RollingChunk) -> list[pd.DataFrame]:
 def _origin_fits(chunk: RollingChunk, specs, nominals, trains, previous, priors) -> list:
     """The parameters (28,) fitted at one origin for each heliostat: the objective of a cold fit
     on its ``trains`` rows (a fresh start cache: the robust start searched on these rows),
-    minimised from the cold start and, with the batched solver and a ``previous`` origin's fit,
-    from that fit too, in one program; the start reaching the lower objective wins (module
+    minimised with the batched solver from the ``previous`` origin's fit where there is one,
+    and from the cold start where there is none or where the warm fit leaves its rows
+    unexplained (:func:`_needs_cold_start`); with both starts the lower objective wins (module
     docstring)."""
     if chunk.solver != "batched":
         return [fit_heliostat(s, n, t, chunk.preset, start_cache={}, prior=p,
                               **chunk.options).params
                 for s, n, t, p in zip(specs, nominals, trains, priors)]
+    caches = [{} for _ in specs]   # a heliostat's cold fit shares its warm fit's robust start
+
+    def fit(which, starts):
+        return fit_heliostats_batched(
+            [specs[k] for k in which], [nominals[k] for k in which], [trains[k] for k in which],
+            chunk.preset, start_caches=[caches[k] for k in which], starts=starts,
+            priors=[priors[k] for k in which], **chunk.options)
+
     warm = [k for k, x in enumerate(previous) if x is not None]
-    caches = [{} for _ in specs]
-    order = list(range(len(specs))) + warm   # the warm copies share their cold twin's cache
-    fits = fit_heliostats_batched(
-        [specs[k] for k in order], [nominals[k] for k in order], [trains[k] for k in order],
-        chunk.preset, start_caches=[caches[k] for k in order],
-        starts=[None] * len(specs) + [previous[k] for k in warm],
-        priors=[priors[k] for k in order], **chunk.options)
-    best = fits[:len(specs)]
-    for i, k in enumerate(warm):
-        w = fits[len(specs) + i]
-        if w.cost <= best[k].cost:
-            best[k] = w
-    return [f.params for f in best]
+    best = dict(zip(warm, fit(warm, [previous[k] for k in warm]))) if warm else {}
+    scale = float(chunk.options.get("f_scale_mrad", 1.0))
+    cold = [k for k in range(len(specs)) if k not in best or _needs_cold_start(best[k], scale)]
+    for k, c in zip(cold, fit(cold, [None] * len(cold)) if cold else []):
+        if k not in best or c.cost < best[k].cost:
+            best[k] = c
+    return [best[k].params for k in range(len(specs))]
+
+
+def _needs_cold_start(warm, f_scale_mrad: float) -> bool:
+    """Whether a warm-started origin fit is also tried from the cold start: when its data
+    residuals' RMS (``noise_mrad``) is above :data:`COLD_RETRY_SCALES` times the loss's scale
+    ``f_scale_mrad`` (or unknown). A warm start that explains its rows to within a few loss
+    scales is in the basin of those rows, and the cold start lands in the same minimum; one
+    held in a poor basin by an early fit leaves residuals of tens of mrad
+    (docs/experiments/forward-vs-nominal.md)."""
+    return not (warm.noise_mrad <= COLD_RETRY_SCALES * f_scale_mrad)
 
 
 def _empty() -> pd.DataFrame:
