@@ -1,13 +1,39 @@
-"""The schema of ``field_prior.parquet`` (issue 34), declared beside
-:mod:`heliocal.pipeline.artifacts.schemas`, which lists it among every artifact."""
+"""The schema of ``field_prior.parquet`` (issue 34) and the field prior's columns of
+``coarse_params.parquet``, declared beside :mod:`heliocal.pipeline.artifacts.schemas`, which lists
+them among every artifact."""
 
 from __future__ import annotations
 
 from .table import ArtifactSchema, Column
 
-__all__ = ["FIELD_PRIOR"]
+__all__ = ["COARSE_PRIOR_COLUMNS", "FIELD_PRIOR"]
 
 C = Column
+
+#: The last columns of coarse_params.parquet: the field prior a fit was given and how much the
+#: fit leans on it (docs/field_prior.md, "Shrinkage").
+COARSE_PRIOR_COLUMNS = (
+    C("prior_mean", "float64", "", "The field prior's mean this fit was given "
+      "(field_prior.parquet, in the parameter's unit); missing where the fit had the "
+      "default prior (PRIOR_SIGMA around the nominal value).", nullable=True),
+    C("prior_sigma", "float64", "", "The field prior's sigma this fit was given (the "
+      "parameter's unit); missing where the fit had the default prior.", nullable=True),
+    C("prior_shrinkage", "float64", "1", "How much the fit of the parameter leans on its field "
+      "prior: `[H^-1]_jj [H_prior]_jj` of the fit's last Gauss-Newton system `H = H_data + "
+      "H_prior` (the posterior variance over the prior variance, the derivative of `fitted` by "
+      "`prior_mean`; "
+      "0: the data alone fix it, 1: the data say nothing about it); missing where "
+      "`prior_sigma` is.", nullable=True),
+    C("own_noise_mrad", "float64", "mrad", "The heliostat's own measurement noise per residual "
+      "component, estimated from its fit under the field's noise (moderated toward the "
+      "field's; heliocal.pipeline.models.prior_noise); repeated on each row of a fit with a "
+      "field prior, missing elsewhere.", nullable=True),
+    C("prior_noise_mrad", "float64", "mrad", "The noise the fit's field prior was weighed "
+      "against (its rows `(p - prior_mean) / (prior_sigma / prior_noise_mrad)`): "
+      "`own_noise_mrad` where that is more than 1.25x below field_prior.parquet's `noise_mrad` "
+      "(the fit was solved again under it), that `noise_mrad` elsewhere; missing like "
+      "`own_noise_mrad`.", nullable=True),
+)
 
 FIELD_PRIOR = ArtifactSchema(
     name="field_prior",

@@ -405,9 +405,21 @@ def _unit(name: str) -> str:
     return PARAMETER_UNITS[name]
 
 
+def prior_columns(fit: CoarseFit, i: int) -> dict:
+    """A fit's coarse_params columns of how much parameter ``i`` leans on its prior, and the
+    noise the prior was weighed against (:func:`attach_prior_columns` blanks them where the fit
+    had no field prior)."""
+    share = fit.prior_shrinkage
+    return {"prior_shrinkage": np.nan if share is None else float(share[i]),
+            "own_noise_mrad": fit.own_noise_mrad, "prior_noise_mrad": fit.prior_noise_mrad}
+
+
 def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:
     """coarse_params with ``prior_mean`` and ``prior_sigma``: the field prior each preset's fit
-    was given, on the rows of the parameters it covers (missing elsewhere)."""
+    was given, on the rows of the parameters it covers (missing elsewhere, and there
+    ``prior_shrinkage`` too); ``own_noise_mrad`` and ``prior_noise_mrad`` on the rows of fits
+    with a field prior (missing elsewhere: a regime-aware candidate or the field-prior geometry
+    is not such a fit)."""
     mean = np.full(len(params), np.nan)
     sigma = np.full(len(params), np.nan)
     if plan.priors and len(params):
@@ -419,8 +431,14 @@ def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:
             if p is not None:
                 mean[r], sigma[r] = p[0][index[r]], p[1][index[r]]
     out = params.assign(prior_mean=mean, prior_sigma=sigma)
+    for column in ("prior_shrinkage", "own_noise_mrad", "prior_noise_mrad"):
+        if column not in out.columns:  # rows without a fit (zero-row heliostats) only
+            out[column] = np.nan
+    has = out["prior_sigma"].notna()
+    fitted_under = has.groupby([out["heliostat_id"], out["preset"]], sort=False).transform("any")
+    out.loc[~fitted_under.to_numpy(bool), ["own_noise_mrad", "prior_noise_mrad"]] = np.nan
     default = out["prior_sigma"].isna() | ~out["free"].to_numpy(bool)
-    out.loc[default, ["prior_mean", "prior_sigma"]] = np.nan
+    out.loc[default, ["prior_mean", "prior_sigma", "prior_shrinkage"]] = np.nan
     return out
 
 
