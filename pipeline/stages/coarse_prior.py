@@ -45,7 +45,7 @@ from ..errors import ParameterError, StageInputError
 from ..models.coarse import CoarseFit, MeasurementBatch, predict
 from ..models.coarse_presets import fit_presets
 from ..models.field_prior import (MIN_HELIOSTATS, FitSample, GroupPrior, PriorEstimate,
-                                  group_key)
+                                  deviation, group_key)
 from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec, nominal_parameters, preset_mask
 from ..runtime.parallel import map_tasks
@@ -54,7 +54,7 @@ from ..vocabulary import CoarsePrior
 __all__ = ["PRIOR_MODES", "PRIOR_ROUNDS", "SAMPLE_SIZE", "FIELD_PRIOR_MODEL", "PriorPlan",
            "plan_field_prior", "field_prior_name", "is_field_prior", "field_prior_fit",
            "with_field_prior", "field_prior_note", "zero_row_outputs", "finish_table", "attach_prior_columns",
-           "prior_frame", "summary_of"]
+           "prior_frame", "summary_of", "with_deviations", "heliostat_groups"]
 
 log = logging.getLogger("heliocal.coarse")
 
@@ -487,6 +487,27 @@ def prior_frame(plan: PriorPlan, ids) -> pd.DataFrame:
             sorted(plan.priors.get(hid, {}).items()) for i in range(len(mean))]
     return pd.DataFrame(rows, columns=["heliostat_id", "preset", "parameter_index", "mean",
                                        "sigma"])
+
+
+def with_deviations(params: pd.DataFrame) -> pd.DataFrame:
+    """coarse_params with ``deviation``: each row's fitted minus nominal value in
+    field_prior.parquet's units (angles wrapped, increments relative to the nominal; the
+    report's field-prior page draws it against the prior)."""
+    out = params.copy()
+    dev = np.full(len(out), np.nan)
+    for _, idx in out.groupby(["heliostat_id", "preset"], sort=False).indices.items():
+        g = out.iloc[idx]
+        at = g["parameter_index"].to_numpy(int)
+        fitted, nominal = np.zeros(len(PARAMETER_NAMES)), np.zeros(len(PARAMETER_NAMES))
+        fitted[at], nominal[at] = g["fitted"].to_numpy(float), g["nominal"].to_numpy(float)
+        dev[idx] = deviation(fitted, nominal)[at]
+    out["deviation"] = dev
+    return out
+
+
+def heliostat_groups(helio: pd.DataFrame) -> dict[str, tuple[str, str, str]]:
+    """heliostat -> its field-prior group (heliostats.parquet rows, column ``heliostat_id``)."""
+    return {str(r["heliostat_id"]): group_key(r) for _, r in helio.iterrows()}
 
 
 def summary_of(plan: PriorPlan, table: pd.DataFrame, zero_rows: Sequence[str]) -> dict:
