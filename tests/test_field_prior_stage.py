@@ -99,8 +99,7 @@ def test_no_selected_model_is_worse_on_validation_than_the_field_prior_geometry(
 
 def test_the_shrinkage_and_noise_columns_are_where_the_field_prior_is(field):
     # prior_shrinkage in [0, 1] exactly where prior_sigma is (docs/field_prior.md), missing
-    # elsewhere; the noise on every row of a fit with a field prior, at most the field's
-    # (prior_noise: the field's, or the own estimate where that is more than 1.25x below)
+    # elsewhere; the noise on every row of a fit with a field prior
     work, _ = field
     p = read_artifact(work, COARSE_PARAMS)
     share = p["prior_shrinkage"]
@@ -108,14 +107,19 @@ def test_the_shrinkage_and_noise_columns_are_where_the_field_prior_is(field):
     assert share.notna().sum() > 100
     assert ((share >= 0) & (share <= 1)).sum() == share.notna().sum()
     prior = read_artifact(work, FIELD_PRIOR)
-    s_field = float(prior.loc[prior["preset"] == "static-6", "noise_mrad"].iloc[0])
+    s_field = float(prior.loc[(prior["preset"] == "static-6") & prior["scale"].notna(),
+                              "noise_mrad"].iloc[0])
     under = p[(p["preset"] == "static-6") & p["prior_noise_mrad"].notna()]
     assert under["heliostat_id"].nunique() >= 5 and under["own_noise_mrad"].notna().all()
     used = under["prior_noise_mrad"].to_numpy(float)
     own = under["own_noise_mrad"].to_numpy(float)
-    again = own < s_field / 1.25
-    np.testing.assert_allclose(used[again], own[again], rtol=1e-12)
-    np.testing.assert_allclose(used[~again], s_field, rtol=1e-12)
+    # solved again under its own noise (then the two are equal), or kept the field's: its
+    # fold's median noise, within a few % of the whole sample's (field_prior.parquet; 20
+    # folds, each without 1/20 of the sample), with its own within 1.25x below it
+    again = np.isclose(used, own, rtol=1e-12, atol=0)
+    assert again.any() and (~again).any()
+    assert (own[~again] >= used[~again] / 1.25 * (1 - 1e-12)).all()
+    np.testing.assert_allclose(used[~again], s_field, rtol=0.1)
     # fewer rows lean more on the prior: median over parameters, fewest- vs most-row heliostats
     fits = p[(p["preset"] == "static-6") & share.notna()]
     per = fits.groupby("heliostat_id").agg(n=("n_train", "first"), s=("prior_shrinkage",

@@ -87,8 +87,8 @@ def test_the_page_shows_each_heliostats_shrinkage(prior_report):
     page = (wd / "report" / "field_prior.html").read_text()
     row = re.search(r'<a href="heliostats/AA01.html">AA01</a></td>(.*?)</tr>', page).group(1)
     cells = re.findall(r'<td(?: data-v="([^"]*)")?>([^<]*)</td>', row)
-    # training rows, model, own noise, prior noise, median, largest, of
-    assert cells[0][1] == "20" and cells[1][1] == "static-6"
+    # model, training rows, own noise, prior noise, median, largest, largest for
+    assert cells[0][1] == "static-6" and cells[1][1] == "20"
     assert float(cells[4][0]) == pytest.approx(0.55, abs=1e-12)
     assert float(cells[5][0]) == pytest.approx(0.9, abs=1e-12)
     assert cells[6][1] == "joint_1_tilt_n_rad"

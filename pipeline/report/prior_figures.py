@@ -38,6 +38,20 @@ def _short(name: str) -> str:
     return name
 
 
+def _rows_axis(ax, rows: np.ndarray) -> None:
+    """A log axis of training rows labelled with plain numbers (1, 2, 5 per decade)."""
+    from matplotlib.ticker import NullFormatter
+
+    ax.set_yscale("log")
+    finite = rows[np.isfinite(rows) & (rows > 0)]
+    low, high = (finite.min(), finite.max()) if len(finite) else (1.0, 10.0)
+    ticks = [m * 10 ** k for k in range(0, 7) for m in (1, 2, 5)
+             if low / 1.5 <= m * 10 ** k <= high * 1.5]
+    ax.set_ylim(low / 1.3, high * 1.3)
+    ax.set_yticks(ticks or [low], [f"{t:g}" for t in ticks] or [f"{low:g}"])
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
 def _prior_vs_fitted(args: dict):
     params: pd.DataFrame = args["params"]
     points: pd.DataFrame = args["points"]
@@ -47,8 +61,9 @@ def _prior_vs_fitted(args: dict):
     from matplotlib.colors import Normalize
 
     n = len(params)
-    nrows = math.ceil(n / _COLUMNS)
-    fig, axes = new_figure(11.0, 2.35 * nrows + 0.9, nrows, _COLUMNS)
+    ncols = min(n, _COLUMNS)
+    nrows = math.ceil(n / ncols)
+    fig, axes = new_figure(1.2 + 2.7 * ncols, 2.35 * nrows + 0.9, nrows, ncols)
     norm, cmap = Normalize(0.0, 1.0), colormaps["viridis"]
     for k, ax in enumerate(axes.flat):
         if k >= n:
@@ -66,12 +81,12 @@ def _prior_vs_fitted(args: dict):
                    mine["n_train"].to_numpy(float), s=16,
                    c=cmap(norm(np.nan_to_num(share, nan=0.0))), edgecolors="#333",
                    linewidths=0.3, zorder=3)
-        ax.set_yscale("log")
+        _rows_axis(ax, mine["n_train"].to_numpy(float))
         ax.set_title(f"{_short(str(p['parameter']))} (n={int(p['n_heliostats'])})",
                      fontsize="small")
         ax.set_xlabel(f"fitted − nominal [{unit}]", fontsize="x-small")
         ax.tick_params(labelsize="x-small")
-        if k % _COLUMNS == 0:
+        if k % ncols == 0:
             ax.set_ylabel("training rows", fontsize="x-small")
     bar = fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=axes, shrink=0.6,
                        pad=0.01)
@@ -107,8 +122,8 @@ def _heatmap(args: dict):
     if points.empty or points["prior_shrinkage"].notna().sum() == 0:
         return None, "no heliostat fitted under the field prior"
     labels, matrix, cols = shrinkage_rows(points)
-    height = 1.6 + 0.22 * len(labels)
-    fig, axes = new_figure(max(6.0, 2.4 + 0.55 * len(cols)), height)
+    height = max(2.8, 1.6 + 0.22 * len(labels))
+    fig, axes = new_figure(max(6.5, 3.0 + 0.55 * len(cols)), height)
     ax = axes[0, 0]
     image = ax.imshow(np.ma.masked_invalid(matrix), cmap="viridis", vmin=0.0, vmax=1.0,
                       aspect="auto", interpolation="nearest")
@@ -117,14 +132,14 @@ def _heatmap(args: dict):
                        fontsize="x-small")
     ax.set_yticks(range(len(labels)))
     ax.set_yticklabels(labels, fontsize="x-small")
-    ax.set_ylabel("heliostat (training rows)", fontsize="small")
+    ax.set_ylabel("heliostat (training rows)", fontsize="x-small")
     if matrix.size <= 400:
         for (i, j), v in np.ndenumerate(matrix):
             if np.isfinite(v):
                 ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=6,
                         color="white" if v < 0.6 else "black")
     bar = fig.colorbar(image, ax=ax, shrink=0.8, pad=0.01)
-    bar.set_label("shrinkage (0 data, 1 prior)", fontsize="small")
+    bar.set_label("shrinkage", fontsize="small")
     return fig, None
 
 

@@ -161,8 +161,11 @@ def _prior_table(rows: pd.DataFrame) -> str:
 
 def _heliostat_rows(g: PriorGroup) -> pd.DataFrame:
     """Per heliostat of the group: training rows, selected model, noises and its shrinkage
-    over the parameters with a field prior (median, and the largest with its parameter)."""
-    f = g.fits[g.fits["prior_shrinkage"].notna()]
+    over the parameters with a field prior (median, and the largest with its parameter; a
+    fit's parameters that keep the default prior have a shrinkage too, toward that prior, and
+    are left out here)."""
+    f = g.fits[g.fits["prior_shrinkage"].notna()
+               & g.fits["parameter_index"].isin(g.prior_rows()["parameter_index"])]
     rows = []
     for hid, h in f.groupby("heliostat_id", sort=True):
         top = h.loc[h["prior_shrinkage"].idxmax()]
@@ -179,14 +182,14 @@ def _heliostat_table(g: PriorGroup) -> str:
     rows = _heliostat_rows(g)
     if rows.empty:
         return '<p class="note">No heliostat of the group was fitted under the prior.</p>'
-    head = ["heliostat", "training rows", "selected model", "own noise [mrad]",
-            "prior weighed against [mrad]", "shrinkage: median", "largest", "of"]
+    head = ["heliostat", "selected model", "training rows", "own noise [mrad]",
+            "prior weighed against [mrad]", "shrinkage: median", "largest", "largest for"]
     out = ['<table class="sortable"><thead><tr>' + "".join(f"<th>{e(h)}</th>" for h in head)
            + "</tr></thead><tbody>"]
     for _, r in rows.sort_values(["n_train", "heliostat_id"]).iterrows():
         link = "heliostats/" + urllib.parse.quote(heliostat_page_name(str(r["heliostat_id"])))
         out.append(f'<tr><td><a href="{e(link)}">{e(str(r["heliostat_id"]))}</a></td>'
-                   + _cell(int(r["n_train"])) + f'<td>{e(str(r["model"]))}</td>'
+                   + f'<td>{e(str(r["model"]))}</td>' + _cell(int(r["n_train"]))
                    + _cell(r["own_noise_mrad"]) + _cell(r["prior_noise_mrad"])
                    + _cell(r["median"], 2) + _cell(r["max"], 2)
                    + f'<td>{e(str(r["max_parameter"]))}</td></tr>')
@@ -227,14 +230,15 @@ def _how_learnt(options: dict) -> str:
 
 def _group_html(g: PriorGroup, drawn: dict, tasks: dict) -> list[str]:
     rows = g.prior_rows()
-    first = g.table.iloc[0]
-    n_fitted = g.fits.loc[g.fits["prior_shrinkage"].notna(), "heliostat_id"].nunique()
+    first = (rows if len(rows) else g.table).iloc[0]
+    n_fitted = g.fits.loc[g.fits["prior_noise_mrad"].notna(), "heliostat_id"].nunique()
     expected = first["expected_error_mrad"]
     line = (f"Preset shown: {g.preset} (the one most of the group's heliostats select); "
             f"{len(rows)} of its parameters have a field prior, estimated from up to "
             f"{int(rows['n_heliostats'].max()) if len(rows) else 0} heliostats; "
-            f"{n_fitted} heliostats were fitted under it. The field's noise the prior is "
-            f"weighed against: {fmt(float(first['noise_mrad']))} mrad.")
+            f"{n_fitted} heliostat{'s were' if n_fitted != 1 else ' was'} fitted under it. "
+            "The field's noise the prior is weighed against: "
+            f"{fmt(float(first['noise_mrad']))} mrad.")
     if isinstance(expected, float) and math.isfinite(expected):
         line += (f" The field-prior geometry (nominal moved by the prior mean) is off by "
                  f"{fmt(expected)} mrad on the test rows of {int(first['n_evaluated'])} "
