@@ -131,3 +131,23 @@ def test_an_incremental_report_keeps_the_prior_figures_until_a_shrinkage_moves(t
     moved = run_report(wd, workers=1, incremental=True)
     # both prior figures draw the shrinkage; nothing else reads it
     assert moved["figures_drawn"] == 2
+
+
+def test_a_large_group_is_drawn_in_bins_of_training_rows():
+    from heliocal.pipeline.report.prior_figures import MAX_HEATMAP_ROWS, shrinkage_rows
+
+    # 130 heliostats with 1..130 training rows, their ids in another order than their rows
+    # (H(37 n mod 131)), shrinkage 1 / rows on one parameter: np.array_split makes 10 bins of 3
+    # then 50 of 2, fewest rows first
+    n = np.arange(130, 0, -1)
+    points = pd.DataFrame({"heliostat_id": [f"H{37 * k % 131:03d}" for k in n],
+                           "parameter_index": 4, "n_train": n, "prior_shrinkage": 1.0 / n})
+    labels, matrix, cols = shrinkage_rows(points)
+    assert MAX_HEATMAP_ROWS == 60 and len(labels) == 60 and cols == [4]
+    assert labels[0] == "1-3 rows (3)" and labels[-1] == "129-130 rows (2)"
+    assert matrix[0, 0] == pytest.approx(1 / 2) and matrix[-1, 0] == pytest.approx(
+        (1 / 129 + 1 / 130) / 2)
+    # a small group: one row per heliostat, fewest rows first
+    labels, matrix, _ = shrinkage_rows(points.iloc[-5:])
+    assert labels == ["H037 (1)", "H074 (2)", "H111 (3)", "H017 (4)", "H054 (5)"]
+    np.testing.assert_allclose(matrix[:, 0], 1.0 / np.arange(1, 6))
