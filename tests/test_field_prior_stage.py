@@ -97,6 +97,39 @@ def test_no_selected_model_is_worse_on_validation_than_the_field_prior_geometry(
     assert fitted["prior_sigma"].notna().mean() > 0.5
 
 
+def test_the_shrinkage_and_noise_columns_are_where_the_field_prior_is(field):
+    # prior_shrinkage in [0, 1] exactly where prior_sigma is (docs/field_prior.md), missing
+    # elsewhere; the noise on every row of a fit with a field prior
+    work, _ = field
+    p = read_artifact(work, COARSE_PARAMS)
+    share = p["prior_shrinkage"]
+    assert (share.notna() == p["prior_sigma"].notna()).all()
+    assert share.notna().sum() > 100
+    assert ((share >= 0) & (share <= 1)).sum() == share.notna().sum()
+    prior = read_artifact(work, FIELD_PRIOR)
+    s_field = float(prior.loc[(prior["preset"] == "static-6") & prior["scale"].notna(),
+                              "noise_mrad"].iloc[0])
+    under = p[(p["preset"] == "static-6") & p["prior_noise_mrad"].notna()]
+    assert under["heliostat_id"].nunique() >= 5 and under["own_noise_mrad"].notna().all()
+    used = under["prior_noise_mrad"].to_numpy(float)
+    own = under["own_noise_mrad"].to_numpy(float)
+    # solved again under its own noise (then the two are equal), or kept the field's: its
+    # fold's median noise, within a few % of the whole sample's (field_prior.parquet; 20
+    # folds, each without 1/20 of the sample), with its own within 1.25x below it
+    again = np.isclose(used, own, rtol=1e-12, atol=0)
+    assert again.any() and (~again).any()
+    assert (own[~again] >= used[~again] / 1.25 * (1 - 1e-12)).all()
+    np.testing.assert_allclose(used[~again], s_field, rtol=0.1)
+    # fewer rows lean more on the prior: median over parameters, fewest- vs most-row heliostats
+    fits = p[(p["preset"] == "static-6") & share.notna()]
+    per = fits.groupby("heliostat_id").agg(n=("n_train", "first"), s=("prior_shrinkage",
+                                                                         "median"))
+    per = per.sort_values("n")
+    assert per["s"].iloc[:3].median() > per["s"].iloc[-3:].median()
+    # no field prior: nothing recorded
+    assert p.loc[p["preset"].str.contains("+", regex=False), "prior_shrinkage"].isna().all()
+
+
 def _fits(work):
     p = read_artifact(work, COARSE_PARAMS)
     return p.sort_values(["heliostat_id", "preset", "parameter_index"])["fitted"].to_numpy()
@@ -111,6 +144,8 @@ def test_a_field_of_one_heliostat_is_fitted_without_a_prior_and_says_why(tmp_pat
     run_fit_coarse(work, preset="static-6", rolling_origins=0, prior="none")
     np.testing.assert_array_equal(with_prior, _fits(work))
     assert read_artifact(work, FIELD_PRIOR).empty
+    p = read_artifact(work, COARSE_PARAMS)
+    assert p[["prior_shrinkage", "own_noise_mrad", "prior_noise_mrad"]].isna().all().all()
 
 
 def test_a_prior_from_another_plant_is_refused_per_group(field, tmp_path):

@@ -13,7 +13,7 @@ import dataclasses
 
 from .ids import (HELIOSTAT_ID_RE, HELIOSTAT_ID_RULE, WINDOWS_RESERVED_NAMES,
                   heliostat_id_problem, suggest_heliostat_id)
-from .schemas_prior import FIELD_PRIOR
+from .schemas_prior import COARSE_PRIOR_COLUMNS, FIELD_PRIOR
 from .table import ArtifactSchema, Column
 
 __all__ = ["MEASUREMENTS", "HELIOSTATS", "REJECTED", "SPLIT", "COARSE_PARAMS", "COARSE_PREDICTIONS",
@@ -273,13 +273,7 @@ COARSE_PARAMS = ArtifactSchema(
           nullable=True),
         C("time_test_error_mrad", "float64", "mrad", "Its mean error on the time split's test "
           "rows, the latest measurements (missing: n/a).", nullable=True),
-        C("prior_mean", "float64", "", "The field prior's mean this fit was given "
-          "(field_prior.parquet, in the parameter's unit); missing where the fit had the "
-          "default prior (PRIOR_SIGMA around the nominal value).", nullable=True),
-        C("prior_sigma", "float64", "", "The field prior's sigma this fit was given (the "
-          "parameter's unit); missing where the fit had the default prior. std_error^2 / "
-          "prior_sigma^2 is how much the fit leans on the prior (1: all prior, 0: all data).",
-          nullable=True),
+        *COARSE_PRIOR_COLUMNS,
     ),
 )
 

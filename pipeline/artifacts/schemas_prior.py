@@ -1,13 +1,41 @@
-"""The schema of ``field_prior.parquet`` (issue 34), declared beside
-:mod:`heliocal.pipeline.artifacts.schemas`, which lists it among every artifact."""
+"""The schema of ``field_prior.parquet`` (issue 34) and the field prior's columns of
+``coarse_params.parquet``, declared beside :mod:`heliocal.pipeline.artifacts.schemas`, which lists
+them among every artifact."""
 
 from __future__ import annotations
 
 from .table import ArtifactSchema, Column
 
-__all__ = ["FIELD_PRIOR"]
+__all__ = ["COARSE_PRIOR_COLUMNS", "FIELD_PRIOR"]
 
 C = Column
+
+#: The last columns of coarse_params.parquet: the field prior a fit was given and how much the
+#: fit leans on it (docs/field_prior.md, "Shrinkage").
+COARSE_PRIOR_COLUMNS = (
+    C("prior_mean", "float64", "", "The prior mean this fit was given (in the parameter's "
+      "unit): the nominal value moved by the field prior's mean of the heliostat's leave-out "
+      "fold (field_prior.parquet holds the whole sample's), or the nominal value where the "
+      "field prior does not cover the parameter (the default prior); missing where the fit "
+      "had no field prior at all, and on fixed parameters.", nullable=True),
+    C("prior_sigma", "float64", "", "The prior sigma this fit was given (the parameter's "
+      "unit): its fold's field prior scale, or PRIOR_SIGMA where the field prior does not "
+      "cover the parameter; missing like `prior_mean`.", nullable=True),
+    C("prior_shrinkage", "float64", "1", "How much the fit of the parameter leans on its "
+      "prior: `[H^-1]_jj [H_prior]_jj` of the fit's last Gauss-Newton system `H = H_data + "
+      "H_prior` (the posterior variance over the prior variance, the derivative of `fitted` "
+      "by `prior_mean`; 0: the data alone fix it, 1: the data say nothing about it); "
+      "missing like `prior_mean`.", nullable=True),
+    C("own_noise_mrad", "float64", "mrad", "The heliostat's own measurement noise per residual "
+      "component, estimated from its fit under the field's noise (moderated toward the "
+      "field's; heliocal.pipeline.models.prior_noise); repeated on each row of a fit with a "
+      "field prior, missing elsewhere.", nullable=True),
+    C("prior_noise_mrad", "float64", "mrad", "The noise the fit's field prior was weighed "
+      "against (its rows `(p - prior_mean) / (prior_sigma / prior_noise_mrad)`): "
+      "`own_noise_mrad` where that is more than 1.25x below field_prior.parquet's `noise_mrad` "
+      "(the fit was solved again under it), that `noise_mrad` elsewhere; missing like "
+      "`own_noise_mrad`.", nullable=True),
+)
 
 FIELD_PRIOR = ArtifactSchema(
     name="field_prior",

@@ -190,6 +190,9 @@ class CoarseFit:
     noise_mrad: float = float("nan")  # RMS data residual per component, on the dof [mrad]
     data_rss_mrad2: float = float("nan")  # squared data residuals' sum [mrad^2] (fit_diagnostics)
     data_dof: float = float("nan")  # their effective degrees of freedom (fit_diagnostics)
+    prior_shrinkage: np.ndarray | None = None  # (28,) the prior's share (fit_diagnostics) or None
+    own_noise_mrad: float = float("nan")  # under a field prior: its own noise estimate [mrad]
+    prior_noise_mrad: float = float("nan")  # ... and the noise its prior was weighed against
 
 
 def prior_sigma(nominal: torch.Tensor) -> np.ndarray:
@@ -420,7 +423,8 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     implausible = _implausible(fitted, nominal, free_idx)
     return CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined, nfev, cost,
                      d.condition_number, d.flag_status(status), implausible,
-                     time.perf_counter() - t0, d.noise_mrad, d.data_rss_mrad2, d.data_dof)
+                     time.perf_counter() - t0, d.noise_mrad, d.data_rss_mrad2, d.data_dof,
+                     d.prior_shrinkage)
 
 
 def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
@@ -514,7 +518,7 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
                             int(sol.njev[j]), float(sol.cost[j]), d.condition_number,
                             d.flag_status(f"batched LM: {sol.status[j]}"),
                             _implausible(fitted, nominal, free_idx), wall, d.noise_mrad,
-                            d.data_rss_mrad2, d.data_dof)
+                            d.data_rss_mrad2, d.data_dof, d.prior_shrinkage)
     return fits
 
 

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 from typing import Mapping, Sequence
 
+import numpy as np
 import torch
 
 from ..errors import check_choice
 from ..physics.parameters import HeliostatSpec
 from .coarse import SOLVERS, CoarseFit, MeasurementBatch, fit_heliostat, fit_heliostats_batched
-from .prior_noise import reweighed
+from .prior_noise import noise_estimate, reweighed
 
 __all__ = ["fit_presets", "fit_weighed"]
 
@@ -71,9 +72,15 @@ def fit_weighed(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor]
     None; ``kwargs`` the fit's loss, f_scale_mrad, robust_start), each field prior weighed
     against the heliostat's own noise: a fit whose own noise differs from the field's by more
     than :data:`~.prior_noise.NOISE_REFIT_FACTOR` is solved again under it, warm-started at its
-    first solution (:mod:`.prior_noise`). A re-solved fit's ``wall_time_s`` counts both solves."""
+    first solution (:mod:`.prior_noise`). A re-solved fit's ``wall_time_s`` counts both solves.
+    Each fit under a field prior records the heliostat's own noise estimate (``own_noise_mrad``,
+    from the first solve) and the noise its prior was weighed against in the solve it returns
+    (``prior_noise_mrad``: the own estimate where re-solved, the field's elsewhere)."""
     priors = list(priors)
     fits = _solve(specs, nominals, trains, preset, solver, caches, priors, None, kwargs)
+    for prior, fit in zip(priors, fits):
+        if (estimate := noise_estimate(prior, fit)) is not None:
+            fit.prior_noise_mrad, fit.own_noise_mrad = estimate
     again = {k: p for k, (prior, fit) in enumerate(zip(priors, fits))
              if (p := reweighed(prior, fit)) is not None}
     if not again:
@@ -84,5 +91,8 @@ def fit_weighed(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor]
                     [again[k] for k in idx], [fits[k].params for k in idx], kwargs)
     for k, refit in zip(idx, refits):
         refit.wall_time_s += fits[k].wall_time_s
+        refit.own_noise_mrad = fits[k].own_noise_mrad  # the first solve's, which weighed it
+        refit.prior_noise_mrad = float(np.median(
+            np.asarray(again[k].noise)[np.asarray(again[k].field, bool)]))
         fits[k] = refit
     return fits

@@ -1,17 +1,18 @@
 """What a coarse fit's Jacobian at the solution says about its parameters: standard errors, which
-parameters the data determine, and the condition number (:func:`fit_diagnostics`)."""
+parameters the data determine, the condition number and how much each parameter leans on its
+prior (:func:`fit_diagnostics`, :func:`prior_shrinkage`)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..physics.parameters import PARAMETER_NAMES
 from ..vocabulary import STD_ERROR_PSEUDO_INVERSE
 
-__all__ = ["FitDiagnostics", "fit_diagnostics", "loss_weights"]
+__all__ = ["FitDiagnostics", "fit_diagnostics", "loss_weights", "prior_shrinkage"]
 
 
 @dataclass
@@ -25,6 +26,10 @@ class FitDiagnostics:
     noise_mrad: float = float("nan")  # s: RMS data residual per component [mrad], on the dof
     data_rss_mrad2: float = float("nan")  # data residuals' squares, loss-weighted [mrad^2]
     data_dof: float = float("nan")  # their effective degrees of freedom (see fit_diagnostics)
+    #: (28,) the prior's share of each parameter's fit, in [0, 1] (:func:`prior_shrinkage`);
+    #: NaN where fixed or without prior rows
+    prior_shrinkage: np.ndarray = field(
+        default_factory=lambda: np.full(len(PARAMETER_NAMES), np.nan))
 
     def flag_status(self, status: str) -> str:
         """The fit's status, with :data:`~heliocal.pipeline.vocabulary.STD_ERROR_PSEUDO_INVERSE`
@@ -43,6 +48,53 @@ def loss_weights(r: np.ndarray, loss: str = "linear", f_scale_mrad: float = 1.0)
     if loss == "huber":
         return np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0)))
     return np.ones_like(z)
+
+
+def prior_shrinkage(J: np.ndarray, r: np.ndarray, n_data: int, loss: str = "linear",
+                    f_scale_mrad: float = 1.0) -> np.ndarray | None:
+    """How much each free parameter's fit leans on its prior: (P,) in [0, 1], 0 = the data alone
+    fix it, 1 = the data say nothing about it (the fit is the prior's mean); None without prior
+    rows.
+
+    ``J`` (n_data + P, P) and ``r`` are the fit's rows at the solution: the data rows [mrad],
+    then one prior row per free parameter, ``(p_j - mean_j) / sigma'_j`` with ``sigma'_j =
+    sigma_j / s`` (the prior weighed against the noise ``s`` of the data rows; ``J``'s prior
+    block is ``diag(1 / sigma')``). The last Gauss-Newton system of the fit weighs every row
+    by the loss's ``rho'`` (:func:`loss_weights`; all ones for ``linear``; the iteratively
+    reweighted system of :mod:`~heliocal.pipeline.physics.lm`, whose cost scipy's ``trf``
+    minimises too), so its curvature is ``H = J^T W J = H_data + H_prior`` with ``H_prior =
+    diag(w_j / sigma'_j^2)``. The shrinkage of parameter ``j`` is::
+
+        shrinkage_j = [H^-1]_jj * [H_prior]_jj
+
+    which is at once (i) the derivative of the fitted value by the prior's mean, ``d p_j / d
+    mean_j`` of the linearised MAP solution ``p = H^-1 (J_d^T W_d y + H_prior mean)``; (ii) the
+    Gaussian posterior's variance of ``p_j`` over its prior variance (``H / s^2`` is the
+    posterior precision, ``s`` cancels); (iii) the leverage of ``j``'s prior row, its diagonal
+    entry of the hat matrix ``J H^-1 J^T W``, so the data rows' leverages sum to ``P - sum_j
+    shrinkage_j`` (:func:`fit_diagnostics`' ``data_dof`` is ``n_data`` minus that, unweighted).
+
+    Not the diagonal ratio ``[H_prior]_jj / H_jj``: that is the shrinkage of ``p_j`` with every
+    other parameter held fixed, near 0 whenever the data move ``p_j`` at all, also when they
+    move it only together with another parameter (two parameters that enter only through their
+    sum: the data fix the sum, the prior decides how it splits; ``[H^-1]_jj`` gives each 1/2
+    for equal priors, the diagonal ratio about 0). The two agree when the data Jacobian's
+    columns are orthogonal.
+    """
+    n_free = J.shape[1]
+    if J.shape[0] < n_data + n_free or n_free == 0:
+        return None
+    w = loss_weights(r, loss, f_scale_mrad)
+    # columns scaled to unit prior curvature: the ratio is invariant, the inverse well-conditioned
+    scale = 1.0 / np.sqrt(np.maximum(np.diag(J[n_data:]) ** 2, 1e-300))
+    Jw = J * scale * np.sqrt(w)[:, None]
+    H = Jw.T @ Jw
+    h_prior = (Jw[n_data:] ** 2).sum(axis=0)
+    try:
+        inv_diag = np.diag(np.linalg.inv(H))
+    except np.linalg.LinAlgError:  # pragma: no cover - the prior rows keep H positive definite
+        inv_diag = np.diag(np.linalg.pinv(H))
+    return np.clip(inv_diag * h_prior, 0.0, 1.0)
 
 
 def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
@@ -69,6 +121,7 @@ def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
     cond = float("nan")
     pseudo = False
     s2 = rss = dof_eff = float("nan")
+    shrinkage = np.full(len(PARAMETER_NAMES), np.nan)
     if J is not None:
         dof = max(n_data - len(free_idx), 1)
         s2 = float((r[:n_data] ** 2).sum()) / dof
@@ -103,4 +156,7 @@ def fit_diagnostics(J: np.ndarray | None, r: np.ndarray | None, n_data: int,
         except np.linalg.LinAlgError:  # pragma: no cover
             data_only, null = np.full(len(free_idx), np.inf), np.ones(len(free_idx), bool)
         determined[free_idx] = (data_only < 0.5) & ~null
-    return FitDiagnostics(std, determined, cond, pseudo, math.sqrt(s2), rss, dof_eff)
+        share = prior_shrinkage(J, r, n_data, loss, f_scale_mrad)
+        if share is not None:
+            shrinkage[free_idx] = share
+    return FitDiagnostics(std, determined, cond, pseudo, math.sqrt(s2), rss, dof_eff, shrinkage)

@@ -44,8 +44,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["NOISE_PRIOR_DOF", "NOISE_REFIT_FACTOR", "HeliostatPrior", "own_noise_mrad",
-           "reweighed"]
+__all__ = ["NOISE_PRIOR_DOF", "NOISE_REFIT_FACTOR", "HeliostatPrior", "noise_estimate",
+           "own_noise_mrad", "reweighed"]
 
 #: Degrees of freedom of the field's noise as the prior of a heliostat's own (those of 10
 #: measurements of three residual components each): a heliostat's own residuals count half at
@@ -81,18 +81,29 @@ def own_noise_mrad(rss_mrad2: float, dof: float, field_noise_mrad: float,
     return math.sqrt((prior_dof * field_noise_mrad ** 2 + rss_mrad2) / (prior_dof + dof))
 
 
-def reweighed(prior, fit, factor: float = NOISE_REFIT_FACTOR) -> HeliostatPrior | None:
-    """``prior`` with its field entries weighed against the heliostat's own noise estimated from
-    ``fit`` (a :class:`~.coarse.CoarseFit` made under ``prior``: its ``data_rss_mrad2`` and
-    ``data_dof``; at most the field's noise, module docstring), or None when it needs no second
-    solve: not a field prior, or the own noise within ``factor`` below the field's."""
+def noise_estimate(prior, fit) -> tuple[float, float] | None:
+    """(the field's noise ``s_f``, the heliostat's own noise estimated from ``fit``) [mrad per
+    residual component] of a fit under a field prior (``prior`` a :class:`HeliostatPrior` with
+    field entries, ``fit`` a :class:`~.coarse.CoarseFit` made under it: its ``data_rss_mrad2``
+    and ``data_dof``, :func:`own_noise_mrad`); None for any other prior."""
     if not isinstance(prior, HeliostatPrior) or prior.field is None:
         return None
     field = np.asarray(prior.field, bool)
     if not field.any():
         return None
     s_field = float(np.median(np.asarray(prior.noise, np.float64)[field]))
-    s_own = min(own_noise_mrad(fit.data_rss_mrad2, fit.data_dof, s_field), s_field)
+    return s_field, own_noise_mrad(fit.data_rss_mrad2, fit.data_dof, s_field)
+
+
+def reweighed(prior, fit, factor: float = NOISE_REFIT_FACTOR) -> HeliostatPrior | None:
+    """``prior`` with its field entries weighed against the heliostat's own noise estimated from
+    ``fit`` (a :class:`~.coarse.CoarseFit` made under ``prior``: its ``data_rss_mrad2`` and
+    ``data_dof``; at most the field's noise, module docstring), or None when it needs no second
+    solve: not a field prior, or the own noise within ``factor`` below the field's."""
+    estimate = noise_estimate(prior, fit)
+    if estimate is None:
+        return None
+    s_field, s_own = estimate[0], min(estimate[1], estimate[0])
     if not (s_field > 0 and s_own > 0) or s_field / s_own <= factor:
         return None
-    return prior._replace(noise=np.where(field, s_own, prior.noise))
+    return prior._replace(noise=np.where(np.asarray(prior.field, bool), s_own, prior.noise))

@@ -23,7 +23,8 @@ __all__ = [
 
 _OPTIONAL = ("split.parquet", "coarse_params.parquet", "coarse_predictions.parquet",
              "regimes.parquet", "rolling_origin.parquet", "hybrid_predictions.parquet",
-             "sweep.parquet", "selection.parquet", "selected_predictions.parquet")
+             "sweep.parquet", "selection.parquet", "selected_predictions.parquet",
+             "field_prior.parquet")
 
 
 #: Stage that writes each optional artifact (used when its schema is not importable yet).
@@ -31,7 +32,7 @@ _PRODUCERS = {"split.parquet": "split-knn", "coarse_params.parquet": "fit-coarse
               "coarse_predictions.parquet": "fit-coarse", "regimes.parquet": "fit-coarse",
               "hybrid_predictions.parquet": "fit-hybrid",
               "sweep.parquet": "sweep", "selection.parquet": "sweep",
-              "selected_predictions.parquet": "sweep"}
+              "selected_predictions.parquet": "sweep", "field_prior.parquet": "fit-coarse"}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -52,6 +53,7 @@ class ReportInputs:
     selection: pd.DataFrame | None = None
     regimes: pd.DataFrame | None = None
     rolling: pd.DataFrame | None = None  # rolling_origin.parquet: the next-day errors
+    field_prior: pd.DataFrame | None = None  # field_prior.parquet (fit-coarse --prior field)
     paths: dict[str, Path] = field(default_factory=dict)  # filename -> path of every input read
     notes: list[str] = field(default_factory=list)  # staleness and similar warnings
     # heliostat -> its GP correction on a sky grid (the report stage computes it from the model
@@ -140,6 +142,8 @@ def load_inputs(workdir: str | Path) -> ReportInputs:
             inp.regimes = df
         elif name == "rolling_origin.parquet":
             inp.rolling = df
+        elif name == "field_prior.parquet":
+            inp.field_prior = df
     preds = []
     for name in ("coarse_predictions.parquet", "hybrid_predictions.parquet",
                  "selected_predictions.parquet"):

@@ -76,6 +76,10 @@ def _draw(task: FigureTask):
         from .regimes import plot_regimes
 
         return plot_regimes(a["measurements"], a["predictions"], a["regimes"], task.heliostat)
+    if task.kind.startswith("prior_"):
+        from .prior_figures import draw_prior_figure
+
+        return draw_prior_figure(task.kind, a)
     if task.kind.startswith("field_"):
         from .field_figures import draw_field_figure
 

@@ -53,10 +53,11 @@ document.querySelectorAll("table.sortable th").forEach(function (th, col) {
 </script>"""
 
 
-def nav_html(prefix: str = "") -> str:
-    """Links to the report's pages (``prefix``: ``../`` from ``heliostats/``)."""
+def nav_html(prefix: str = "", pages: Sequence[tuple[str, str]] = ()) -> str:
+    """Links to the report's pages (``prefix``: ``../`` from ``heliostats/``); ``pages``: (file,
+    title) of the pages only some reports have (the field prior's), after the field figures."""
     links = (("index.html", "Field overview"), ("heliostats.html", "All heliostats"),
-             ("field.html", "Field figures (paper)"), ("details.html", "All tables"),
+             ("field.html", "Field figures (paper)"), *pages, ("details.html", "All tables"),
              ("report.md", "report.md"), ("metrics.json", "metrics.json"))
     return "<nav>" + "".join(f'<a href="{prefix}{h}">{e(t)}</a>' for h, t in links) + "</nav>"
 
@@ -117,10 +118,11 @@ def _heliostat_table(rows: pd.DataFrame, prefix: str, rank: bool = False) -> str
 
 def index_html(title: str, subtitle: str, summary: dict, table: pd.DataFrame, worst: pd.DataFrame,
                svg_map: str, cdf: ReportFigure | None, cdf_note: str | None, floor_text: str,
-               notes: Sequence[str]) -> str:
+               notes: Sequence[str], nav_pages: Sequence[tuple[str, str]] = ()) -> str:
     """``index.html``: summary numbers, the field map, the error distribution, the worst
     heliostats (each a link to its page) and the notes of the run. Small at any field size: the
-    map is one SVG circle per heliostat, the distribution one PNG file, the table 20 rows."""
+    map is one SVG circle per heliostat, the distribution one PNG file, the table 20 rows.
+    ``nav_pages``: :func:`nav_html`'s ``pages``."""
     s = summary
     presets = ", ".join(f"{k} {v}" for k, v in s["presets"].items()) or "–"
     kpis = [("heliostats", s["n_heliostats"]),
@@ -136,7 +138,7 @@ def index_html(title: str, subtitle: str, summary: dict, table: pd.DataFrame, wo
             (f"above {s['alert_mrad']:g} mrad", s["n_above_alert"]),
             ("on alert", s["n_on_alert"])]
     out = page_head(title)
-    out.append(nav_html())
+    out.append(nav_html(pages=nav_pages))
     out.append(f"<h1>{e(title)}</h1><p>{e(subtitle)}</p>")
     out.append('<ul class="kpi">' + "".join(
         f"<li><b>{e(str(v))}</b>{e(k)}</li>" for k, v in kpis) + "</ul>")
@@ -167,10 +169,12 @@ def index_html(title: str, subtitle: str, summary: dict, table: pd.DataFrame, wo
     return "\n".join(out) + "\n"
 
 
-def heliostats_list_html(title: str, table: pd.DataFrame) -> str:
-    """``heliostats.html``: every heliostat in one sortable table, each a link to its page."""
+def heliostats_list_html(title: str, table: pd.DataFrame,
+                         nav_pages: Sequence[tuple[str, str]] = ()) -> str:
+    """``heliostats.html``: every heliostat in one sortable table, each a link to its page
+    (``nav_pages``: :func:`nav_html`'s ``pages``)."""
     out = page_head(f"All heliostats: {title}")
-    out.append(nav_html())
+    out.append(nav_html(pages=nav_pages))
     out.append(f"<h1>All {len(table)} heliostats</h1>")
     out.append("<p>Click a column to sort; click a heliostat for its page.</p>")
     out.append(_heliostat_table(table.sort_values("heliostat_id"), "heliostats/"))
@@ -229,13 +233,14 @@ def _next_day_text(row) -> str:
 def heliostat_html(title: str, row, h: dict, why: str, figures: Sequence[tuple],
                    param_rows: list[list] | None, param_head: str, model_rows: list[list],
                    prev_next: tuple[str | None, str | None],
-                   next_day_svg: str | None = None) -> str:
+                   next_day_svg: str | None = None,
+                   nav_pages: Sequence[tuple[str, str]] = ()) -> str:
     """``heliostats/<id>.html``: the heliostat's alerts, model and why, its figures (``figures``:
     ``("figure", ReportFigure)`` or ``("note", text)`` blocks), parameters with standard errors
-    and accuracy per model and split."""
+    and accuracy per model and split (``nav_pages``: :func:`nav_html`'s ``pages``)."""
     hid = str(row["heliostat_id"])
     out = page_head(f"{hid}: {title}")
-    out.append(nav_html("../"))
+    out.append(nav_html("../", nav_pages))
     links = []
     for label, page in zip(("← previous", "next →"), prev_next):
         if page is not None:

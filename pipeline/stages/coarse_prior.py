@@ -45,7 +45,7 @@ from ..errors import ParameterError, StageInputError
 from ..models.coarse import CoarseFit, MeasurementBatch, predict
 from ..models.coarse_presets import fit_presets
 from ..models.field_prior import (MIN_HELIOSTATS, FitSample, GroupPrior, PriorEstimate,
-                                  group_key)
+                                  deviation, group_key)
 from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec, nominal_parameters, preset_mask
 from ..runtime.parallel import map_tasks
@@ -54,7 +54,7 @@ from ..vocabulary import CoarsePrior
 __all__ = ["PRIOR_MODES", "PRIOR_ROUNDS", "SAMPLE_SIZE", "FIELD_PRIOR_MODEL", "PriorPlan",
            "plan_field_prior", "field_prior_name", "is_field_prior", "field_prior_fit",
            "with_field_prior", "field_prior_note", "zero_row_outputs", "finish_table", "attach_prior_columns",
-           "prior_frame", "summary_of"]
+           "prior_frame", "summary_of", "with_deviations", "heliostat_groups"]
 
 log = logging.getLogger("heliocal.coarse")
 
@@ -405,9 +405,21 @@ def _unit(name: str) -> str:
     return PARAMETER_UNITS[name]
 
 
+def prior_columns(fit: CoarseFit, i: int) -> dict:
+    """A fit's coarse_params columns of how much parameter ``i`` leans on its prior, and the
+    noise the prior was weighed against (:func:`attach_prior_columns` blanks them where the fit
+    had no field prior)."""
+    share = fit.prior_shrinkage
+    return {"prior_shrinkage": np.nan if share is None else float(share[i]),
+            "own_noise_mrad": fit.own_noise_mrad, "prior_noise_mrad": fit.prior_noise_mrad}
+
+
 def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:
     """coarse_params with ``prior_mean`` and ``prior_sigma``: the field prior each preset's fit
-    was given, on the rows of the parameters it covers (missing elsewhere)."""
+    was given, on the rows of the parameters it covers (missing elsewhere, and there
+    ``prior_shrinkage`` too); ``own_noise_mrad`` and ``prior_noise_mrad`` on the rows of fits
+    with a field prior (missing elsewhere: a regime-aware candidate or the field-prior geometry
+    is not such a fit)."""
     mean = np.full(len(params), np.nan)
     sigma = np.full(len(params), np.nan)
     if plan.priors and len(params):
@@ -419,8 +431,14 @@ def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:
             if p is not None:
                 mean[r], sigma[r] = p[0][index[r]], p[1][index[r]]
     out = params.assign(prior_mean=mean, prior_sigma=sigma)
+    for column in ("prior_shrinkage", "own_noise_mrad", "prior_noise_mrad"):
+        if column not in out.columns:  # rows without a fit (zero-row heliostats) only
+            out[column] = np.nan
+    has = out["prior_sigma"].notna()
+    fitted_under = has.groupby([out["heliostat_id"], out["preset"]], sort=False).transform("any")
+    out.loc[~fitted_under.to_numpy(bool), ["own_noise_mrad", "prior_noise_mrad"]] = np.nan
     default = out["prior_sigma"].isna() | ~out["free"].to_numpy(bool)
-    out.loc[default, ["prior_mean", "prior_sigma"]] = np.nan
+    out.loc[default, ["prior_mean", "prior_sigma", "prior_shrinkage"]] = np.nan
     return out
 
 
@@ -469,6 +487,27 @@ def prior_frame(plan: PriorPlan, ids) -> pd.DataFrame:
             sorted(plan.priors.get(hid, {}).items()) for i in range(len(mean))]
     return pd.DataFrame(rows, columns=["heliostat_id", "preset", "parameter_index", "mean",
                                        "sigma"])
+
+
+def with_deviations(params: pd.DataFrame) -> pd.DataFrame:
+    """coarse_params with ``deviation``: each row's fitted minus nominal value in
+    field_prior.parquet's units (angles wrapped, increments relative to the nominal; the
+    report's field-prior page draws it against the prior)."""
+    out = params.copy()
+    dev = np.full(len(out), np.nan)
+    for _, idx in out.groupby(["heliostat_id", "preset"], sort=False).indices.items():
+        g = out.iloc[idx]
+        at = g["parameter_index"].to_numpy(int)
+        fitted, nominal = np.zeros(len(PARAMETER_NAMES)), np.zeros(len(PARAMETER_NAMES))
+        fitted[at], nominal[at] = g["fitted"].to_numpy(float), g["nominal"].to_numpy(float)
+        dev[idx] = deviation(fitted, nominal)[at]
+    out["deviation"] = dev
+    return out
+
+
+def heliostat_groups(helio: pd.DataFrame) -> dict[str, tuple[str, str, str]]:
+    """heliostat -> its field-prior group (heliostats.parquet rows, column ``heliostat_id``)."""
+    return {str(r["heliostat_id"]): group_key(r) for _, r in helio.iterrows()}
 
 
 def summary_of(plan: PriorPlan, table: pd.DataFrame, zero_rows: Sequence[str]) -> dict:

@@ -38,7 +38,8 @@ from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES
 from ..runtime.parallel import map_tasks, shared_pool, warm_up
 from ..runtime.process_state import restores_process_state
 from .coarse_prior import (PRIOR_MODES, attach_prior_columns, finish_table, plan_field_prior,
-                           prior_frame, summary_of, with_field_prior, zero_row_outputs)
+                           prior_columns, prior_frame, summary_of, with_field_prior,
+                           zero_row_outputs)
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes, regimes_summary)
 from .increments import coarse_plan, with_previous
@@ -229,7 +230,7 @@ def _heliostat_outputs(inp: _Inputs, fits: Sequence[CoarseFit],
                 "val_error_mrad": s["validation"], "test_error_mrad": s["test"],
                 "time_fitted": float(time_params[i]) if time_params is not None else np.nan,
                 "time_val_error_mrad": s["time_validation"],
-                "time_test_error_mrad": s["time_test"]})
+                "time_test_error_mrad": s["time_test"], **prior_columns(fit, i)})
     pred = pd.concat(preds, ignore_index=True)
     pred["heliostat_id"] = hid
     pred["split"] = np.tile(labels, len(preds))

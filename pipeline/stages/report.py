@@ -25,6 +25,8 @@ Outputs in ``DIR/report/`` (one stage transaction, see
   heliostats that need attention first); small at any field size;
 * ``heliostats/<id>.html``: one page per heliostat; ``heliostats.html``: all of them, sortable;
 * ``field.html``: paper 000's figures as field aggregates;
+* ``field_prior.html``: the field prior and how much each heliostat's fit leans on it, when
+  fit-coarse fitted under one (:mod:`heliocal.pipeline.report.prior_page`);
 * ``details.html``: every table of every model and split (the lab notebook), figures linked;
 * ``report.md`` (the same content as details.html), ``figures/*.png`` and ``metrics.json``
   (schema: ``docs/metrics_schema.json``; sorted keys and rounded floats, so two runs of the
@@ -45,7 +47,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..artifacts.manifests import current_transaction, load_manifest
-from ..artifacts.paths import safe_child, safe_name
+from ..artifacts.paths import artifact_path, safe_child, safe_name
+from ..artifacts.schemas import COARSE_PARAMS
+from ..artifacts.store import read_provenance
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import check_int
@@ -54,6 +58,8 @@ from ..report.field import (ALERT_MRAD, ERROR_LINES_MRAD, field_summary, field_t
 from ..report.field_figures import comparison_table, training_size_frame, weight_decay_frame
 from ..report.inputs import load_inputs
 from ..report.metrics import compute_metrics, metrics_json
+from ..report.prior_page import (PRIOR_PAGE, prior_groups, prior_page_html, prior_page_tasks,
+                                 training_size_note)
 from ..report.pages import (build_report, figure_tasks, parameter_tables, render_html,
                             render_markdown, resolve_figures)
 from ..report.forward import svg_next_day
@@ -220,13 +226,18 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
                                                  "next_day_error_mrad"].to_numpy(float),
                            "lines": ERROR_LINES_MRAD, "floor": floor,
                            "floor_source": floor_source})
-    field_plan = _field_plan(inp, wd_frame, training_size_frame(inp.sweep),
-                             comparison_table(wd_frame, inp.selection))
-    tasks = [cdf_task] + figure_tasks(blocks) + figure_tasks(field_plan)
+    ts_frame = training_size_frame(inp.sweep)
+    field_plan = _field_plan(inp, wd_frame, ts_frame, comparison_table(wd_frame, inp.selection))
+    groups = _prior_groups(inp)
+    prior_tasks = prior_page_tasks(groups)
+    nav_pages = ((PRIOR_PAGE, "Field prior"),) if groups else ()
+    tasks = [cdf_task] + figure_tasks(blocks) + figure_tasks(field_plan) + prior_tasks
     drawn, counts = drawn_or_kept(txn, out, tasks, workers, incremental)
     blocks = resolve_figures(blocks, drawn)
     field_blocks = resolve_figures(field_plan, drawn)
     figs = [b[1] for b in blocks + field_blocks if b[0] == "figure"]
+    figs += [ReportFigure(t.filename, t.caption, drawn[t.filename][0]) for t in prior_tasks
+             if drawn[t.filename][0] is not None]
     cdf_png, cdf_why = drawn[cdf_task.filename]
     cdf = ReportFigure(cdf_task.filename, cdf_task.caption, cdf_png) if cdf_png else None
     if cdf is not None:
@@ -242,22 +253,31 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
                 f"{metrics['data']['n_measurements']} measurements from "
                 f"{metrics['data']['first_timestamp'] or '?'} to "
                 f"{metrics['data']['last_timestamp'] or '?'}.")
-    run_notes = list(inp.notes) + measured_floor.problems + _plan_page(workdir, txn, title)
+    run_notes = (list(inp.notes) + measured_floor.problems
+                 + _plan_page(workdir, txn, title, nav_pages))
     if not choices:
         run_notes.append(f"No model yet: run {inp.run_hint('coarse_params.parquet')} for the "
                          "field map's errors and the worst heliostats.")
+    if groups:
+        options = read_provenance(artifact_path(workdir, COARSE_PARAMS)).get("options") or {}
+        txn.write_bytes(PRIOR_PAGE, prior_page_html(
+            title, nav_html(pages=nav_pages), SORT_JS, groups, prior_tasks, drawn, options,
+            training_size_note(ts_frame is not None)).encode("utf-8"))
+        run_notes.append(f"fit-coarse fitted under a field prior: its prior and how much each "
+                         f"heliostat leans on it are on {PRIOR_PAGE}.")
     svg = svg_field_map(table, tower_en_m(inp), alert_mrad=alert_mrad)
     txn.write_bytes("index.html", index_html(
         title, subtitle, summary, table, worst(table), svg, cdf, cdf_why, floor_text,
-        run_notes).encode("utf-8"))
-    txn.write_bytes("heliostats.html", heliostats_list_html(title, table).encode("utf-8"))
+        run_notes, nav_pages).encode("utf-8"))
+    txn.write_bytes("heliostats.html", heliostats_list_html(title, table,
+                                                            nav_pages).encode("utf-8"))
     txn.write_bytes("field.html", render_html(field_page_blocks(field_blocks), embed=False,
-                                              nav=nav_html()).encode("utf-8"))
+                                              nav=nav_html(pages=nav_pages)).encode("utf-8"))
     txn.write_bytes("details.html", render_html(blocks, embed=False,
-                                                nav=nav_html()).encode("utf-8"))
+                                                nav=nav_html(pages=nav_pages)).encode("utf-8"))
     txn.write_bytes("metrics.json", metrics_json(metrics).encode("utf-8"))
     txn.write_bytes("report.md", render_markdown(blocks).encode("utf-8"))
-    pages = _heliostat_pages(txn, out, inp, helios, table, blocks, wd_frame, title)
+    pages = _heliostat_pages(txn, out, inp, helios, table, blocks, wd_frame, title, nav_pages)
 
     heliostats = []
     for hid, h in helios.items():
@@ -270,11 +290,25 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     return {"workdir": str(workdir), "report": str(out / "index.html"),
             "markdown": str(out / "report.md"), "metrics": str(out / "metrics.json"),
             "details": str(out / "details.html"), "field": str(out / "field.html"),
+            "field_prior": str(out / PRIOR_PAGE) if groups else None,
             "figures": [str(fig_dir / f.filename) for f in figs], "notes": notes,
             "measurement_floor": {"value_mrad": floor, "source": floor_source,
                                   "problems": measured_floor.problems},
             "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats,
             "figures_drawn": counts["drawn"], "figures_kept": counts["kept"]}
+
+
+def _prior_groups(inp) -> list:
+    """The field-prior page's groups (none without a field prior), with the model's
+    conventions the report package does not import: each fit's deviation from nominal and
+    each heliostat's group."""
+    from .coarse_prior import heliostat_groups, with_deviations
+
+    if inp.field_prior is None or inp.field_prior.empty or inp.coarse_params is None \
+            or inp.heliostats is None:
+        return []
+    return prior_groups(inp.field_prior, with_deviations(inp.coarse_params),
+                        heliostat_groups(inp.heliostats))
 
 
 def _gp_maps(workdir: Path, choices: dict) -> dict[str, dict]:
@@ -340,7 +374,7 @@ def _field_plan(inp, wd_frame, ts_frame, comp) -> list[tuple]:
     return field_plan
 
 
-def _plan_page(workdir: Path, txn, title: str) -> list[str]:
+def _plan_page(workdir: Path, txn, title: str, nav_pages=()) -> list[str]:
     """Write ``plan.html`` when the work directory has a plan (``heliocal plan``); the note
     for the overview that points to it."""
     from ..artifacts.paths import artifact_path
@@ -352,14 +386,15 @@ def _plan_page(workdir: Path, txn, title: str) -> list[str]:
         return []
     plan = read_artifact(workdir, PLAN)
     options = read_provenance(artifact_path(workdir, PLAN)).get("options") or {}
-    page = plan_html(title, plan, options, nav_html(), SORT_JS)
+    page = plan_html(title, plan, options, nav_html(pages=nav_pages), SORT_JS)
     txn.write_bytes("plan.html", page.encode("utf-8"))
     return ["The measurement plan (`heliocal plan`) is on plan.html."]
 
 
 def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
-                     title: str) -> list[str]:
-    """Write ``heliostats/<id>.html`` for every heliostat; return their paths."""
+                     title: str, nav_pages=()) -> list[str]:
+    """Write ``heliostats/<id>.html`` for every heliostat (``nav_pages``: the optional pages of
+    the navigation); return their paths."""
     per: dict[str, list] = {hid: [] for hid in helios}
     for b in blocks:
         if b[0] == "figure" and b[1].heliostat in per:
@@ -406,7 +441,7 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
         page = heliostat_html(title, row, helios[hid],
                               why_text(row, helios[hid], None if bv is None else float(bv)),
                               figs, prow, head, mrows, prev_next,
-                              svg_next_day(rolling.get(hid)))
+                              svg_next_day(rolling.get(hid)), nav_pages)
         path = safe_child(folder, row["page"])
         txn.write_bytes(f"heliostats/{path.name}", page.encode("utf-8"))
         written.append(str(path))
