@@ -77,3 +77,20 @@ def test_a_heliostats_sweep_results_are_the_same_bits_alone_and_in_any_chunk(ite
             assert sorted(other_state) == sorted(state), name
             for key, tensor in state.items():
                 assert torch.equal(other_state[key], tensor), (name, key)
+
+
+def test_an_update_of_a_few_heliostats_is_cut_into_a_chunk_per_worker():
+    """The chunk size the sweep trains with (``sweep_increment.chunk_size``): ``batch_size`` (32)
+    for a field, fewer when a few heliostats would leave a worker idle. The issue's update, 20
+    heliostats on 2 workers, is 2 chunks of 10 (one chunk of 20 kept one of the 2 workers idle for
+    the whole update, 44.2 s of training in docs/benchmarks.md); the results do not depend on it
+    (the test above)."""
+    from heliocal.pipeline.stages.sweep_increment import chunk_size
+
+    assert chunk_size(20, 32, 2) == 10
+    assert chunk_size(21, 32, 2) == 11          # ceil: 2 chunks, never 3
+    assert chunk_size(200, 32, 2) == 32         # a field: batch_size
+    assert chunk_size(20, 32, 1) == 20
+    assert chunk_size(20, 8, 2) == 8            # never above batch_size
+    assert chunk_size(1, 32, 2) == 1
+    assert chunk_size(0, 32, 2) == 1            # no heliostat: a valid size all the same

@@ -62,7 +62,7 @@ from ..models.pretrained import PretrainConfig
 from ..models.selection import SelectionRule
 from ..models.training import (MEMBER_ALIGN, FineProblem, MemberResult, build_problem,
                                ensemble_errors_mrad, stack_problems, take_rows, train_members)
-from ..runtime.parallel import map_tasks, warm_up
+from ..runtime.parallel import default_workers, map_tasks, warm_up
 from ..runtime.process_state import restores_process_state
 from ..vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCTAVE_BANDS,
                           NeuralBaseline)
@@ -71,7 +71,7 @@ from .forward import add_sweep_time_split
 from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
 from .sweep_screen import SCREEN_FAILED, ScreenVerdict, screen_margin, screen_verdicts
-from .sweep_increment import (SweepPlan, plan_sweep, sweep_chunks, sweep_digests,
+from .sweep_increment import (SweepPlan, chunk_size, plan_sweep, sweep_chunks, sweep_digests,
                               write_sweep_outputs)
 from .sweep_inputs import (SweepHeliostat, SweepInputs, fit_pretrained_errors, read_sweep_inputs,
                            sweep_row)
@@ -468,7 +468,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         model ``hybrid-octaves``; see :func:`hybrid_variants`); ``()`` sweeps only the config's.
     study, study_seed : the study's heliostats (:func:`study_heliostats`); 0 skips the study.
     path : how the weight-decay path is trained (:class:`PathConfig`).
-    batch_size : heliostats per batched program of the production selection.
+    batch_size : heliostats per batched program of the production selection (at most; fewer
+        when there are too few heliostats to keep every worker busy,
+        :func:`~.sweep_increment.chunk_size`).
     select_pretrained : the pre-trained network (first seed) is a production candidate too.
     time_split : also train the selected hybrids forward in time (:mod:`.forward`): their
         forward-in-time check (:func:`heliocal.pipeline.stages.selection.apply_forward_checks`)
@@ -522,8 +524,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          index=list(items)) if items else None
     studied = study_heliostats(list(items), study, study_seed)
     coarse_options = coarse_fit_options(workdir)
+    spread = default_workers() if workers is None else workers   # chunks to keep busy
     chunks_of = lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio,  # noqa: E731
-                                         batch_size)
+                                         chunk_size(len(ids), batch_size, spread))
     plan = _plan(txn, request, items, chunks_of, studied, coarse_options, incremental,
                  heliostats, time_split)
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,

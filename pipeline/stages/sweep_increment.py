@@ -35,7 +35,7 @@ from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
                                write_artifact)
 
-__all__ = ["ROW_BAND", "SweepPlan", "sweep_chunks", "sweep_digests", "plan_sweep",
+__all__ = ["ROW_BAND", "SweepPlan", "chunk_size", "sweep_chunks", "sweep_digests", "plan_sweep",
            "write_sweep_outputs"]
 
 #: Rows per band of :func:`sweep_chunks`: a group larger than one chunk is cut into chunks within
@@ -49,6 +49,14 @@ def sweep_digests(items: Mapping) -> dict[str, str]:
     :class:`~.sweep_inputs.SweepInputs`: rows, split rows, heliostats.parquet row, selected coarse
     fit with its regimes, coarse predictions and errors, time-split fit)."""
     return {hid: value_digest(vars(items[hid])) for hid in sorted(items)}
+
+
+def chunk_size(n_heliostats: int, batch_size: int, workers: int) -> int:
+    """Heliostats per training chunk when ``n_heliostats`` are trained on ``workers`` processes:
+    ``batch_size``, or fewer when that many would leave a worker idle (an update of 20
+    heliostats on 2 workers: 2 chunks of 10, not 1 of 20). A heliostat's results do not depend
+    on its chunk (the module's docstring), so this changes the time, not the results."""
+    return max(1, min(int(batch_size), -(-int(n_heliostats) // max(1, int(workers)))))
 
 
 def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
