@@ -468,9 +468,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         model ``hybrid-octaves``; see :func:`hybrid_variants`); ``()`` sweeps only the config's.
     study, study_seed : the study's heliostats (:func:`study_heliostats`); 0 skips the study.
     path : how the weight-decay path is trained (:class:`PathConfig`).
-    batch_size : heliostats per batched program of the production selection (at most; fewer
-        when there are too few heliostats to keep every worker busy,
-        :func:`~.sweep_increment.chunk_size`).
+    batch_size : heliostats per batched program of the production selection, at most (fewer
+        to keep every worker busy, :func:`~.sweep_increment.chunk_size`).
     select_pretrained : the pre-trained network (first seed) is a production candidate too.
     time_split : also train the selected hybrids forward in time (:mod:`.forward`): their
         forward-in-time check (:func:`heliocal.pipeline.stages.selection.apply_forward_checks`)
@@ -524,9 +523,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          index=list(items)) if items else None
     studied = study_heliostats(list(items), study, study_seed)
     coarse_options = coarse_fit_options(workdir)
-    spread = default_workers() if workers is None else workers   # chunks to keep busy
-    chunks_of = lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio,  # noqa: E731
-                                         chunk_size(len(ids), batch_size, spread))
+    chunks_of = _chunker(items, selected, helio, batch_size, workers)
     plan = _plan(txn, request, items, chunks_of, studied, coarse_options, incremental,
                  heliostats, time_split)
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
@@ -560,6 +557,14 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                     else len(weight_decays) * len(variants))
                 for r in (res["selection"] for res in chosen)},
             "incremental": plan.summary()}
+
+
+def _chunker(items: dict, selected: dict, helio, batch_size: int, workers: int | None):
+    """``chunks_of(ids)``: the training chunks of the heliostats ``ids``, at most ``batch_size``
+    each and enough to keep ``workers`` busy (:func:`~.sweep_increment.chunk_size`)."""
+    spread = default_workers() if workers is None else workers
+    return lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio,
+                                    chunk_size(len(ids), batch_size, spread))
 
 
 def _plan(txn, request: dict, items: dict, chunks_of, studied: list[str],
