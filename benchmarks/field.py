@@ -21,10 +21,18 @@ sampled every 0.1 s), so the scaling ratio is measured in one run. Usage::
         [--hybrid-epochs 800]
         [--stages ingest,split-knn,fit-coarse,fit-hybrid,pretrained-nn,sweep,plan,report | all]
         [--solver batched|scipy] [--workers 1,2] [--sweep-args "--no-warm-start"]
+        [--update-heliostats N]
+
+The issue's daily update is 20 heliostats with 5 new rows each, 1 % of a 2,000-heliostat field;
+``--heliostats 200 --update-heliostats 20`` times that update on the smaller field, where it is
+10 % of the heliostats: harsher per heliostat (an update's cost that grows with the field's
+share that changed, such as training chunks that hold a changed heliostat, is larger), so a
+time measured there bounds the 2,000-heliostat field's from above for those parts.
 
 ``--stages all`` (with the last of ``--workers``, default 2) times, in one run, the full method
-and a daily update (:func:`run_all`): the field's log without the latest 5 rows of 1 % of the
-heliostats (a seeded choice, at least one) goes through ``ingest``, ``split-knn``, ``fit-coarse``,
+and a daily update (:func:`run_all`): the field's log without the latest 5 rows of
+``--update-heliostats`` heliostats (a seeded choice; default 1 % of the field, at least one)
+goes through ``ingest``, ``split-knn``, ``fit-coarse``,
 ``sweep --study 0`` and ``report``; then those rows through ``ingest --append`` and every
 later stage with ``--incremental``; then ``split-knn``, ``fit-coarse``, ``sweep`` and ``report``
 with ``--incremental`` once more on unchanged inputs.
@@ -163,13 +171,25 @@ def run_stage(args: list[str]) -> tuple[float, int]:
 UPDATE_SHARE, UPDATE_ROWS = 0.01, 5
 
 
-def split_update(field_dir: Path, seed: int = 0) -> tuple[Path, Path, int]:
-    """The field's log without the latest :data:`UPDATE_ROWS` rows of a seeded :data:`UPDATE_SHARE`
-    of its heliostats (``base.csv``), and those rows (``update.csv``); cached beside the log."""
-    base, update = field_dir / "base.csv", field_dir / "update.csv"
+def update_size(n_heliostats: int, requested: int | None = None) -> int:
+    """Heliostats of the daily update: ``requested``, or :data:`UPDATE_SHARE` of the field's
+    ``n_heliostats`` (at least one)."""
+    n = max(1, round(UPDATE_SHARE * n_heliostats)) if requested is None else int(requested)
+    if not 1 <= n <= n_heliostats:
+        raise SystemExit(f"Error: --update-heliostats must be in [1, {n_heliostats}] (the "
+                         f"field's heliostats). Got {n} instead.")
+    return n
+
+
+def split_update(field_dir: Path, n_update: int | None = None,
+                 seed: int = 0) -> tuple[Path, Path, int]:
+    """The field's log without the latest :data:`UPDATE_ROWS` rows of a seeded choice of
+    :func:`update_size` heliostats (``base-<n>.csv``), and those rows (``update-<n>.csv``);
+    cached beside the log."""
     log = pd.read_csv(field_dir / "calibration_log.csv")
     ids = np.sort(log["heliostat_id"].unique())
-    n = max(1, round(UPDATE_SHARE * len(ids)))
+    n = update_size(len(ids), n_update)
+    base, update = field_dir / f"base-{n}.csv", field_dir / f"update-{n}.csv"
     if not (base.exists() and update.exists()):
         chosen = set(np.random.default_rng(seed).choice(ids, n, replace=False))
         late = (log[log["heliostat_id"].isin(chosen)].sort_values("timestamp", kind="mergesort")
@@ -181,7 +201,7 @@ def split_update(field_dir: Path, seed: int = 0) -> tuple[Path, Path, int]:
 
 def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
     """The full method, a daily update and a rerun on unchanged inputs, timed in one run."""
-    base, update, n_update = split_update(field_dir)
+    base, update, n_update = split_update(field_dir, args.update_heliostats)
     wd = args.out / f"run-{args.heliostats}-all-w{workers}"
     shutil.rmtree(wd, ignore_errors=True)
     props = ["--properties", str(field_dir / "paint"), "--workdir", str(wd)]
@@ -230,6 +250,10 @@ def main() -> None:
     ap.add_argument("--later", default="sweep,report",
                     help="--stages all: the stages after fit-coarse in the full method, the "
                          "update and the rerun ('' leaves them out)")
+    ap.add_argument("--update-heliostats", type=int, default=None,
+                    help="--stages all: heliostats of the daily update, each with "
+                         f"{UPDATE_ROWS} new rows (default {100 * UPDATE_SHARE:g} %% of the field, at "
+                         "least one)")
     args = ap.parse_args()
     field_dir = args.out / f"field-{args.heliostats}"
     info = write_field(field_dir, args.heliostats)

@@ -2,9 +2,15 @@
 ``fit-coarse`` on the copy without ``--incremental`` (the options of WORKDIR's last runs), and
 compare their six artifacts with WORKDIR's: structure exactly, floats with the tolerance of
 tests/test_incremental.py. Prints per artifact the rows, the largest relative difference of its
-floats and whether it holds. Usage (after ``benchmarks/field.py --stages all``)::
+floats and whether it holds. With ``--sweep`` it also runs ``heliocal sweep --study 0`` (the
+sweep ``benchmarks/field.py`` runs) on another copy of WORKDIR, whose fit-coarse artifacts are
+WORKDIR's (the sweep's inputs; fit-coarse's incremental results equal a full rerun's to 1e-7,
+not bit for bit), and compares sweep.parquet, selection.parquet and
+selected_predictions.parquet exactly, but ``wall_time_s`` (the run's own timing). Usage (after
+``benchmarks/field.py --stages all``)::
 
     .venv/bin/python benchmarks/incremental_check.py runs/field-bench/run-200-all-w2 [--workers 2]
+        [--sweep]
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -22,6 +29,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_incremental import REL, ABS, assert_same_artifact  # noqa: E402
 
+SWEEP_ARTIFACTS = ("sweep", "selection", "selected_predictions")
 ARTIFACTS = ("split", "coarse_params", "coarse_predictions", "regimes", "regime_params",
              "rolling_origin")
 
@@ -41,6 +49,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("workdir", type=Path)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--sweep", action="store_true", help="compare the sweep's artifacts too")
     args = ap.parse_args()
     from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
     from heliocal.pipeline.stages.split import run_split
@@ -63,6 +72,27 @@ def main() -> None:
                 verdict = "DIFFERS: " + " ".join(str(exc).split())[:200]
             print(f"{name:20s} {len(a):8d} rows  largest relative difference "
                   f"{largest_relative_difference(a, b):.2e}  {verdict}")
+        if args.sweep:
+            _check_sweep(args.workdir, Path(tmp) / "sweep", args.workers)
+
+
+def _check_sweep(workdir: Path, copy: Path, workers: int) -> None:
+    """A full ``sweep --study 0`` of a copy of ``workdir`` (at ``copy``) against ``workdir``'s
+    sweep, exactly."""
+    full = Path(shutil.copytree(workdir, copy, ignore=shutil.ignore_patterns("report")))
+    heliocal = str(Path(sys.executable).parent / "heliocal")
+    subprocess.run([heliocal, "sweep", "--workdir", str(full), "--study", "0", "--workers",
+                    str(workers), "--quiet"], check=True, stdout=subprocess.DEVNULL)
+    for name in SWEEP_ARTIFACTS:
+        a, b = (pd.read_parquet(d / f"{name}.parquet").drop(columns=["wall_time_s"],
+                                                            errors="ignore")
+                for d in (workdir, full))
+        try:
+            pd.testing.assert_frame_equal(a, b, check_exact=True, obj=name)
+            verdict = "equal, every value (tolerance 0)"
+        except AssertionError as exc:
+            verdict = "DIFFERS: " + " ".join(str(exc).split())[:200]
+        print(f"{name:20s} {len(a):8d} rows  {verdict}")
 
 
 if __name__ == "__main__":

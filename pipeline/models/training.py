@@ -41,7 +41,24 @@ __all__ = [
     "grouped_components",
     "stack_problems",
     "problem_as",
+    "MEMBER_ALIGN",
 ]
+
+#: Rows of a stacked problem and parameters of a network, a multiple of this in
+#: :func:`stack_problems` and :func:`train_members` with ``align``. torch's elementwise kernels
+#: compute a contiguous tensor in vector blocks (AVX-512: 32 float32 elements per step) and its
+#: last ``size % step`` elements one by one, with other rounding (``exp`` in the SELU among them);
+#: its reductions over the rows and MKL's matrix products group a row's terms by the row count.
+#: With every per-network block of rows and parameters a multiple of 32, the scalar tail is empty
+#: and a row count that is a multiple of 32 gives a network the same bits whatever the count, so
+#: a network trains to the same bits alone or beside any others, at any position
+#: (docs/experiments/incremental-updates.md; tests/test_sweep_independence.py).
+MEMBER_ALIGN = 32
+
+
+def _aligned(n: int, align: int) -> int:
+    """``n`` rounded up to a multiple of ``align``."""
+    return -(-int(n) // int(align)) * int(align)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -166,20 +183,22 @@ def _pad_rows(t: torch.Tensor, n: int) -> torch.Tensor:
     return torch.cat([t, t[-1:].expand(n - t.shape[0], *t.shape[1:])])
 
 
-def stack_problems(problems: Sequence[FineProblem]) -> tuple[FineProblem, torch.Tensor]:
+def stack_problems(problems: Sequence[FineProblem],
+                   align: int = 1) -> tuple[FineProblem, torch.Tensor]:
     """One problem of M heliostats (member m = heliostat m) for :func:`train_members`.
 
     The heliostats must share kinematic type, actuator type, free parameters and input size.
-    Shorter heliostats are padded to the longest (their last row repeated); the returned
-    ``valid`` (M, N) mask is false on padding, and the training and validation masks must be
-    and-ed with it. Each heliostat keeps its own encoder, spec, base and scales, so member m
-    trains exactly as heliostat m would alone.
+    Shorter heliostats are padded to the longest (their last row repeated), and every heliostat
+    to a multiple of ``align`` rows (:data:`MEMBER_ALIGN`: the stacked problem's layout then does
+    not depend on the other heliostats); the returned ``valid`` (M, N) mask is false on padding,
+    and the training and validation masks must be and-ed with it. Each heliostat keeps its own
+    encoder, spec, base and scales.
     """
     free = problems[0].free
     if any(not torch.equal(p.free, free) for p in problems):
         raise ParameterError("The 'problems' parameter of stack_problems must share the free "
                              "parameters (one coarse preset).")
-    n = max(len(p.data) for p in problems)
+    n = _aligned(max(len(p.data) for p in problems), align)
     spec = stack_specs([p.spec for p in problems])
     for name in SPEC_TENSORS:
         object.__setattr__(spec, name, getattr(spec, name).unsqueeze(1))   # batch (M, 1)
@@ -368,10 +387,22 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.where(n > 0, total / n.clamp_min(1), torch.full_like(total, float("nan")))
 
 
+def _used_rows(train_mask: torch.Tensor, val_mask: torch.Tensor, align: int) -> torch.Tensor:
+    """(N,) the rows a training keeps: those some member trains or stops on; with ``align`` > 1
+    every row up to the last such row's, rounded up to a multiple of ``align`` (the aligned
+    layout of :func:`stack_problems`; its padding rows are at the end)."""
+    used = (train_mask | val_mask).any(0)
+    if align <= 1 or not bool(used.any()):
+        return used
+    end = _aligned(int(torch.nonzero(used).max()) + 1, align)
+    return torch.arange(len(used)) < end
+
+
 @single_threaded
 def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, seeds,
                   config: FineConfig = FineConfig(), *, initial: Layers | None = None,
-                  progress: Callable[[int, int], None] | None = None) -> MemberResult:
+                  progress: Callable[[int, int], None] | None = None,
+                  align: int = 1) -> MemberResult:
     """Train M fine networks at once (one batched torch program, full-batch Adam).
 
     Parameters
@@ -383,6 +414,9 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     config : :class:`FineConfig`.
     initial : start from these weights instead of a seeded initialisation.
     progress : optional ``progress(epoch, max_epochs)``.
+    align : keep the rows a multiple of ``align`` (a problem of :func:`stack_problems` with the
+        same ``align``) and pad each network's parameters to one (zeros no layer reads): with
+        :data:`MEMBER_ALIGN` a member's result does not depend on the other members.
 
     Returns
     -------
@@ -399,14 +433,16 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     if bool((wd < 0).any()) or not bool(torch.isfinite(wd).all()):
         raise ParameterError(f"The 'weight_decays' parameter of train_members must be finite "
                              f"floats >= 0. Got {wd.tolist()!r} instead.")
-    used = (tm | vm).any(0)
+    used = _used_rows(tm, vm, align)
     if not bool(used.all()):  # rows no member trains or stops on (test rows) cost per epoch
         problem, tm, vm = take_rows(problem, used), tm[:, used], vm[:, used]
     dtype = getattr(torch, config.training_dtype)
     problem, wd = problem_as(problem, dtype), wd.to(dtype)
     layers = initial if initial is not None else init_mlp(problem.sizes(config), seeds)
     layers = [(w.to(dtype), b.to(dtype)) for w, b in layers]
-    theta = flatten_layers(layers).detach().clone().requires_grad_(True)     # (L, T), L live
+    theta = flatten_layers(layers).detach()                                 # (L, T), L live
+    theta = torch.cat([theta, theta.new_zeros(len(theta), _aligned(theta.shape[1], align)
+                                              - theta.shape[1])], 1).requires_grad_(True)
     cur = layer_views(theta, layers)
     opt = torch.optim.Adam([theta], lr=config.learning_rate)
     features = problem.features()                     # inputs do not change during training

@@ -314,14 +314,16 @@ def _prior_groups(inp) -> list:
 def _gp_maps(workdir: Path, choices: dict) -> dict[str, dict]:
     """heliostat -> its GP correction on a sky grid, for every heliostat whose model (the one aim
     uses, ``choices`` of :func:`aim_models`) is a GP correction."""
+    gps = {hid: choice for hid, choice in choices.items()
+           if choice.get("model") == "gp" and choice.get("model_dir") is not None}
+    if not gps:   # the GP's modules (torch, scikit-learn) take about 3 s to import
+        return {}
     from ..models.gp import GPCorrection
     from ..models.gp_heliostat import correction_grid
     from .aim import load_model
 
     out = {}
-    for hid, choice in choices.items():
-        if choice.get("model") != "gp" or choice.get("model_dir") is None:
-            continue
+    for hid, choice in gps.items():
         fitted = load_model(workdir, choice["model_dir"], hid)
         if fitted is not None:
             out[hid] = correction_grid(GPCorrection.from_model(*fitted))

@@ -60,9 +60,9 @@ from ..models.gp import GPConfig
 from ..models.gp_heliostat import fit_heliostat_gps
 from ..models.pretrained import PretrainConfig
 from ..models.selection import SelectionRule
-from ..models.training import (FineProblem, MemberResult, build_problem, ensemble_errors_mrad,
-                               stack_problems, take_rows, train_members)
-from ..runtime.parallel import map_tasks, warm_up
+from ..models.training import (MEMBER_ALIGN, FineProblem, MemberResult, build_problem,
+                               ensemble_errors_mrad, stack_problems, take_rows, train_members)
+from ..runtime.parallel import default_workers, map_tasks, warm_up
 from ..runtime.process_state import restores_process_state
 from ..vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCTAVE_BANDS,
                           NeuralBaseline)
@@ -71,7 +71,7 @@ from .forward import add_sweep_time_split
 from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
 from .sweep_screen import SCREEN_FAILED, ScreenVerdict, screen_margin, screen_verdicts
-from .sweep_increment import (SweepPlan, plan_sweep, sweep_chunks, sweep_digests,
+from .sweep_increment import (SweepPlan, chunk_size, plan_sweep, sweep_chunks, sweep_digests,
                               write_sweep_outputs)
 from .sweep_inputs import (SweepHeliostat, SweepInputs, fit_pretrained_errors, read_sweep_inputs,
                            sweep_row)
@@ -125,7 +125,7 @@ def _path_order(weight_decays: Sequence[float]) -> list[float]:
 def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
                weight_decays: Sequence[float], config: FineConfig,
                path: PathConfig = PathConfig(),
-               initial=None) -> Iterator[tuple[float, MemberResult]]:
+               initial=None, align: int = 1) -> Iterator[tuple[float, MemberResult]]:
     """Train M networks at every weight decay, strong to weak; yield ``(weight_decay, result)``.
 
     Each weight decay is one :func:`heliocal.pipeline.models.training.train_members` program of the M
@@ -135,7 +135,7 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
     previous weight decay's best-validation weights, each with the budget of ``path``; since the
     start is the epoch-0 candidate of the early stopping, a network's validation error never
     rises along the path. Without warm start every weight decay is an independent training with
-    ``config``'s budget.
+    ``config``'s budget. ``align``: as for ``train_members`` (a problem stacked with it).
     """
     previous = initial
     if path.warm_start:
@@ -144,7 +144,7 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
     for wd in _path_order(weight_decays):
         warm = path.warm_start and previous is not None
         result = train_members(problem, train_mask, val_mask, [wd] * len(seeds), list(seeds),
-                               config, initial=previous if warm else None)
+                               config, initial=previous if warm else None, align=align)
         previous = result.layers
         yield wd, result
 
@@ -165,7 +165,8 @@ def _train_variant(helios, pools, out_rows, kind, cfg, weight_decays, seeds, pat
     fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
     taken = [take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
     per_h = n_seeds * k_ens           # networks per heliostat: seeds x ensemble
-    stacked, valid = stack_problems([t for t in taken for _ in range(per_h)])
+    # aligned: each heliostat's networks train to the same bits in any chunk (MEMBER_ALIGN)
+    stacked, valid = stack_problems([t for t in taken for _ in range(per_h)], MEMBER_ALIGN)
     n = stacked.data.steps.shape[1]
     labels_fit = np.array([np.resize(h.labels[f], n) for h, f in zip(helios, fitting)
                            for _ in range(per_h)])
@@ -173,7 +174,8 @@ def _train_variant(helios, pools, out_rows, kind, cfg, weight_decays, seeds, pat
     last = initial
     for wd, result in train_path(stacked, torch.as_tensor(labels_fit == "train") & valid,
                                  torch.as_tensor(labels_fit == "validation") & valid,
-                                 net_seeds, weight_decays, cfg, path, initial=initial):
+                                 net_seeds, weight_decays, cfg, path, initial=initial,
+                                 align=MEMBER_ALIGN):
         wall = result.wall_time_s / (len(helios) * n_seeds)
         last = result.layers
         for i, (h, problem) in enumerate(zip(helios, problems)):
@@ -466,7 +468,8 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
         model ``hybrid-octaves``; see :func:`hybrid_variants`); ``()`` sweeps only the config's.
     study, study_seed : the study's heliostats (:func:`study_heliostats`); 0 skips the study.
     path : how the weight-decay path is trained (:class:`PathConfig`).
-    batch_size : heliostats per batched program of the production selection.
+    batch_size : heliostats per batched program of the production selection, at most (fewer
+        to keep every worker busy, :func:`~.sweep_increment.chunk_size`).
     select_pretrained : the pre-trained network (first seed) is a production candidate too.
     time_split : also train the selected hybrids forward in time (:mod:`.forward`): their
         forward-in-time check (:func:`heliocal.pipeline.stages.selection.apply_forward_checks`)
@@ -520,8 +523,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          index=list(items)) if items else None
     studied = study_heliostats(list(items), study, study_seed)
     coarse_options = coarse_fit_options(workdir)
-    plan = _plan(txn, request, items, sweep_chunks(items, selected, helio, batch_size), studied,
-                 coarse_options, incremental, heliostats, time_split)
+    chunks_of = _chunker(items, selected, helio, batch_size, workers)
+    plan = _plan(txn, request, items, chunks_of, studied, coarse_options, incremental,
+                 heliostats, time_split)
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
                          pretrain_config if select_pretrained else None, gp_config, rule,
                          screen))
@@ -555,19 +559,29 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "incremental": plan.summary()}
 
 
-def _plan(txn, request: dict, items: dict, chunks: list[list[str]], studied: list[str],
+def _chunker(items: dict, selected: dict, helio, batch_size: int, workers: int | None):
+    """``chunks_of(ids)``: the training chunks of the heliostats ``ids``, at most ``batch_size``
+    each and enough to keep ``workers`` busy (:func:`~.sweep_increment.chunk_size`)."""
+    spread = default_workers() if workers is None else workers
+    return lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio,
+                                    chunk_size(len(ids), batch_size, spread))
+
+
+def _plan(txn, request: dict, items: dict, chunks_of, studied: list[str],
           coarse_options: dict, incremental: bool, heliostats, time_split: bool) -> SweepPlan:
-    """Which chunks the run trains (:mod:`.sweep_increment`): all of them without
-    ``incremental``, for a run restricted to ``heliostats`` (which records no digests) and with
-    ``time_split`` (the forward-in-time training batches the field's selected hybrids together)."""
+    """Which heliostats the run trains, in the chunks ``chunks_of(ids)`` makes
+    (:mod:`.sweep_increment`): all of them without ``incremental``, for a run restricted to
+    ``heliostats`` (which records no digests) and with ``time_split`` (the forward-in-time
+    training batches the field's selected hybrids together)."""
     if heliostats:
-        return SweepPlan(chunks, why="a run of some heliostats (--heliostat)")
+        return SweepPlan(chunks_of(list(items)), why="a run of some heliostats (--heliostat)")
     key = field_key("sweep", request, [], {"study_heliostats": studied,
                                           "coarse_options": coarse_options})
-    plan = plan_sweep(txn, key, sweep_digests(items), chunks, incremental)
+    plan = plan_sweep(txn, key, sweep_digests(items), chunks_of, incremental)
     if plan.partial and time_split:
-        return plan.everything("--time-split trains the field's selected hybrids forward in "
-                               "time in batches of one another: every heliostat is trained again")
+        return SweepPlan(chunks_of(list(items)), why=(
+            "--time-split trains the field's selected hybrids forward in time in batches of one "
+            "another: every heliostat is trained again"))
     return plan
 
 

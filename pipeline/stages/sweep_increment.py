@@ -1,32 +1,30 @@
-"""``sweep --incremental``: which training chunks of the sweep to train again, and the previous
-sweep's rows and models it keeps for the others.
+"""``sweep --incremental``: which heliostats the sweep trains again, and the previous sweep's
+rows and models it keeps for the others.
 
 The sweep trains heliostats of one kinematic type, actuator type and coarse preset together, in
-chunks of ``batch_size`` (one batched torch program per weight decay). A heliostat's networks
-depend on its chunk, not only on its own rows: the chunk's padding and the position of its
-networks in the batched tensors decide which of torch's vectorised or scalar kernels computes
-each element, and the rounding that follows is amplified by hundreds of Adam steps
-(docs/experiments/incremental-updates.md). So the unit of reuse is the chunk, and the chunks are
-made so that they do not move when another heliostat gains rows (:func:`sweep_chunks`): a chunk
-whose heliostats all have the inputs of the previous run is the previous run's chunk, trained on
-the same inputs, and its results are those a full rerun would compute, bit for bit.
+chunks of ``batch_size`` (one batched torch program per weight decay). The chunk's tensors are laid
+out so that a heliostat's networks do not depend on its chunk
+(:data:`heliocal.pipeline.models.training.MEMBER_ALIGN`: rows and parameters padded to multiples
+of 32, so no network's elements fall in torch's scalar tail and a row count's reductions do not
+depend on the others' rows): a heliostat trains to the same bits alone or beside any others, at
+any position (tests/test_sweep_independence.py). So the unit of reuse is the heliostat: an
+update trains the heliostats whose inputs changed, in chunks of their own, and keeps the
+others' results, which are those a full rerun computes, bit for bit.
 
-What a heliostat's results depend on besides its chunk is its own :class:`SweepInputs` (rows with
-their split, heliostats.parquet row, fit-coarse's selected fit and predictions, the time-split
-fit): :func:`sweep_digests` hashes all of it. What the whole field shares goes into the field key
+What a heliostat's results depend on is its own :class:`SweepInputs` (rows with their split,
+heliostats.parquet row, fit-coarse's selected fit and predictions, the time-split fit):
+:func:`sweep_digests` hashes all of it. What the whole field shares goes into the field key
 (:func:`heliocal.pipeline.artifacts.incremental.field_key`): the options and seeds, the code, the
 study's heliostats (a seeded choice among the field's ids) and fit-coarse's solver options that the
 study refits with. The GP candidates, the pre-trained network and the study are computed per
-heliostat, so they follow their heliostat's chunk.
+heliostat, so they follow their heliostat.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import pandas as pd
 
@@ -37,12 +35,12 @@ from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
                                write_artifact)
 
-__all__ = ["ROW_BAND", "SweepPlan", "sweep_chunks", "sweep_digests", "plan_sweep",
+__all__ = ["ROW_BAND", "SweepPlan", "chunk_size", "sweep_chunks", "sweep_digests", "plan_sweep",
            "write_sweep_outputs"]
 
 #: Rows per band of :func:`sweep_chunks`: a group larger than one chunk is cut into chunks within
 #: bands of this many measurement rows, so that a chunk's heliostats have similar row counts
-#: (little padding) and a heliostat that gains a day's rows stays in its band.
+#: (little padding).
 ROW_BAND = 100
 
 
@@ -53,15 +51,22 @@ def sweep_digests(items: Mapping) -> dict[str, str]:
     return {hid: value_digest(vars(items[hid])) for hid in sorted(items)}
 
 
+def chunk_size(n_heliostats: int, batch_size: int, workers: int) -> int:
+    """Heliostats per training chunk when ``n_heliostats`` are trained on ``workers`` processes:
+    ``batch_size``, or fewer when that many would leave a worker idle (an update of 20
+    heliostats on 2 workers: 2 chunks of 10, not 1 of 20). A heliostat's results do not depend
+    on its chunk (the module's docstring), so this changes the time, not the results."""
+    return max(1, min(int(batch_size), -(-int(n_heliostats) // max(1, int(workers)))))
+
+
 def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
                  batch_size: int) -> list[list[str]]:
     """The sweep's training chunks: heliostats that share kinematic type, actuator type and free
     parameters, at most ``batch_size`` per chunk, each chunk ordered by row count then id.
 
     A group of at most ``batch_size`` heliostats is one chunk. A larger group is cut, band by band
-    of :data:`ROW_BAND` measurement rows, into chunks of consecutive ids, so a chunk's membership
-    does not depend on the other heliostats' row counts: a heliostat that gains rows changes only
-    its own chunk (and, when it crosses into another band, the chunks after it in both bands).
+    of :data:`ROW_BAND` measurement rows, into chunks of consecutive ids. A heliostat's results
+    do not depend on its chunk (the module's docstring); the bands keep the padding small.
     """
     groups: dict = {}
     for hid in sorted(items):
@@ -86,18 +91,14 @@ def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
     return chunks
 
 
-def _chunk_digest(chunk: Sequence[str], digests: Mapping[str, str]) -> str:
-    return hashlib.sha256(json.dumps([[h, digests[h]] for h in chunk]).encode()).hexdigest()
-
-
 @dataclass
 class SweepPlan:
-    """The chunks a sweep trains and those it keeps from the previous run."""
+    """The chunks a sweep trains and the heliostats it keeps from the previous run."""
 
     compute: list[list[str]]                 # chunks trained in this run
-    reuse: list[list[str]] = field(default_factory=list)   # chunks kept from the previous run
+    reuse: list[str] = field(default_factory=list)         # heliostats kept from the previous run
     removed: list[str] = field(default_factory=list)       # heliostats of the previous run gone
-    why: str = ""                            # why every chunk is trained, when it is
+    why: str = ""                            # why every heliostat is trained, when it is
 
     @property
     def partial(self) -> bool:
@@ -105,43 +106,38 @@ class SweepPlan:
 
     @property
     def reused_ids(self) -> list[str]:
-        return sorted(h for c in self.reuse for h in c)
-
-    def everything(self, why: str) -> "SweepPlan":
-        """The plan that trains every chunk, for ``why``."""
-        return SweepPlan(self.compute + self.reuse, [], [], why)
+        return sorted(self.reuse)
 
     def summary(self) -> dict:
         return {"unchanged": False, "computed": sum(map(len, self.compute)),
-                "reused": sum(map(len, self.reuse)), "removed": len(self.removed),
-                "chunks_computed": len(self.compute), "chunks_reused": len(self.reuse),
-                "why_all": self.why or None}
+                "reused": len(self.reuse), "removed": len(self.removed),
+                "chunks_computed": len(self.compute), "why_all": self.why or None}
 
 
-def plan_sweep(txn, key: str, digests: Mapping[str, str], chunks: Sequence[Sequence[str]],
+def plan_sweep(txn, key: str, digests: Mapping[str, str],
+               chunks_of: Callable[[Sequence[str]], list[list[str]]],
                incremental: bool) -> SweepPlan:
-    """Record ``key``, the heliostats' ``digests`` and the ``chunks`` (by digest) in the run's
-    manifest and decide which chunks to train: all of them unless ``incremental`` and the previous
-    committed sweep recorded the same field key; then a chunk whose digest (its heliostats, in
-    order, with their digests) the previous run recorded is kept."""
-    by_digest = {_chunk_digest(c, digests): list(c) for c in chunks}
+    """Record ``key`` and the heliostats' ``digests`` in the run's manifest and decide which
+    heliostats to train, in the chunks ``chunks_of(ids)`` makes of them: all of them unless
+    ``incremental`` and the previous committed sweep recorded the same field key; then a
+    heliostat whose digest the previous run recorded is kept, and the others are trained."""
     txn.extra[INCREMENTAL_KEY] = {"field_key": key, "code": code_identity(),
-                                  "heliostats": dict(sorted(digests.items())),
-                                  "chunks": sorted(by_digest)}
-    everything = SweepPlan([list(c) for c in chunks])
+                                  "heliostats": dict(sorted(digests.items()))}
+    ids = sorted(digests)
     if not incremental:
-        return everything.everything("not --incremental")
+        return SweepPlan(chunks_of(ids), why="not --incremental")
     prev = txn.previous.data.get(INCREMENTAL_KEY) if txn.previous is not None else None
-    if (not isinstance(prev, dict) or not isinstance(prev.get("chunks"), list)
-            or not isinstance(prev.get("heliostats"), dict)):
-        return everything.everything("the previous sweep recorded no per-chunk inputs")
+    if not isinstance(prev, dict) or not isinstance(prev.get("heliostats"), dict):
+        return SweepPlan(chunks_of(ids),
+                         why="the previous sweep recorded no per-heliostat inputs")
     if prev.get("field_key") != key:
-        return everything.everything("a field-wide input changed (options, seeds, code, the "
-                                     "study's heliostats or fit-coarse's solver options)")
-    kept = set(prev["chunks"])
-    return SweepPlan([c for d, c in by_digest.items() if d not in kept],
-                     [c for d, c in by_digest.items() if d in kept],
-                     sorted(str(h) for h in prev["heliostats"] if h not in digests))
+        return SweepPlan(chunks_of(ids), why="a field-wide input changed (options, seeds, code, "
+                                             "the study's heliostats or fit-coarse's solver "
+                                             "options)")
+    before = prev["heliostats"]
+    changed = [h for h in ids if before.get(h) != digests[h]]
+    return SweepPlan(chunks_of(changed), [h for h in ids if before.get(h) == digests[h]],
+                     sorted(str(h) for h in before if h not in digests))
 
 
 def _previous_tables(workdir: Path, plan: SweepPlan) -> dict:
