@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from typing import Mapping, Sequence
 
-import numpy as np
 import torch
 
 from ..errors import check_choice
@@ -91,8 +90,7 @@ def fit_weighed(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor]
                     [again[k] for k in idx], [fits[k].params for k in idx], kwargs)
     for k, refit in zip(idx, refits):
         refit.wall_time_s += fits[k].wall_time_s
-        refit.own_noise_mrad = fits[k].own_noise_mrad  # the first solve's, which weighed it
-        refit.prior_noise_mrad = float(np.median(
-            np.asarray(again[k].noise)[np.asarray(again[k].field, bool)]))
+        # the first solve's estimate, which reweighed put on every field entry of the prior
+        refit.own_noise_mrad = refit.prior_noise_mrad = fits[k].own_noise_mrad
         fits[k] = refit
     return fits
