@@ -136,6 +136,33 @@ def test_a_fit_worse_than_the_nominal_geometry_next_day_falls_back():
 # --------------------------------------------------------------------------------------------
 # simulated heliostats, end to end
 # --------------------------------------------------------------------------------------------
+def test_of_the_two_forward_sources_the_larger_level_counts():
+    from heliocal.pipeline.stages.aim_budget import _level
+
+    flat = LevelGrowth.none()
+    # next-day rows RMS 1.0, the time split's validation rows RMS 3.0: the larger, 3.0, counts
+    # (a heliostat whose next days were calm can still be far off months later) ...
+    both = {"next-day": [1.0] * 4, "time-split validation": [3.0] * 4, "validation": [9.0] * 4}
+    assert _level(both, {}, 0.1, flat) == (pytest.approx(3.0), "time-split validation", 1.0)
+    # ... and the other way round; the kNN validation rows are not a forward source
+    both["time-split validation"] = [0.5] * 4
+    assert _level(both, {}, 0.1, flat) == (pytest.approx(1.0), "next-day", 1.0)
+    # one forward source alone is the level; neither: the kNN validation rows; none: the noise
+    assert _level({"time-split validation": [2.0] * 3, "validation": [9.0] * 3}, {}, 0.1,
+                  flat)[:2] == (pytest.approx(2.0), "time-split validation")
+    assert _level({"next-day": [2.0] * 2, "validation": [9.0] * 3}, {}, 0.1,
+                  flat)[:2] == (pytest.approx(9.0), "validation")   # 2 rows are too few
+    assert _level({}, {}, 0.5, flat)[:2] == (pytest.approx(0.5 * math.sqrt(2)), "training noise")
+    # compared at equal age: growth x2 between 0.5 d and 20 d (the test above's field), so
+    # 1.5 mrad on time-split rows 20 d out is 0.75 mrad at a day, below next-day's 1.0
+    g = LevelGrowth.from_rolling(_rolling({0.5: 1.0, 20.0: 2.0}))
+    level, source, reference = _level(
+        {"next-day": [1.0] * 4, "time-split validation": [1.5] * 4},
+        {"next-day": [0.5] * 4, "time-split validation": [20.0] * 4}, 0.1, g)
+    assert (level, source) == (pytest.approx(1.0), "next-day")
+    assert reference == pytest.approx(g.reference([0.5]))
+
+
 @pytest.fixture(scope="module")
 def static_field(tmp_path_factory):
     return fitted_simulation(tmp_path_factory.mktemp("budget"), rolling_origins=4,
@@ -175,3 +202,27 @@ def test_the_expected_error_holds_on_held_out_rows_of_static_heliostats(static_f
         # ... and not inflated: a Gaussian normal error puts the median at 0.83 of the root
         # mean square; 0.5 would mean the expected error is twice what the rows show
         assert 0.5 <= s["median_ratio"] <= 1.2, (setting, s)
+
+
+@pytest.mark.slow
+def test_the_forward_check_uses_only_next_day_rows_scored_before_the_test_rows(static_field):
+    # what a plant had seen when it aimed: every rolling-origin row the forward check's budget
+    # keeps lies before its heliostat's first time-split test row, and some rows are cut
+    import pandas as pd
+
+    from heliocal.pipeline.artifacts.schemas import MEASUREMENTS, ROLLING_ORIGIN
+    from heliocal.pipeline.artifacts.manifests import CommittedWorkdir
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.stages.aim_budget import _first_test_time, _scored_before
+
+    _, work = static_field
+    cut = _first_test_time(work)
+    rolling = read_artifact(work, ROLLING_ORIGIN)
+    kept = _scored_before(CommittedWorkdir.of(work), rolling, cut)
+    times = read_artifact(work, MEASUREMENTS, columns=["heliostat_id", "measurement_id",
+                                                       "timestamp"])
+    t = kept.merge(times, on=["heliostat_id", "measurement_id"], suffixes=("", "_m"))
+    assert len(t) == len(kept) > 0
+    assert (pd.to_datetime(t["timestamp_m"], utc=True)
+            < pd.to_datetime(t["heliostat_id"].map(cut), utc=True)).all()
+    assert len(kept) < len(rolling)

@@ -9,11 +9,14 @@ one the spot reveals, as ``error_mrad`` everywhere in heliocal). Two parts add i
   ``trace(J_a C J_a^T)`` (:mod:`heliocal.pipeline.models.uncertainty`). It grows where the sun
   is far from the training rows' sun positions and with few rows.
 * **the level**: the root mean square error of rows the model had not seen
-  (:func:`error_level_mrad`), measured as a plant would meet them, the first source with at least :data:`MIN_LEVEL_ROWS` rows of
-  :data:`LEVEL_SOURCES`: fit-coarse's rolling-origin (next-day) rows, the time split's
-  validation rows of the same model fitted on the time split's training rows, the kNN
-  validation rows; else the training rows' noise (:func:`robust_noise_mrad` times ``sqrt(2)``:
-  two components of a normal's error carry the noise). It holds what the covariance cannot see:
+  (:func:`error_level_mrad`), measured as a plant would meet them, from the sources of
+  :data:`LEVEL_SOURCES` with at least :data:`MIN_LEVEL_ROWS` rows: the larger level of the two
+  measured forward in time (:data:`FORWARD_SOURCES`: fit-coarse's rolling-origin (next-day)
+  rows, a day or a few after their fits, and the time split's validation rows of the same model
+  fitted on the time split's training rows, weeks or months after; compared at equal age
+  through the growth below), else the kNN validation rows, else the training rows' noise
+  (:func:`robust_noise_mrad` times ``sqrt(2)``: two components of a normal's error carry the
+  noise). It holds what the covariance cannot see:
   the measurement noise, drift and steps between calibration days, model error.
 
 The level grows with the time since the model's last row (re-mounting, drift, seasons the rows
@@ -49,6 +52,7 @@ from ..physics.parameters import HeliostatSpec
 
 __all__ = [
     "ErrorBudget",
+    "FORWARD_SOURCES",
     "LEVEL_SOURCES",
     "MIN_LEVEL_ROWS",
     "error_level_mrad",
@@ -63,6 +67,9 @@ __all__ = [
 
 #: Where a heliostat's error level comes from, in order of preference (module docstring).
 LEVEL_SOURCES = ("next-day", "time-split validation", "validation", "training noise")
+
+#: The sources measured forward in time: where both have rows the larger level counts.
+FORWARD_SOURCES = ("next-day", "time-split validation")
 
 #: Held-out rows a level source needs to be used.
 MIN_LEVEL_ROWS = 3
@@ -206,31 +213,57 @@ def noise_from_errors(errors_mrad, n_free: int) -> float:
     return float(np.median(e) / np.sqrt(2.0 * np.log(2.0)) * np.sqrt(2 * len(e) / dof))
 
 
-def _level(sources: dict[str, np.ndarray], noise_mrad: float,
-           order: tuple = LEVEL_SOURCES) -> tuple[float, str]:
-    """(level, source): the first source of ``order`` with enough rows (the training noise
-    when none has)."""
+def _level(sources: dict[str, np.ndarray], days: dict[str, np.ndarray], noise_mrad: float,
+           growth: "LevelGrowth", order: tuple = LEVEL_SOURCES) -> tuple[float, str, float]:
+    """(level, source, the growth its rows carry): the first source of ``order`` with enough
+    rows, except that where both forward sources (:data:`FORWARD_SOURCES`) have them the larger
+    level counts, each referred to its rows' days by ``growth`` (the training noise when no
+    source has enough rows)."""
+    found = []
     for name in order:
         e = np.asarray(sources.get(name, ()), float)
-        if np.isfinite(e).sum() >= MIN_LEVEL_ROWS:
-            return error_level_mrad(e, noise_mrad), name
-    return error_level_mrad((), noise_mrad), LEVEL_SOURCES[-1]
+        if np.isfinite(e).sum() < MIN_LEVEL_ROWS:
+            continue
+        if found and name not in FORWARD_SOURCES:
+            break
+        level = error_level_mrad(e, noise_mrad)
+        found.append((level, name, growth.reference(days.get(name, ()))))
+        if name not in FORWARD_SOURCES:
+            break
+    if not found:
+        return error_level_mrad((), noise_mrad), LEVEL_SOURCES[-1], growth.reference(())
+    return max(found, key=lambda f: f[0] / f[2])
 
 
-def _held_out(wd: CommittedWorkdir, ids) -> tuple[pd.DataFrame, pd.DataFrame, LevelGrowth]:
+def _held_out(wd: CommittedWorkdir, ids, known_until: pd.Series | None = None
+              ) -> tuple[pd.DataFrame, pd.DataFrame, LevelGrowth]:
     """(the coarse predictions of every model with each row's kNN and time split label, the
     rolling-origin rows' errors and days of the heliostats ``ids``, the field's
     :class:`LevelGrowth`: from every heliostat's rolling-origin rows, so one heliostat's budget
-    is the same alone as in the field's)."""
+    is the same alone as in the field's). ``known_until`` (heliostat -> UTC time): only the
+    rolling-origin rows scored before it, for the level and the growth alike."""
     from .aim_choice import time_labelled_predictions
 
     pred = time_labelled_predictions(wd, ids, ["split", "model", "selected", "error_mrad",
                                                "time_error_mrad"])
-    columns = ["heliostat_id", "days_since_last_row", "error_mrad"]
+    columns = ["heliostat_id", "measurement_id", "days_since_last_row", "error_mrad"]
     every = (read_artifact(wd, ROLLING_ORIGIN, columns=columns)
              if artifact_present(wd, ROLLING_ORIGIN) else pd.DataFrame(columns=columns))
+    if known_until is not None:
+        every = _scored_before(wd, every, known_until)
     rolling = every[every["heliostat_id"].astype(str).isin(set(map(str, ids)))]
     return pred, rolling, LevelGrowth.from_rolling(every)
+
+
+def _scored_before(wd: CommittedWorkdir, rolling: pd.DataFrame, known_until: pd.Series
+                   ) -> pd.DataFrame:
+    """The rolling-origin rows whose measurement lies before its heliostat's ``known_until``
+    (heliostats without a time there: none of their rows)."""
+    keys = ["heliostat_id", "measurement_id"]
+    times = read_artifact(wd, MEASUREMENTS, columns=keys + ["timestamp"])
+    r = rolling.merge(times, on=keys, how="left")
+    cut = r["heliostat_id"].astype(str).map(known_until.rename(index=str))
+    return r[pd.to_datetime(r["timestamp"], utc=True) < pd.to_datetime(cut, utc=True)]
 
 
 def _grouped(keys, values) -> dict[str, np.ndarray]:
@@ -325,7 +358,8 @@ def _fitted_regimes(regime_params: pd.DataFrame | None) -> dict[str, int]:
 
 def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
                   models: dict, *, split_column: str = "split",
-                  level_sources: tuple = LEVEL_SOURCES) -> dict[str, ErrorBudget]:
+                  level_sources: tuple = LEVEL_SOURCES,
+                  known_until: pd.Series | None = None) -> dict[str, ErrorBudget]:
     """Each heliostat's :class:`ErrorBudget`.
 
     Parameters
@@ -339,6 +373,9 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         level's sources in order; ``time_split`` with the time split's fit in ``selected`` and
         ``("time-split validation",)`` give the budget of the model fitted on the time split
         (how ``benchmarks/expected_error.py`` checks the budget forward in time).
+    known_until : heliostat -> UTC time: the rolling-origin rows (level and growth) only as far
+        as a plant had them then (:func:`calibration_rows`' forward check: before the time
+        split's first test row); None: all of them.
     """
     from ..artifacts.schemas import REGIME_PARAMS
 
@@ -352,7 +389,7 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
              .rename(columns={split_column: "split"}) if artifact_present(wd, SPLIT)
              else rows[["heliostat_id", "measurement_id"]].assign(split="train"))
     rows = rows.merge(split, on=["heliostat_id", "measurement_id"], how="left")
-    pred, rolling, growth = _held_out(wd, ids)
+    pred, rolling, growth = _held_out(wd, ids, known_until)
     sources, source_days = _level_sources(pred, rolling,
                                           rows[["heliostat_id", "measurement_id", "timestamp"]])
     regimes = read_artifact(wd, REGIMES, heliostats=ids) if artifact_present(wd, REGIMES) else None
@@ -378,15 +415,16 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         nominal = models.get(hid, {}).get("model") == "nominal"
         covariance = covariances.get(hid)
         noise = covariance.noise_mrad if covariance is not None else float("nan")
-        level, source = _level(_heliostat_sources(sources, hid, nominal), noise, level_sources)
+        grows = LevelGrowth.none() if nominal else growth   # no fit whose age could grow
+        level, source, reference = _level(_heliostat_sources(sources, hid, nominal),
+                                          _heliostat_sources(source_days, hid, nominal),
+                                          noise, grows, level_sources)
         if nominal:
             source = "nominal validation" if source == "validation" else source
         latest = last.get(hid, pd.NaT)
-        days = _heliostat_sources(source_days, hid, nominal).get(source, ())
-        grows = LevelGrowth.none() if nominal else growth   # no fit whose age could grow
         out[hid] = ErrorBudget(covariance, level, source, sun[train[hid]],
                                None if pd.isna(latest) else latest, growth=grows,
-                               growth_reference=grows.reference(days),
+                               growth_reference=reference,
                                noise_floor_mrad=error_level_mrad((), noise))
     return out
 
@@ -476,9 +514,11 @@ def calibration_rows(workdir, setting: str) -> pd.DataFrame:
     models = {h: {"model": "coarse"} for h in selected}
     label, actual = ("time_split", "time_error_mrad") if setting == "forward" else ("split", "error_mrad")
     if setting == "forward":
+        # as a plant aims after its calibration: the next-day rows it had seen by then first
         selected = _time_selected(workdir, selected)
         budgets = error_budgets(workdir, specs, selected, models, split_column="time_split",
-                                level_sources=("time-split validation",))
+                                level_sources=("next-day", "time-split validation"),
+                                known_until=_first_test_time(workdir))
     else:
         budgets = error_budgets(workdir, specs, selected, models,
                                 level_sources=("validation",))
@@ -506,6 +546,15 @@ def calibration_rows(workdir, setting: str) -> pd.DataFrame:
                                  "expected_mrad": expected,
                                  "level_source": budgets[hid].level_source}))
     return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
+
+
+def _first_test_time(workdir) -> pd.Series:
+    """heliostat -> the time [UTC] of its time split's first test row."""
+    keys = ["heliostat_id", "measurement_id"]
+    split = read_artifact(workdir, SPLIT, columns=keys + ["time_split"])
+    test = split[split["time_split"] == "test"].merge(
+        read_artifact(workdir, MEASUREMENTS, columns=keys + ["timestamp"]), on=keys)
+    return pd.to_datetime(test["timestamp"], utc=True).groupby(test["heliostat_id"]).min()
 
 
 def _last_training_time(measurements: pd.DataFrame, labelled: pd.DataFrame, label: str
