@@ -15,13 +15,14 @@ and prints the tables of every run found under OUT:
 2. the field-prior geometry (what a heliostat without training rows gets; each heliostat's from
    the prior of the other heliostats' folds) against the nominal geometry, on the same test rows;
 3. the heliostats with at least 100 training rows (at ``all``): their test error with the prior
-   over the one without (the issue's target: none above 1.02).
+   over the one without (the issue's target: none above 1.02), and for each above 1.02 the
+   paired t statistic of its per-row test errors with and without the prior (the same rows).
 
 Usage::
 
     .venv/bin/python benchmarks/field_prior.py SOURCE [--properties DIR] [--out DIR]
         [--n-train 3,5,10,20,all] [--split-args "--n-test 10 --n-val 5"]
-        [--priors none,field,field+spatial] [--workers 2] [--table]
+        [--priors none,field,field+spatial] [--workers 2] [--table [--exclude ID,...]]
 
 SOURCE is what ``heliocal ingest`` reads (a calibration log, a PAINT folder, or a simulated
 field's folder). The rolling-origin evaluation is skipped (``--rolling-origins 0``): it does not
@@ -75,6 +76,31 @@ def _per_heliostat(workdir: Path) -> pd.DataFrame:
     return out[out["n_train"] > 0]
 
 
+def _test_rows(workdir: Path, heliostats) -> dict[str, pd.DataFrame]:
+    """split -> (heliostat_id, measurement_id) -> the selected model's error on that split's
+    test rows [mrad] (coarse_predictions: ``error_mrad`` for kNN, ``time_error_mrad`` for the
+    time split's refit)."""
+    pred = pd.read_parquet(workdir / "coarse_predictions.parquet",
+                           columns=["heliostat_id", "measurement_id", "split", "selected",
+                                    "error_mrad", "time_error_mrad"])
+    pred = pred[pred["selected"] & pred["heliostat_id"].isin(list(heliostats))]
+    split = pd.read_parquet(workdir / "split.parquet",
+                            columns=["heliostat_id", "measurement_id", "time_split"])
+    pred = pred.merge(split, on=["heliostat_id", "measurement_id"])
+    key = ["heliostat_id", "measurement_id"]
+    return {"knn": pred[pred["split"] == "test"].set_index(key)["error_mrad"],
+            "time": pred[pred["time_split"] == "test"].set_index(key)["time_error_mrad"]}
+
+
+def _paired_t(with_prior: pd.Series, without: pd.Series, heliostat: str) -> float:
+    """Paired t statistic of one heliostat's per-row test errors with the prior minus without
+    (the same test rows): how many standard errors of the row sample the difference is."""
+    d = (with_prior.xs(heliostat) - without.xs(heliostat)).dropna()
+    if len(d) < 2 or d.std() == 0:
+        return float("nan")
+    return float(d.mean() / (d.std() / np.sqrt(len(d))))
+
+
 def _runs(out: Path) -> dict[tuple[str, str], pd.DataFrame]:
     """(n_train, prior) -> per-heliostat table of every finished run under ``out``."""
     found = {}
@@ -90,17 +116,19 @@ def _order(keys):
                                        ["none", "field", "field+spatial"].index(k[1])))
 
 
-def tables(out: Path) -> str:
-    """The three tables (module docstring) in Markdown."""
+def tables(out: Path, exclude: frozenset = frozenset()) -> str:
+    """The three tables (module docstring) in Markdown; the heliostats ``exclude`` are left out
+    of the first table's averages."""
     runs = _runs(out)
     if not runs:
         return "no finished run under " + str(out)
     keys = _order(runs)
     common = {c: set.intersection(*(set(t[t[c].notna()].index) for t, _ in runs.values()))
-              for c in ("knn", "time")}
+              - exclude for c in ("knn", "time")}
     base = runs.get(("all", "none"))
     lines = [f"heliostats in every run: kNN test {len(common['knn'])}, time test "
-             f"{len(common['time'])}", "",
+             f"{len(common['time'])}" + (f" (left out: {', '.join(sorted(exclude))})"
+                                         if exclude else ""), "",
              "| n-train | prior | kNN test mean | median | x none@all | time test mean | median "
              "| x none@all | field-prior selected | fit [s] |", "|---|---|---|---|---|---|---|---|---|---|"]
     ref = {c: base[0].loc[sorted(common[c]), c].mean() if base else np.nan
@@ -132,6 +160,7 @@ def tables(out: Path) -> str:
                   "the prior / without", "",
                   "| prior | heliostats | kNN worst ratio | kNN median | kNN > 1.02 | "
                   "time worst ratio | time median | time > 1.02 |", "|---|---|---|---|---|---|---|---|"]
+        worse = []
         for prior in ("field", "field+spatial"):
             if ("all", prior) not in runs or big.empty:
                 continue
@@ -141,8 +170,25 @@ def tables(out: Path) -> str:
                 r = (other[c] / big[c]).dropna()
                 cells += [f"{r.max():.4f} ({r.idxmax()})" if len(r) else "n/a",
                           f"{r.median():.4f}" if len(r) else "n/a", str(int((r > 1.02).sum()))]
+                worse += [(prior, c, h, v) for h, v in r[r > 1.02].items()]
             lines.append(f"| {prior} | {len(big)} | " + " | ".join(cells) + " |")
+        lines += _worse_lines(out, worse)
     return "\n".join(lines)
+
+
+def _worse_lines(out: Path, worse: list) -> list[str]:
+    """The heliostats above 1.02 with the paired t statistic of their test rows' differences."""
+    if not worse:
+        return []
+    lines = ["", "above 1.02, with the paired t of their per-row test errors (with the prior "
+             "minus without, the same rows; |t| < 2: within the test rows' sampling noise):", ""]
+    base = _test_rows(out / "nall-none", {h for *_, h, _ in worse})
+    for prior, c, h, ratio in sorted(worse):
+        mine = _test_rows(out / f"nall-{prior.replace('+', '-')}", [h])
+        split = "kNN" if c == "knn" else "time"
+        t = _paired_t(mine[c], base[c], h)
+        lines.append(f"- {prior}, {split}: {h} {ratio:.4f} (t {t:.2f})")
+    return lines
 
 
 def main() -> None:
@@ -155,6 +201,8 @@ def main() -> None:
     ap.add_argument("--priors", default="none,field", help="fit-coarse --prior values to compare")
     ap.add_argument("--workers", default="2")
     ap.add_argument("--table", action="store_true", help="only print the tables of OUT's runs")
+    ap.add_argument("--exclude", default="", help="heliostat ids (comma-separated) to leave out "
+                    "of the first table's averages")
     args = ap.parse_args()
     if not args.table:
         base = args.out / "ingested"
@@ -176,7 +224,7 @@ def main() -> None:
                 (wd / "bench.json").write_text(json.dumps(
                     {"n_train": n, "prior": prior, "wall_s": wall}))
                 print(f"n_train={n} prior={prior}: fit-coarse {wall:.1f} s", flush=True)
-    print(tables(args.out))
+    print(tables(args.out, frozenset(h for h in args.exclude.split(",") if h)))
 
 
 if __name__ == "__main__":

@@ -193,6 +193,7 @@ class CoarseFit:
     prior_shrinkage: np.ndarray | None = None  # (28,) the prior's share (fit_diagnostics) or None
     own_noise_mrad: float = float("nan")  # under a field prior: its own noise estimate [mrad]
     prior_noise_mrad: float = float("nan")  # ... and the noise its prior was weighed against
+    data_only_std_error: np.ndarray | None = None  # (28,) the data's alone, at its noise
 
 
 def prior_sigma(nominal: torch.Tensor) -> np.ndarray:
@@ -424,7 +425,7 @@ def fit_heliostat(spec: HeliostatSpec, nominal: torch.Tensor, train: Measurement
     return CoarseFit(preset, fitted, nominal, free, d.std_error, d.determined, nfev, cost,
                      d.condition_number, d.flag_status(status), implausible,
                      time.perf_counter() - t0, d.noise_mrad, d.data_rss_mrad2, d.data_dof,
-                     d.prior_shrinkage)
+                     d.prior_shrinkage, data_only_std_error=d.data_only_std_error)
 
 
 def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[torch.Tensor],
@@ -518,7 +519,8 @@ def fit_heliostats_batched(specs: Sequence[HeliostatSpec], nominals: Sequence[to
                             int(sol.njev[j]), float(sol.cost[j]), d.condition_number,
                             d.flag_status(f"batched LM: {sol.status[j]}"),
                             _implausible(fitted, nominal, free_idx), wall, d.noise_mrad,
-                            d.data_rss_mrad2, d.data_dof, d.prior_shrinkage)
+                            d.data_rss_mrad2, d.data_dof, d.prior_shrinkage,
+                            data_only_std_error=d.data_only_std_error)
     return fits
 
 

@@ -8,8 +8,11 @@ preset, and per parameter, the *deviation* of a fit from the heliostat's nominal
 relative to the nominal [1], the units of :data:`~.coarse.PRIOR_SIGMA`) is summarised by a
 robust location and scale:
 
-* well-determined: heliostats whose fit determines the parameter from its data alone (the fit's
-  ``determined`` flag: 1 mrad noise leaves it less than half the default prior sigma uncertain);
+* well-determined: heliostats whose fit determines the parameter from its data alone, at the
+  fit's own noise (:func:`informs`: the data-only standard error at the fit's RMS residual is
+  below half the default prior sigma; the fit's ``determined`` flag states the same for 1 mrad of
+  noise, which on data measured to 0.08 mrad leaves out parameters the data pin to 5 % of that
+  sigma);
   a parameter gets a field prior only from at least :data:`MIN_HELIOSTATS` of them, else it
   keeps the default prior (:data:`~.coarse.PRIOR_SIGMA` around the nominal value);
 * location: the median of their deviations; scale: 1.4826 times the median absolute deviation
@@ -63,6 +66,8 @@ from .prior_noise import HeliostatPrior
 __all__ = [
     "GEOMETRY_SOURCES",
     "MIN_HELIOSTATS",
+    "INFORMED_SHARE",
+    "informs",
     "MAX_FOLDS",
     "NEIGHBOURS",
     "SPATIAL_GAIN",
@@ -85,6 +90,11 @@ GEOMETRY_SOURCES = ("properties", "default")
 
 #: Well-determined heliostats (outside a heliostat's own fold) a parameter's field prior needs.
 MIN_HELIOSTATS = 8
+
+#: A fit informs the field's prior of a parameter when its data alone, at the fit's own noise,
+#: pin the parameter to within this share of the default prior sigma (:func:`informs`), so the
+#: fitted value is the data's, not the default prior's.
+INFORMED_SHARE = 0.5
 
 #: Folds of the leave-out rule (at most this many heliostats: leave-one-out).
 MAX_FOLDS = 20
@@ -152,6 +162,18 @@ def default_sigma(nominal) -> np.ndarray:
     return np.array([PRIOR_SIGMA[k] for k in _KINDS]) * _relative(np.asarray(nominal, float))
 
 
+def informs(fit: CoarseFit) -> np.ndarray:
+    """(28,) bool: the parameters whose value in ``fit`` its data determine, at the fit's own
+    noise: free, and a data-only standard error (``data_only_std_error``) below
+    :data:`INFORMED_SHARE` of the default prior sigma. A fit without that standard error
+    (made elsewhere) gives its ``determined`` flags (the same rule at 1 mrad of noise)."""
+    if fit.data_only_std_error is None:
+        return fit.free & fit.determined
+    with np.errstate(invalid="ignore"):
+        below = fit.data_only_std_error < INFORMED_SHARE * default_sigma(fit.nominal.numpy())
+    return fit.free & below
+
+
 @dataclass
 class FitSample:
     """The fits of one preset that estimate a group's prior, one row per heliostat.
@@ -189,7 +211,7 @@ class FitSample:
         ok = np.isfinite(fitted).all(axis=1)
         return cls(np.asarray(ids, dtype=object), deviation(fitted, nominal),
                    np.stack([f.std_error for f in fits]) / _relative(nominal),
-                   np.stack([f.free & f.determined for f in fits]) & ok[:, None],
+                   np.stack([informs(f) for f in fits]) & ok[:, None],
                    np.asarray(positions, np.float64).reshape(-1, 2),
                    np.array([f.noise_mrad for f in fits], np.float64))
 
