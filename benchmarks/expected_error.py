@@ -36,7 +36,7 @@ def main() -> None:
           "| mean actual | mean expected |")
     print("|---|---|---:|---:|---:|---:|---:|")
     per = []
-    from heliocal.pipeline.stages.aim_budget import calibration_rows, calibration_summary
+    from heliocal.pipeline.stages.aim_calibration import calibration_rows, calibration_summary
 
     for wd in args.workdirs:
         for setting in ("forward", "knn"):

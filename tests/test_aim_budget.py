@@ -191,7 +191,7 @@ def test_the_robust_noise_scale_is_the_rayleigh_scale_of_the_true_model(static_f
 
 @pytest.mark.slow
 def test_the_expected_error_holds_on_held_out_rows_of_static_heliostats(static_field):
-    from heliocal.pipeline.stages.aim_budget import calibration_rows, calibration_summary
+    from heliocal.pipeline.stages.aim_calibration import calibration_rows, calibration_summary
 
     _, work = static_field
     for setting in ("knn", "forward"):
@@ -213,10 +213,11 @@ def test_the_forward_check_uses_only_next_day_rows_scored_before_the_test_rows(s
     from heliocal.pipeline.artifacts.schemas import MEASUREMENTS, ROLLING_ORIGIN
     from heliocal.pipeline.artifacts.manifests import CommittedWorkdir
     from heliocal.pipeline.artifacts.store import read_artifact
-    from heliocal.pipeline.stages.aim_budget import _first_test_time, _scored_before
+    from heliocal.pipeline.stages.aim_budget import _scored_before
+    from heliocal.pipeline.stages.aim_calibration import first_test_time
 
     _, work = static_field
-    cut = _first_test_time(work)
+    cut = first_test_time(work)
     rolling = read_artifact(work, ROLLING_ORIGIN)
     kept = _scored_before(CommittedWorkdir.of(work), rolling, cut)
     times = read_artifact(work, MEASUREMENTS, columns=["heliostat_id", "measurement_id",

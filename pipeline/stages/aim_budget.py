@@ -43,7 +43,7 @@ import pandas as pd
 import torch
 
 from ..artifacts.manifests import CommittedWorkdir
-from ..artifacts.schemas import COARSE_PREDICTIONS, MEASUREMENTS, REGIMES, ROLLING_ORIGIN, SPLIT
+from ..artifacts.schemas import MEASUREMENTS, REGIMES, ROLLING_ORIGIN, SPLIT
 from ..artifacts.store import artifact_present, read_artifact
 from ..models.coarse import MeasurementBatch, normal_errors_mrad, prior_sigma
 from ..models.uncertainty import (ParameterCovariance, aim_jacobian, aim_variance_mrad2,
@@ -53,6 +53,7 @@ from ..physics.parameters import HeliostatSpec
 __all__ = [
     "ErrorBudget",
     "FORWARD_SOURCES",
+    "GROUP_SOURCE",
     "LEVEL_SOURCES",
     "MIN_LEVEL_ROWS",
     "error_level_mrad",
@@ -61,8 +62,6 @@ __all__ = [
     "days_since",
     "LevelGrowth",
     "sun_distance_deg",
-    "calibration_rows",
-    "calibration_summary",
 ]
 
 #: Where a heliostat's error level comes from, in order of preference (module docstring).
@@ -70,6 +69,11 @@ LEVEL_SOURCES = ("next-day", "time-split validation", "validation", "training no
 
 #: The sources measured forward in time: where both have rows the larger level counts.
 FORWARD_SOURCES = ("next-day", "time-split validation")
+
+#: The level source of a heliostat without training rows of its own: its field-prior group's
+#: error of the geometry it aims with (field-prior or nominal) on the test rows of the group's
+#: heliostats (field_prior.parquet: the median over them of their mean test error).
+GROUP_SOURCE = "heliostats like it"
 
 #: Held-out rows a level source needs to be used.
 MIN_LEVEL_ROWS = 3
@@ -310,7 +314,10 @@ def _time_split_days(selected: pd.DataFrame, time_val: pd.DataFrame, times: pd.D
     last = t[t["time_split"] == "train"].groupby("heliostat_id")["timestamp"].max()
     v = time_val[keys].merge(times, on=keys, how="left")
     v_time = pd.to_datetime(v["timestamp"], utc=True)
-    days = ((v_time - v["heliostat_id"].map(last)) / pd.Timedelta(days=1)).to_numpy(float)
+    # a heliostat without training rows has no last one: NaN days (map on a dict: an empty
+    # Series of times would be cast to float)
+    last_time = pd.to_datetime(v["heliostat_id"].map(last.to_dict()), utc=True)
+    days = ((v_time - last_time) / pd.Timedelta(days=1)).to_numpy(float)
     return _grouped(v["heliostat_id"], days)
 
 
@@ -374,7 +381,7 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         ``("time-split validation",)`` give the budget of the model fitted on the time split
         (how ``benchmarks/expected_error.py`` checks the budget forward in time).
     known_until : heliostat -> UTC time: the rolling-origin rows (level and growth) only as far
-        as a plant had them then (:func:`calibration_rows`' forward check: before the time
+        as a plant had them then (:func:`.aim_calibration.calibration_rows`' forward check: before the time
         split's first test row); None: all of them.
     """
     from ..artifacts.schemas import REGIME_PARAMS
@@ -410,9 +417,13 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
                                 fitted_regime.get(hid))
             fitted[hid] = _take(batch, train[hid][keep])
     covariances = _covariances(specs, selected, fitted)
+    groups = _group_levels(wd, [h for h in ids if not len(train[h])])
     out = {}
     for hid in ids:
         nominal = models.get(hid, {}).get("model") == "nominal"
+        if hid in groups:
+            out[hid] = _group_budget(groups[hid], nominal, sun[train[hid]], last.get(hid, pd.NaT))
+            continue
         covariance = covariances.get(hid)
         noise = covariance.noise_mrad if covariance is not None else float("nan")
         grows = LevelGrowth.none() if nominal else growth   # no fit whose age could grow
@@ -427,6 +438,27 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
                                growth_reference=reference,
                                noise_floor_mrad=error_level_mrad((), noise))
     return out
+
+
+def _group_levels(wd: CommittedWorkdir, ids) -> dict[str, dict]:
+    """heliostat -> its field-prior group's errors (aim_choice's reading of field_prior.parquet)
+    for the heliostats ``ids`` without training rows whose group has them measured."""
+    from .aim_choice import group_prior_errors
+
+    if not ids:
+        return {}
+    every = group_prior_errors(wd)
+    return {h: every[h] for h in ids if h in every
+            and np.isfinite([every[h]["expected_error_mrad"], every[h]["nominal_error_mrad"]]).all()}
+
+
+def _group_budget(group: dict, nominal: bool, train_sun: np.ndarray, latest) -> ErrorBudget:
+    """The budget of a heliostat without training rows: no covariance of its own, the level its
+    group measured for the geometry it aims with (:data:`GROUP_SOURCE`), no growth (the
+    geometry is no fit that ages)."""
+    level = group["nominal_error_mrad"] if nominal else group["expected_error_mrad"]
+    return ErrorBudget(None, float(level), GROUP_SOURCE, train_sun,
+                       None if pd.isna(latest) else latest)
 
 
 def _covariances(specs: dict, selected: dict, fitted: dict[str, MeasurementBatch]
@@ -480,98 +512,3 @@ def sun_distance_deg(budget: ErrorBudget, sun_enu: np.ndarray) -> np.ndarray:
     unit = lambda v: v / np.linalg.norm(v, axis=1, keepdims=True)  # noqa: E731
     cos = unit(sun_enu) @ unit(budget.train_sun_enu).T
     return np.degrees(np.arccos(np.clip(cos.max(axis=1), -1.0, 1.0)))
-
-
-# ------------------------------------------------------------------------------------------------
-# the budget checked on held-out rows
-# ------------------------------------------------------------------------------------------------
-def _time_selected(workdir, selected: dict) -> dict:
-    """``selected`` with each heliostat's parameters of its time-split fit (``time_fitted``;
-    unchanged where it has none) and no regime table: the time split's refit ends in its
-    training period's latest regime."""
-    from ..artifacts.schemas import COARSE_PARAMS
-
-    p = read_artifact(workdir, COARSE_PARAMS)
-    p = p[p["selected"]].sort_values(["heliostat_id", "parameter_index"])
-    out = {}
-    for hid, sel in selected.items():
-        g = p[p["heliostat_id"] == hid]
-        t = g["time_fitted"].to_numpy(float) if "time_fitted" in g else np.array([np.nan])
-        params = torch.tensor(t) if len(t) == 28 and np.isfinite(t).all() else sel["params"]
-        out[hid] = {**sel, "params": params, "regime_table": None}
-    return out
-
-
-def calibration_rows(workdir, setting: str) -> pd.DataFrame:
-    """Per held-out row of ``setting`` (``forward`` or ``knn``): heliostat, actual and expected
-    error [mrad], the level source."""
-    from ..artifacts.schemas import HELIOSTATS
-    from .fit_coarse import load_selected_parameters
-
-    helio = read_artifact(workdir, HELIOSTATS).set_index("heliostat_id")
-    selected = load_selected_parameters(workdir)
-    specs = {h: HeliostatSpec.from_row(helio.loc[h]) for h in selected}
-    models = {h: {"model": "coarse"} for h in selected}
-    label, actual = ("time_split", "time_error_mrad") if setting == "forward" else ("split", "error_mrad")
-    if setting == "forward":
-        # as a plant aims after its calibration: the next-day rows it had seen by then first
-        selected = _time_selected(workdir, selected)
-        budgets = error_budgets(workdir, specs, selected, models, split_column="time_split",
-                                level_sources=("next-day", "time-split validation"),
-                                known_until=_first_test_time(workdir))
-    else:
-        budgets = error_budgets(workdir, specs, selected, models,
-                                level_sources=("validation",))
-    split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", label])
-    pred = read_artifact(workdir, COARSE_PREDICTIONS,
-                         columns=["heliostat_id", "measurement_id", "selected", actual])
-    pred = pred[pred["selected"]].merge(split, on=["heliostat_id", "measurement_id"])
-    measurements = read_artifact(workdir, MEASUREMENTS)
-    last_train = _last_training_time(measurements, pred, label)
-    pred = pred[pred[label] == "test"]
-    rows = measurements.merge(
-        pred[["heliostat_id", "measurement_id", actual]], on=["heliostat_id", "measurement_id"])
-    out = []
-    for hid, g in rows.groupby("heliostat_id"):
-        if hid not in budgets or not np.isfinite(g[actual]).any():
-            continue
-        b = MeasurementBatch.from_frame(g)
-        # forward: the test rows' days since the time split's last training row (the level
-        # grows to them); kNN: test rows lie among the training rows (the level as measured)
-        days = ((pd.to_datetime(g["timestamp"], utc=True) - last_train.get(hid, pd.NaT))
-                / pd.Timedelta(days=1)).to_numpy(float) if setting == "forward" else None
-        expected = expected_error_mrad(budgets[hid], specs[hid], selected[hid]["params"],
-                                       b.steps, b.sun, b.focal_spot, days)
-        out.append(pd.DataFrame({"heliostat_id": hid, "actual_mrad": g[actual].to_numpy(float),
-                                 "expected_mrad": expected,
-                                 "level_source": budgets[hid].level_source}))
-    return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
-
-
-def _first_test_time(workdir) -> pd.Series:
-    """heliostat -> the time [UTC] of its time split's first test row."""
-    keys = ["heliostat_id", "measurement_id"]
-    split = read_artifact(workdir, SPLIT, columns=keys + ["time_split"])
-    test = split[split["time_split"] == "test"].merge(
-        read_artifact(workdir, MEASUREMENTS, columns=keys + ["timestamp"]), on=keys)
-    return pd.to_datetime(test["timestamp"], utc=True).groupby(test["heliostat_id"]).min()
-
-
-def _last_training_time(measurements: pd.DataFrame, labelled: pd.DataFrame, label: str
-                        ) -> pd.Series:
-    """heliostat -> the time [UTC] of its last row labelled ``train`` in ``labelled[label]``."""
-    keys = ["heliostat_id", "measurement_id"]
-    train = labelled.loc[labelled[label] == "train", keys].merge(
-        measurements[keys + ["timestamp"]], on=keys)
-    return pd.to_datetime(train["timestamp"], utc=True).groupby(train["heliostat_id"]).max()
-
-
-def calibration_summary(rows: pd.DataFrame) -> dict:
-    """rows, ``within_2x`` (share with actual <= 2 x expected), ``median_ratio`` (actual /
-    expected) and the mean actual and expected error of :func:`calibration_rows`."""
-    ok = rows.dropna(subset=["actual_mrad", "expected_mrad"])
-    ratio = ok["actual_mrad"] / ok["expected_mrad"]
-    return {"rows": len(ok), "within_2x": float((ratio <= 2.0).mean()) if len(ok) else np.nan,
-            "median_ratio": float(ratio.median()) if len(ok) else np.nan,
-            "mean_actual": float(ok["actual_mrad"].mean()) if len(ok) else np.nan,
-            "mean_expected": float(ok["expected_mrad"].mean()) if len(ok) else np.nan}

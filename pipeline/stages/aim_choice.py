@@ -20,6 +20,8 @@ from ..runtime.process_state import restores_process_state
 __all__ = [
     "aim_models",
     "nominal_fallback",
+    "group_prior_errors",
+    "zero_row_fallback",
     "time_labelled_predictions",
 ]
 
@@ -67,8 +69,8 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
     if not artifact_present(workdir, COARSE_PARAMS):
         return {}
     params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
-                           columns=["heliostat_id", "preset", "selected", "val_error_mrad",
-                                    "test_error_mrad", "time_val_error_mrad",
+                           columns=["heliostat_id", "preset", "selected", "n_train",
+                                    "val_error_mrad", "test_error_mrad", "time_val_error_mrad",
                                     "time_test_error_mrad"])
     coarse = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
     selection = None
@@ -78,7 +80,7 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
             check_fresh(workdir, SELECTION, {"measurements": MEASUREMENTS, "heliostats": HELIOSTATS,
                                              "split": SPLIT, "coarse_params": COARSE_PARAMS})
         selection = selection.drop_duplicates("heliostat_id").set_index("heliostat_id")
-    fit_hybrid_errors = None
+    fit_hybrid_errors = groups = None
     next_day = _next_day_errors(workdir, heliostats)
     nominal = _nominal_errors(workdir, heliostats)
     out = {}
@@ -125,7 +127,56 @@ def aim_models(workdir, heliostats: Sequence[str] | None = None, *,
                          weight_decay=_number(cfg.get("weight_decay")),
                          val_error_mrad=val, test_error_mrad=test,
                          forward_error_mrad=float("nan"), model_dir="hybrid")
-        out[hid] = nominal_fallback(entry, float(c["time_val_error_mrad"]), nominal.get(hid))
+        entry = nominal_fallback(entry, float(c["time_val_error_mrad"]), nominal.get(hid))
+        if int(c["n_train"]) == 0:   # no rows of its own: judged on heliostats like it
+            if groups is None:
+                groups = group_prior_errors(workdir)
+            entry = zero_row_fallback(entry, groups.get(hid))
+        out[hid] = entry
+    return out
+
+
+def zero_row_fallback(entry: dict, group: dict | None) -> dict:
+    """``entry``, or the nominal geometry in its place for a heliostat without training rows of
+    its own whose field-prior geometry (its coarse model) is not better than the nominal geometry on
+    the test rows of the heliostats like it (``group``: field_prior.parquet's
+    ``expected_error_mrad`` and ``nominal_error_mrad`` of its group, medians over its
+    heliostats with test rows; None or NaN: nothing to judge by, ``entry`` as it is)."""
+    from .coarse_prior import is_field_prior
+
+    if not group or entry["model"] != "coarse" or not is_field_prior(entry["preset"]):
+        return entry
+    prior, nominal = group["expected_error_mrad"], group["nominal_error_mrad"]
+    if not prior > nominal:      # better, equal-or-NaN-free comparisons keep the geometry
+        return entry
+    return {**entry, "model": "nominal", "variant": None, "weight_decay": None, "model_dir": None,
+            "fallback": (f"{entry['heliostat_id']} has no rows of its own, and its group's "
+                         f"field-prior geometry ({entry['preset']}) is worse than the nominal "
+                         f"geometry on the test rows of {group['n_evaluated']} heliostats like it "
+                         f"({prior:.3g} vs {nominal:.3g} mrad, medians): aim uses the nominal "
+                         "geometry; calibrate it to get its own fit")}
+
+
+def group_prior_errors(workdir: CommittedWorkdir) -> dict:
+    """heliostat -> its field-prior group's ``expected_error_mrad``, ``nominal_error_mrad`` and
+    ``n_evaluated`` (field_prior.parquet; empty without one)."""
+    from ..artifacts.schemas import FIELD_PRIOR
+    from ..models.field_prior import group_key
+
+    if not artifact_present(workdir, FIELD_PRIOR) or not artifact_present(workdir, HELIOSTATS):
+        return {}
+    table = read_artifact(workdir, FIELD_PRIOR)
+    keys = ["kinematic_type", "actuator_type", "geometry_source"]
+    first = table.drop_duplicates(keys).set_index(keys)
+    out = {}
+    for _, hrow in read_artifact(workdir, HELIOSTATS).iterrows():
+        key = group_key(hrow)
+        if key in first.index:
+            r = first.loc[key]
+            out[str(hrow["heliostat_id"])] = {
+                "expected_error_mrad": float(r["expected_error_mrad"]),
+                "nominal_error_mrad": float(r["nominal_error_mrad"]),
+                "n_evaluated": int(r["n_evaluated"]) if pd.notna(r["n_evaluated"]) else 0}
     return out
 
 

@@ -1,0 +1,117 @@
+"""Is ``aim``'s ``expected_error_mrad`` right? Its calibration on held-out rows
+(``benchmarks/expected_error.py``, tests/test_aim_budget.py).
+
+For every heliostat of a fitted work directory, each held-out row's expected error (the budget of
+:mod:`.aim_budget` at the row's steps, sun and focal spot, as for an aim at that spot) beside its
+actual error, in two settings: ``forward`` (the model fitted on the time split's training rows,
+its level from what a plant had seen before the time split's first test row: the next-day rows
+scored before it and the time split's validation rows; scored on the time split's test rows) and
+``knn`` (the selected model, its level from its kNN validation rows; scored on the kNN test
+rows).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import torch
+
+from ..artifacts.schemas import COARSE_PREDICTIONS, MEASUREMENTS, SPLIT
+from ..artifacts.store import read_artifact
+from ..models.coarse import MeasurementBatch
+from ..physics.parameters import HeliostatSpec
+from .aim_budget import error_budgets, expected_error_mrad
+
+__all__ = ["calibration_rows", "calibration_summary", "first_test_time"]
+
+
+def _time_selected(workdir, selected: dict) -> dict:
+    """``selected`` with each heliostat's parameters of its time-split fit (``time_fitted``;
+    unchanged where it has none) and no regime table: the time split's refit ends in its
+    training period's latest regime."""
+    from ..artifacts.schemas import COARSE_PARAMS
+
+    p = read_artifact(workdir, COARSE_PARAMS)
+    p = p[p["selected"]].sort_values(["heliostat_id", "parameter_index"])
+    out = {}
+    for hid, sel in selected.items():
+        g = p[p["heliostat_id"] == hid]
+        t = g["time_fitted"].to_numpy(float) if "time_fitted" in g else np.array([np.nan])
+        params = torch.tensor(t) if len(t) == 28 and np.isfinite(t).all() else sel["params"]
+        out[hid] = {**sel, "params": params, "regime_table": None}
+    return out
+
+
+def calibration_rows(workdir, setting: str) -> pd.DataFrame:
+    """Per held-out row of ``setting`` (``forward`` or ``knn``): heliostat, actual and expected
+    error [mrad], the level source."""
+    from ..artifacts.schemas import HELIOSTATS
+    from .fit_coarse import load_selected_parameters
+
+    helio = read_artifact(workdir, HELIOSTATS).set_index("heliostat_id")
+    selected = load_selected_parameters(workdir)
+    specs = {h: HeliostatSpec.from_row(helio.loc[h]) for h in selected}
+    models = {h: {"model": "coarse"} for h in selected}
+    label, actual = ("time_split", "time_error_mrad") if setting == "forward" else ("split", "error_mrad")
+    if setting == "forward":
+        # as a plant aims after its calibration: the next-day rows it had seen by then first
+        selected = _time_selected(workdir, selected)
+        budgets = error_budgets(workdir, specs, selected, models, split_column="time_split",
+                                level_sources=("next-day", "time-split validation"),
+                                known_until=first_test_time(workdir))
+    else:
+        budgets = error_budgets(workdir, specs, selected, models,
+                                level_sources=("validation",))
+    split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", label])
+    pred = read_artifact(workdir, COARSE_PREDICTIONS,
+                         columns=["heliostat_id", "measurement_id", "selected", actual])
+    pred = pred[pred["selected"]].merge(split, on=["heliostat_id", "measurement_id"])
+    measurements = read_artifact(workdir, MEASUREMENTS)
+    last_train = _last_training_time(measurements, pred, label)
+    pred = pred[pred[label] == "test"]
+    rows = measurements.merge(
+        pred[["heliostat_id", "measurement_id", actual]], on=["heliostat_id", "measurement_id"])
+    out = []
+    for hid, g in rows.groupby("heliostat_id"):
+        if hid not in budgets or not np.isfinite(g[actual]).any():
+            continue
+        b = MeasurementBatch.from_frame(g)
+        # forward: the test rows' days since the time split's last training row (the level
+        # grows to them); kNN: test rows lie among the training rows (the level as measured)
+        days = ((pd.to_datetime(g["timestamp"], utc=True) - last_train.get(hid, pd.NaT))
+                / pd.Timedelta(days=1)).to_numpy(float) if setting == "forward" else None
+        expected = expected_error_mrad(budgets[hid], specs[hid], selected[hid]["params"],
+                                       b.steps, b.sun, b.focal_spot, days)
+        out.append(pd.DataFrame({"heliostat_id": hid, "actual_mrad": g[actual].to_numpy(float),
+                                 "expected_mrad": expected,
+                                 "level_source": budgets[hid].level_source}))
+    return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
+
+
+def first_test_time(workdir) -> pd.Series:
+    """heliostat -> the time [UTC] of its time split's first test row."""
+    keys = ["heliostat_id", "measurement_id"]
+    split = read_artifact(workdir, SPLIT, columns=keys + ["time_split"])
+    test = split[split["time_split"] == "test"].merge(
+        read_artifact(workdir, MEASUREMENTS, columns=keys + ["timestamp"]), on=keys)
+    return pd.to_datetime(test["timestamp"], utc=True).groupby(test["heliostat_id"]).min()
+
+
+def _last_training_time(measurements: pd.DataFrame, labelled: pd.DataFrame, label: str
+                        ) -> pd.Series:
+    """heliostat -> the time [UTC] of its last row labelled ``train`` in ``labelled[label]``."""
+    keys = ["heliostat_id", "measurement_id"]
+    train = labelled.loc[labelled[label] == "train", keys].merge(
+        measurements[keys + ["timestamp"]], on=keys)
+    return pd.to_datetime(train["timestamp"], utc=True).groupby(train["heliostat_id"]).max()
+
+
+def calibration_summary(rows: pd.DataFrame) -> dict:
+    """rows, ``within_2x`` (share with actual <= 2 x expected), ``median_ratio`` (actual /
+    expected) and the mean actual and expected error of :func:`calibration_rows`."""
+    ok = rows.dropna(subset=["actual_mrad", "expected_mrad"])
+    ratio = ok["actual_mrad"] / ok["expected_mrad"]
+    return {"rows": len(ok), "within_2x": float((ratio <= 2.0).mean()) if len(ok) else np.nan,
+            "median_ratio": float(ratio.median()) if len(ok) else np.nan,
+            "mean_actual": float(ok["actual_mrad"].mean()) if len(ok) else np.nan,
+            "mean_expected": float(ok["expected_mrad"].mean()) if len(ok) else np.nan}
