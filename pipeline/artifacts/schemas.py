@@ -443,7 +443,12 @@ SWEEP = ArtifactSchema(
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
         C("model", "string", "", "Coarse preset name (at the full size: fit-coarse's fit of "
-          "it), `hybrid` (the config's Fourier bands), `hybrid-octaves` (octave bands), `gp` "
+          "it; at smaller sizes the study's refit as fit-coarse fits it, under the field prior "
+          "fit-coarse gave the heliostat where it had one), `<preset>+no-field-prior` (the "
+          "study's fit of a preset without that field prior, at every size; only where "
+          "fit-coarse fitted the preset under one), `<preset>+field-prior` (the field-prior "
+          "geometry, full size), `hybrid` (the config's Fourier bands), `hybrid-octaves` "
+          "(octave bands), `gp` "
           "(the GP correction; `gp-sun` its sun-only structure beside one with time), "
           "`nn-only` or `pretrained-nn`."),
         C("n_train", "int64", "", "Training rows (largest kNN distance first)."),

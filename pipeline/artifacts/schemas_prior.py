@@ -35,6 +35,13 @@ COARSE_PRIOR_COLUMNS = (
       "`own_noise_mrad` where that is more than 1.25x below field_prior.parquet's `noise_mrad` "
       "(the fit was solved again under it), that `noise_mrad` elsewhere; missing like "
       "`own_noise_mrad`.", nullable=True),
+    C("prior_field_noise_mrad", "float64", "mrad", "The field's noise this parameter's field "
+      "prior was first weighed against (the median noise of the sample fits of the "
+      "heliostat's leave-out fold; field_prior.parquet's `noise_mrad` is the whole sample's), "
+      "before any second solve under `own_noise_mrad`; on the parameters whose prior is the "
+      "field's, missing on those that keep the default prior and like `prior_mean`. With "
+      "`prior_mean` and `prior_sigma` it gives back the prior the fit was given (the sweep's "
+      "training-size study refits under it).", nullable=True),
 )
 
 FIELD_PRIOR = ArtifactSchema(

@@ -44,6 +44,7 @@ from ..artifacts.store import read_artifact
 from ..errors import ParameterError, StageInputError
 from ..models.coarse import CoarseFit, MeasurementBatch, predict
 from ..models.coarse_presets import fit_presets
+from ..models.prior_noise import HeliostatPrior
 from ..models.field_prior import (MIN_HELIOSTATS, FitSample, GroupPrior, PriorEstimate,
                                   deviation, group_key)
 from ..physics.metrics import mean_or_nan as _mean
@@ -417,11 +418,15 @@ def prior_columns(fit: CoarseFit, i: int) -> dict:
 def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:
     """coarse_params with ``prior_mean`` and ``prior_sigma``: the field prior each preset's fit
     was given, on the rows of the parameters it covers (missing elsewhere, and there
-    ``prior_shrinkage`` too); ``own_noise_mrad`` and ``prior_noise_mrad`` on the rows of fits
-    with a field prior (missing elsewhere: a regime-aware candidate or the field-prior geometry
+    ``prior_shrinkage`` too), and ``prior_field_noise_mrad``: the field's noise the entries
+    that are the field's were first weighed against (missing on the default prior's; with
+    ``prior_mean`` and ``prior_sigma`` it gives the prior back,
+    :func:`~.study_prior.heliostat_priors`); ``own_noise_mrad`` and ``prior_noise_mrad`` on
+    the rows of fits with a field prior (missing elsewhere: a regime-aware candidate or the field-prior geometry
     is not such a fit)."""
     mean = np.full(len(params), np.nan)
     sigma = np.full(len(params), np.nan)
+    field_noise = np.full(len(params), np.nan)
     if plan.priors and len(params):
         hid = params["heliostat_id"].to_numpy()
         preset = params["preset"].to_numpy()
@@ -430,7 +435,9 @@ def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:
             p = plan.priors.get(hid[r], {}).get(preset[r])
             if p is not None:
                 mean[r], sigma[r] = p[0][index[r]], p[1][index[r]]
-    out = params.assign(prior_mean=mean, prior_sigma=sigma)
+                if isinstance(p, HeliostatPrior) and p.field is not None and p.field[index[r]]:
+                    field_noise[r] = p.noise[index[r]]
+    out = params.assign(prior_mean=mean, prior_sigma=sigma, prior_field_noise_mrad=field_noise)
     for column in ("prior_shrinkage", "own_noise_mrad", "prior_noise_mrad"):
         if column not in out.columns:  # rows without a fit (zero-row heliostats) only
             out[column] = np.nan
@@ -438,7 +445,8 @@ def attach_prior_columns(params: pd.DataFrame, plan: PriorPlan) -> pd.DataFrame:
     fitted_under = has.groupby([out["heliostat_id"], out["preset"]], sort=False).transform("any")
     out.loc[~fitted_under.to_numpy(bool), ["own_noise_mrad", "prior_noise_mrad"]] = np.nan
     default = out["prior_sigma"].isna() | ~out["free"].to_numpy(bool)
-    out.loc[default, ["prior_mean", "prior_sigma", "prior_shrinkage"]] = np.nan
+    out.loc[default, ["prior_mean", "prior_sigma", "prior_shrinkage",
+                      "prior_field_noise_mrad"]] = np.nan
     return out
 
 

@@ -25,8 +25,10 @@ the coarse model is always a candidate, so the selected model is never worse tha
 with the largest kNN distance, :func:`heliocal.pipeline.stages.split.restrict_training`) every coarse
 preset is refitted with :func:`heliocal.pipeline.models.coarse_presets.fit_presets`, the function
 ``fit-coarse`` fits with, with the solver and options ``fit-coarse`` recorded in
-coarse_params.parquet and each size its own robust start, so a study point is what
-``fit-coarse`` would give with that many rows. The hybrid of each size trains on that size's
+coarse_params.parquet, under the field prior ``fit-coarse`` gave the heliostat (if any) and
+each size its own robust start, so a study point is what ``fit-coarse`` would give with that
+many rows; with a field prior each preset is also refitted without it, model
+``<preset>+no-field-prior`` (:mod:`.study_prior`). The hybrid of each size trains on that size's
 refit of the selected preset; the ``nn-only`` baseline (all sizes) and the paper-002
 ``pretrained-nn`` baseline are trained for the study heliostats only. The full-size hybrid
 points of a study heliostat are its production rows.
@@ -37,7 +39,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import time
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -52,8 +53,6 @@ from ..artifacts.store import read_artifact
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
 from ..errors import ParameterError, check_float, check_int
-from ..models.coarse import normal_errors_mrad
-from ..models.coarse_presets import fit_presets
 from ..models.config import FineConfig, PathConfig, ScreenConfig, ensemble_seeds
 from ..models.fade import TIME_FADE_DAYS
 from ..models.gp import GPConfig
@@ -70,6 +69,7 @@ from .fit_coarse import coarse_fit_options, coarse_row_parameters
 from .forward import add_sweep_time_split
 from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
+from .study_prior import heliostat_priors, prior_rows_of, study_coarse_rows
 from .sweep_screen import SCREEN_FAILED, ScreenVerdict, screen_margin, screen_verdicts
 from .sweep_increment import (SweepPlan, chunk_size, plan_sweep, sweep_chunks, sweep_digests,
                               write_sweep_outputs)
@@ -279,10 +279,11 @@ def _select_chunk(items: Sequence[SweepInputs], variants, weight_decays, seeds, 
 # ------------------------------------------------------------------------------------------------
 def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
                      pretrain_config, baselines, coarse_options, gp_config: GPConfig | None = None,
-                     rule: SelectionRule = SelectionRule()) -> dict:
+                     rule: SelectionRule = SelectionRule(), prior_rows=None) -> dict:
     """Study rows of one heliostat: every size below the full one (refits with fit-coarse's
-    function and options, the hybrids, with ``gp_config`` the GP correction), and the baselines
-    at every size."""
+    function, options and field prior, ``prior_rows``: :func:`~.study_prior.prior_rows_of`'s
+    frame of it; the hybrids, with ``gp_config`` the GP correction), and the baselines at
+    every size."""
     h = SweepHeliostat.of(item)
     hid, labels = h.hid, h.labels
     out_rows: list[dict] = []
@@ -300,25 +301,12 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
     base_preset = h.selected["base_preset"]   # a regime-aware model's preset (refitted plain)
     small = [n for n in sizes if n < h.n_full]
     fitted = tuple(dict.fromkeys(tuple(presets) + (base_preset,)))
-    bases = {h.n_full: h.selected["params"]}
-    # coarse presets: each size its own fit-coarse (own robust start); presets fit-coarse did not
-    # fit are fitted at the full size too (its production rows hold those it did)
-    jobs = [(n, fitted) for n in small]
-    missing = tuple(p for p in fitted if p not in h.coarse)
-    if missing:
-        jobs.append((h.n_full, missing))
-    for n, names in jobs:
-        t0 = time.perf_counter()
-        fits = fit_presets([h.spec], [h.nominal], [h.data.subset(masks[n])], names,
-                           **coarse_options)[0]
-        wall = (time.perf_counter() - t0) / len(names)
-        for fit in fits:
-            with torch.no_grad():
-                err = normal_errors_mrad(fit.params, h.spec, h.data).numpy()
-            out_rows.append(sweep_row(hid, fit.preset, n, float("nan"), 0, err, labels, masks[n],
-                                 dists[n], fit.preset, wall))
-            if fit.preset == base_preset and n < h.n_full:
-                bases[n] = fit.params
+    # coarse presets: each size its own fit-coarse (own robust start; under the field prior
+    # fit-coarse gave the heliostat, and without it, :mod:`.study_prior`)
+    rows, bases = study_coarse_rows(h, small, fitted, masks, dists, base_preset, coarse_options,
+                                    heliostat_priors(prior_rows, h.nominal))
+    out_rows += rows
+    bases[h.n_full] = h.selected["params"]
     val_mask = labels == "validation"
     if gp_config is not None and small:
         for n, fit in study_gps(h, {n: masks[n] for n in small}, bases, gp_config, rule).items():
@@ -437,6 +425,18 @@ def _study_presets(item: SweepInputs, presets: Sequence[str] | None) -> tuple[st
         m for m in item.coarse if m != "nominal" and "+" not in m)
 
 
+def _study_tasks(workdir: Path, items: dict, studied: Sequence[str], computed: set[str],
+                 n_train, presets, shared: tuple) -> list[tuple]:
+    """The study's tasks of the heliostats ``studied`` that the run trains (``computed``),
+    each with its field-prior rows (:func:`~.study_prior.prior_rows_of`; None without one).
+    ``shared``: :func:`_study_heliostat`'s arguments from ``variants`` to ``rule``."""
+    ids = [h for h in studied if h in computed]
+    prior_rows = prior_rows_of(workdir, ids)
+    return [("study", (items[h], _study_sizes(items[h], n_train),
+                       _study_presets(items[h], presets), *shared, prior_rows.get(h)))
+            for h in ids]
+
+
 @locks_workdir("sweep")
 @stage_transaction("sweep")
 @restores_process_state
@@ -530,12 +530,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                          pretrain_config if select_pretrained else None, gp_config, rule,
                          screen))
              for chunk in plan.compute]
-    computed = {h for chunk in plan.compute for h in chunk}
-    for hid in (h for h in studied if h in computed):
-        tasks.append(("study", (items[hid], _study_sizes(items[hid], n_train),
-                                _study_presets(items[hid], presets), variants, weight_decays,
-                                seeds, path, pretrain_config, baselines, coarse_options,
-                                gp_config, rule)))
+    tasks += _study_tasks(workdir, items, studied, {h for chunk in plan.compute for h in chunk},
+                          n_train, presets, (variants, weight_decays, seeds, path, pretrain_config,
+                                             baselines, coarse_options, gp_config, rule))
     parts = map_tasks(_sweep_task, tasks, workers=workers, scheduler=scheduler,
                       dask_address=dask_address,
                       progress=(lambda d, t: progress(d, t, None)) if progress else None)
