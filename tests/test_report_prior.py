@@ -31,8 +31,8 @@ PRIOR = {"joint_1_tilt_e_rad": (0.00123, 0.00045, 14), "joint_1_tilt_n_rad": (-0
 SHRINKAGE = {"joint_1_tilt_e_rad": 0.2, "joint_1_tilt_n_rad": 0.9, "joint_2_tilt_u_rad": np.nan}
 
 
-def _with_prior(root):
-    wd = make_workdir(root, "coarse")
+def _with_prior(root, stage: str = "coarse"):
+    wd = make_workdir(root, stage)
     _write(pd.DataFrame({"heliostat_id": list(HIDS), "n_measurements": [N, N],
                          "kinematic_type": GROUP[0], "actuator_type": GROUP[1],
                          "properties_source": "default geometry"}), wd, HELIOSTATS)
@@ -151,3 +151,89 @@ def test_a_large_group_is_drawn_in_bins_of_training_rows():
     labels, matrix, _ = shrinkage_rows(points.iloc[-5:])
     assert labels == ["H037 (1)", "H074 (2)", "H111 (3)", "H017 (4)", "H054 (5)"]
     np.testing.assert_allclose(matrix[:, 0], 1.0 / np.arange(1, 6))
+
+
+# ------------------------------------------------------------------------------------------------
+# the training-size study with and without the prior
+# ------------------------------------------------------------------------------------------------
+#: AA01's study rows of static-6 (its shown preset; 20 training rows in coarse_params):
+#: n_train -> (test error with the prior, without) [mrad]. AB02 (static-20, not the shown
+#: preset's curve: it has no static-6+no-field-prior rows) is left out of the figure.
+STUDY = {5: (1.4, 2.3), 10: (1.2, 1.5), 20: (1.0, 1.05)}
+
+
+def _with_study(root, with_curves: bool = True):
+    from heliocal.pipeline.artifacts.schemas import SWEEP
+    from test_report import _write as write_schema
+
+    wd = _with_prior(root, "sweep")
+    sweep = read_artifact(wd, SWEEP)
+    rows = []
+    for n, (with_prior, without) in STUDY.items():
+        rows.append({"heliostat_id": "AA01", "model": "static-6", "n_train": n,
+                     "test_error_mrad": with_prior, "val_error_mrad": with_prior})
+        if with_curves:
+            rows.append({"heliostat_id": "AA01", "model": "static-6+no-field-prior",
+                         "n_train": n, "test_error_mrad": without, "val_error_mrad": without})
+        rows.append({"heliostat_id": "AB02", "model": "static-6", "n_train": n,
+                     "test_error_mrad": 9.0, "val_error_mrad": 9.0})
+    rows = pd.DataFrame(rows)
+    rows = rows.assign(weight_decay=np.nan, seed=0, base_preset="static-6", wall_time_s=0.0,
+                       train_error_mrad=rows["test_error_mrad"] / 2,
+                       train_median_error_mrad=rows["test_error_mrad"] / 2)
+    write_schema(pd.concat([sweep, rows], ignore_index=True), wd, SWEEP)
+    return wd
+
+
+def test_the_page_draws_the_studys_curves_with_and_without_the_prior(tmp_path):
+    from heliocal.pipeline.artifacts.schemas import SWEEP
+    from heliocal.pipeline.report.prior_figures import size_medians
+    from heliocal.pipeline.report.prior_page import prior_groups, study_curves
+    from heliocal.pipeline.stages.coarse_prior import heliostat_groups, with_deviations
+    from heliocal.pipeline.stages.study_prior import NO_FIELD_PRIOR
+
+    wd = _with_study(tmp_path)
+    summary = run_report(wd, workers=1)
+    page = (wd / "report" / "field_prior.html").read_text()
+    name = "field_prior_sizes_juelich_linear_default.png"
+    assert (wd / "report" / "figures" / name).read_bytes()[:4] == b"\x89PNG"
+    assert f'src="figures/{name}"' in page and "with and without the prior" in page
+    assert "each group above draws the two curves" in page
+    assert name in {f.rsplit("/", 1)[1] for f in summary["figures"]}
+    # what the figure draws: AA01's two curves (the report's name of the model is the stage's)
+    assert "+" + NO_FIELD_PRIOR == "+no-field-prior"
+    group = prior_groups(read_artifact(wd, FIELD_PRIOR),
+                         with_deviations(read_artifact(wd, COARSE_PARAMS)),
+                         heliostat_groups(read_artifact(wd, HELIOSTATS)))[0]
+    curves = study_curves(group, read_artifact(wd, SWEEP))
+    assert set(curves["heliostat_id"]) == {"AA01"} and (curves["full"] == 20).all()
+    medians = size_medians(curves).set_index(["prior", "n_train"])["median"]
+    # below the full size (20 rows, a diamond of its own): the sizes 5 and 10 of STUDY
+    assert medians.to_dict() == {("field", 5): 1.4, ("field", 10): 1.2,
+                                 ("none", 5): 2.3, ("none", 10): 1.5}
+    # drawn once, then kept by the incremental report until a study number moves
+    drawn = (wd / "report" / "figures" / name).read_bytes()
+    again = run_report(wd, workers=1, incremental=True)
+    assert again["figures_drawn"] == 0 and again["figures_kept"] == len(summary["figures"])
+    assert (wd / "report" / "figures" / name).read_bytes() == drawn
+    sweep = read_artifact(wd, SWEEP)
+    moved = (sweep["model"] == "static-6+no-field-prior") & (sweep["n_train"] == 5)
+    sweep.loc[moved, "test_error_mrad"] = 2.2
+    from test_report import _write as write_schema
+    write_schema(sweep, wd, SWEEP)
+    assert run_report(wd, workers=1, incremental=True)["figures_drawn"] >= 1
+    assert (wd / "report" / "figures" / name).read_bytes() != drawn   # drawn again
+
+
+def test_no_curves_without_the_studys_fits_without_the_prior_or_without_a_prior(tmp_path):
+    wd = _with_study(tmp_path / "a", with_curves=False)
+    summary = run_report(wd, workers=1)
+    page = (wd / "report" / "field_prior.html").read_text()
+    assert "field_prior_sizes_" not in page and "<h3>Training size" not in page
+    assert not any("field_prior_sizes_" in f for f in summary["figures"])
+    assert "no curves with and without the prior here" in page
+    # no field prior: no page, no figure, even with the study's rows in sweep.parquet
+    plain = make_workdir(tmp_path / "b", "sweep")
+    summary = run_report(plain, workers=1)
+    assert summary["field_prior"] is None
+    assert not any("field_prior_sizes_" in f for f in summary["figures"])

@@ -1,6 +1,7 @@
 """The field-prior page's figures (matplotlib, Agg; :mod:`.prior_page` plans them): each
-parameter's prior against the group's fitted values, and the heatmap of how much each
-heliostat's fit leans on the prior. Drawn by :func:`draw_prior_figure` in a worker
+parameter's prior against the group's fitted values, the heatmap of how much each
+heliostat's fit leans on the prior, and the training-size study's error of the shown preset
+with and without the prior. Drawn by :func:`draw_prior_figure` in a worker
 (``render.render_task``) from the small frames of the task."""
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ import pandas as pd
 
 from .figures import new_figure
 
-__all__ = ["DISPLAY_UNITS", "MAX_HEATMAP_ROWS", "draw_prior_figure", "shrinkage_rows"]
+__all__ = ["DISPLAY_UNITS", "MAX_HEATMAP_ROWS", "MAX_DRAWN_HELIOSTATS", "draw_prior_figure",
+           "shrinkage_rows", "size_medians"]
 
 #: field_prior.parquet's unit -> (factor, display unit): the page and its figures show mean,
 #: scale and deviations times factor.
@@ -21,6 +23,9 @@ DISPLAY_UNITS = {"rad": (1e3, "mrad"), "m": (1e3, "mm"), "1": (1e3, "‰ of nomi
 #: Heliostats drawn one row each in the heatmap; a larger group is drawn in this many bins of
 #: training rows (median shrinkage per bin).
 MAX_HEATMAP_ROWS = 60
+
+#: Study heliostats drawn one line each in the training-size figure (besides the median).
+MAX_DRAWN_HELIOSTATS = 8
 
 #: Panels per row of the prior-against-fit figure.
 _COLUMNS = 4
@@ -143,7 +148,58 @@ def _heatmap(args: dict):
     return fig, None
 
 
+def size_medians(frame: pd.DataFrame) -> pd.DataFrame:
+    """Per curve (``prior``) and training size below each heliostat's full one: the median
+    test error over the study heliostats with that size and their number (columns ``prior``,
+    ``n_train``, ``median``, ``n``). ``frame``: the study rows (``heliostat_id``, ``prior``,
+    ``n_train``, ``test_error_mrad``, ``full``: the heliostat's full training size)."""
+    below = frame[frame["n_train"] < frame["full"]]
+    g = below.groupby(["prior", "n_train"], sort=True)["test_error_mrad"]
+    return pd.DataFrame({"median": g.median(), "n": g.size()}).reset_index()
+
+
+#: The two curves: (``prior`` value, label, colour, marker face).
+_CURVES = (("field", "with the field prior", "#1f4e9c", "#1f4e9c"),
+           ("none", "without (default prior)", "#c0392b", "white"))
+
+
+def _training_size(args: dict):
+    frame: pd.DataFrame = args["frame"]
+    if frame.empty:
+        return None, "no study heliostat of the group was fitted with and without the prior"
+    fig, axes = new_figure(7.5, 4.6)
+    ax = axes[0, 0]
+    ids = sorted(frame["heliostat_id"].unique())
+    medians = size_medians(frame)
+    for prior, label, color, face in _CURVES:
+        mine = frame[frame["prior"] == prior]
+        if len(ids) <= MAX_DRAWN_HELIOSTATS:
+            for hid in ids:
+                h = mine[mine["heliostat_id"] == hid].sort_values("n_train")
+                ax.plot(h["n_train"], h["test_error_mrad"], color=color, lw=0.7, alpha=0.35)
+        m = medians[medians["prior"] == prior]
+        ax.plot(m["n_train"], m["median"], color=color, lw=2.0, marker="o", ms=5,
+                markerfacecolor=face, label=f"{label}: median")
+        full = mine[mine["n_train"] == mine["full"]]
+        ax.scatter(full["n_train"], full["test_error_mrad"], s=36, marker="D",
+                   edgecolors=color, facecolors=face, zorder=3,
+                   label=f"{label}: all training rows (each heliostat)")
+    ax.set_xscale("log")
+    # each size's tick says over how many heliostats its median is (those with more rows)
+    counts = medians.groupby("n_train")["n"].max()
+    ax.set_xticks(counts.index.to_numpy(int), [f"{n}\n({k})" for n, k in counts.items()])
+    ax.minorticks_off()
+    ax.set_xlabel(f"training rows (heliostats with that many, of {len(ids)})")
+    ax.set_ylabel("mean test error [mrad]")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    ax.set_title(f"{args['preset']}: test error against training rows", fontsize="medium")
+    return fig, None
+
+
 def draw_prior_figure(kind: str, args: dict):
     """(figure, None) or (None, why) of a field-prior figure ``kind`` (``prior_vs_fitted``,
-    ``prior_shrinkage``)."""
-    return {"prior_vs_fitted": _prior_vs_fitted, "prior_shrinkage": _heatmap}[kind](args)
+    ``prior_shrinkage``, ``prior_training_size``)."""
+    return {"prior_vs_fitted": _prior_vs_fitted, "prior_shrinkage": _heatmap,
+            "prior_training_size": _training_size}[kind](args)

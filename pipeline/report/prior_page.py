@@ -5,8 +5,11 @@
 Per group of heliostats (kinematic type, actuator type, geometry source) it shows the prior of
 one preset, the one most of the group's heliostats select: each parameter's mean, scale and
 number of heliostats (field_prior.parquet, the other presets folded below), the prior against
-the fitted values of the group's heliostats (:mod:`.prior_figures`), and how much each
-heliostat's fit leans on it (coarse_params.parquet ``prior_shrinkage``, a heatmap and a table).
+the fitted values of the group's heliostats (:mod:`.prior_figures`), how much each
+heliostat's fit leans on it (coarse_params.parquet ``prior_shrinkage``, a heatmap and a table),
+and, when the sweep ran a training-size study, the shown preset's test error against training
+rows with and without the prior (sweep.parquet's ``<preset>`` and ``<preset>+no-field-prior``,
+:mod:`heliocal.pipeline.stages.study_prior`).
 Numbers are shown in display units (mrad, mm, per mille of the nominal increment); each cell
 keeps the artifact's value in ``data-v``. Every text from the data is escaped.
 """
@@ -22,12 +25,13 @@ from typing import Sequence
 import pandas as pd
 
 from .field import heliostat_page_name
+from .metrics import column_of
 from .pages import fmt, inline_html as inline, page_head
 from .prior_figures import DISPLAY_UNITS
 from .render import FigureTask
 
 __all__ = ["DISPLAY_UNITS", "PRIOR_PAGE", "PriorGroup", "display_value", "prior_groups",
-           "prior_page_html", "prior_page_tasks", "training_size_note"]
+           "prior_page_html", "prior_page_tasks", "study_curves", "training_size_note"]
 
 e = html.escape
 
@@ -35,6 +39,11 @@ e = html.escape
 PRIOR_PAGE = "field_prior.html"
 
 _GROUP_COLUMNS = ("kinematic_type", "actuator_type", "geometry_source")
+
+#: sweep.parquet's model of a preset fitted without the field prior: ``<preset>`` + this
+#: (:data:`heliocal.pipeline.stages.study_prior.NO_FIELD_PRIOR`; the report reads artifacts
+#: and imports no stage).
+_WITHOUT = "+no-field-prior"
 
 
 def display_value(value: float, unit: str) -> tuple[float, str]:
@@ -106,12 +115,48 @@ def prior_groups(field_prior: pd.DataFrame | None, coarse_params: pd.DataFrame |
     return groups
 
 
-def prior_page_tasks(groups: Sequence[PriorGroup]) -> list[FigureTask]:
-    """Per group the prior against the fitted values and the shrinkage heatmap (drawn by
-    :func:`.prior_figures.draw_prior_figure`; args are small frames, so the figures' digests
-    change only when the numbers do)."""
+def study_curves(g: PriorGroup, sweep: pd.DataFrame | None) -> pd.DataFrame:
+    """The training-size study's rows of the group's shown preset, with (``prior`` ``field``:
+    model ``<preset>``) and without the prior (``none``: ``<preset>+no-field-prior``), of the
+    study heliostats that have both (columns ``heliostat_id``, ``prior``, ``n_train``,
+    ``test_error_mrad``, ``full``: the heliostat's full training size); empty without."""
+    columns = ["heliostat_id", "prior", "n_train", "test_error_mrad", "full"]
+    test = column_of(sweep, "test")
+    if test is None or not {"heliostat_id", "model", "n_train"} <= set(sweep.columns):
+        return pd.DataFrame(columns=columns)
+    sweep = sweep.assign(test_error_mrad=sweep[test])
+    members = set(g.fits["heliostat_id"].astype(str))
+    s = sweep[sweep["heliostat_id"].astype(str).isin(members)]
+    without = s[s["model"].astype(str) == g.preset + _WITHOUT]
+    s = s[s["heliostat_id"].isin(set(without["heliostat_id"]))]
+    rows = pd.concat([s[s["model"].astype(str) == g.preset].assign(prior="field"),
+                      without.assign(prior="none")], ignore_index=True)
+    rows = rows.assign(heliostat_id=rows["heliostat_id"].astype(str),
+                       n_train=rows["n_train"].astype(int))
+    rows["full"] = rows.groupby("heliostat_id")["n_train"].transform("max")
+    return rows[columns].sort_values(["prior", "heliostat_id", "n_train"]).reset_index(drop=True)
+
+
+def prior_page_tasks(groups: Sequence[PriorGroup],
+                     sweep: pd.DataFrame | None = None) -> list[FigureTask]:
+    """Per group the prior against the fitted values, the shrinkage heatmap and, where the
+    sweep's study fitted the group's preset with and without the prior, its training-size
+    curves (drawn by :func:`.prior_figures.draw_prior_figure`; args are small frames, so the
+    figures' digests change only when the numbers do)."""
     tasks = []
     for g in groups:
+        curves = study_curves(g, sweep)
+        if len(curves):
+            n = curves["heliostat_id"].nunique()
+            tasks.append(FigureTask(
+                "prior_training_size", f"field_prior_sizes_{g.slug}.png",
+                f"{g.name}, {g.preset}: mean test error against training rows of the sweep's "
+                f"training-size study ({n} heliostat{'s' if n != 1 else ''}), fitted as "
+                "fit-coarse fits them under the field prior it gave each heliostat (blue) and "
+                "without it (red; the default weak prior around the nominal geometry). Thick "
+                "lines: the median over the heliostats with that many rows (thin: each "
+                "heliostat, up to 8); diamonds: each heliostat with all its training rows.",
+                None, {"frame": curves, "preset": g.preset}))
         rows = g.prior_rows()
         params = rows[["parameter_index", "parameter", "unit", "mean", "scale",
                        "n_heliostats"]].reset_index(drop=True)
@@ -260,19 +305,32 @@ def _group_html(g: PriorGroup, drawn: dict, tasks: dict) -> list[str]:
     out.append("<h3>Shrinkage per heliostat</h3>")
     out.append(_figure(drawn, tasks[f"field_prior_shrinkage_{g.slug}.png"]))
     out.append(_heliostat_table(g))
+    sizes = tasks.get(f"field_prior_sizes_{g.slug}.png")
+    if sizes is not None:
+        out.append("<h3>Training size, with and without the prior</h3>")
+        out.append(_figure(drawn, sizes))
     return out
 
 
-def training_size_note(has_study: bool) -> str:
-    """What the page says of training-size curves with and without the prior."""
-    text = ("The sweep's training-size study refits the coarse presets at each size with "
-            "fit-coarse's solver, loss and robust start but not with its field prior, so its "
-            "coarse curves are without the prior")
-    text += ((" (on field.html, error against training size); a curve with the prior is not "
-              "in this run's artifacts.") if has_study else
-             "; this work directory has no study (`heliocal sweep --study N`).")
+def training_size_note(has_study: bool, has_curves: bool = False) -> str:
+    """What the page says of training-size curves with and without the prior (``has_curves``:
+    a group's figure of them is on the page)."""
+    if has_curves:
+        text = ("The sweep's training-size study refits the coarse presets at each size as "
+                "fit-coarse fits them, under the field prior it gave each heliostat (its "
+                "leave-out fold's), and again without it (sweep.parquet model "
+                "`<preset>+no-field-prior`); each group above draws the two curves of its "
+                "preset. field.html's training-size figures show the study's other models.")
+    elif has_study:
+        text = ("No heliostat of the sweep's training-size study has its group's preset "
+                "fitted both with and without the field prior (the study's heliostats are in "
+                "other groups, or the sweep ran before the study fitted both: run `heliocal "
+                "sweep` again), so there are no curves with and without the prior here.")
+    else:
+        text = "This work directory has no training-size study (`heliocal sweep --study N`)."
     return text + (" `benchmarks/field_prior.py` measures the error at 3, 5, 10 and 20 training "
-                   "rows with and without the prior (docs/experiments/field-prior.md).")
+                   "rows with and without the prior on every heliostat "
+                   "(docs/experiments/field-prior.md).")
 
 
 def prior_page_html(title: str, nav: str, sort_js: str, groups: Sequence[PriorGroup],

@@ -229,7 +229,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     ts_frame = training_size_frame(inp.sweep)
     field_plan = _field_plan(inp, wd_frame, ts_frame, comparison_table(wd_frame, inp.selection))
     groups = _prior_groups(inp)
-    prior_tasks = prior_page_tasks(groups)
+    prior_tasks = prior_page_tasks(groups, inp.sweep)
     nav_pages = ((PRIOR_PAGE, "Field prior"),) if groups else ()
     tasks = [cdf_task] + figure_tasks(blocks) + figure_tasks(field_plan) + prior_tasks
     drawn, counts = drawn_or_kept(txn, out, tasks, workers, incremental)
@@ -262,7 +262,8 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
         options = read_provenance(artifact_path(workdir, COARSE_PARAMS)).get("options") or {}
         txn.write_bytes(PRIOR_PAGE, prior_page_html(
             title, nav_html(pages=nav_pages), SORT_JS, groups, prior_tasks, drawn, options,
-            training_size_note(ts_frame is not None)).encode("utf-8"))
+            training_size_note(ts_frame is not None, any(
+                t.kind == "prior_training_size" for t in prior_tasks))).encode("utf-8"))
         run_notes.append(f"fit-coarse fitted under a field prior: its prior and how much each "
                          f"heliostat leans on it are on {PRIOR_PAGE}.")
     svg = svg_field_map(table, tower_en_m(inp), alert_mrad=alert_mrad)
