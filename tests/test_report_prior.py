@@ -190,6 +190,8 @@ def test_the_page_draws_the_studys_curves_with_and_without_the_prior(tmp_path):
     from heliocal.pipeline.report.prior_figures import size_medians
     from heliocal.pipeline.report.prior_page import prior_groups, study_curves
     from heliocal.pipeline.stages.coarse_prior import heliostat_groups, with_deviations
+    from heliocal.pipeline.report.field_figures import training_size_frame
+    from heliocal.pipeline.report.metrics import WITHOUT_FIELD_PRIOR
     from heliocal.pipeline.stages.study_prior import NO_FIELD_PRIOR
 
     wd = _with_study(tmp_path)
@@ -201,7 +203,10 @@ def test_the_page_draws_the_studys_curves_with_and_without_the_prior(tmp_path):
     assert "each group above draws the two curves" in page
     assert name in {f.rsplit("/", 1)[1] for f in summary["figures"]}
     # what the figure draws: AA01's two curves (the report's name of the model is the stage's)
-    assert "+" + NO_FIELD_PRIOR == "+no-field-prior"
+    assert "+" + NO_FIELD_PRIOR == WITHOUT_FIELD_PRIOR
+    # field.html's training-size figure leaves them to this page (static-6 with the prior stays)
+    models = set(training_size_frame(read_artifact(wd, SWEEP))["model"])
+    assert "static-6" in models and not any(m.endswith(WITHOUT_FIELD_PRIOR) for m in models)
     group = prior_groups(read_artifact(wd, FIELD_PRIOR),
                          with_deviations(read_artifact(wd, COARSE_PARAMS)),
                          heliostat_groups(read_artifact(wd, HELIOSTATS)))[0]

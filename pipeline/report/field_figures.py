@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from .figures import new_figure
-from .metrics import model_sort_key
+from .metrics import WITHOUT_FIELD_PRIOR, model_sort_key
 
 __all__ = [
     "comparison_table",
@@ -82,10 +82,12 @@ def weight_decay_frame(sweep: pd.DataFrame | None) -> pd.DataFrame | None:
 def training_size_frame(sweep: pd.DataFrame | None) -> pd.DataFrame | None:
     """Per model, heliostat of the training-size study and training size: the mean (over seeds)
     test error at the weight decay with the lowest mean validation error (models without weight
-    decay: their only rows)."""
+    decay: their only rows). The presets fitted without the field prior
+    (:data:`~.metrics.WITHOUT_FIELD_PRIOR`) are left to the field-prior page."""
     if sweep is None or not {"n_train", "model", "val_error_mrad", "test_error_mrad"} <= set(
             sweep.columns):
         return None
+    sweep = sweep[~sweep["model"].astype(str).str.endswith(WITHOUT_FIELD_PRIOR)]
     sizes = sweep.groupby("heliostat_id")["n_train"].nunique()
     s = sweep[sweep["heliostat_id"].isin(sizes[sizes >= 2].index)]
     if not len(s):

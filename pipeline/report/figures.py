@@ -12,7 +12,8 @@ import numpy as np
 import pandas as pd
 
 from .inputs import ReportInputs
-from .metrics import column_of, final_models, first_column, model_sort_key, split_sort_key
+from .metrics import (WITHOUT_FIELD_PRIOR, column_of, final_models, first_column,
+                      model_sort_key, split_sort_key)
 
 __all__ = [
     "hybrid_vs_coarse_table",
@@ -94,13 +95,15 @@ def plot_training_size(sweep: pd.DataFrame, heliostat: str,
     """Paper 000, fig. 6: test error against training size per model; test-to-train distance below.
 
     For each model and training size the weight decay with the lowest validation error (mean over
-    seeds) is used; the band spans the seeds. Returns ``(figure, None)`` or ``(None, reason)``.
+    seeds) is used; the band spans the seeds; the presets fitted without the field prior are
+    the field-prior page's. Returns ``(figure, None)`` or ``(None, reason)``.
     """
     test, val = column_of(sweep, "test"), column_of(sweep, "validation")
     dist = first_column(sweep, "test_train_distance_deg")
     if test is None or "n_train" not in sweep.columns or "model" not in sweep.columns:
         return None, "sweep.parquet has no n_train, model or test error column"
-    g = sweep[sweep["heliostat_id"].astype(str) == heliostat]
+    g = sweep[(sweep["heliostat_id"].astype(str) == heliostat)   # without: the prior page's
+              & ~sweep["model"].astype(str).str.endswith(WITHOUT_FIELD_PRIOR)]
     if g["n_train"].nunique() < 2:
         return None, (f"the sweep of {heliostat} has a single training size: it is not in the "
                       "training-size study (`heliocal sweep --study N` samples N heliostats)")

@@ -19,6 +19,7 @@ from ..artifacts.provenance import git_revision
 from .inputs import ReportInputs
 
 __all__ = [
+    "WITHOUT_FIELD_PRIOR",
     "column_of",
     "final_models",
     "first_column",
@@ -98,6 +99,12 @@ def _statistics(err: np.ndarray, beam: np.ndarray | None, spot: np.ndarray | Non
             if len(v):
                 out[key] = _r(v.mean())
     return out
+
+
+#: Suffix of sweep.parquet's models of the training-size study fitted without fit-coarse's
+#: field prior (``<preset>+no-field-prior``, heliocal.pipeline.stages.study_prior; the report
+#: reads artifacts and imports no stage): drawn on the field-prior page only.
+WITHOUT_FIELD_PRIOR = "+no-field-prior"
 
 
 def split_sort_key(s: str) -> tuple:

@@ -25,7 +25,7 @@ from typing import Sequence
 import pandas as pd
 
 from .field import heliostat_page_name
-from .metrics import column_of
+from .metrics import WITHOUT_FIELD_PRIOR, column_of
 from .pages import fmt, inline_html as inline, page_head
 from .prior_figures import DISPLAY_UNITS
 from .render import FigureTask
@@ -39,11 +39,6 @@ e = html.escape
 PRIOR_PAGE = "field_prior.html"
 
 _GROUP_COLUMNS = ("kinematic_type", "actuator_type", "geometry_source")
-
-#: sweep.parquet's model of a preset fitted without the field prior: ``<preset>`` + this
-#: (:data:`heliocal.pipeline.stages.study_prior.NO_FIELD_PRIOR`; the report reads artifacts
-#: and imports no stage).
-_WITHOUT = "+no-field-prior"
 
 
 def display_value(value: float, unit: str) -> tuple[float, str]:
@@ -127,7 +122,7 @@ def study_curves(g: PriorGroup, sweep: pd.DataFrame | None) -> pd.DataFrame:
     sweep = sweep.assign(test_error_mrad=sweep[test])
     members = set(g.fits["heliostat_id"].astype(str))
     s = sweep[sweep["heliostat_id"].astype(str).isin(members)]
-    without = s[s["model"].astype(str) == g.preset + _WITHOUT]
+    without = s[s["model"].astype(str) == g.preset + WITHOUT_FIELD_PRIOR]
     s = s[s["heliostat_id"].isin(set(without["heliostat_id"]))]
     rows = pd.concat([s[s["model"].astype(str) == g.preset].assign(prior="field"),
                       without.assign(prior="none")], ignore_index=True)
@@ -320,7 +315,8 @@ def training_size_note(has_study: bool, has_curves: bool = False) -> str:
                 "fit-coarse fits them, under the field prior it gave each heliostat (its "
                 "leave-out fold's), and again without it (sweep.parquet model "
                 "`<preset>+no-field-prior`); each group above draws the two curves of its "
-                "preset. field.html's training-size figures show the study's other models.")
+                "preset. The training-size figures of field.html and the heliostat pages show "
+                "the presets as fit-coarse fits them, with the prior, and the other models.")
     elif has_study:
         text = ("No heliostat of the sweep's training-size study has its group's preset "
                 "fitted both with and without the field prior (the study's heliostats are in "
