@@ -27,7 +27,8 @@ expected year-round errors from the plan's summary. Usage::
 
     flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/plan_sim.py \\
         [--heliostats 40] [--fields 1] [--seeds 5] [--noise 0.4] [--preset static-6] \\
-        [--deviations static-6] [--start 2024-03-01] [--days 7] [--seed 0] [--out runs/plan-sim]
+        [--deviations static-6] [--start 2024-03-01] [--days 7] [--seed 0] [--noise-seed 12345]
+        [--out runs/plan-sim]
 """
 
 from __future__ import annotations
@@ -60,12 +61,13 @@ def _fit(field_, folder: Path, preset: str) -> dict:
     return load_selected_parameters(wd)
 
 
-def _with_rows(field_, rows: pd.DataFrame):
-    """The field with ``rows`` (heliostat_id, time_utc, target) measured as well."""
+def _with_rows(field_, rows: pd.DataFrame, noise_seed: int = 12345):
+    """The field with ``rows`` (heliostat_id, time_utc, target) measured as well, their noise
+    drawn from ``noise_seed``."""
     from heliocal.pipeline.models.plan_check import simulated_rows
     from heliocal.pipeline.models.simulator import SimulatedField
 
-    rng = np.random.default_rng(12345)          # the same noise draws for every arm's k-th row
+    rng = np.random.default_rng(noise_seed)     # the same noise draws for every arm's k-th row
     frames = [field_.measurements]
     for hid, g in rows.groupby("heliostat_id", sort=True):
         frames.append(simulated_rows(field_, field_.heliostats[hid], g["time_utc"],
@@ -167,13 +169,13 @@ def run_field(a, seed: int) -> tuple[dict, dict, pd.Series]:
         plan = pd.read_parquet(wd / "plan.parquet")
         if arm == "plan":
             capped = plan
-        fitted = _fit(_with_rows(field_, plan), out / arm, a.preset)
+        fitted = _fit(_with_rows(field_, plan, a.noise_seed), out / arm, a.preset)
         arms[arm] = [year_errors(field_, fitted, dense)]
     for s in range(a.seeds):
         for arm, rows in (("random", random_rows(field_, capped, daylight, s, False)),
                           ("random-same-target", random_rows(field_, capped, daylight, s, True)),
                           ("historical", historical_rows(field_, capped, daylight, s))):
-            fitted = _fit(_with_rows(field_, rows), out / f"{arm}-{s}", a.preset)
+            fitted = _fit(_with_rows(field_, rows, a.noise_seed), out / f"{arm}-{s}", a.preset)
             arms.setdefault(arm, []).append(year_errors(field_, fitted, dense))
     return arms, summaries, year_errors(field_, base, dense)
 
@@ -189,6 +191,8 @@ def main(argv=None) -> int:
     ap.add_argument("--start", default="2024-03-01")
     ap.add_argument("--days", type=int, default=7)
     ap.add_argument("--seed", type=int, default=0, help="the first field's seed")
+    ap.add_argument("--noise-seed", type=int, default=12345,
+                    help="seed of the new rows' noise (shared by every arm and random seed)")
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "plan-sim")
     a = ap.parse_args(argv)
     print(f"{a.fields} field(s) of {a.heliostats} static heliostats, 10 rows each over 2023 "
