@@ -24,6 +24,7 @@ directory that several modules need is a session fixture here, built by :func:`b
 from __future__ import annotations
 
 import fcntl
+import functools
 import hashlib
 import os
 import shutil
@@ -81,6 +82,32 @@ def _slow_units_first(items):
     if os.environ.get("PYTEST_XDIST_WORKER"):
         slow = {_scope(item) for item in items if item.get_closest_marker("slow")}
         items.sort(key=lambda item: _scope(item) not in slow)  # stable: file order within
+
+
+#: What the stages' first calls import in the fork server of their worker pools (their
+#: ``warm_up``), all at once.
+STAGE_MODULES = ("heliocal.pipeline.stages.fit_coarse", "ruptures", "heliocal.pipeline.stages.sweep",
+                 "heliocal.pipeline.stages.fit_hybrid", "heliocal.pipeline.stages.plan")
+
+
+@functools.cache
+def _warm_fork_server() -> None:
+    from heliocal.pipeline.runtime.parallel import warm_up
+
+    warm_up(STAGE_MODULES, workers=2)
+
+
+@pytest.fixture(autouse=True)
+def _fork_server_with_the_stages(request):
+    """In a worker process of xdist, before its first slow test: start the process's fork server
+    with the stages' modules imported, as a command's stage does first (``warm_up``). A fork
+    server keeps the modules of its first start, and a test that starts a pool directly
+    (test_parallel's) would otherwise leave one without torch, each later pool worker importing
+    torch and the stages itself (about 1.3 s of CPU per worker; a sampling profile of the suite
+    found 4 % of its CPU there, docs/experiments/test-durations.md). ``make test-fast`` runs no
+    slow test and starts no server."""
+    if os.environ.get("PYTEST_XDIST_WORKER") and request.node.get_closest_marker("slow"):
+        _warm_fork_server()
 
 
 # ------------------------------------------------------------------------------------------------

@@ -407,3 +407,31 @@ def test_committed_sample_is_reproducible(tmp_path):
     assert sum(len(b) for b in _files(SAMPLE).values()) < 3_000_000
     truth = json.loads((SAMPLE / "ground_truth.json").read_text())
     assert sorted(h["dynamic"] for h in truth["heliostats"].values()) == [False, False, True, True]
+
+
+def test_calibration_files_reach_the_disk_with_one_sync_before_their_index(tmp_path, monkeypatch):
+    """A PAINT folder holds one file per measurement: each is renamed into place whole (a killed
+    run leaves none half-written), and all of them reach the disk with one ``sync`` before
+    timestamps.json, the index that lists them, is written; only the few index and truth files
+    are fsynced one by one. (An fsync per measurement file took 1.8 of 2.9 s to write this
+    field; checked: writing the calibration files durably makes the count below fail.)"""
+    import os
+    from heliocal.pipeline.artifacts import paths
+
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(paths.os, "fsync", lambda fd: (events.append("fsync"), real_fsync(fd))[1])
+    monkeypatch.setattr(paths.os, "sync", lambda: events.append("sync"))
+    monkeypatch.setattr(paths.os, "replace",
+                        lambda a, b: (events.append(Path(b).name), real_replace(a, b))[1])
+    field_ = simulate_field(2, seed=1, measurements=(30, 30))
+    write_field(field_, tmp_path / "f")
+    calibration = [e for e in events if e.endswith("-calibration-properties.json")]
+    assert len(calibration) == 60                      # 2 heliostats x 30 measurements
+    assert events.count("sync") == 1
+    sync_at = events.index("sync")
+    last_calibration = max(i for i, e in enumerate(events) if e in calibration)
+    assert last_calibration < sync_at < events.index("timestamps.json")
+    # fsync only for the files written one by one: not one per measurement
+    assert events.count("fsync") == len([e for e in events if e not in ("fsync", "sync")]) - 60
+    assert events.count("fsync") < 12

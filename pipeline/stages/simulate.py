@@ -18,7 +18,7 @@ import torch
 
 from .. import __version__
 from ..artifacts.audit import refuse_links
-from ..artifacts.paths import atomic_write_text, safe_child
+from ..artifacts.paths import atomic_write_text, flush_to_disk, safe_child
 from ..artifacts.workdir_lock import LOCK_FILENAME, locks_workdir
 from ..errors import InputError
 from ..models.changes import event_json
@@ -205,8 +205,9 @@ def _write_paint(out: Path, field_: SimulatedField, paint_ids: list[str], is_pai
                "focal_spot": {"UTIS": [float(v) for v in spot_wgs[i]]}}
         atomic_write_text(safe_child(safe_child(out / "paint", hid) / "calibration",
                                      f"{mid}-calibration-properties.json"),
-                          json.dumps(doc) + "\n")
+                          json.dumps(doc) + "\n", durable=False)
         stamps[f"{hid}_{mid}"] = _iso(r["timestamp"])
+    flush_to_disk()   # the calibration files at once, before the index that lists them
     atomic_write_text(out / "paint" / "timestamps.json",
                       json_text(dict(sorted(stamps.items()))))
     files["paint"] = "paint/"
