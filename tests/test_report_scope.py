@@ -83,6 +83,10 @@ def test_attention_report_draws_only_their_figures_and_adds_one_named_incrementa
     assert len(first["heliostat_pages"]) == 2
     page = (wd / "report" / "heliostats" / "AB02.html").read_text()
     assert "No figures drawn for AB02" in page and "<img" not in page
+    # its numbers stay: the model and why, the parameters, the accuracy table (AB02's test
+    # error 1.000 mrad, tests/test_report.py's constants)
+    assert "Selected model and why" in page and "<h2>Parameters</h2>" in page
+    assert "<b>1.000 mrad</b>test error" in page
     assert re.search(r"--incremental --figures-for AB02</code>", page)
     assert "<img" in (wd / "report" / "heliostats" / "AA01.html").read_text()
     assert "Figures of 1 of the 2 heliostats" in (wd / "report" / "report.md").read_text()
