@@ -92,7 +92,7 @@ def test_attention_report_draws_only_their_figures_and_adds_one_named_incrementa
     assert "Figures of 1 of the 2 heliostats" in (wd / "report" / "report.md").read_text()
 
     added = run_report(wd, workers=1, alert_mrad=5.0, figures="attention",
-                       figures_for=["AB02"], incremental=True)
+                       figures_for="AB02", incremental=True)   # one id: not its characters
     names2 = {p.name for p in (wd / "report" / "figures").glob("*.png")}
     assert names2 - names == {n.replace("AA01", "AB02") for n in own("AA01")}
     # drawn: AB02's own figures only; kept: everything of the first report

@@ -112,7 +112,8 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
         listed first on the overview or in the sweep's training-size study) or ``auto``
         (default: ``all`` up to 100 heliostats, else ``attention``); see
         :mod:`heliocal.pipeline.report.scope`.
-    figures_for : heliostats whose figures are drawn as well, whatever ``figures`` says.
+    figures_for : heliostats (ids, or one id) whose figures are drawn as well, whatever
+        ``figures`` says.
 
     Returns
     -------
@@ -123,6 +124,7 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
     workdir = Path(workdir)
     out = Path(out_dir) if out_dir is not None else workdir / "report"
     figures = check_choice(str(figures), "figures", "run_report", ReportFigures.values())
+    figures_for = [figures_for] if isinstance(figures_for, str) else list(figures_for)
     summary = _write_report(workdir, out, workers, float(alert_mrad), floor_mrad,
                             bool(incremental), (str(figures), tuple(map(str, figures_for))))
     keep = {Path(f).name for f in summary["figures"]}
