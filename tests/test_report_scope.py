@@ -113,3 +113,28 @@ def test_cli_names_an_unknown_heliostat_in_one_error_line(tmp_path, runner):
                                      "heliostats.html)")
     result = runner.invoke(app, ["report", "--workdir", str(wd), "--figures", "some"])
     assert result.exit_code == 2 and "'some' is not one of" in result.stderr
+
+
+def test_workers_get_the_figures_in_chunks_of_at_most_fifty(monkeypatch):
+    """8,000 figures on 2 workers went as 8 chunks of 1,000 tasks, each task with its
+    heliostat's rows (a gigabyte per worker); now at most FIGURES_PER_CHUNK (50) per chunk:
+    8,000 / (2 x 80) = 50. Few figures keep the 4 chunks per worker."""
+    from types import SimpleNamespace
+
+    from heliocal.pipeline.report.render import FigureTask
+    from heliocal.pipeline.stages import report_figures
+
+    calls = []
+
+    def fake_map(func, tasks, workers, chunks_per_worker):
+        calls.append((len(tasks), workers, chunks_per_worker))
+        return [(b"png", None)] * len(tasks)
+
+    monkeypatch.setattr(report_figures, "map_tasks", fake_map)
+    for n in (8000, 120):
+        tasks = [FigureTask("sky_map", f"sky_map_H{i:04d}.png", "c", f"H{i:04d}", {"i": i})
+                 for i in range(n)]
+        drawn, counts = report_figures.drawn_or_kept(SimpleNamespace(extra={}), None, tasks, 2,
+                                                     incremental=False)
+        assert counts == {"drawn": n, "kept": 0} and len(drawn) == n
+    assert calls == [(8000, 2, 80), (120, 2, 4)]
