@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from heliocal.pipeline.vocabulary import DEFAULT_ALERT_MRAD
+from heliocal.pipeline.vocabulary import DEFAULT_ALERT_MRAD, ReportFigures
 from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, Workers, command,
                               emit, fail, fmt_number, stdout)
 
@@ -32,8 +32,11 @@ def _human(summary: dict) -> None:
                      markup=False)
     kept = f", {summary['figures_kept']} kept from the last report" if summary.get(
         "figures_kept") else ""
+    pages = len(summary.get("heliostat_pages", []))
+    scope = summary.get("figure_heliostats")
+    scope = f" ({scope} with their own figures)" if scope is not None and scope < pages else ""
     stdout.print(f"wrote {summary['report']} ({len(summary['figures'])} figures{kept}, "
-                 f"{len(summary.get('heliostat_pages', []))} heliostat pages), "
+                 f"{pages} heliostat pages{scope}), "
                  f"{summary['markdown']}, {summary['metrics']}", markup=False)
 
 
@@ -56,6 +59,14 @@ def report_cmd(
         "--incremental", help="Draw only the figures whose data changed since the last report "
                               "and keep the others' images; pages, tables and metrics are "
                               "computed again.")] = False,
+    figures: Annotated[ReportFigures, typer.Option(
+        "--figures", help="Whose own figures to draw: all, attention (on alert, listed first "
+                          "on the overview, in the sweep's training-size study) or auto (all "
+                          "up to 100 heliostats, else attention); every heliostat keeps its "
+                          "page.")] = ReportFigures.auto,
+    figures_for: Annotated[Optional[list[str]], typer.Option(
+        "--figures-for", help="Also draw this heliostat's figures (repeat, or comma-separated "
+                              "ids); with --incremental the others' are kept.")] = None,
     json_: JsonFlag = False,
     quiet: QuietFlag = False,
 ) -> None:
@@ -64,8 +75,9 @@ def report_cmd(
     from heliocal.pipeline.report.regression import compare_metrics, format_report, load_metrics
     from heliocal.pipeline.stages.report import run_report
 
+    named = [h.strip() for item in figures_for or () for h in item.split(",") if h.strip()]
     summary = run_report(workdir, workers=workers, alert_mrad=alert_mrad, floor_mrad=floor_mrad,
-                         incremental=incremental)
+                         incremental=incremental, figures=figures.value, figures_for=named)
     if compare is not None:
         try:
             diffs = compare_metrics(load_metrics(summary["metrics"]), load_metrics(compare))

@@ -13,7 +13,7 @@ import enum
 
 __all__ = ["Choice", "CoarsePreset", "RobustStart", "SplitMethod", "SplitMetric", "FineMode",
            "PretrainVariant", "NeuralBaseline", "SweepScreen", "AimModel", "CoarseLoss", "CoarseSolver",
-           "CoarsePrior", "SimulatedMounting",
+           "CoarsePrior", "SimulatedMounting", "ReportFigures",
            "TrainingDtype", "Scheduler", "DisturbanceKind", "SimulatedType", "FocalSpotDetector",
            "AzimuthConvention", "DEFAULT_BATCH_ROWS", "DEFAULT_TIME_MIN",
            "DEFAULT_TIME_MAX_MARGIN_DAYS", "DEFAULT_MAX_SPOT_DISTANCE_M",
@@ -44,6 +44,16 @@ class CoarsePreset(Choice):
     static_20 = "static-20"
     static_28 = "static-28"
     stone_8 = "stone-8"
+
+
+class ReportFigures(Choice):
+    """``report --figures``: whose own figures the report draws (``docs/report.md``, "Whose
+    figures"): every heliostat's, those that need attention, or auto (every heliostat's up to
+    a small field, else those that need attention)."""
+
+    auto = "auto"
+    all = "all"
+    attention = "attention"
 
 
 class TrainingDtype(Choice):

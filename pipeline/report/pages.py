@@ -17,6 +17,7 @@ from ..artifacts.schemas import REJECTION_REASONS
 from ..vocabulary import STD_ERROR_PSEUDO_INVERSE
 from .inputs import ReportInputs
 from .metrics import final_models, split_sort_key
+from .scope import FigureScope
 from .render import (FigureTask, ReportFigure, heliostat_figure_plan, sweep_choices,
                      sweep_weight_decays)
 
@@ -99,11 +100,13 @@ def parameter_tables(coarse_params) -> dict[str, list[list]]:
     return out
 
 
-def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
+def build_report(inp: ReportInputs, metrics: dict,
+                 scope: FigureScope | None = None) -> list[tuple]:
     """The report as blocks: ``("h1"|"h2"|"h3"|"p"|"note", text)``, ``("table", headers, rows)``
     and ``("task", FigureTask)`` (figures still to draw: :func:`figure_tasks` lists them,
     :func:`resolve_figures` puts the drawn figures in their place). A note about one heliostat
-    carries its id third (its page shows it too)."""
+    carries its id third (its page shows it too). ``scope``: whose figures are drawn (default
+    every heliostat's, :mod:`.scope`)."""
     data = metrics["data"]
     helios = metrics["heliostats"]
     blocks: list[tuple] = [("h1", f"heliocal report: {inp.workdir}")]
@@ -119,7 +122,7 @@ def build_report(inp: ReportInputs, metrics: dict) -> list[tuple]:
         blocks += _selection_blocks(inp, helios)
     blocks += _parameter_blocks(inp)
     blocks.append(("h2", "Figures"))
-    blocks += heliostat_figure_plan(inp, metrics, final_models(inp))
+    blocks += heliostat_figure_plan(inp, metrics, final_models(inp), scope)
     return blocks
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from .figures import TITLE_Y, new_figure
+
 
 __all__ = [
     "alert_table",
@@ -66,7 +68,6 @@ def plot_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame, regimes:
     (alternating colours; episodes red), breaks as vertical lines (dashed: renovation) and
     outliers circled. Returns ``(figure, None)`` or ``(None, reason)``."""
     import matplotlib.dates as mdates
-    from matplotlib.figure import Figure
 
     p = predictions[(predictions["heliostat_id"] == heliostat) & predictions["selected"]]
     if "source" in p.columns:
@@ -78,8 +79,10 @@ def plot_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame, regimes:
     r = regimes[regimes["heliostat_id"] == heliostat]
     if len(d) < 2 or r.empty:
         return None, f"{heliostat} has no regimes (fewer than three timestamped rows)"
-    fig = Figure(figsize=(8.0, 3.4), layout="constrained")
-    ax = fig.subplots()
+    # fixed margins (room for the legend on the right): constrained layout would cost about as
+    # much again as drawing the figure, which the report draws for many heliostats
+    fig, axes = new_figure(8.0, 3.4, margins_in=(0.65, 1.55, 0.55, 0.35))
+    ax = axes[0, 0]
     naive = lambda t: pd.Timestamp(t).tz_convert("UTC").tz_localize(None)  # noqa: E731
     seg = r[r["kind"] != "outlier"].sort_values("start", kind="mergesort")
     starts = [naive(t) for t in seg["start"]]
@@ -112,6 +115,6 @@ def plot_regimes(measurements: pd.DataFrame, predictions: pd.DataFrame, regimes:
     ax.set_ylim(0, max(1.05 * float(d["error_mrad"].max()), 1e-3))
     ax.grid(alpha=0.3)
     ax.set_title(f"{heliostat}: {n_reg} regime{'s' if n_reg != 1 else ''}, {n_ep} "
-                 f"episode{'s' if n_ep != 1 else ''}", fontsize="medium")
+                 f"episode{'s' if n_ep != 1 else ''}", fontsize="medium", y=TITLE_Y)
     ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
     return fig, None

@@ -19,6 +19,7 @@ from .figures import (SKY_POINTS_PER_MRAD, plot_error_over_time, plot_gp_correct
                       plot_hybrid_vs_coarse, plot_sky_map, plot_training_size, plot_weight_decay,
                       png_bytes)
 from .inputs import ReportInputs
+from .scope import FigureScope
 
 __all__ = [
     "FigureTask",
@@ -155,18 +156,36 @@ class _Plan:
         return model
 
 
-def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict) -> list[tuple]:
+def heliostat_figure_plan(inp: ReportInputs, metrics: dict, finals: dict,
+                          scope: FigureScope | None = None) -> list[tuple]:
     """The per-heliostat figures (paper 000 figs. 6, 7, 9a, error over time) and fig. 8, in the
     order of the report, as blocks: ``("h3", text)``, ``("note", text)``, ``("hnote", text,
     heliostat)`` (a note for that heliostat's page only) and ``("task", FigureTask)`` (a task
-    whose figure cannot be drawn becomes a note naming why)."""
-    plan = _Plan(inp, metrics["heliostats"], by_heliostat(inp.measurements),
-                 by_heliostat(inp.split), by_heliostat(inp.predictions), by_heliostat(inp.sweep),
-                 sweep_choices(inp))
-    return (_training_size_plan(plan) + _sky_map_plan(plan, finals) + _weight_decay_plan(plan)
-            + _gp_map_plan(plan) + _hybrid_vs_coarse_plan(plan)
+    whose figure cannot be drawn becomes a note naming why). ``scope``: whose figures are
+    drawn (default every heliostat's); the others get a note on their page instead, and only
+    the drawn heliostats' rows are grouped."""
+    helios = metrics["heliostats"]
+    notes: list[tuple] = []
+    if scope is not None and not scope.every:
+        helios = {hid: h for hid, h in helios.items() if scope.covers(hid)}
+        notes = [("note", scope.field_note())] + [
+            ("hnote", scope.page_note(hid), hid) for hid in metrics["heliostats"]
+            if not scope.covers(hid)]
+    plan = _Plan(inp, helios, *(by_heliostat(_rows_of(df, helios)) for df in (
+        inp.measurements, inp.split, inp.predictions, inp.sweep)), sweep_choices(inp))
+    return (notes + _training_size_plan(plan) + _sky_map_plan(plan, finals)
+            + _weight_decay_plan(plan) + _gp_map_plan(plan) + _hybrid_vs_coarse_plan(plan)
             + _regime_plan(inp, plan.hids, plan.meas, plan.preds)
             + _error_over_time_plan(plan, finals))
+
+
+def _rows_of(df: pd.DataFrame | None, heliostats: dict) -> pd.DataFrame | None:
+    """``df``'s rows of ``heliostats`` (all of them when it has no other)."""
+    if df is None:
+        return None
+    ids = df["heliostat_id"].astype(str)
+    keep = ids.isin(set(heliostats))
+    return df if keep.all() else df[keep.to_numpy()]
 
 
 def _training_size_plan(plan: _Plan) -> list[tuple]:

@@ -45,6 +45,7 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 from ..artifacts.manifests import current_transaction, load_manifest
 from ..artifacts.paths import artifact_path, safe_child, safe_name
@@ -52,7 +53,7 @@ from ..artifacts.schemas import COARSE_PARAMS
 from ..artifacts.store import read_provenance
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
-from ..errors import check_int
+from ..errors import check_choice, check_int
 from ..report.field import (ALERT_MRAD, ERROR_LINES_MRAD, field_summary, field_table, tower_en_m,
                             svg_field_map, worst)
 from ..report.field_figures import comparison_table, training_size_frame, weight_decay_frame
@@ -65,10 +66,12 @@ from ..report.pages import (build_report, figure_tasks, parameter_tables, render
 from ..report.forward import svg_next_day
 from ..report.render import FigureTask, ReportFigure, by_heliostat
 from ..report.regimes import regime_alerts
+from ..report.scope import figure_scope, study_heliostats
 from ..report.site import (SORT_JS, field_page_blocks, heliostat_html, heliostats_list_html,
                            index_html, nav_html, why_text)
 from ..runtime.parallel import default_workers
 from ..runtime.process_state import restores_process_state
+from ..vocabulary import ReportFigures
 from .report_figures import drawn_or_kept
 
 __all__ = [
@@ -86,7 +89,8 @@ log = logging.getLogger("heliocal.report")
 @restores_process_state
 def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
                workers: int | None = None, alert_mrad: float = ALERT_MRAD,
-               floor_mrad: float | None = None, incremental: bool = False) -> dict:
+               floor_mrad: float | None = None, incremental: bool = False,
+               figures: str = "auto", figures_for: Sequence[str] = ()) -> dict:
     """The ``report`` stage: write the pages, report.md, figures/*.png and metrics.json.
 
     Parameters
@@ -104,17 +108,25 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
     incremental : take each figure whose task (its data, caption and the code) is the one the
         previous report recorded from that report instead of drawing it again
         (:mod:`.report_figures`); pages, tables and metrics are computed again either way.
+    figures : whose own figures are drawn: ``all``, ``attention`` (the heliostats on alert,
+        listed first on the overview or in the sweep's training-size study) or ``auto``
+        (default: ``all`` up to 100 heliostats, else ``attention``); see
+        :mod:`heliocal.pipeline.report.scope`.
+    figures_for : heliostats (ids, or one id) whose figures are drawn as well, whatever
+        ``figures`` says.
 
     Returns
     -------
-    A summary: paths written, figures, notes, the field's numbers and per heliostat the final
-    model's mean test error.
+    A summary: paths written, figures, notes, the field's numbers, per heliostat the final
+    model's mean test error, and how many heliostats have their own figures.
     """
     workers = default_workers() if workers is None else check_int(workers, "workers", "report", 1)
     workdir = Path(workdir)
     out = Path(out_dir) if out_dir is not None else workdir / "report"
+    figures = check_choice(str(figures), "figures", "run_report", ReportFigures.values())
+    figures_for = [figures_for] if isinstance(figures_for, str) else list(figures_for)
     summary = _write_report(workdir, out, workers, float(alert_mrad), floor_mrad,
-                            bool(incremental))
+                            bool(incremental), (str(figures), tuple(map(str, figures_for))))
     keep = {Path(f).name for f in summary["figures"]}
     pages = {Path(p).name for p in summary["heliostat_pages"]}
     for folder, kept, pattern in ((out / "figures", keep, "*.png"),
@@ -196,36 +208,29 @@ def _noise_floors_mrad(truth: Path) -> list[float]:
 
 @stage_transaction("report", root=lambda a: a["out"], consistent_inputs=False)
 def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
-                  floor_mrad: float | None, incremental: bool) -> dict:
+                  floor_mrad: float | None, incremental: bool,
+                  figures: tuple[str, tuple[str, ...]]) -> dict:
     from .aim_choice import aim_models  # the one answer to "which model does aim use"
 
     txn = current_transaction(out, "report")
     inp = load_inputs(workdir)
     choices = aim_models(workdir)
-    inp.gp_maps = _gp_maps(workdir, choices)
     metrics = compute_metrics(inp)
     helios = metrics["heliostats"]
-    blocks = build_report(inp, metrics)
     table = field_table(inp, metrics, choices, alert_mrad=alert_mrad,
                         extra_alerts=regime_alerts(inp.regimes))
+    first = worst(table)    # the overview's table; their figures are drawn at any field size
+    scope = figure_scope(table, figures[0], figures[1], first["heliostat_id"],
+                         study_heliostats(inp.sweep), str(workdir))
+    inp.gp_maps = _gp_maps(workdir, {h: c for h, c in choices.items() if scope.covers(h)})
+    blocks = build_report(inp, metrics, scope)
     summary = field_summary(table, alert_mrad=alert_mrad)
     measured_floor = _measurement_floor(workdir, floor_mrad)
     floor, floor_source = measured_floor.value_mrad, measured_floor.source
 
     # field figures
     wd_frame = weight_decay_frame(inp.sweep)
-    cdf_task = FigureTask("field_cdf", "field_error_cdf.png",
-                          "Share of heliostats whose model (the one aim uses) has a mean test error "
-                          "below x (dotted: the mean next-day error of the rolling-origin "
-                          "evaluation, the coarse preset recalibrated every calibration day); "
-                          "dashed: " + ", ".join(f"{x:g}" for x in ERROR_LINES_MRAD)
-                          + " mrad" + (f"; grey: the measurement floor ({floor_source})"
-                                       if floor is not None else ""), None,
-                          {"errors": table["test_error_mrad"].to_numpy(float),
-                           "next_day": table.loc[~table["degenerate"].to_numpy(bool),
-                                                 "next_day_error_mrad"].to_numpy(float),
-                           "lines": ERROR_LINES_MRAD, "floor": floor,
-                           "floor_source": floor_source})
+    cdf_task = _cdf_task(table, floor, floor_source)
     ts_frame = training_size_frame(inp.sweep)
     field_plan = _field_plan(inp, wd_frame, ts_frame, comparison_table(wd_frame, inp.selection))
     groups = _prior_groups(inp)
@@ -268,7 +273,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
                          f"heliostat leans on it are on {PRIOR_PAGE}.")
     svg = svg_field_map(table, tower_en_m(inp), alert_mrad=alert_mrad)
     txn.write_bytes("index.html", index_html(
-        title, subtitle, summary, table, worst(table), svg, cdf, cdf_why, floor_text,
+        title, subtitle, summary, table, first, svg, cdf, cdf_why, floor_text,
         run_notes, nav_pages).encode("utf-8"))
     txn.write_bytes("heliostats.html", heliostats_list_html(title, table,
                                                             nav_pages).encode("utf-8"))
@@ -296,7 +301,24 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
             "measurement_floor": {"value_mrad": floor, "source": floor_source,
                                   "problems": measured_floor.problems},
             "heliostat_pages": pages, "field_summary": summary, "heliostats": heliostats,
-            "figures_drawn": counts["drawn"], "figures_kept": counts["kept"]}
+            "figures_drawn": counts["drawn"], "figures_kept": counts["kept"],
+            "figure_heliostats": len(scope.heliostats)}
+
+
+def _cdf_task(table, floor: float | None, floor_source: str) -> FigureTask:
+    """The overview's error distribution (``field_error_cdf.png``) as a figure task."""
+    return FigureTask("field_cdf", "field_error_cdf.png",
+                      "Share of heliostats whose model (the one aim uses) has a mean test error "
+                      "below x (dotted: the mean next-day error of the rolling-origin "
+                      "evaluation, the coarse preset recalibrated every calibration day); "
+                      "dashed: " + ", ".join(f"{x:g}" for x in ERROR_LINES_MRAD)
+                      + " mrad" + (f"; grey: the measurement floor ({floor_source})"
+                                   if floor is not None else ""), None,
+                      {"errors": table["test_error_mrad"].to_numpy(float),
+                       "next_day": table.loc[~table["degenerate"].to_numpy(bool),
+                                             "next_day_error_mrad"].to_numpy(float),
+                       "lines": ERROR_LINES_MRAD, "floor": floor,
+                       "floor_source": floor_source})
 
 
 def _prior_groups(inp) -> list:

@@ -16,6 +16,7 @@ they are made from the whole field and cost little beside the figures.
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Sequence
 
@@ -33,6 +34,11 @@ log = logging.getLogger("heliocal.report")
 #: Fewer figures than this are drawn in this process: starting worker processes (each imports
 #: matplotlib) costs more than it saves.
 MIN_PARALLEL_FIGURES = 40
+
+#: At most about this many figures go to a worker at once: a task carries its heliostat's rows,
+#: so a chunk of a thousand (a quarter of a worker's share of 8,000 figures) held a gigabyte in
+#: each worker.
+FIGURES_PER_CHUNK = 50
 
 
 def figure_digest(task: FigureTask) -> str:
@@ -81,8 +87,10 @@ def drawn_or_kept(txn, out: Path, tasks: Sequence[FigureTask], workers: int,
     kept = _previous(txn, out, digests) if incremental else {}
     todo = [t for t in tasks if t.filename not in kept]
     n_workers = workers if len(todo) >= MIN_PARALLEL_FIGURES else 1
+    per_worker = max(4, math.ceil(len(todo) / (n_workers * FIGURES_PER_CHUNK)))
     drawn = dict(zip((t.filename for t in todo),
-                     map_tasks(render_task, todo, workers=n_workers) if todo else []))
+                     map_tasks(render_task, todo, workers=n_workers,
+                               chunks_per_worker=per_worker) if todo else []))
     results = {t.filename: kept[t.filename] if t.filename in kept else drawn[t.filename]
                for t in tasks}
     txn.extra[INCREMENTAL_KEY] = {
