@@ -95,9 +95,6 @@ def test_a_guard_in_a_process_without_torch_does_not_import_it(tmp_path):
     import torch (about a second of every such command's start). Run in a fresh interpreter,
     since this one has torch; the same process then imports torch inside a guard, turns the
     deterministic flag on, and must find it off again after the guard (torch's own default)."""
-    import subprocess
-    import sys
-
     code = (
         "import sys\n"
         "from heliocal.pipeline.runtime.process_state import restored_process_state\n"
@@ -108,21 +105,16 @@ def test_a_guard_in_a_process_without_torch_does_not_import_it(tmp_path):
         "    import torch\n"
         "    torch.use_deterministic_algorithms(True)\n"
         "print(torch.are_deterministic_algorithms_enabled())\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True).stdout.split()
-    assert out == ["False", "False"]
+    assert _printed_by_a_fresh_interpreter(code) == ["False", "False"]
 
 
 def test_the_deterministic_flag_is_set_without_loading_torchs_compiler():
     """``deterministic_algorithms`` sets the flag torch's kernels read, as
     ``torch.use_deterministic_algorithms`` does, without that function's import of the compiler
-    configuration (``torch._inductor.config``: about 1 s of CPU in each pool worker that set the
-    flag first). Once the compiler is loaded, the compiler's copy is kept in step too. Fresh
+    configuration (``torch._inductor.config``: about 1 s of CPU in a process that sets the flag
+    first). Once the compiler is loaded, the compiler's copy is kept in step too. Fresh
     interpreter: this one may have loaded the compiler already. (Checked: calling
     ``torch.use_deterministic_algorithms`` in the helper instead makes the first line True.)"""
-    import subprocess
-    import sys
-
     code = (
         "import sys, torch\n"
         "from heliocal.pipeline.runtime.process_state import deterministic_algorithms\n"
@@ -136,6 +128,14 @@ def test_the_deterministic_flag_is_set_without_loading_torchs_compiler():
         "import torch._inductor.config as inductor\n"
         "deterministic_algorithms(True, warn_only=False)\n"
         "print(torch.are_deterministic_algorithms_enabled(), inductor.deterministic)\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True).stdout.split()
-    assert out == ["False", "True", "True", "False", "False", "True", "True"]
+    assert _printed_by_a_fresh_interpreter(code) == ["False", "True", "True", "False", "False",
+                                                     "True", "True"]
+
+
+def _printed_by_a_fresh_interpreter(code: str) -> list[str]:
+    """The words ``code`` prints, run by a new Python process (this one has torch loaded)."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=True).stdout.split()

@@ -60,10 +60,11 @@ def deterministic_algorithms(mode: bool = True, *, warn_only: bool = True) -> No
 
     ``torch.use_deterministic_algorithms`` also sets the flag's copy in the configuration of
     torch's compiler (``torch._inductor.config``), and importing that configuration loads the
-    compiler stack: about 1 s of CPU in every process that calls it first, each worker of a pool
-    included. heliocal never compiles a model, so the compiler's copy is left alone unless the
-    compiler is loaded already (then the public function keeps both in step). The flag torch's
-    kernels read is the same either way (``torch.are_deterministic_algorithms_enabled``)."""
+    compiler stack: about 1 s of CPU in every process that calls it first. heliocal never
+    compiles a model, so the compiler's copy is left alone unless the compiler is loaded already
+    (then the public function keeps both in step). The flag torch's kernels read is the same
+    either way (``torch.are_deterministic_algorithms_enabled``). A process that trains loads the
+    compiler's front end anyway, through torch.optim (:data:`.parallel.TRAINING_IMPORTS`)."""
     import torch
 
     setter = getattr(torch._C, "_set_deterministic_algorithms", None)
