@@ -95,6 +95,9 @@ def test_a_guard_in_a_process_without_torch_does_not_import_it(tmp_path):
     import torch (about a second of every such command's start). Run in a fresh interpreter,
     since this one has torch; the same process then imports torch inside a guard, turns the
     deterministic flag on, and must find it off again after the guard (torch's own default)."""
+    import subprocess
+    import sys
+
     code = (
         "import sys\n"
         "from heliocal.pipeline.runtime.process_state import restored_process_state\n"
@@ -105,37 +108,6 @@ def test_a_guard_in_a_process_without_torch_does_not_import_it(tmp_path):
         "    import torch\n"
         "    torch.use_deterministic_algorithms(True)\n"
         "print(torch.are_deterministic_algorithms_enabled())\n")
-    assert _printed_by_a_fresh_interpreter(code) == ["False", "False"]
-
-
-def test_the_deterministic_flag_is_set_without_loading_torchs_compiler():
-    """``deterministic_algorithms`` sets the flag torch's kernels read, as
-    ``torch.use_deterministic_algorithms`` does, without that function's import of the compiler
-    configuration (``torch._inductor.config``: about 1 s of CPU in a process that sets the flag
-    first). Once the compiler is loaded, the compiler's copy is kept in step too. Fresh
-    interpreter: this one may have loaded the compiler already. (Checked: calling
-    ``torch.use_deterministic_algorithms`` in the helper instead makes the first line True.)"""
-    code = (
-        "import sys, torch\n"
-        "from heliocal.pipeline.runtime.process_state import deterministic_algorithms\n"
-        "deterministic_algorithms(True, warn_only=True)\n"
-        "print('torch._inductor.config' in sys.modules)\n"
-        "print(torch.are_deterministic_algorithms_enabled(),"
-        " torch.is_deterministic_algorithms_warn_only_enabled())\n"
-        "deterministic_algorithms(False, warn_only=False)\n"
-        "print(torch.are_deterministic_algorithms_enabled(),"
-        " torch.is_deterministic_algorithms_warn_only_enabled())\n"
-        "import torch._inductor.config as inductor\n"
-        "deterministic_algorithms(True, warn_only=False)\n"
-        "print(torch.are_deterministic_algorithms_enabled(), inductor.deterministic)\n")
-    assert _printed_by_a_fresh_interpreter(code) == ["False", "True", "True", "False", "False",
-                                                     "True", "True"]
-
-
-def _printed_by_a_fresh_interpreter(code: str) -> list[str]:
-    """The words ``code`` prints, run by a new Python process (this one has torch loaded)."""
-    import subprocess
-    import sys
-
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          check=True).stdout.split()
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False", "False"]

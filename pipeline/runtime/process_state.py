@@ -23,8 +23,8 @@ import os
 import sys
 from typing import Callable, Iterator, TypeVar
 
-__all__ = ["ProcessState", "one_thread", "single_threaded", "deterministic_algorithms",
-           "restored_process_state", "restores_process_state"]
+__all__ = ["ProcessState", "one_thread", "single_threaded", "restored_process_state",
+           "restores_process_state"]
 
 F = TypeVar("F", bound=Callable)
 
@@ -53,25 +53,6 @@ def one_thread(*, blas: bool = False) -> Iterator[None]:
         torch.set_num_threads(before)
         if limits is not None:
             limits.restore_original_limits()
-
-
-def deterministic_algorithms(mode: bool = True, *, warn_only: bool = True) -> None:
-    """Set torch's deterministic-algorithms flag (and its warn-only mode) for this process.
-
-    ``torch.use_deterministic_algorithms`` also sets the flag's copy in the configuration of
-    torch's compiler (``torch._inductor.config``), and importing that configuration loads the
-    compiler stack: about 1 s of CPU in every process that calls it first. heliocal never
-    compiles a model, so the compiler's copy is left alone unless the compiler is loaded already
-    (then the public function keeps both in step). The flag torch's kernels read is the same
-    either way (``torch.are_deterministic_algorithms_enabled``). A process that trains loads the
-    compiler's front end anyway, through torch.optim (:data:`.parallel.TRAINING_IMPORTS`)."""
-    import torch
-
-    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
-    if setter is None or "torch._inductor.config" in sys.modules:
-        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
-    else:
-        setter(mode, warn_only=warn_only)
 
 
 def single_threaded(func: F) -> F:
@@ -120,8 +101,8 @@ class ProcessState(dict):
         if (torch.are_deterministic_algorithms_enabled() != settings["deterministic"]
                 or torch.is_deterministic_algorithms_warn_only_enabled()
                 != settings["deterministic_warn_only"]):
-            deterministic_algorithms(settings["deterministic"],
-                                     warn_only=settings["deterministic_warn_only"])
+            torch.use_deterministic_algorithms(settings["deterministic"],
+                                               warn_only=settings["deterministic_warn_only"])
         threads = settings.get("threads")
         if threads is not None and torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
