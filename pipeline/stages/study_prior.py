@@ -131,17 +131,36 @@ def study_coarse_rows(h, small: Sequence[int], fitted: tuple, masks: dict, dists
         jobs += [(n, plain, True) for n in [*small, h.n_full]]
     rows: list[dict] = []
     bases: dict = {}
-    for n, names, without in jobs:
-        t0 = time.perf_counter()
-        fits = fit_presets([h.spec], [h.nominal], [h.data.subset(masks[n])], names,
-                           priors=None if without else {h.hid: priors}, **coarse_options)[0]
-        wall = (time.perf_counter() - t0) / len(names)
-        for fit in fits:
-            with torch.no_grad():
-                err = normal_errors_mrad(fit.params, h.spec, h.data).numpy()
-            model = no_field_prior_name(fit.preset) if without else fit.preset
-            rows.append(sweep_row(h.hid, model, n, float("nan"), 0, err, h.labels, masks[n],
-                                  dists[n], fit.preset, wall))
-            if not without and fit.preset == base_preset and n < h.n_full:
-                bases[n] = fit.params
+    for (names, without), sizes in _jobs_by_presets(jobs).items():
+        for n, fits, wall in _fit_sizes(h, sizes, names, masks,
+                                        None if without else {h.hid: priors}, coarse_options):
+            for fit in fits:
+                with torch.no_grad():
+                    err = normal_errors_mrad(fit.params, h.spec, h.data).numpy()
+                model = no_field_prior_name(fit.preset) if without else fit.preset
+                rows.append(sweep_row(h.hid, model, n, float("nan"), 0, err, h.labels, masks[n],
+                                      dists[n], fit.preset, wall))
+                if not without and fit.preset == base_preset and n < h.n_full:
+                    bases[n] = fit.params
     return rows, bases
+
+
+def _jobs_by_presets(jobs) -> dict[tuple, list[int]]:
+    """(presets, without the field prior) -> the training sizes fitted so, in job order."""
+    grouped: dict[tuple, list[int]] = {}
+    for n, names, without in jobs:
+        grouped.setdefault((names, without), []).append(n)
+    return grouped
+
+
+def _fit_sizes(h, sizes: Sequence[int], names: tuple, masks: dict, priors, coarse_options):
+    """``(n, fits, wall_time_s per fit)`` of heliostat ``h`` at each size of ``sizes``: one
+    :func:`fit_presets` call holding every size as its own entry (each its robust start and its
+    solve, as fit-coarse's heliostats of a chunk), so the batched solver runs one program per
+    preset instead of one per size."""
+    t0 = time.perf_counter()
+    fits = fit_presets([h.spec] * len(sizes), [h.nominal] * len(sizes),
+                       [h.data.subset(masks[n]) for n in sizes], names, priors=priors,
+                       **coarse_options)
+    wall = (time.perf_counter() - t0) / (len(names) * len(sizes))
+    return [(n, f, wall) for n, f in zip(sizes, fits)]
