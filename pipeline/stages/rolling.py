@@ -94,7 +94,14 @@ def _origins(rows: pd.DataFrame, breaks: np.ndarray, max_origins: int) -> list[O
 
 
 def _rolling_task(chunk: RollingChunk) -> list[pd.DataFrame]:
-    """Every origin of the chunk's heliostats; per heliostat its rolling_origin rows."""
+    """Every origin of the chunk's heliostats; per heliostat its rolling_origin rows. Torch and
+    the BLAS pools on one thread for the whole task (setting the BLAS limit scans the process's
+    loaded libraries: once per task, not once per origin)."""
+    with one_thread(blas=True):
+        return _rolling_records(chunk)
+
+
+def _rolling_records(chunk: RollingChunk) -> list[pd.DataFrame]:
     hrows = [pd.Series(h) for h in chunk.heliostats]
     specs = [HeliostatSpec.from_row(h) for h in hrows]
     nominals = [nominal_parameters(h) for h in hrows]
@@ -107,12 +114,11 @@ def _rolling_task(chunk: RollingChunk) -> list[pd.DataFrame]:
     for j in range(max((len(o) for o in origins), default=0)):
         now = [h for h in range(len(hrows)) if len(origins[h]) > j]
         trains = [data[h].subset(origins[h][j].train) for h in now]
-        with one_thread(blas=True):
-            if chunk.fixed is not None:
-                params = [torch.as_tensor(chunk.fixed[h], dtype=torch.float64) for h in now]
-            else:
-                params = _origin_fits(chunk, [specs[h] for h in now], [nominals[h] for h in now],
-                                      trains, [previous[h] for h in now], [priors[h] for h in now])
+        if chunk.fixed is not None:
+            params = [torch.as_tensor(chunk.fixed[h], dtype=torch.float64) for h in now]
+        else:
+            params = _origin_fits(chunk, [specs[h] for h in now], [nominals[h] for h in now],
+                                  trains, [previous[h] for h in now], [priors[h] for h in now])
         for h, fitted in zip(now, params):
             o = origins[h][j]
             scored = data[h].subset(o.score)
