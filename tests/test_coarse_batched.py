@@ -78,7 +78,9 @@ def test_batched_and_scipy_agree_on_the_sample_heliostats(tmp_path, sample, samp
     wd = _workdir(tmp_path, sample, sample_split)
     out = {}
     for solver in ("scipy", "batched"):
-        run_fit_coarse(wd, preset="auto", solver=solver)  # soft_l1, 1 mrad: the stage's default
+        # soft_l1, 1 mrad: the stage's default; no rolling-origin evaluation (its refits are
+        # not compared here, and the scipy solver fits each origin cold: most of the run)
+        run_fit_coarse(wd, preset="auto", solver=solver, rolling_origins=0)
         out[solver] = read_artifact(wd, COARSE_PARAMS)
     ref, new = out["scipy"], out["batched"]
     assert list(ref.columns) == list(new.columns)
