@@ -122,7 +122,8 @@ def stepped(tmp_path_factory):
     run_split(work)
     read = lambda: (read_artifact(work, COARSE_PARAMS),   # noqa: E731
                     read_artifact(work, COARSE_PREDICTIONS))
-    fit_coarse.run_fit_coarse(work, regime_steps="detect")   # before issue 17.4: no candidates
+    # before issue 17.4: no candidates (only its fits are kept: no rolling origins)
+    fit_coarse.run_fit_coarse(work, regime_steps="detect", rolling_origins=0)
     assert len(read_artifact(work, REGIME_PARAMS)) == 0
     before = read()
     summary = fit_coarse.run_fit_coarse(work)
