@@ -40,7 +40,9 @@ Why these defaults: docs/hybrid.md ("The Gaussian-process correction").
 The predictive variance of the correction is kept (:class:`GPPrediction`): the variance of the
 latent residual at a row, summed over both components [mrad^2], without the measurement noise,
 plus the square of the part of the mean the fade takes away (the expected squared error of the
-faded correction about the GP's residual). ``aim``'s expected error reads it (issue 33).
+faded correction about the GP's residual). It is kept for ``aim``'s expected error (issue 33),
+which does not read it yet: an aim of a fine model expects its coarse model's error
+(docs/hybrid.md, section "`aim`").
 """
 
 from __future__ import annotations
