@@ -14,8 +14,13 @@ error's cost), ``fit-coarse-prior`` (fit-coarse with ``--prior field``, for the 
 cost; ``fit-coarse`` itself runs with ``--prior none``) and ``aim`` (``aim --date 2024-03-01 --every 10min``: every heliostat's aims of a
 day) as separate ``heliocal`` processes, once with ``--workers 1`` and once with
 ``--workers 2``, and prints per stage the wall
-time, heliostats per second and the peak memory of the stage's whole process tree (summed RSS,
-sampled every 0.1 s), so the scaling ratio is measured in one run. Usage::
+time, heliostats per second and the peak memory of the stage's whole process tree, sampled every
+0.1 s, so the scaling ratio is measured in one run. The peak is given twice: summed RSS (each
+process's resident pages; the workers' pages shared with their fork server, torch's libraries
+and the preloaded modules, count once per process) and summed PSS (each shared page divided
+among the processes that share it: what the tree takes from the machine's memory; a file
+that processes outside the tree map too, such as another run's copy of the same library,
+is shared with them as well, so run it alone). Usage::
 
     .venv/bin/python benchmarks/field.py [--heliostats 2000] [--out runs/field-bench]
         [--hybrid-epochs 800]
@@ -50,6 +55,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -120,8 +126,35 @@ def write_field(out: Path, n: int, seed: int = 0) -> dict:
     return info
 
 
-def _tree_rss_bytes(root_pid: int) -> int:
-    """Summed RSS of a process and all its descendants (from /proc)."""
+@dataclass
+class Memory:
+    """A process tree's memory [bytes]: summed RSS and summed PSS (module docstring)."""
+
+    rss: int = 0
+    pss: int = 0
+
+    def peak(self, other: "Memory") -> "Memory":
+        """Each figure's larger value (the two peaks need not fall on the same sample)."""
+        return Memory(max(self.rss, other.rss), max(self.pss, other.pss))
+
+    def gib(self) -> str:
+        return f"{self.rss / 2**30:5.2f} GiB (PSS {self.pss / 2**30:5.2f})"
+
+
+def _pss_bytes(pid: int) -> int:
+    """A process's proportional set size (``Pss`` of /proc/PID/smaps_rollup); 0 if unreadable."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as fh:
+            for line in fh:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def _tree_memory(root_pid: int) -> Memory:
+    """Summed RSS and PSS of a process and all its descendants (from /proc)."""
     children: dict[int, list[int]] = {}
     rss: dict[int, int] = {}
     for entry in os.listdir("/proc"):
@@ -135,26 +168,27 @@ def _tree_rss_bytes(root_pid: int) -> int:
             children.setdefault(ppid, []).append(int(entry))
         except (OSError, IndexError, ValueError):
             continue
-    total, stack = 0, [root_pid]
+    total, stack = Memory(), [root_pid]
     while stack:
         pid = stack.pop()
-        total += rss.get(pid, 0)
+        if pid in rss:
+            total = Memory(total.rss + rss[pid], total.pss + _pss_bytes(pid))
         stack.extend(children.get(pid, []))
     return total
 
 
-def run_stage(args: list[str]) -> tuple[float, int]:
-    """Run one heliocal command; return (wall seconds, peak tree RSS bytes)."""
+def run_stage(args: list[str]) -> tuple[float, Memory]:
+    """Run one heliocal command; return (wall seconds, the tree's peak :class:`Memory`)."""
     t0 = time.perf_counter()
     proc = subprocess.Popen([HELIOCAL, *args, "--quiet"], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
-    peak = 0
+    peak = Memory()
     stop = threading.Event()
 
     def sample():
         nonlocal peak
         while not stop.is_set():
-            peak = max(peak, _tree_rss_bytes(proc.pid))
+            peak = peak.peak(_tree_memory(proc.pid))
             time.sleep(0.1)
 
     thread = threading.Thread(target=sample, daemon=True)
@@ -227,7 +261,7 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
             wall, peak = run_stage(cmd)
             total += wall
             table.append((phase, cmd[0], wall, peak))
-            print(f"  {phase:6s} {cmd[0]:11s} {wall:8.1f} s  peak {peak / 2**30:5.2f} GiB",
+            print(f"  {phase:6s} {cmd[0]:11s} {wall:8.1f} s  peak {peak.gib()}",
                   flush=True)
         print(f"  {phase:6s} total       {total:8.1f} s", flush=True)
     first = {stage: wall for phase, stage, wall, _ in table if phase == "full"}
@@ -235,7 +269,7 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
           " (rerun: share of the stage's first run)")
     for phase, stage, wall, peak in table:
         share = f"  {100 * wall / first[stage]:5.1f} %" if phase == "rerun" else ""
-        print(f"{phase:7s} {stage:11s} {wall:8.1f} s  {peak / 2**30:5.2f} GiB{share}")
+        print(f"{phase:7s} {stage:11s} {wall:8.1f} s  {peak.gib()}{share}")
 
 
 def main() -> None:
@@ -303,7 +337,7 @@ def main() -> None:
             wall, peak = run_stage(commands[stage])
             results[(stage, workers)] = (wall, peak)
             print(f"  workers={workers} {stage:11s} {wall:8.1f} s  "
-                  f"{info['heliostats'] / wall:8.1f} heliostats/s  peak {peak / 2**30:5.2f} GiB",
+                  f"{info['heliostats'] / wall:8.1f} heliostats/s  peak {peak.gib()}",
                   flush=True)
             if stage == "aim":
                 aims = pd.read_parquet(wd / "aims-2024-03-01.parquet")
@@ -322,11 +356,13 @@ def main() -> None:
     ws = [int(w) for w in args.workers.split(",")]
     for stage in stages:
         walls = [results[(stage, w)][0] for w in ws]
-        peaks = [results[(stage, w)][1] for w in ws]
+        peak = Memory()
+        for w in ws:
+            peak = peak.peak(results[(stage, w)][1])
         line = f"{stage:12s} " + "".join(f"{w:9.1f} s   " for w in walls)
         if len(walls) > 1:
             line += f"  {walls[0] / walls[-1]:5.2f}x"
-        line += f"   {max(peaks) / 2**30:5.2f} GiB"
+        line += f"   {peak.gib()}"
         if stage == "report" and sizes:
             index, total, n = sizes[ws[-1]]
             line += f"   index.html {index / 2**20:.2f} MiB, report/ {total / 2**20:.0f} MiB, {n} files"
