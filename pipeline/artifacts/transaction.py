@@ -421,7 +421,7 @@ class StageTransaction:
     def commit(self) -> Manifest:
         """Check the inputs, write the manifest (the commit point), move the files into place."""
         from .. import __version__
-        from .provenance import command_line, git_revision, jsonable
+        from .revision import command_line, git_revision, jsonable
 
         self._check_inputs()
         try:
