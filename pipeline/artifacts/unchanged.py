@@ -32,7 +32,8 @@ import re
 from pathlib import Path
 from typing import Callable, Mapping
 
-from .manifests import CommittedWorkdir, InvalidManifest, Manifest, all_manifests, load_manifest
+from .manifests import (CommittedWorkdir, InvalidManifest, Manifest, all_manifests, load_manifest,
+                        manifest_path)
 from .paths import relative_path_problem
 from .revision import code_identity, jsonable
 
@@ -123,42 +124,42 @@ def mark_rerunnable(txn) -> None:
 
 def keep_if_unchanged(root: str | os.PathLike, stage: str, options: Mapping, *,
                       workdir: str | os.PathLike | None = None, seed: int | None = None,
-                      state: Callable[[], str] | None = None, command: str | None = None) -> bool:
+                      state: Callable[[], str] | None = None,
+                      command: str | None = None) -> Manifest | None:
     """Run ``stage`` on ``root`` (its work directory, or the report's folder in ``workdir``) as a
     run that keeps the previous one, if it can be kept (:func:`carry_over_unchanged`; ``state``
-    is computed under the lock). Returns False, having committed nothing, when it cannot, or
-    when the folder needs what a stage's first step does besides (an interrupted commit to
-    complete, a dead run's leftovers to remove, an invalid manifest to replace): the stage's
-    own run then does that and says so."""
+    is computed under the lock), and return the committed run. Returns None, having committed
+    nothing, when it cannot, or when the folder needs what a stage's first step does besides
+    (an interrupted commit to complete, a dead run's leftovers to remove, an invalid manifest to
+    replace): the stage's own run then does that and says so."""
     from .leftovers import leftovers, stale_staging_folders
     from .transaction import StageTransaction, pending_commits
     from .workdir_lock import workdir_lock
 
     root = Path(root)
     workdir = root if workdir is None else Path(workdir)
-    if not (root.is_dir() and workdir.is_dir() and (root / f"{stage}.manifest.json").is_file()):
-        return False
+    if not (root.is_dir() and workdir.is_dir() and manifest_path(root, stage).is_file()):
+        return None
     with workdir_lock(workdir, stage):
         try:
             if load_manifest(root, stage) is None:
-                return False
+                return None
         except InvalidManifest:
-            return False
+            return None
         if pending_commits(root) or stale_staging_folders(root) or (
                 root == workdir and leftovers(root)):
-            return False
+            return None
         txn = StageTransaction(root, stage).begin()
         try:
             if not carry_over_unchanged(txn, options, seed, workdir=workdir,
                                         state=state() if state is not None else None):
                 txn.abort()
-                return False
+                return None
             txn.command = command
-            txn.commit()
+            return txn.commit()
         except BaseException:
             txn.abort()
             raise
-    return True
 
 
 def workdir_state(workdir: str | os.PathLike, skip: tuple[str, ...] = ()) -> dict:

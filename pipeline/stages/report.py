@@ -170,7 +170,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     measured_floor = _measurement_floor(workdir, floor_mrad)
     state = report_state(workdir, measured_floor)
     if incremental and carry_over_unchanged(txn, txn.options, workdir=workdir, state=state):
-        return report_kept_summary(workdir, out)
+        return report_kept_summary(workdir, out, txn.previous_files())
     inp = load_inputs(workdir)
     choices = aim_models(workdir)
     metrics = compute_metrics(inp)

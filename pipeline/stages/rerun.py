@@ -75,7 +75,7 @@ def keep_split(workdir: str | Path, *, command: str | None = None, **kwargs) -> 
     """``split-knn --incremental`` when its previous run can be kept: the kept run's summary;
     ``None`` (nothing done) when it cannot."""
     options = split_options(**kwargs)
-    if not keep_if_unchanged(workdir, "split-knn", options, command=command):
+    if keep_if_unchanged(workdir, "split-knn", options, command=command) is None:
         return None
     return split_kept_summary(workdir, options)
 
@@ -105,8 +105,8 @@ def keep_coarse(workdir: str | Path, *, command: str | None = None, **kwargs) ->
     """``fit-coarse --incremental`` (every heliostat, :func:`coarse_options`' keywords) when its
     previous run can be kept: the kept run's summary; ``None`` when it cannot."""
     options = coarse_options(**kwargs)
-    if options["heliostats"] or not keep_if_unchanged(workdir, "fit-coarse", options,
-                                                      command=command):
+    if options["heliostats"] or keep_if_unchanged(workdir, "fit-coarse", options,
+                                                  command=command) is None:
         return None
     return coarse_kept_summary(workdir, options["preset"], options["loss"])
 
@@ -139,14 +139,19 @@ def report_state(workdir: Path, floor: MeasurementFloor) -> str:
                          "git": git_revision(), "matplotlib": matplotlib})
 
 
-def report_kept_summary(workdir: Path, out: Path) -> dict:
-    """The summary of a ``report`` run that kept the previous report."""
+def report_kept_summary(workdir: Path, out: Path, files: Sequence[str]) -> dict:
+    """The summary of a ``report`` run that kept the previous report, whose files (relative to
+    ``out``) are ``files``: its figures and pages are all kept."""
+    figures = [str(out / rel) for rel in sorted(files) if rel.startswith("figures/")]
     return {"workdir": str(workdir), "report": str(out / "index.html"),
             "markdown": str(out / "report.md"), "metrics": str(out / "metrics.json"),
             "details": str(out / "details.html"), "field": str(out / "field.html"),
-            "figures": [], "notes": [], "heliostat_pages": [], "heliostats": [],
-            "field_summary": {}, "figures_drawn": 0, "figures_kept": 0,
-            "incremental": {"unchanged": True}}
+            "field_prior": str(out / "field_prior.html") if "field_prior.html" in files else None,
+            "figures": figures, "notes": [],
+            "heliostat_pages": [str(out / rel) for rel in sorted(files)
+                                if rel.startswith("heliostats/")],
+            "heliostats": [], "field_summary": {}, "figures_drawn": 0,
+            "figures_kept": len(figures), "incremental": {"unchanged": True}}
 
 
 def keep_report(workdir: str | Path, *, alert_mrad: float, floor_mrad: float | None,
@@ -162,7 +167,6 @@ def keep_report(workdir: str | Path, *, alert_mrad: float, floor_mrad: float | N
         return None
     options = report_options(workdir, out, alert_mrad, floor_mrad, figures, figures_for)
     state = lambda: report_state(workdir, find_measurement_floor(workdir, floor_mrad))  # noqa: E731
-    if not keep_if_unchanged(out, "report", options, workdir=workdir, command=command,
-                             state=state):
-        return None
-    return report_kept_summary(workdir, out)
+    kept = keep_if_unchanged(out, "report", options, workdir=workdir, command=command,
+                             state=state)
+    return None if kept is None else report_kept_summary(workdir, out, list(kept.files))
