@@ -132,8 +132,8 @@ def keep_if_unchanged(root: str | os.PathLike, stage: str, options: Mapping, *,
     nothing, when it cannot, or when the folder needs what a stage's first step does besides
     (an interrupted commit to complete, a dead run's leftovers to remove, an invalid manifest to
     replace): the stage's own run then does that and says so."""
-    from .leftovers import leftovers, stale_staging_folders
-    from .transaction import StageTransaction, pending_commits
+    from .leftovers import has_staging_folder, leftovers
+    from .transaction import StageTransaction
     from .workdir_lock import workdir_lock
 
     root = Path(root)
@@ -146,9 +146,8 @@ def keep_if_unchanged(root: str | os.PathLike, stage: str, options: Mapping, *,
                 return None
         except InvalidManifest:
             return None
-        if pending_commits(root) or stale_staging_folders(root) or (
-                root == workdir and leftovers(root)):
-            return None
+        if has_staging_folder(root) or (root == workdir and leftovers(root)):
+            return None  # an interrupted commit or a dead run's leftovers: the stage's to say
         txn = StageTransaction(root, stage).begin()
         try:
             if not carry_over_unchanged(txn, options, seed, workdir=workdir,
