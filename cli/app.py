@@ -27,6 +27,7 @@ import typer
 from rich.console import Console
 from rich.logging import RichHandler
 
+from heliocal.cli.rerun import UNCHANGED_LINE
 from heliocal.pipeline.errors import HeliocalError, resource_error_message
 from heliocal.pipeline.vocabulary import Scheduler as SchedulerChoice
 
@@ -77,8 +78,7 @@ def incremental_line(summary: dict) -> bool:
     to print)."""
     inc = summary.get("incremental") or {}
     if inc.get("unchanged"):
-        stdout.print("unchanged: the inputs, options and code are the previous run's; its "
-                     "artifacts are kept as they are.", markup=False)
+        stdout.print(UNCHANGED_LINE, markup=False)
         return True
     if inc.get("reused") or inc.get("removed"):
         stdout.print(f"incremental: computed {inc['computed']} heliostats, kept {inc['reused']} "

@@ -1,30 +1,53 @@
-"""Entry point of the ``heliocal`` console script: registers every subcommand."""
+"""Entry point of the ``heliocal`` console script: registers every subcommand.
+
+``app`` (the typer application with every subcommand registered) is made on first use:
+``from heliocal.cli.main import app``. :func:`main` first asks :mod:`heliocal.cli.rerun`
+whether the command is an ``--incremental`` rerun that keeps its previous run, which it answers
+without loading typer; every other command goes to ``app``.
+"""
 
 from __future__ import annotations
 
 import sys
 
-from heliocal.cli.app import app, debug_enabled
 from heliocal.pipeline.errors import resource_error_message
 
-# Each module registers its subcommand(s) on import.
-from heliocal.cli import ingest as _ingest  # noqa: F401,E402
-from heliocal.cli import split as _split  # noqa: F401,E402
-from heliocal.cli import coarse as _coarse  # noqa: F401,E402
-from heliocal.cli import report as _report  # noqa: F401,E402
-from heliocal.cli import simulate as _simulate  # noqa: F401,E402
-from heliocal.cli import hybrid as _hybrid  # noqa: F401,E402
-from heliocal.cli import sweep as _sweep  # noqa: F401,E402
-from heliocal.cli import info as _info  # noqa: F401,E402
-from heliocal.cli import plan as _plan  # noqa: F401,E402
-
 __all__ = ["app", "main"]
+
+
+def registered_app():
+    """The typer application with every subcommand registered."""
+    from heliocal.cli.app import app
+
+    # Each module registers its subcommand(s) on import.
+    from heliocal.cli import ingest as _ingest  # noqa: F401
+    from heliocal.cli import split as _split  # noqa: F401
+    from heliocal.cli import coarse as _coarse  # noqa: F401
+    from heliocal.cli import report as _report  # noqa: F401
+    from heliocal.cli import simulate as _simulate  # noqa: F401
+    from heliocal.cli import hybrid as _hybrid  # noqa: F401
+    from heliocal.cli import sweep as _sweep  # noqa: F401
+    from heliocal.cli import info as _info  # noqa: F401
+    from heliocal.cli import plan as _plan  # noqa: F401
+
+    return app
+
+
+def __getattr__(name: str):
+    if name == "app":
+        return registered_app()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def main() -> None:
     """Run the CLI; an unexpected exception becomes one stderr line (traceback with HELIOCAL_DEBUG=1)."""
     try:
-        app()
+        from heliocal.cli.rerun import run_if_unchanged
+
+        code = run_if_unchanged(sys.argv[1:])
+        if code is not None:
+            sys.exit(code)
+        registered_app()()
     except SystemExit:
         raise
     except KeyboardInterrupt:
@@ -33,6 +56,8 @@ def main() -> None:
         print(f"Error: interrupted (SIGINT); {INTERRUPTED}", file=sys.stderr)
         sys.exit(130)
     except Exception as exc:  # noqa: BLE001 - the last line of defence against tracebacks
+        from heliocal.cli.app import debug_enabled
+
         if debug_enabled():
             raise
         message = resource_error_message(exc)

@@ -10,12 +10,14 @@ import typer
 
 from heliocal.pipeline.vocabulary import DEFAULT_ALERT_MRAD, ReportFigures
 from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Workdir, Workers, command,
-                              emit, fail, fmt_number, stdout)
+                              emit, fail, fmt_number, incremental_line, stdout)
 
 __all__ = ["report_cmd"]
 
 
 def _human(summary: dict) -> None:
+    if incremental_line(summary):
+        return
     for h in summary["heliostats"]:
         stdout.print(f"{h['heliostat_id']}: {h['model'] or 'no model'}, test mean "
                      f"{fmt_number(h['test_mean_error_mrad'])} mrad, p95 "
@@ -56,9 +58,10 @@ def report_cmd(
                                       "(default: the simulator's noise floor for a simulated "
                                       "field, else none).")] = None,
     incremental: Annotated[bool, typer.Option(
-        "--incremental", help="Draw only the figures whose data changed since the last report "
-                              "and keep the others' images; pages, tables and metrics are "
-                              "computed again.")] = False,
+        "--incremental", help="Keep the last report as it is when nothing it is made from "
+                              "changed; else draw only the figures whose data changed since "
+                              "the last report and keep the others' images (pages, tables "
+                              "and metrics are computed again).")] = False,
     figures: Annotated[ReportFigures, typer.Option(
         "--figures", help="Whose own figures to draw: all, attention (on alert, listed first "
                           "on the overview, in the sweep's training-size study) or auto (all "

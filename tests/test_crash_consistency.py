@@ -86,7 +86,7 @@ CASES = [
 
 ZYGOTE = textwrap.dedent("""
     import json, os, shutil, signal, sys
-    import heliocal.cli.main  # registers every command (the CLI imports the stages lazily)
+    from heliocal.cli.main import app  # registers every command (the CLI imports the stages lazily)
     # the stages and with them torch, once before forking; no torch op runs here
     import heliocal.pipeline.stages.ingest, heliocal.pipeline.stages.split
     import heliocal.pipeline.stages.fit_coarse, heliocal.pipeline.stages.fit_hybrid

@@ -20,29 +20,25 @@ input), or the previous run recorded no digests, every heliostat is computed aga
 the run is one stage transaction like any other, and records the digests of what it read, so a
 next ``--incremental`` run starts from it. A run whose upstream artifacts, options and code are
 all those of the previous run reads nothing: it keeps the previous run's files
-(:func:`carry_over_unchanged`).
+(:func:`carry_over_unchanged`, :mod:`.unchanged`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import re
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
 
+from .revision import code_identity
+from .unchanged import INCREMENTAL_KEY, carry_over_unchanged, mark_rerunnable
+
 __all__ = ["INCREMENTAL_KEY", "Increment", "heliostat_digests", "field_key", "plan_increment",
            "reused_rows", "carry_over_unchanged", "mark_rerunnable", "code_identity",
            "value_digest"]
-
-#: A stage name as manifests spell it (lower-case letters, digits and '-').
-_STAGE_NAME = re.compile(r"[a-z][a-z0-9-]{0,39}")
-
-#: Key of the per-heliostat digests in a stage's manifest.
-INCREMENTAL_KEY = "incremental"
 
 
 def heliostat_digests(frames: Sequence[pd.DataFrame]) -> dict[str, str]:
@@ -144,32 +140,13 @@ def value_digest(obj) -> str:
     return h.hexdigest()
 
 
-_CODE: str | None = None
-
-
-def code_identity() -> str:
-    """The code a result is computed with: the SHA-256 of every ``pipeline/**/*.py`` (path and
-    bytes), so an edited library is never taken for another, whatever git says, and edits
-    elsewhere (docs, tests) do not count. Asked once per process (about 100 files)."""
-    global _CODE
-    if _CODE is None:
-        from pathlib import Path
-
-        root = Path(__file__).resolve().parents[1]
-        h = hashlib.sha256()
-        for path in sorted(root.rglob("*.py")):
-            h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
-        _CODE = h.hexdigest()
-    return _CODE
-
-
 def field_key(stage: str, options: Mapping, frames: Sequence[pd.DataFrame],
               field_inputs: Mapping | None = None) -> str:
     """The SHA-256 (hex) of what every heliostat's result of ``stage`` shares: its options, the
     code (heliocal version and git revision), the inputs' column names and dtypes, and
     ``field_inputs`` (field-wide values, JSON-able)."""
     from .. import __version__
-    from .provenance import jsonable
+    from .revision import jsonable
 
     text = json.dumps({"stage": stage, "options": jsonable(dict(options)),
                        "version": __version__, "revision": code_identity(),
@@ -222,49 +199,3 @@ def plan_increment(txn, key: str, digests: Mapping[str, str], incremental: bool)
 def reused_rows(previous: pd.DataFrame, reuse: Sequence[str]) -> pd.DataFrame:
     """The rows of the heliostats in ``reuse`` of a previous artifact."""
     return previous[previous["heliostat_id"].astype(str).isin(set(reuse))]
-
-
-def mark_rerunnable(txn) -> None:
-    """Record the code in ``txn``'s manifest, so that a later run of a stage that is computed
-    whole (no per-heliostat digests: fit-hybrid, sweep) can keep it with
-    :func:`carry_over_unchanged`."""
-    txn.extra.setdefault(INCREMENTAL_KEY, {"code": code_identity()})
-
-
-def carry_over_unchanged(txn, options: Mapping, seed: int | None = None) -> bool:
-    """When the previous committed run of ``txn``'s stage had ``options`` (each key given here
-    equal to the recorded one; a recorded option not given must follow from the inputs, such as
-    the sweep's study heliostats), the same ``seed`` where one is given, and this code, and read
-    exactly the artifacts now committed upstream (each recorded input's fingerprint equals its
-    producer's committed one; a source file is never taken as unchanged), make this run keep
-    its files, inputs and digests as they are, without reading anything, and return True."""
-    from .. import __version__
-    from .manifests import CommittedWorkdir
-    from .paths import relative_path_problem
-    from .provenance import jsonable
-
-    prev = txn.previous
-    if prev is None or not isinstance(prev.data.get(INCREMENTAL_KEY), dict) or not prev.inputs:
-        return False
-    recorded = prev.data.get("options")
-    given = jsonable(dict(options))
-    if (not isinstance(recorded, dict)
-            or any(k not in recorded or recorded[k] != v for k, v in given.items())
-            or (seed is not None and prev.data.get("seed") != seed)
-            or prev.data[INCREMENTAL_KEY].get("code") != code_identity()
-            or prev.data.get("heliocal_version") != __version__):
-        return False
-    wd = CommittedWorkdir.of(txn.root)
-    for rec in prev.inputs.values():
-        # a manifest is untrusted input: only a stage's name and a plain relative path are looked up
-        if not (isinstance(rec, dict) and isinstance(rec.get("stage"), str)
-                and _STAGE_NAME.fullmatch(rec["stage"]) and isinstance(rec.get("path"), str)
-                and relative_path_problem(rec["path"]) is None):
-            return False
-        if wd.fingerprint(rec["stage"], rec["path"]) != rec.get("fingerprint"):
-            return False
-    txn.carry_over(txn.previous_files())
-    txn.inputs.update(prev.inputs)
-    txn.extra[INCREMENTAL_KEY] = prev.data[INCREMENTAL_KEY]
-    txn.options, txn.seed = recorded, prev.data.get("seed")
-    return True

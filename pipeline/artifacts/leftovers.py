@@ -22,7 +22,8 @@ from .manifests import STAGING_PREFIX, all_manifests
 from .paths import is_real_dir
 
 __all__ = ["OWNER_FILENAME", "SPILL_PREFIX", "BUSY", "try_lock", "unlock",
-           "stale_staging_folders", "leftovers", "staging_in_use", "remove_leftover"]
+           "has_staging_folder", "stale_staging_folders", "leftovers", "staging_in_use",
+           "remove_leftover"]
 
 #: The file in a staging or spill folder that its live writer holds an ``flock`` on.
 OWNER_FILENAME = ".owner"
@@ -61,6 +62,16 @@ def unlock(lock) -> None:
     """Release a lock :func:`try_lock` took."""
     if lock is not None and lock is not BUSY:
         lock.close()
+
+
+def has_staging_folder(root: str | os.PathLike) -> bool:
+    """Whether anything in ``root`` is named like a staging folder: without one, no committed run
+    is pending and no staging folder is stale (one listing, where those checks load every
+    manifest)."""
+    try:
+        return any(name.startswith(STAGING_PREFIX) for name in os.listdir(root))
+    except OSError:
+        return True  # the full checks say what is wrong
 
 
 def stale_staging_folders(root: str | os.PathLike) -> list[Path]:

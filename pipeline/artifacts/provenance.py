@@ -5,14 +5,10 @@ wrote it, and content fingerprints of tables (the basis of every freshness check
 from __future__ import annotations
 
 import hashlib
-import os
-import subprocess
-import sys
-from pathlib import Path
-from typing import Mapping
 
 import pyarrow as pa
 
+from .revision import command_line, git_revision, jsonable, source_revision
 from .table import ArtifactSchema
 
 __all__ = [
@@ -23,68 +19,6 @@ __all__ = [
     "command_line",
     "jsonable",
 ]
-
-
-_GIT_REV: str | None = None
-
-
-def source_revision(folder: str | os.PathLike) -> str:
-    """Git revision of the checkout holding ``folder`` (``-dirty`` with local changes to tracked
-    files; ``unknown`` outside a checkout or without git).
-
-    Read-only: git runs with ``--no-optional-locks`` (and ``GIT_OPTIONAL_LOCKS=0``), so
-    ``status`` compares the files without refreshing the index, and never takes
-    ``.git/index.lock``: a run writes nothing into the code's repository, and runs at once do
-    not collide there.
-    """
-    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}
-
-    def git(*args: str) -> str:
-        return subprocess.run(["git", "--no-optional-locks", *args], cwd=folder,
-                              capture_output=True, text=True, timeout=5, check=False,
-                              env=env).stdout.strip()
-
-    try:
-        rev = git("rev-parse", "HEAD") or "unknown"
-        if rev != "unknown" and git("status", "--porcelain", "--untracked-files=no"):
-            rev += "-dirty"
-    except (OSError, subprocess.SubprocessError):
-        rev = "unknown"
-    return rev
-
-
-def git_revision() -> str:
-    """Git revision of the heliocal source tree (:func:`source_revision`), asked once per
-    process."""
-    global _GIT_REV
-    if _GIT_REV is None:
-        _GIT_REV = source_revision(Path(__file__).resolve().parent)
-    return _GIT_REV
-
-
-def command_line(stage: str) -> str:
-    """The heliocal command line of this run (``heliocal <stage>`` for in-process library calls)."""
-    try:
-        import click
-
-        ctx = click.get_current_context(silent=True)
-    except ImportError:  # pragma: no cover
-        ctx = None
-    if ctx is not None or Path(sys.argv[0]).name == "heliocal":
-        return "heliocal " + " ".join(sys.argv[1:])
-    return f"heliocal {stage} (library call)"
-
-
-def jsonable(obj):
-    if isinstance(obj, Mapping):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, Path):
-        return str(obj)
-    if isinstance(obj, (str, int, float, bool)) or obj is None:
-        return obj
-    return str(obj)
 
 
 class Fingerprint:

@@ -61,8 +61,8 @@ from ..errors import InputError, SchemaError, StageInputError, UnsafePathError
 from .manifests import (ACTIVE_TRANSACTION, MANIFEST_VERSION, InvalidManifest, Manifest,
                         all_manifests, checked_relative_path, current_transaction, load_manifest,
                         manifest_path, staging_name)
-from .leftovers import (BUSY, OWNER_FILENAME, leftovers, remove_leftover, stale_staging_folders,
-                        staging_in_use, try_lock, unlock)
+from .leftovers import (BUSY, OWNER_FILENAME, has_staging_folder, leftovers, remove_leftover,
+                        stale_staging_folders, staging_in_use, try_lock, unlock)
 from .paths import confined, is_real_dir, link_message, sha256_of_file
 from .workdir_lock import holds_workdir_lock
 
@@ -189,7 +189,8 @@ def recover(root: str | os.PathLike, *, leftover_files: bool = False) -> list[st
     """
     root = Path(root)
     done = []
-    for m in pending_commits(root):
+    staged = has_staging_folder(root)  # else no commit to complete, no dead run's folder
+    for m in pending_commits(root) if staged else ():
         lock = try_lock(m.staging / OWNER_FILENAME)
         if lock is BUSY:
             continue  # its writer is still applying it
@@ -198,7 +199,7 @@ def recover(root: str | os.PathLike, *, leftover_files: bool = False) -> list[st
             done.append(f"completed the interrupted commit of `heliocal {m.stage}` run {m.run_id}")
         finally:
             unlock(lock)
-    for folder in stale_staging_folders(root):
+    for folder in stale_staging_folders(root) if staged else ():
         if remove_leftover(folder):
             done.append(f"removed {folder.name} (a run that stopped before its commit)")
     if leftover_files:
@@ -421,7 +422,7 @@ class StageTransaction:
     def commit(self) -> Manifest:
         """Check the inputs, write the manifest (the commit point), move the files into place."""
         from .. import __version__
-        from .provenance import command_line, git_revision, jsonable
+        from .revision import command_line, git_revision, jsonable
 
         self._check_inputs()
         try:

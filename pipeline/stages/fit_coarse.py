@@ -43,6 +43,7 @@ from .coarse_prior import (PRIOR_MODES, attach_prior_columns, finish_table, plan
 from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatResult,
                              detect_coarse_regimes, follow_regimes, regimes_summary)
 from .increments import coarse_plan, with_previous
+from .rerun import coarse_kept_summary, coarse_options
 from .rolling import DEFAULT_MAX_ORIGINS, add_next_day, evaluate_rolling, rolling_chunks
 from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
                       time_labels_of)
@@ -527,15 +528,13 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     rolling_origins = check_int(rolling_origins, "rolling_origins", "fit_coarse", 0)
     steps = None if _SKIP_REGIMES else regime_steps
     workdir = Path(workdir)
-    opts = {"preset": preset, "loss": loss, "f_scale_mrad": f_scale_mrad,
-            "robust_start": robust_start, "solver": solver, "regime_steps": steps or "none",
-            "rolling_origins": rolling_origins, "prior": prior,
-            "prior_from": None if prior_from is None else str(prior_from),
-            "heliostats": list(heliostats) if heliostats else None}
+    opts = coarse_options(preset=preset, loss=loss, f_scale_mrad=f_scale_mrad,
+                          robust_start=robust_start, solver=solver,
+                          regime_steps=steps or "none", rolling_origins=rolling_origins,
+                          prior=prior, prior_from=prior_from, heliostats=heliostats)
     if incremental and not heliostats and carry_over_unchanged(
             current_transaction(workdir, "fit-coarse"), opts):
-        return {"workdir": str(workdir), "preset": preset, "loss": loss, "heliostats": [],
-                "regimes": None, "field_prior": None, "incremental": {"unchanged": True}}
+        return coarse_kept_summary(workdir, preset, loss)
     warm_up((__name__, "ruptures"), workers=workers, scheduler=scheduler, dask_address=dask_address)
     helio, rows_of = _read_rows(workdir, heliostats)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)

@@ -40,14 +40,12 @@ processes (``runtime.parallel.map_tasks``), in this process when there are few.
 
 from __future__ import annotations
 
-import json
 import logging
-import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from ..artifacts.manifests import current_transaction, load_manifest
+from ..artifacts.manifests import current_transaction
+from ..artifacts.unchanged import INCREMENTAL_KEY, carry_over_unchanged
 from ..artifacts.paths import artifact_path, safe_child, safe_name
 from ..artifacts.schemas import COARSE_PARAMS
 from ..artifacts.store import read_provenance
@@ -56,6 +54,7 @@ from ..artifacts.workdir_lock import locks_workdir
 from ..errors import check_choice, check_int
 from ..report.field import (ALERT_MRAD, ERROR_LINES_MRAD, field_summary, field_table, tower_en_m,
                             svg_field_map, worst)
+from ..report.floor import MeasurementFloor, find_measurement_floor
 from ..report.field_figures import comparison_table, training_size_frame, weight_decay_frame
 from ..report.inputs import load_inputs
 from ..report.metrics import compute_metrics, metrics_json
@@ -73,6 +72,7 @@ from ..runtime.parallel import default_workers
 from ..runtime.process_state import restores_process_state
 from ..vocabulary import ReportFigures
 from .report_figures import drawn_or_kept
+from .rerun import report_kept_summary, report_options, report_state
 
 __all__ = [
     "measurement_floor",
@@ -105,9 +105,12 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
     floor_mrad : the measurement floor drawn on the error distribution [mrad]; default: the
         simulator's noise floor when the sources are a simulated field (ground_truth.json next
         to them), else none.
-    incremental : take each figure whose task (its data, caption and the code) is the one the
-        previous report recorded from that report instead of drawing it again
-        (:mod:`.report_figures`); pages, tables and metrics are computed again either way.
+    incremental : keep the previous report whole when nothing it depends on changed (the
+        options, the code, the committed artifacts of the work directory, the measurement floor,
+        the git revision and matplotlib version: :func:`.rerun.report_state`); else take each
+        figure whose task (its data, caption and the code) is the one the previous report
+        recorded from that report instead of drawing it again (:mod:`.report_figures`), and
+        compute pages, tables and metrics again.
     figures : whose own figures are drawn: ``all``, ``attention`` (the heliostats on alert,
         listed first on the overview or in the sweep's training-size study) or ``auto``
         (default: ``all`` up to 100 heliostats, else ``attention``); see
@@ -127,6 +130,8 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
     figures_for = [figures_for] if isinstance(figures_for, str) else list(figures_for)
     summary = _write_report(workdir, out, workers, float(alert_mrad), floor_mrad,
                             bool(incremental), (str(figures), tuple(map(str, figures_for))))
+    if summary.get("incremental", {}).get("unchanged"):
+        return summary  # the previous report is kept whole: nothing to tidy
     keep = {Path(f).name for f in summary["figures"]}
     pages = {Path(p).name for p in summary["heliostat_pages"]}
     for folder, kept, pattern in ((out / "figures", keep, "*.png"),
@@ -138,15 +143,6 @@ def run_report(workdir: str | Path, out_dir: str | Path | None = None, *,
     return summary
 
 
-@dataclass
-class _Floor:
-    """The measurement floor drawn on the error distribution, and why there is none."""
-
-    value_mrad: float | None
-    source: str                 # where the value comes from ("" without one)
-    problems: list[str]         # a ground_truth.json that could not be used, and why
-
-
 def measurement_floor(workdir: Path, floor_mrad: float | None) -> tuple[float | None, str]:
     """(floor [mrad] or None, where it comes from or why there is none): ``floor_mrad`` when
     given, else the median ``noise_floor_mrad`` of the heliostats in the ``ground_truth.json`` of
@@ -156,54 +152,11 @@ def measurement_floor(workdir: Path, floor_mrad: float | None) -> tuple[float | 
     return floor.value_mrad, floor.source or "; ".join(floor.problems)
 
 
-def _measurement_floor(workdir: Path, floor_mrad: float | None) -> _Floor:
-    if floor_mrad is not None:
-        return _Floor(float(floor_mrad), "given with --floor-mrad", [])
-    m = load_manifest(workdir, "ingest")
-    sources = (m.data.get("options", {}).get("sources") or []) if m is not None else []
-    problems = []
-    for src in sources:
-        p = Path(src)
-        truth = (p if p.is_dir() else p.parent) / "ground_truth.json"
-        if not truth.is_file():
-            continue
-        try:
-            vals = _noise_floors_mrad(truth)
-        except ValueError as exc:
-            problems.append(f"{truth}: {exc}; the report has no measurement floor from it "
-                            "(give --floor-mrad)")
-            log.warning("%s", problems[-1])
-            continue
-        if vals:
-            mid = len(vals) // 2
-            med = vals[mid] if len(vals) % 2 else (vals[mid - 1] + vals[mid]) / 2
-            return _Floor(med, "simulator's noise floor, median over the field", problems)
-    return _Floor(None, "", problems)
-
-
-def _noise_floors_mrad(truth: Path) -> list[float]:
-    """The heliostats' finite ``noise_floor_mrad`` values [mrad] of a ``ground_truth.json``,
-    sorted; ValueError saying what is wrong with a file that is not one."""
-    try:
-        data = json.loads(truth.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"not valid JSON ({exc.msg}, line {exc.lineno} column "
-                         f"{exc.colno})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"cannot be read as text ({exc})") from None
-    helios = data.get("heliostats", {}) if isinstance(data, dict) else None
-    if not isinstance(helios, dict):
-        raise ValueError("'heliostats' is not an object of heliostats")
-    vals = []
-    for hid, h in helios.items():
-        value = h.get("noise_floor_mrad", "nan") if isinstance(h, dict) else None
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            raise ValueError(f"heliostat {hid!r} has no number as noise_floor_mrad") from None
-        if math.isfinite(value):
-            vals.append(value)
-    return sorted(vals)
+def _measurement_floor(workdir: Path, floor_mrad: float | None) -> MeasurementFloor:
+    floor = find_measurement_floor(workdir, floor_mrad)
+    for problem in floor.problems:
+        log.warning("%s", problem)
+    return floor
 
 
 @stage_transaction("report", root=lambda a: a["out"], consistent_inputs=False)
@@ -213,6 +166,11 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     from .aim_choice import aim_models  # the one answer to "which model does aim use"
 
     txn = current_transaction(out, "report")
+    txn.options = report_options(workdir, out, alert_mrad, floor_mrad, *figures)
+    measured_floor = _measurement_floor(workdir, floor_mrad)
+    state = report_state(workdir, measured_floor)
+    if incremental and carry_over_unchanged(txn, txn.options, workdir=workdir, state=state):
+        return report_kept_summary(workdir, out, txn.previous_files())
     inp = load_inputs(workdir)
     choices = aim_models(workdir)
     metrics = compute_metrics(inp)
@@ -225,7 +183,6 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     inp.gp_maps = _gp_maps(workdir, {h: c for h, c in choices.items() if scope.covers(h)})
     blocks = build_report(inp, metrics, scope)
     summary = field_summary(table, alert_mrad=alert_mrad)
-    measured_floor = _measurement_floor(workdir, floor_mrad)
     floor, floor_source = measured_floor.value_mrad, measured_floor.source
 
     # field figures
@@ -238,6 +195,7 @@ def _write_report(workdir: Path, out: Path, workers: int, alert_mrad: float,
     nav_pages = ((PRIOR_PAGE, "Field prior"),) if groups else ()
     tasks = [cdf_task] + figure_tasks(blocks) + figure_tasks(field_plan) + prior_tasks
     drawn, counts = drawn_or_kept(txn, out, tasks, workers, incremental)
+    txn.extra[INCREMENTAL_KEY]["state"] = state  # what a next --incremental run compares
     blocks = resolve_figures(blocks, drawn)
     field_blocks = resolve_figures(field_plan, drawn)
     figs = [b[1] for b in blocks + field_blocks if b[0] == "figure"]

@@ -46,6 +46,8 @@ from ..artifacts.workdir_lock import locks_workdir
 from ..artifacts.schemas import SPLIT
 from ..vocabulary import SplitMethod, SplitMetric
 from ..runtime.process_state import restores_process_state
+from .rerun import (MIN_TRAIN, required_measurements, requirement_text, split_kept_summary,
+                    split_options)
 
 __all__ = [
     "METHODS",
@@ -69,10 +71,6 @@ METRICS = SplitMetric.values()
 SPLIT_LABELS = ("train", "validation", "test", "unused")
 #: Values of the ``time_split`` column (missing where a heliostat has no time split).
 TIME_SPLIT_LABELS = ("train", "validation", "test", "unused")
-
-#: Fewest training rows a heliostat must keep: a training row's distance to the nearest *other*
-#: training row is defined only when there are two of them.
-MIN_TRAIN = 2
 
 _FUNC = "split_knn"
 
@@ -311,32 +309,6 @@ def time_split_labels(g: pd.DataFrame, n_test: int, n_val: int, n_train: int | N
 # --------------------------------------------------------------------------------------------
 # public API
 # --------------------------------------------------------------------------------------------
-def required_measurements(k: int = 3, n_test: int = 30, n_val: int = 20,
-                          n_train: int | None = None) -> int:
-    """Fewest measurements a heliostat needs for a split with these sizes [1]."""
-    return max(n_test + n_val + (MIN_TRAIN if n_train is None else n_train), k + 1)
-
-
-def _requirement_text(k: int, n_test: int, n_val: int, n_train: int | None) -> str:
-    need = required_measurements(k, n_test, n_val, n_train)
-    train = MIN_TRAIN if n_train is None else n_train
-    if n_test + n_val + train >= k + 1:
-        return f"{need} ({n_test} test + {n_val} validation + {train} training)"
-    return f"{need} (k={k} neighbours plus the measurement itself)"
-
-
-def _check_options(method, k, n_test, n_val, n_train, metric, seed) -> tuple:
-    method = check_choice(method, "method", _FUNC, METHODS)
-    k = check_int(k, "k", _FUNC, 1, 3)
-    n_test = check_int(n_test, "n_test", _FUNC, 0)
-    n_val = check_int(n_val, "n_val", _FUNC, 0)
-    if n_train is not None:
-        n_train = check_int(n_train, "n_train", _FUNC, MIN_TRAIN)
-    metric = check_choice(metric, "metric", _FUNC, METRICS)
-    seed = check_int(seed, "seed", _FUNC, 0)
-    return method, k, n_test, n_val, n_train, metric, seed
-
-
 def split_measurements(measurements: pd.DataFrame, *, method: str = "knn", k: int = 3,
                        n_test: int = 30, n_val: int = 20, n_train: int | None = None,
                        metric: str = "euclidean", seed: int = 0
@@ -370,8 +342,9 @@ def split_measurements(measurements: pd.DataFrame, *, method: str = "knn", k: in
         a time-based method meets measurements without timestamp.
     FitError : no heliostat has enough measurements.
     """
-    method, k, n_test, n_val, n_train, metric, seed = _check_options(
-        method, k, n_test, n_val, n_train, metric, seed)
+    opts = split_options(method, k, n_test, n_val, n_train, metric, seed)
+    method, k, n_test, n_val, n_train, metric, seed = (
+        opts[key] for key in ("method", "k", "n_test", "n_val", "n_train", "metric", "seed"))
     needed = ["heliostat_id", "measurement_id", "sun_azimuth_deg", "sun_elevation_deg"]
     if method in ("time", "solstice"):
         needed.append("timestamp")
@@ -438,7 +411,7 @@ def split_measurements(measurements: pd.DataFrame, *, method: str = "knn", k: in
         counts = ", ".join(f"{h} has {c}" for h, c in skipped)
         raise FitError(
             f"no heliostat has enough measurements for this split: each needs at least "
-            f"{_requirement_text(k, n_test, n_val, n_train)}, but {counts}; lower --n-test, "
+            f"{requirement_text(k, n_test, n_val, n_train)}, but {counts}; lower --n-test, "
             "--n-val or --n-train")
     table = pd.concat(parts, ignore_index=True)
     return restrict_training(table, n_train), skipped
@@ -545,27 +518,23 @@ def run_split(workdir: str | Path, *, method: str = "knn", k: int = 3, n_test: i
     Returns a JSON-able summary: the options, the artifact path, per heliostat the output of
     :func:`summarize_split`, and the skipped heliostats with their counts and the requirement.
     """
-    method, k, n_test, n_val, n_train, metric, seed = _check_options(
-        method, k, n_test, n_val, n_train, metric, seed)
-    options = {"method": method, "k": k, "n_test": n_test, "n_val": n_val, "n_train": n_train,
-               "metric": metric, "seed": seed}
+    options = split_options(method, k, n_test, n_val, n_train, metric, seed)
+    k, n_test, n_val, n_train = (options[key] for key in ("k", "n_test", "n_val", "n_train"))
     txn = current_transaction(workdir, "split-knn")
     if incremental and carry_over_unchanged(txn, options):
-        return {"artifact": str(artifact_path(workdir, SPLIT)), **options,
-                "required_measurements": required_measurements(k, n_test, n_val, n_train),
-                "requirement": _requirement_text(k, n_test, n_val, n_train),
-                "heliostats": [], "skipped": [], "incremental": {"unchanged": True}}
+        return split_kept_summary(workdir, options)
     measurements = read_artifact(workdir, MEASUREMENTS, columns=_INPUT_COLUMNS)
     plan = plan_increment(txn,
                           field_key("split-knn", options, [measurements]),
                           heliostat_digests([measurements]), incremental)
     table, skipped = _split_increment(workdir, measurements, plan, options)
-    path = write_artifact(table, workdir, SPLIT, stage="split-knn", options=options, seed=seed)
+    path = write_artifact(table, workdir, SPLIT, stage="split-knn", options=options,
+                          seed=options["seed"])
     return {
         "artifact": str(path),
         **options,
         "required_measurements": required_measurements(k, n_test, n_val, n_train),
-        "requirement": _requirement_text(k, n_test, n_val, n_train),
+        "requirement": requirement_text(k, n_test, n_val, n_train),
         "heliostats": summarize_split(table),
         "skipped": [{"heliostat_id": h, "n_measurements": c} for h, c in skipped],
         "incremental": plan.summary(),
