@@ -35,14 +35,8 @@ from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
                                write_artifact)
 
-__all__ = ["ROW_BAND", "SweepPlan", "chunk_size", "sweep_chunks", "sweep_digests", "plan_sweep",
+__all__ = ["SweepPlan", "chunk_size", "sweep_chunks", "sweep_digests", "plan_sweep",
            "write_sweep_outputs"]
-
-#: Rows per band of :func:`sweep_chunks`: a group larger than one chunk is cut into chunks within
-#: bands of this many measurement rows, so that a chunk's heliostats have similar row counts
-#: (little padding).
-ROW_BAND = 100
-
 
 def sweep_digests(items: Mapping) -> dict[str, str]:
     """heliostat id -> SHA-256 (hex) of everything the sweep reads for it (its
@@ -60,13 +54,19 @@ def chunk_size(n_heliostats: int, batch_size: int, workers: int) -> int:
 
 
 def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
-                 batch_size: int) -> list[list[str]]:
+                 batch_size: int, workers: int = 1) -> list[list[str]]:
     """The sweep's training chunks: heliostats that share kinematic type, actuator type and free
-    parameters, at most ``batch_size`` per chunk, each chunk ordered by row count then id.
+    parameters, at most ``batch_size`` per chunk, each chunk ordered by row count then id; the
+    chunks largest first (heliostats x the longest one's rows).
 
-    A group of at most ``batch_size`` heliostats is one chunk. A larger group is cut, band by band
-    of :data:`ROW_BAND` measurement rows, into chunks of consecutive ids. A heliostat's results
-    do not depend on its chunk (the module's docstring); the bands keep the padding small.
+    A group of at most ``batch_size`` heliostats is one chunk. A larger group, in row-count
+    order, is cut into consecutive pieces of sizes that differ by at most one, as few as
+    ``batch_size`` allows but a whole number of rounds of the ``workers`` (200 heliostats at 32
+    on 2 workers: 8 chunks of 25, not 7 of up to 32 that leave a worker idle for the last one;
+    20 at 10: 2 of 10). Consecutive heliostats in row-count order have similar row counts, so
+    little padding. A heliostat's results do not depend on its chunk (the module's docstring):
+    the chunks decide the time, not the results. Largest first, so that a pool of workers
+    starts the longest chunks first and ends with short ones.
     """
     groups: dict = {}
     for hid in sorted(items):
@@ -75,20 +75,17 @@ def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
                tuple(bool(x) for x in selected[hid]["free"].tolist()))
         groups.setdefault(key, []).append(hid)
     size = lambda hid: (len(items[hid].rows), hid)  # noqa: E731
+    batch_size, workers = max(1, int(batch_size)), max(1, int(workers))
     chunks = []
     for key in sorted(groups):
-        members = groups[key]
-        if len(members) <= batch_size:
-            chunks.append(sorted(members, key=size))
-            continue
-        bands: dict[int, list[str]] = {}
-        for hid in members:
-            bands.setdefault(len(items[hid].rows) // ROW_BAND, []).append(hid)
-        for band in sorted(bands):
-            ids = bands[band]
-            chunks += [sorted(ids[i:i + batch_size], key=size)
-                       for i in range(0, len(ids), batch_size)]
-    return chunks
+        members = sorted(groups[key], key=size)
+        n = len(members)
+        k = -(-n // batch_size)
+        if k > 1:
+            k = min(n, -(-k // workers) * workers)
+        chunks += [members[i * n // k:(i + 1) * n // k] for i in range(k)]
+    cost = lambda chunk: (-len(chunk) * len(items[chunk[-1]].rows), chunk[0])  # noqa: E731
+    return sorted(chunks, key=cost)
 
 
 @dataclass
