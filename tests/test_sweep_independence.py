@@ -112,36 +112,46 @@ def _fake_field(rows_by_group: dict) -> tuple[dict, dict, pd.DataFrame]:
     return items, selected, pd.DataFrame.from_dict(types, orient="index")
 
 
-def test_chunks_are_a_whole_number_of_rounds_of_the_workers_largest_first():
-    """``sweep_chunks``: a group larger than a chunk is cut, in row-count order, into pieces of
-    sizes that differ by at most one and a multiple of the workers in number; the longest chunk
-    comes first. The numbers: the 200-heliostat benchmark field's update (20 heliostats of one
-    group with 125 to 398 rows, chunk size 10 on 2 workers) was cut by bands of 100 rows into
-    3 chunks of 6, 7 and 7, so one of the 2 workers trained two of them (docs/benchmarks.md,
-    2026-11-27); a 200-heliostat field at 32 into 9 chunks (docs/benchmarks.md, "Daily
-    updates"). Now 2 of 10 and 8 of 25."""
-    from heliocal.pipeline.stages.sweep_increment import chunk_size, sweep_chunks
+def test_chunks_are_a_whole_number_of_rounds_of_the_workers_of_equal_cost_costliest_first():
+    """``sweep_chunks``: a group larger than a chunk is cut, in row-count order, into a multiple
+    of the workers of consecutive pieces of about equal cost per epoch (``CHUNK_OVERHEAD_ROWS``
+    + heliostats x the longest one's rows), the costliest first. The numbers: the 200-heliostat
+    benchmark field's update (20 heliostats of one group with 125 to 398 rows, on 2 workers) was
+    cut by bands of 100 rows into 3 chunks of 6, 7 and 7, so one of the 2 workers trained two of
+    them, and 2 chunks of 10 still cost 1.4x apart (4,850 against 3,410 heliostat-rows); a
+    200-heliostat field at 32 into 9 chunks (docs/benchmarks.md, "Daily updates"). Now 12 and 8
+    (4,266 and 4,054), and 8 chunks."""
+    from heliocal.pipeline.stages.sweep_increment import (CHUNK_OVERHEAD_ROWS, chunk_size,
+                                                          sweep_chunks)
+
+    def costs(items, chunks):
+        return [CHUNK_OVERHEAD_ROWS + len(c) * len(items[c[-1]].rows) for c in chunks]
 
     update = [125 + (398 - 125) * i // 19 for i in range(20)]
     items, selected, helio = _fake_field({"a": update})
-    chunks = sweep_chunks(items, selected, helio, chunk_size(20, 32, 2), 2)
-    assert [len(c) for c in chunks] == [10, 10]
-    assert [len(items[h].rows) for h in chunks[0]] == update[10:]      # longest first, in order
-    assert [len(items[h].rows) for h in chunks[1]] == update[:10]
+    chunks = sweep_chunks(items, selected, helio, 32, 2, chunk_size(20, 32, 2))
+    assert [len(c) for c in chunks] == [12, 8]
+    assert [len(items[h].rows) for h in chunks[0]] == update[:12]      # each in row order
+    assert [len(items[h].rows) for h in chunks[1]] == update[12:]
+    assert costs(items, chunks) == [870 + 12 * 283, 870 + 8 * 398] == [4266, 4054]
 
     field = [100 + (i * 37) % 301 for i in range(200)]                 # 100..400 rows, shuffled
     items, selected, helio = _fake_field({"a": field})
-    chunks = sweep_chunks(items, selected, helio, chunk_size(200, 32, 2), 2)
-    assert [len(c) for c in chunks] == [25] * 8                        # 7 of <= 32 would idle one
+    chunks = sweep_chunks(items, selected, helio, 32, 2, chunk_size(200, 32, 2))
+    assert len(chunks) == 8 and max(map(len, chunks)) <= 32            # 7 of 32 would idle one
     assert sorted(h for c in chunks for h in c) == sorted(items)       # each heliostat once
     lengths = [[len(items[h].rows) for h in c] for c in chunks]
-    assert all(x == sorted(x) for x in lengths)                        # each chunk in row order
-    assert [x[-1] for x in lengths] == sorted((x[-1] for x in lengths), reverse=True)
-    assert all(a[0] >= b[-1] for a, b in zip(lengths, lengths[1:]))    # consecutive row counts
+    assert all(x == sorted(x) for x in lengths)
+    ends = sorted((x[0], x[-1]) for x in lengths)
+    assert all(a[1] <= b[0] for a, b in zip(ends, ends[1:]))           # consecutive row counts
+    cost = costs(items, chunks)
+    assert max(cost) == 8094 and sorted(cost)[2] >= 0.98 * max(cost)  # 6 of 8 within 2 %
+    assert [len(c) * x[-1] for c, x in zip(chunks, lengths)] == sorted(
+        (len(c) * x[-1] for c, x in zip(chunks, lengths)), reverse=True)   # costliest first
 
     # two groups (other free parameters never share a chunk): 3 alone, 40 at 32 -> 2 of 20
     items, selected, helio = _fake_field({"a": [150] * 40, "b": [300] * 3})
-    chunks = sweep_chunks(items, selected, helio, chunk_size(43, 32, 2), 2)
+    chunks = sweep_chunks(items, selected, helio, 32, 2, chunk_size(43, 32, 2))
     assert sorted(len(c) for c in chunks) == [3, 20, 20]
     assert all(len({h[0] for h in c}) == 1 for c in chunks)
     # one worker: the fewest chunks of at most batch_size (21 at 11: 11 and 10)

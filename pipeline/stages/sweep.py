@@ -561,8 +561,8 @@ def _chunker(items: dict, selected: dict, helio, batch_size: int, workers: int |
     each, enough to keep ``workers`` busy and a whole number of rounds of them
     (:func:`~.sweep_increment.chunk_size`, :func:`~.sweep_increment.sweep_chunks`)."""
     spread = default_workers() if workers is None else workers
-    return lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio,
-                                    chunk_size(len(ids), batch_size, spread), spread)
+    return lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio, batch_size,
+                                    spread, chunk_size(len(ids), batch_size, spread))
 
 
 def _plan(txn, request: dict, items: dict, chunks_of, studied: list[str],
