@@ -94,3 +94,66 @@ def test_an_update_of_a_few_heliostats_is_cut_into_a_chunk_per_worker():
     assert chunk_size(20, 8, 2) == 8            # never above batch_size
     assert chunk_size(1, 32, 2) == 1
     assert chunk_size(0, 32, 2) == 1            # no heliostat: a valid size all the same
+
+
+def _fake_field(rows_by_group: dict) -> tuple[dict, dict, pd.DataFrame]:
+    """(items, selected, helio) as :func:`sweep_chunks` reads them: per heliostat its row count,
+    kinematic and actuator type and free mask (one group per key of ``rows_by_group``)."""
+    from types import SimpleNamespace
+
+    items, selected, types = {}, {}, {}
+    for g, counts in rows_by_group.items():
+        free = torch.tensor([True] * (20 if g == "a" else 14) + [False] * (8 if g == "a" else 14))
+        for i, n in enumerate(counts):
+            hid = f"{g.upper()}{i:03d}"
+            items[hid] = SimpleNamespace(rows=range(n))
+            selected[hid] = {"free": free}
+            types[hid] = {"kinematic_type": "juelich", "actuator_type": "linear"}
+    return items, selected, pd.DataFrame.from_dict(types, orient="index")
+
+
+def test_chunks_are_a_whole_number_of_rounds_of_the_workers_of_equal_cost_costliest_first():
+    """``sweep_chunks``: a group larger than a chunk is cut, in row-count order, into a multiple
+    of the workers of consecutive pieces of about equal cost per epoch (``CHUNK_OVERHEAD_ROWS``
+    + heliostats x the longest one's rows), the costliest first. The numbers: the 200-heliostat
+    benchmark field's update (20 heliostats of one group with 125 to 398 rows, on 2 workers) was
+    cut by bands of 100 rows into 3 chunks of 6, 7 and 7, so one of the 2 workers trained two of
+    them, and 2 chunks of 10 still cost 1.4x apart (4,850 against 3,410 heliostat-rows); a
+    200-heliostat field at 32 into 9 chunks (docs/benchmarks.md, "Daily updates"). Now 12 and 8
+    (4,266 and 4,054), and 8 chunks."""
+    from heliocal.pipeline.stages.sweep_increment import (CHUNK_OVERHEAD_ROWS, chunk_size,
+                                                          sweep_chunks)
+
+    def costs(items, chunks):
+        return [CHUNK_OVERHEAD_ROWS + len(c) * len(items[c[-1]].rows) for c in chunks]
+
+    update = [125 + (398 - 125) * i // 19 for i in range(20)]
+    items, selected, helio = _fake_field({"a": update})
+    chunks = sweep_chunks(items, selected, helio, 32, 2, chunk_size(20, 32, 2))
+    assert [len(c) for c in chunks] == [12, 8]
+    assert [len(items[h].rows) for h in chunks[0]] == update[:12]      # each in row order
+    assert [len(items[h].rows) for h in chunks[1]] == update[12:]
+    assert costs(items, chunks) == [870 + 12 * 283, 870 + 8 * 398] == [4266, 4054]
+
+    field = [100 + (i * 37) % 301 for i in range(200)]                 # 100..400 rows, shuffled
+    items, selected, helio = _fake_field({"a": field})
+    chunks = sweep_chunks(items, selected, helio, 32, 2, chunk_size(200, 32, 2))
+    assert len(chunks) == 8 and max(map(len, chunks)) <= 32            # 7 of 32 would idle one
+    assert sorted(h for c in chunks for h in c) == sorted(items)       # each heliostat once
+    lengths = [[len(items[h].rows) for h in c] for c in chunks]
+    assert all(x == sorted(x) for x in lengths)
+    ends = sorted((x[0], x[-1]) for x in lengths)
+    assert all(a[1] <= b[0] for a, b in zip(ends, ends[1:]))           # consecutive row counts
+    cost = costs(items, chunks)
+    assert max(cost) == 8094 and sorted(cost)[2] >= 0.98 * max(cost)  # 6 of 8 within 2 %
+    assert [len(c) * x[-1] for c, x in zip(chunks, lengths)] == sorted(
+        (len(c) * x[-1] for c, x in zip(chunks, lengths)), reverse=True)   # costliest first
+
+    # two groups (other free parameters never share a chunk): 3 alone, 40 at 32 -> 2 of 20
+    items, selected, helio = _fake_field({"a": [150] * 40, "b": [300] * 3})
+    chunks = sweep_chunks(items, selected, helio, 32, 2, chunk_size(43, 32, 2))
+    assert sorted(len(c) for c in chunks) == [3, 20, 20]
+    assert all(len({h[0] for h in c}) == 1 for c in chunks)
+    # one worker: the fewest chunks of at most batch_size (21 at 11: 11 and 10)
+    items, selected, helio = _fake_field({"a": list(range(100, 121))})
+    assert [len(c) for c in sweep_chunks(items, selected, helio, 11, 1)] == [11, 10]

@@ -558,10 +558,11 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
 
 def _chunker(items: dict, selected: dict, helio, batch_size: int, workers: int | None):
     """``chunks_of(ids)``: the training chunks of the heliostats ``ids``, at most ``batch_size``
-    each and enough to keep ``workers`` busy (:func:`~.sweep_increment.chunk_size`)."""
+    each, enough to keep ``workers`` busy and a whole number of rounds of them
+    (:func:`~.sweep_increment.chunk_size`, :func:`~.sweep_increment.sweep_chunks`)."""
     spread = default_workers() if workers is None else workers
-    return lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio,
-                                    chunk_size(len(ids), batch_size, spread))
+    return lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio, batch_size,
+                                    spread, chunk_size(len(ids), batch_size, spread))
 
 
 def _plan(txn, request: dict, items: dict, chunks_of, studied: list[str],

@@ -35,14 +35,8 @@ from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
                                write_artifact)
 
-__all__ = ["ROW_BAND", "SweepPlan", "chunk_size", "sweep_chunks", "sweep_digests", "plan_sweep",
+__all__ = ["SweepPlan", "chunk_size", "sweep_chunks", "sweep_digests", "plan_sweep",
            "write_sweep_outputs"]
-
-#: Rows per band of :func:`sweep_chunks`: a group larger than one chunk is cut into chunks within
-#: bands of this many measurement rows, so that a chunk's heliostats have similar row counts
-#: (little padding).
-ROW_BAND = 100
-
 
 def sweep_digests(items: Mapping) -> dict[str, str]:
     """heliostat id -> SHA-256 (hex) of everything the sweep reads for it (its
@@ -59,14 +53,57 @@ def chunk_size(n_heliostats: int, batch_size: int, workers: int) -> int:
     return max(1, min(int(batch_size), -(-int(n_heliostats) // max(1, int(workers)))))
 
 
-def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
-                 batch_size: int) -> list[list[str]]:
-    """The sweep's training chunks: heliostats that share kinematic type, actuator type and free
-    parameters, at most ``batch_size`` per chunk, each chunk ordered by row count then id.
+#: A training chunk's cost per epoch in heliostat-rows (one heliostat's networks over one padded
+#: row): a fixed part for the program's per-epoch overhead plus one per heliostat and row of the
+#: chunk's longest heliostat. Measured (benchmarks/chunk_cost.py, one process, one thread, idle
+#: machine): 3.9 ms per epoch for 1 heliostat of 224 rows, 68.1 ms for 64 of 288 rows, so about
+#: 3.1 ms for the program and 3.5 us per heliostat-row: the fixed part is about 870 heliostat-rows.
+CHUNK_OVERHEAD_ROWS = 870
 
-    A group of at most ``batch_size`` heliostats is one chunk. A larger group is cut, band by band
-    of :data:`ROW_BAND` measurement rows, into chunks of consecutive ids. A heliostat's results
-    do not depend on its chunk (the module's docstring); the bands keep the padding small.
+
+def _piece_sizes(lengths: Sequence[int], k: int, batch_size: int) -> list[int]:
+    """Sizes of consecutive pieces of the ascending row counts ``lengths``, at most ``k`` pieces
+    of at most ``batch_size``, such that the costliest piece (:data:`CHUNK_OVERHEAD_ROWS` + its
+    heliostats x its longest one's rows) costs as little as it can."""
+    def sizes_within(limit: int) -> list[int]:
+        sizes, end = [], len(lengths)
+        while end > 0:
+            top, size = lengths[end - 1], 1
+            while (size < min(batch_size, end)
+                   and CHUNK_OVERHEAD_ROWS + (size + 1) * top <= limit):
+                size += 1
+            sizes.append(size)
+            end -= size
+        return sizes[::-1]
+
+    lo = CHUNK_OVERHEAD_ROWS + max(lengths)                 # one heliostat per piece
+    hi = CHUNK_OVERHEAD_ROWS + batch_size * max(lengths)    # always within k pieces
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if len(sizes_within(mid)) <= k:
+            hi = mid
+        else:
+            lo = mid + 1
+    return sizes_within(lo)
+
+
+def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
+                 batch_size: int, workers: int = 1, size: int | None = None) -> list[list[str]]:
+    """The sweep's training chunks: heliostats that share kinematic type, actuator type and free
+    parameters, at most ``batch_size`` per chunk, each chunk ordered by row count then id; the
+    costliest chunk first.
+
+    A group of at most ``size`` heliostats (default ``batch_size``; the sweep passes
+    :func:`chunk_size`) is one chunk. A larger group, in row-count order, is cut into
+    consecutive pieces of at most ``batch_size``, as many as pieces of ``size`` would be but a
+    whole number of rounds of the ``workers`` (200 heliostats at 32 on 2 workers: 8 chunks, not 7
+    that leave a worker idle for the last one; an update of 20 at size 10: 2), of about equal
+    cost per epoch
+    (:data:`CHUNK_OVERHEAD_ROWS` + heliostats x the longest one's rows: the pieces of shorter
+    heliostats hold more of them). Consecutive heliostats in row-count order have similar row
+    counts, so little padding. A heliostat's results do not depend on its chunk (the module's
+    docstring): the chunks decide the time, not the results. Costliest first, so that a pool of
+    workers starts the longest chunks first and ends with short ones.
     """
     groups: dict = {}
     for hid in sorted(items):
@@ -74,21 +111,21 @@ def sweep_chunks(items: Mapping, selected: Mapping, helio: pd.DataFrame,
         key = (str(h["kinematic_type"]), str(h["actuator_type"]),
                tuple(bool(x) for x in selected[hid]["free"].tolist()))
         groups.setdefault(key, []).append(hid)
-    size = lambda hid: (len(items[hid].rows), hid)  # noqa: E731
+    order = lambda hid: (len(items[hid].rows), hid)  # noqa: E731
+    batch_size, workers = max(1, int(batch_size)), max(1, int(workers))
+    size = min(batch_size, max(1, int(size or batch_size)))
     chunks = []
     for key in sorted(groups):
-        members = groups[key]
-        if len(members) <= batch_size:
-            chunks.append(sorted(members, key=size))
-            continue
-        bands: dict[int, list[str]] = {}
-        for hid in members:
-            bands.setdefault(len(items[hid].rows) // ROW_BAND, []).append(hid)
-        for band in sorted(bands):
-            ids = bands[band]
-            chunks += [sorted(ids[i:i + batch_size], key=size)
-                       for i in range(0, len(ids), batch_size)]
-    return chunks
+        members = sorted(groups[key], key=order)
+        k = -(-len(members) // size)
+        if k > 1:
+            k = min(len(members), -(-k // workers) * workers)
+        start = 0
+        for n in _piece_sizes([len(items[h].rows) for h in members], k, batch_size):
+            chunks.append(members[start:start + n])
+            start += n
+    cost = lambda c: (-len(c) * len(items[c[-1]].rows), c[0])  # noqa: E731
+    return sorted(chunks, key=cost)
 
 
 @dataclass
