@@ -36,7 +36,6 @@ import pandas as pd
 
 from ..artifacts.incremental import (carry_over_unchanged, field_key, heliostat_digests,
                                      plan_increment, reused_rows)
-from ..artifacts.paths import artifact_path
 from ..artifacts.manifests import current_transaction
 from ..artifacts.store import read_artifact, write_artifact
 from ..errors import FitError, InputError, ParameterError, check_choice, check_int
