@@ -248,10 +248,7 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
                     strokes = p0[i_str:i_str + 1]
                 for _ in range(3):  # global grid, then two finer grids around the best
                     ga, gs = torch.meshgrid(angles, strokes, indexing="ij")
-                    cand = p0.unsqueeze(0).repeat(ga.numel(), 1)
-                    cand[:, i_ang] = ga.reshape(-1)
-                    cand[:, i_str] = gs.reshape(-1)
-                    pred = joint_angles(cand, spec, data.steps[ok])[..., axis - 1]  # (G, n)
+                    pred = _grid_joint_angles(p0, spec, data.steps[ok], axis, angles, strokes)
                     diff = torch.remainder(pred - target[ok] + math.pi, 2 * math.pi) - math.pi
                     score = torch.nan_to_num(diff.abs(), nan=10.0).median(dim=-1).values
                     k = int(torch.argmin(score))
@@ -269,6 +266,24 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
         before = torch.nan_to_num(normal_errors_mrad(p0, spec, data), nan=1e6).median()
         after = torch.nan_to_num(normal_errors_mrad(best_p, spec, data), nan=1e6).median()
     return best_p if after < before else p0
+
+
+def _grid_joint_angles(p0: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor, axis: int,
+                       angles: torch.Tensor, strokes: torch.Tensor) -> torch.Tensor:
+    """Axis ``axis``'s joint angles [rad] at ``steps`` (n, 2) for every (zero-point angle,
+    initial stroke) pair of the grid ``angles`` x ``strokes``: (A S, n), rows in
+    ``meshgrid(angles, strokes, indexing="ij")`` order, the other parameters ``p0``'s.
+
+    Both actuator laws add the zero-point angle last (``angle0 + ...``), so the law runs once per
+    stroke, at angle 0, and each grid angle is added to that: the same floating-point sums as
+    running the law once per pair, at 1/A of its cost."""
+    i_ang = PARAMETER_INDEX[f"axis_{axis}_initial_angle_rad"]
+    i_str = PARAMETER_INDEX[f"axis_{axis}_initial_stroke_length_m"]
+    per_stroke = p0.unsqueeze(0).repeat(len(strokes), 1)
+    per_stroke[:, i_ang] = 0.0
+    per_stroke[:, i_str] = strokes
+    relative = joint_angles(per_stroke, spec, steps)[..., axis - 1]          # (S, n)
+    return (angles[:, None, None] + relative[None]).reshape(-1, relative.shape[-1])
 
 
 def _fit_setup(spec: HeliostatSpec, nominal: torch.Tensor, train: MeasurementBatch, preset: str,
