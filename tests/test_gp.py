@@ -193,6 +193,17 @@ def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_workdir,
     assert sel["test_error_mrad"] < sel["coarse_test_error_mrad"]
     out = aim_steps(wd, HID, aim_point_enu=[0.5, -3.235754, 36.5], time_utc="2023-05-03T11:00Z")
     assert out["model"] == "gp" and out["inverse_residual_mrad"] < 0.01
+    # benchmarks/expected_error.py's GP table: the heliostat's 30 kNN test rows (split-knn
+    # n_test=30) and its time split's test rows, the expected error through the GP's variance
+    # never above the coarse budget alone, and below it somewhere on the kNN rows (near the data)
+    from heliocal.pipeline.stages.aim_calibration import gp_calibration_rows
+
+    for setting, n in (("knn", 30), ("forward", None)):
+        rows = gp_calibration_rows(wd, setting)
+        assert set(rows["heliostat_id"]) == {HID} and len(rows) == (n or len(rows)) > 0
+        assert (rows["expected_mrad"] <= rows["expected_before_mrad"] * (1 + 1e-12)).all()
+        if setting == "knn":
+            assert (rows["expected_mrad"] < rows["expected_before_mrad"]).any()
     summary = run_report(wd, workers=1)
     assert any(f.endswith(f"gp_correction_{HID}.png") for f in summary["figures"])
 
