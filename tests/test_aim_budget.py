@@ -227,3 +227,23 @@ def test_the_forward_check_uses_only_next_day_rows_scored_before_the_test_rows(s
     assert (pd.to_datetime(t["timestamp_m"], utc=True)
             < pd.to_datetime(t["heliostat_id"].map(cut), utc=True)).all()
     assert len(kept) < len(rolling)
+
+
+def test_a_fine_model_s_explained_variance_lowers_the_level_down_to_its_noise():
+    from heliocal.pipeline.stages.aim_budget import fine_level_mrad
+
+    # sqrt(max(level^2 - explained, min(noise, level^2))), closed form per row: a level of
+    # 2 mrad (4 mrad^2) with 3 explained is 1 mrad; with 10 explained it stops at the noise
+    # (0.25 mrad^2: 0.5 mrad); a noise above the level never raises it (2 mrad); nothing
+    # explained is the coarse level
+    got = fine_level_mrad([2.0, 2.0, 2.0, 2.0], [3.0, 10.0, 10.0, 0.0], [0.25, 0.25, 9.0, 0.25])
+    assert got == pytest.approx([1.0, 0.5, 2.0, 2.0])
+    # in the expected error, beside the parameters' term (no covariance here: the level alone),
+    # at the level's growth: 1.5 mrad measured a day out is 3.0 mrad at 20 days (the growth
+    # test's field), of which 5 mrad^2 explained leaves 2.0 mrad
+    g = LevelGrowth.from_rolling(_rolling({0.5: 1.0, 20.0: 2.0}))
+    budget = ErrorBudget(None, 1.5, "validation", np.zeros((0, 3)), None, growth=g,
+                         growth_reference=g.reference([0.5]))
+    got = expected_error_mrad(budget, None, None, np.zeros((2, 2)), None, None, [20.0, 20.0],
+                              explained_mrad2=np.array([5.0, 0.0]), fine_noise_mrad2=0.01)
+    assert got == pytest.approx([2.0, 3.0])

@@ -193,5 +193,99 @@ def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_workdir,
     assert sel["test_error_mrad"] < sel["coarse_test_error_mrad"]
     out = aim_steps(wd, HID, aim_point_enu=[0.5, -3.235754, 36.5], time_utc="2023-05-03T11:00Z")
     assert out["model"] == "gp" and out["inverse_residual_mrad"] < 0.01
+    # benchmarks/expected_error.py's GP table: the heliostat's 30 kNN test rows (split-knn
+    # n_test=30) and its time split's test rows, the expected error through the GP's variance
+    # never above the coarse budget alone, and below it somewhere on the kNN rows (near the data)
+    from heliocal.pipeline.stages.aim_calibration import gp_calibration_rows
+
+    for setting, n in (("knn", 30), ("forward", None)):
+        rows = gp_calibration_rows(wd, setting)
+        assert set(rows["heliostat_id"]) == {HID} and len(rows) == (n or len(rows)) > 0
+        assert (rows["expected_mrad"] <= rows["expected_before_mrad"] * (1 + 1e-12)).all()
+        if setting == "knn":
+            assert (rows["expected_mrad"] < rows["expected_before_mrad"]).any()
     summary = run_report(wd, workers=1)
     assert any(f.endswith(f"gp_correction_{HID}.png") for f in summary["figures"])
+
+
+# --------------------------------------------------------------------------------------------
+# the predictive variance aim's expected error reads (issue 33)
+# --------------------------------------------------------------------------------------------
+def test_the_prediction_s_variances_are_the_kernel_s_closed_form():
+    """Independently of scikit-learn's predict: the posterior variance of a zero-mean GP is
+    ``k(x, x) - k_x^T K^-1 k_x`` (K the training kernel with the white noise on its diagonal,
+    k_x the noise-free cross-covariances), its prior ``k(x, x)`` without the noise; both
+    components share the kernel, so both are summed as twice one, in units of the fitted
+    scale squared. The explained variance is ``w (2 - w) (prior - latent)``."""
+    train = _rows(60, 7)
+    noise = np.random.default_rng(8).normal(0, 0.05, (60, 2))
+    model = fit_gp_correction(train, _sky(train) + noise, GPConfig(structures=("sun",)))
+    kernel = model._fitted().kernel_
+    signal, white = kernel.k1, float(kernel.k2.noise_level)
+    x = model.inputs.encode([10.0, -30.0, 170.0], [40.0, 25.0, 40.0], [np.nan] * 3)
+    big_k = signal(model.x_train) + white * np.eye(len(model.x_train))
+    k_x = signal(model.x_train, x)
+    prior = np.diag(signal(x))
+    latent = prior - np.einsum("ij,ij->j", k_x, np.linalg.solve(big_k, k_x))
+    scale2 = 2.0 * model.y_scale_mrad ** 2
+    w = np.array([1.0, 0.5, 0.0])
+    got = model.predict(x, w)
+    assert got.prior_variance_mrad2 == pytest.approx(scale2 * prior, rel=1e-9)
+    assert got.latent_variance_mrad2 == pytest.approx(scale2 * latent, rel=1e-6, abs=1e-12)
+    assert got.noise_mrad2 == pytest.approx(scale2 * white, rel=1e-12)
+    assert got.explained_variance_mrad2 == pytest.approx(
+        w * (2 - w) * scale2 * (prior - latent), rel=1e-6, abs=1e-12)
+    # the faded correction's expected squared error: the latent variance plus the square of
+    # what the fade takes away, |(1 - w) g|^2 with g the unfaded mean (a half here)
+    unfaded = model.predict(x).mean_mrad
+    assert got.variance_mrad2 == pytest.approx(
+        scale2 * latent + (((1 - w)[:, None] * unfaded) ** 2).sum(-1), rel=1e-6, abs=1e-12)
+    # inside the training rows most of the prior is explained; 150 deg away none of it
+    assert got.explained_variance_mrad2[0] > 0.9 * got.prior_variance_mrad2[0]
+    assert got.explained_variance_mrad2[2] == 0.0
+
+
+@pytest.mark.slow
+def test_aim_s_expected_error_takes_the_gp_s_variance_and_is_the_coarse_one_far_away(gp_workdir):
+    """An aim through the GP expects the coarse budget with its level lowered by what the GP
+    explains at that aim (aim_budget.fine_level_mrad), recomputed here from the model file's
+    prediction at the aim's sun and time; three years after the data the fade is 0, nothing is
+    explained and the aim expects what the coarse model's aim at that time expects."""
+    from test_hybrid import HELIOSTAT_ROW, HID
+
+    from heliocal.pipeline.physics.parameters import HeliostatSpec
+    from heliocal.pipeline.physics.sun import sun_vector_enu
+    from heliocal.pipeline.stages.aim import aim_steps, load_model
+    from heliocal.pipeline.stages.aim_budget import error_budgets, expected_error_mrad
+    from heliocal.pipeline.stages.fit_coarse import load_selected_parameters
+
+    wd, _ = gp_workdir
+    aim, when = [0.5, -3.235754, 36.5], pd.Timestamp("2023-05-03T11:00Z")
+    near = aim_steps(wd, HID, aim_point_enu=aim, time_utc=when, model="gp")
+    coarse = aim_steps(wd, HID, aim_point_enu=aim, time_utc=when, model="coarse")
+    cfg, state = load_model(wd, "gp", HID)
+    row = pd.DataFrame({"sun_azimuth_deg": [near["sun_azimuth_deg"]],
+                        "sun_elevation_deg": [near["sun_elevation_deg"]], "timestamp": [when]})
+    g = gp_correction((cfg, state), row)
+    explained = float(g.explained_variance_mrad2[0])
+    assert explained > 0.0
+    # the coarse budget's level at the aim's age, and its parameters' term at the GP's steps
+    selected = load_selected_parameters(wd, [HID])
+    spec = HeliostatSpec.from_row(pd.Series(HELIOSTAT_ROW))
+    budget = error_budgets(wd, {HID: spec}, selected, {HID: {"model": "coarse"}})[HID]
+    level = float(budget.level_at([near["days_after_last_measurement"]])[0])
+    steps = torch.tensor([[near["axis_1_steps"], near["axis_2_steps"]]], dtype=torch.float64)
+    sun = torch.tensor(sun_vector_enu(near["sun_azimuth_deg"], near["sun_elevation_deg"]),
+                       dtype=torch.float64).reshape(1, 3)
+    without = float(expected_error_mrad(budget, spec, selected[HID]["params"], steps, sun,
+                                        torch.tensor([aim], dtype=torch.float64),
+                                        [near["days_after_last_measurement"]])[0])
+    parameters = without ** 2 - level ** 2
+    want = math.sqrt(parameters + max(level ** 2 - explained, min(g.noise_mrad2, level ** 2)))
+    assert near["expected_error_mrad"] == pytest.approx(want, rel=1e-9)
+    assert near["expected_error_mrad"] < coarse["expected_error_mrad"]
+    later = when + pd.Timedelta(days=3 * 365)
+    far = aim_steps(wd, HID, aim_point_enu=aim, time_utc=later, model="gp")
+    far_coarse = aim_steps(wd, HID, aim_point_enu=aim, time_utc=later, model="coarse")
+    assert far["expected_error_mrad"] == pytest.approx(far_coarse["expected_error_mrad"],
+                                                       rel=1e-9)

@@ -40,9 +40,11 @@ Why these defaults: docs/hybrid.md ("The Gaussian-process correction").
 The predictive variance of the correction is kept (:class:`GPPrediction`): the variance of the
 latent residual at a row, summed over both components [mrad^2], without the measurement noise,
 plus the square of the part of the mean the fade takes away (the expected squared error of the
-faded correction about the GP's residual). It is kept for ``aim``'s expected error (issue 33),
-which does not read it yet: an aim of a fine model expects its coarse model's error
-(docs/hybrid.md, section "`aim`").
+faded correction about the GP's residual), beside the latent prior variance and the white noise.
+``aim``'s expected error reads it through :attr:`GPPrediction.explained_variance_mrad2`: the
+GP's prior variance is the part of the coarse model's error level that the correction models,
+and at an aim only ``w (2 - w)`` of its reduction to the posterior variance is gained
+(:mod:`heliocal.pipeline.stages.aim_budget`; docs/hybrid.md, section "`aim`").
 """
 
 from __future__ import annotations
@@ -332,13 +334,37 @@ class GPPrediction:
     mean_mrad : (N, 2) faded posterior mean of the pointing residual (h, v) [mrad]: the correction.
     variance_mrad2 : (N,) its expected squared error [mrad^2], both components summed: the
         latent residual's posterior variance (no measurement noise) plus the square of the mean
-        the fade takes away.
-    fade : (N,) the fade applied (1 near the training rows).
+        the fade takes away, ``latent + |(1 - w) g|^2``.
+    fade : (N,) the fade ``w`` applied (1 near the training rows).
+    latent_variance_mrad2 : (N,) the latent residual's posterior variance [mrad^2], both
+        components summed, without the measurement noise.
+    prior_variance_mrad2 : (N,) its prior variance there (the kernel without the white noise)
+        [mrad^2], both components summed: what the posterior returns to far from the data.
+    noise_mrad2 : the white-noise variance [mrad^2], both components summed: the measurement
+        scatter no correction removes.
     """
 
     mean_mrad: np.ndarray
     variance_mrad2: np.ndarray
     fade: np.ndarray
+    latent_variance_mrad2: np.ndarray
+    prior_variance_mrad2: np.ndarray
+    noise_mrad2: float
+
+    @property
+    def explained_variance_mrad2(self) -> np.ndarray:
+        """(N,) by how much the faded correction is expected to lower the coarse model's mean
+        squared pointing error [mrad^2]: ``w (2 - w) (prior - latent)``.
+
+        Under the GP's prior the residual ``r`` has variance ``prior``; its posterior mean ``g``
+        varies with the data by ``prior - latent`` and ``r - g`` (variance ``latent``) is
+        independent of it. The coarse model errs by ``r``, the corrected one by
+        ``r - w g = (r - g) + (1 - w) g``, of mean square ``latent + (1 - w)^2 (prior -
+        latent)``: the difference is the formula. 0 far from the data (``latent = prior`` or
+        ``w = 0``), ``prior - latent`` on the training rows."""
+        w = self.fade
+        return w * (2.0 - w) * np.clip(self.prior_variance_mrad2 - self.latent_variance_mrad2,
+                                       0.0, None)
 
 
 @dataclass
@@ -397,12 +423,15 @@ class GPCorrection:
         x = np.asarray(x, np.float64).reshape(-1, self.inputs.n_inputs)
         mean, std = gp.predict(x, return_std=True)
         std = std.reshape(len(x), -1)[:, 0]        # one kernel: the same for both components
-        latent = np.clip(std ** 2 - float(gp.kernel_.k2.noise_level), 0.0, None)
+        noise = float(gp.kernel_.k2.noise_level)
+        scale2 = 2.0 * self.y_scale_mrad ** 2       # both components, back to mrad^2
+        latent = np.clip(std ** 2 - noise, 0.0, None) * scale2
+        prior = np.clip(gp.kernel_.diag(x) - noise, 0.0, None) * scale2
         mean = np.asarray(mean, np.float64).reshape(len(x), 2) * self.y_scale_mrad
         w = np.ones(len(x)) if fade is None else np.asarray(fade, np.float64).reshape(-1)
         faded = w[:, None] * mean
-        var = 2.0 * latent * self.y_scale_mrad ** 2 + ((1.0 - w)[:, None] * mean ** 2).sum(-1)
-        return GPPrediction(faded, var, w)
+        var = latent + (((1.0 - w)[:, None] * mean) ** 2).sum(-1)
+        return GPPrediction(faded, var, w, latent, prior, noise * scale2)
 
     def predict_rows(self, rows: pd.DataFrame) -> GPPrediction:
         """The faded correction at measurement rows (a structure without time has an infinite

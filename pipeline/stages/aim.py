@@ -26,7 +26,7 @@ from ..artifacts.store import artifact_columns, artifact_present, read_artifact
 from ..errors import (FitError, HeliocalError, InputError, ParameterError, StageInputError,
                       check_choice)
 from ..models.fade import epoch_seconds, fade_weights
-from ..models.gp import GPCorrection
+from ..models.gp import GPCorrection, GPPrediction
 from ..models.gp_heliostat import gp_aim_steps
 from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
 from ..models.pretrained import PretrainedModel
@@ -172,6 +172,7 @@ class _Heliostat:
     coarse: torch.Tensor
     selected: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    gp_prediction: GPPrediction | None = None   # a GP's at the aim (for the expected error)
 
 
 def _read_heliostat(wd: CommittedWorkdir, heliostat_id: str) -> _Heliostat:
@@ -372,6 +373,7 @@ def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: in
                        max_iterations=max_iterations, tolerance_steps=tolerance_steps)
     if not bool(torch.isfinite(fit.steps).all()):
         raise _unreachable(h.id)
+    h.gp_prediction = fit.prediction
     return fit.steps, h.coarse, int(fit.iterations[0]), fit.normal
 
 
@@ -416,14 +418,26 @@ def solve_aim(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env,
     return steps, iterations, inverse_residual
 
 
+@dataclass(frozen=True)
+class FineAim:
+    """One aim through a fine model: its steps (2,) and, through a GP, its predictive variance's
+    part of the expected error (:func:`.aim_budget.fine_level_mrad`'s ``explained_mrad2`` and
+    ``noise_mrad2`` [mrad^2]; 0 for other models)."""
+
+    steps: np.ndarray
+    explained_mrad2: float = 0.0
+    noise_mrad2: float = 0.0
+
+
 def heliostat_aims(workdir, heliostat_id: str, model: str, sun_enu: np.ndarray,
                    aim_point_enu: np.ndarray, times_utc, envs: list[Mapping[str, float]]
-                   ) -> list[np.ndarray | HeliocalError]:
+                   ) -> list[FineAim | HeliocalError]:
     """The steps (2,) of many aims of one heliostat, as :func:`aim_steps` gives them, with its
     heliostat and model read once (the batch aim's rows with a fine model: each needs its own
-    fixed point). ``sun_enu`` (N, 3) unit vectors toward the sun, ``aim_point_enu`` (N, 3) [m]
-    ENU, ``times_utc`` and ``envs`` per aim. A row's own failure (its env inputs, an unreachable
-    aim) is its entry; one of the heliostat (no fit, a stale model) is every row's."""
+    fixed point), as :class:`FineAim`. ``sun_enu`` (N, 3) unit vectors toward the sun,
+    ``aim_point_enu`` (N, 3) [m] ENU, ``times_utc`` and ``envs`` per aim. A row's own failure
+    (its env inputs, an unreachable aim) is its entry; one of the heliostat (no fit, a stale
+    model) is every row's."""
     wd = CommittedWorkdir.of(workdir)
     try:
         h = _read_heliostat(wd, heliostat_id)
@@ -439,19 +453,19 @@ def heliostat_aims(workdir, heliostat_id: str, model: str, sun_enu: np.ndarray,
                                     _unit(torch.tensor(sun, dtype=torch.float64).reshape(1, 3)),
                                     torch.tensor(point, dtype=torch.float64).reshape(1, 3),
                                     utc_time(time_utc), _check_env(wd, env))
-            out.append(steps[0].numpy())
+            out.append(FineAim(steps[0].numpy()))
         except HeliocalError as exc:
             out.append(exc)
     return out
 
 
 def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu, times_utc,
-             envs) -> list[np.ndarray | HeliocalError]:
+             envs) -> list[FineAim | HeliocalError]:
     """:func:`heliostat_aims` of a GP correction: its fixed points solved together
     (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`, each aim on its own), after each
     aim's inputs are checked as :func:`_gp_solve` checks them."""
     cfg, state = fitted
-    out: list[np.ndarray | HeliocalError | None] = [None] * len(sun_enu)
+    out: list[FineAim | HeliocalError | None] = [None] * len(sun_enu)
     times, env_rows = [], []
     for i, (time_utc, env) in enumerate(zip(times_utc, envs)):
         try:
@@ -474,22 +488,28 @@ def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu
                        np.array(env_rows) if env_rows[0] else None)
     with torch.no_grad():
         residual = error_mrad(reflect(-sun, fit.normal), aim - fit.position)
+    explained = fit.prediction.explained_variance_mrad2
     for k, i in enumerate(ok):
         reachable = bool(torch.isfinite(fit.steps[k]).all()) and math.isfinite(residual[k])
-        out[i] = fit.steps[k].numpy() if reachable else _unreachable(h.id)
+        out[i] = (FineAim(fit.steps[k].numpy(), float(explained[k]), fit.prediction.noise_mrad2)
+                  if reachable else _unreachable(h.id))
     return out
 
 
 def _expected_error(wd: CommittedWorkdir, h: _Heliostat, chosen: str, steps, sun, aim,
                     time_utc) -> dict:
     """``expected_error_mrad``, ``level_source`` and ``sun_distance_deg`` of one aim (its level
-    at the aim's days since the heliostat's last row, when the aim has a time)."""
+    at the aim's days since the heliostat's last row, when the aim has a time; through a GP's
+    predictive variance at the aim, ``h.gp_prediction``: :func:`.aim_budget.fine_level_mrad`)."""
     from .aim_budget import days_since, error_budgets, expected_error_mrad, sun_distance_deg
 
     models = {h.id: {"model": "nominal" if chosen == "nominal" else "coarse"}}
     budget = error_budgets(wd, {h.id: h.spec}, {h.id: h.selected}, models)[h.id]
-    expected = expected_error_mrad(budget, h.spec, h.coarse, steps, sun, aim,
-                                   [days_since(budget, time_utc)])
+    fine = h.gp_prediction if chosen == "gp" else None
+    expected = expected_error_mrad(
+        budget, h.spec, h.coarse, steps, sun, aim, [days_since(budget, time_utc)],
+        explained_mrad2=0.0 if fine is None else fine.explained_variance_mrad2,
+        fine_noise_mrad2=0.0 if fine is None else fine.noise_mrad2)
     return {"expected_error_mrad": float(expected[0]), "level_source": budget.level_source,
             "sun_distance_deg": float(sun_distance_deg(budget, sun.numpy())[0])}
 
@@ -524,7 +544,8 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
     dict with ``axis_1_steps``, ``axis_2_steps``, ``model`` (``nominal`` when the fit is worse
     than the nominal geometry on held-out rows; a warning says so), ``iterations``,
     ``expected_error_mrad`` (the error a measurement of this aim is expected to show:
-    :mod:`heliocal.pipeline.stages.aim_budget`), its ``level_source``, ``sun_distance_deg``
+    :mod:`heliocal.pipeline.stages.aim_budget`; through a GP, with its predictive variance at
+    the aim), its ``level_source``, ``sun_distance_deg``
     (the aim's sun to the nearest training row's), ``inverse_residual_mrad`` (the angle between
     the forward model's reflected beam at the returned steps and the direction to the aim
     point: how exactly the steps solve the model, not how well the heliostat will point),

@@ -27,7 +27,20 @@ time), and an aim's level is the source's level times the growth at the aim's da
 growth at the days of the rows the level was measured on (:meth:`ErrorBudget.level_at`).
 
 The level is at least the noise term, so an aim never expects less than its measurements'
-scatter. The nominal geometry (the fallback when a fit is worse than it, :mod:`.aim_choice`)
+scatter.
+
+**A fine model with a predictive variance** (the GP correction, :mod:`heliocal.pipeline.models.gp`)
+models the coarse model's residual, which the level measured on the coarse model's held-out rows
+contains: the GP's prior variance there is the part of the level it models, and after the
+correction only its posterior variance (and the part of the mean the fade takes away) remains.
+An aim through it expects ``sqrt(trace(J_a C J_a^T) + max(level^2 - explained, min(noise,
+level^2)))`` (:func:`fine_level_mrad`), ``explained = w (2 - w) (prior - posterior)`` at the aim's
+sun, time and env (:attr:`heliocal.pipeline.models.gp.GPPrediction.explained_variance_mrad2`),
+``noise`` the GP's white noise of both components: the measurement scatter no correction
+removes, and never more than the coarse level (a correction is not expected to make an aim
+worse). Far from the GP's data (``explained`` 0) this is the coarse model's budget; the
+parameters' term stays (the GP's residuals are about the fitted parameters, whose error grows
+away from the training rows' sun positions where the GP's mean returns to zero). The nominal geometry (the fallback when a fit is worse than it, :mod:`.aim_choice`)
 has no covariance; its level comes from its own validation rows.
 
 Flags beside the number: ``sun_distance_deg``, the angle between the aim's sun and the
@@ -59,6 +72,7 @@ __all__ = [
     "error_level_mrad",
     "error_budgets",
     "expected_error_mrad",
+    "fine_level_mrad",
     "days_since",
     "LevelGrowth",
     "sun_distance_deg",
@@ -479,21 +493,36 @@ def _covariances(specs: dict, selected: dict, fitted: dict[str, MeasurementBatch
     return out
 
 
+def fine_level_mrad(level_mrad, explained_mrad2=0.0, noise_mrad2=0.0) -> np.ndarray:
+    """(M,) the level [mrad] of aims through a fine model with a predictive variance:
+    ``sqrt(max(level^2 - explained, min(noise, level^2)))`` for the coarse level ``level_mrad``
+    (M,) [mrad], the variance the correction is expected to remove ``explained_mrad2`` (M,)
+    [mrad^2] and its measurement noise ``noise_mrad2`` [mrad^2] (both components; module
+    docstring). ``explained`` 0 (the coarse model, a fine model without a variance) gives the
+    level unchanged."""
+    level2 = np.asarray(level_mrad, float) ** 2
+    floor = np.minimum(np.asarray(noise_mrad2, float), level2)
+    return np.sqrt(np.maximum(level2 - np.asarray(explained_mrad2, float), floor))
+
+
 def expected_error_mrad(budget: ErrorBudget, spec: HeliostatSpec, params: torch.Tensor,
                         steps: torch.Tensor, sun: torch.Tensor, aim_point_enu: torch.Tensor,
-                        days_since_last_row=None) -> np.ndarray:
+                        days_since_last_row=None, *, explained_mrad2=0.0,
+                        fine_noise_mrad2=0.0) -> np.ndarray:
     """(M,) expected error [mrad] of aims at ``steps`` (M, 2) for unit sun vectors ``sun`` (M, 3)
     and aim points (M, 3) [m ENU] with parameters ``params`` (28,): ``sqrt(trace(J_a C J_a^T)
     + level^2)`` (module docstring), the level at ``days_since_last_row`` (M,) [d] (None: as
-    measured); NaN where the chain is not finite. With each aim's own parameters (``params``
-    (M, 28)) the aims come as batches of one: ``steps`` (M, 1, 2), ``sun`` and
-    ``aim_point_enu`` (M, 1, 3)."""
+    measured), through a fine model's predictive variance (``explained_mrad2`` (M,) and
+    ``fine_noise_mrad2`` [mrad^2]: :func:`fine_level_mrad`; 0: the coarse model's); NaN where
+    the chain is not finite. With each aim's own parameters (``params`` (M, 28)) the aims come
+    as batches of one: ``steps`` (M, 1, 2), ``sun`` and ``aim_point_enu`` (M, 1, 3)."""
     variance = np.zeros(len(steps))
     if budget.covariance is not None:
         jac = aim_jacobian(spec, params, budget.covariance.free_idx, steps, sun, aim_point_enu)
         variance = aim_variance_mrad2(jac.reshape(-1, *jac.shape[-2:]), budget.covariance)
     days = np.full(len(steps), np.nan) if days_since_last_row is None else days_since_last_row
-    return np.sqrt(variance + budget.level_at(days) ** 2)
+    level = fine_level_mrad(budget.level_at(days), explained_mrad2, fine_noise_mrad2)
+    return np.sqrt(variance + level ** 2)
 
 
 def days_since(budget: ErrorBudget, time_utc) -> float:

@@ -8,6 +8,10 @@ its level from what a plant had seen before the time split's first test row: the
 scored before it and the time split's validation rows; scored on the time split's test rows) and
 ``knn`` (the selected model, its level from its kNN validation rows; scored on the kNN test
 rows).
+
+The heliostats whose sweep selected the GP correction are checked on their own
+(:func:`gp_calibration_rows`): the GP-corrected model's actual error beside the coarse budget
+alone and the budget through the GP's predictive variance at the row.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from ..models.coarse import MeasurementBatch
 from ..physics.parameters import HeliostatSpec
 from .aim_budget import error_budgets, expected_error_mrad
 
-__all__ = ["calibration_rows", "calibration_summary", "first_test_time"]
+__all__ = ["calibration_rows", "calibration_summary", "first_test_time", "gp_calibration_rows"]
 
 
 def _time_selected(workdir, selected: dict) -> dict:
@@ -42,17 +46,16 @@ def _time_selected(workdir, selected: dict) -> dict:
     return out
 
 
-def calibration_rows(workdir, setting: str) -> pd.DataFrame:
-    """Per held-out row of ``setting`` (``forward`` or ``knn``): heliostat, actual and expected
-    error [mrad], the level source."""
+def _coarse_budgets(workdir, setting: str, heliostats=None) -> tuple[dict, dict, dict]:
+    """(specs, selected parameters, coarse :class:`.aim_budget.ErrorBudget`) of the heliostats
+    (all: None) as ``setting`` takes them (module docstring)."""
     from ..artifacts.schemas import HELIOSTATS
     from .fit_coarse import load_selected_parameters
 
     helio = read_artifact(workdir, HELIOSTATS).set_index("heliostat_id")
-    selected = load_selected_parameters(workdir)
+    selected = load_selected_parameters(workdir, heliostats)
     specs = {h: HeliostatSpec.from_row(helio.loc[h]) for h in selected}
     models = {h: {"model": "coarse"} for h in selected}
-    label, actual = ("time_split", "time_error_mrad") if setting == "forward" else ("split", "error_mrad")
     if setting == "forward":
         # as a plant aims after its calibration: the next-day rows it had seen by then first
         selected = _time_selected(workdir, selected)
@@ -62,29 +65,119 @@ def calibration_rows(workdir, setting: str) -> pd.DataFrame:
     else:
         budgets = error_budgets(workdir, specs, selected, models,
                                 level_sources=("validation",))
-    split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", label])
-    pred = read_artifact(workdir, COARSE_PREDICTIONS,
+    return specs, selected, budgets
+
+
+def _test_rows(workdir, setting: str, predictions=COARSE_PREDICTIONS, heliostats=None
+               ) -> tuple[pd.DataFrame, pd.Series, str]:
+    """(the measurement rows of ``setting``'s test rows with the selected model's actual error
+    of ``predictions``, each heliostat's last training row's time, the actual error's column)."""
+    label, actual = ("time_split", "time_error_mrad") if setting == "forward" else ("split", "error_mrad")
+    split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", label],
+                          heliostats=heliostats)
+    pred = read_artifact(workdir, predictions, heliostats=heliostats,
                          columns=["heliostat_id", "measurement_id", "selected", actual])
     pred = pred[pred["selected"]].merge(split, on=["heliostat_id", "measurement_id"])
-    measurements = read_artifact(workdir, MEASUREMENTS)
+    measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
     last_train = _last_training_time(measurements, pred, label)
     pred = pred[pred[label] == "test"]
     rows = measurements.merge(
         pred[["heliostat_id", "measurement_id", actual]], on=["heliostat_id", "measurement_id"])
+    return rows, last_train, actual
+
+
+def _days(g: pd.DataFrame, last_train: pd.Series, hid: str, setting: str) -> np.ndarray | None:
+    """forward: the test rows' days since the time split's last training row (the level grows
+    to them); kNN: None (test rows lie among the training rows: the level as measured)."""
+    if setting != "forward":
+        return None
+    return ((pd.to_datetime(g["timestamp"], utc=True) - last_train.get(hid, pd.NaT))
+            / pd.Timedelta(days=1)).to_numpy(float)
+
+
+def calibration_rows(workdir, setting: str) -> pd.DataFrame:
+    """Per held-out row of ``setting`` (``forward`` or ``knn``): heliostat, actual and expected
+    error [mrad], the level source."""
+    specs, selected, budgets = _coarse_budgets(workdir, setting)
+    rows, last_train, actual = _test_rows(workdir, setting)
     out = []
     for hid, g in rows.groupby("heliostat_id"):
         if hid not in budgets or not np.isfinite(g[actual]).any():
             continue
         b = MeasurementBatch.from_frame(g)
-        # forward: the test rows' days since the time split's last training row (the level
-        # grows to them); kNN: test rows lie among the training rows (the level as measured)
-        days = ((pd.to_datetime(g["timestamp"], utc=True) - last_train.get(hid, pd.NaT))
-                / pd.Timedelta(days=1)).to_numpy(float) if setting == "forward" else None
         expected = expected_error_mrad(budgets[hid], specs[hid], selected[hid]["params"],
-                                       b.steps, b.sun, b.focal_spot, days)
+                                       b.steps, b.sun, b.focal_spot,
+                                       _days(g, last_train, hid, setting))
         out.append(pd.DataFrame({"heliostat_id": hid, "actual_mrad": g[actual].to_numpy(float),
                                  "expected_mrad": expected,
                                  "level_source": budgets[hid].level_source}))
+    return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
+
+
+def gp_selected(workdir) -> list[str]:
+    """The heliostats whose sweep selected the GP correction (``gp``, ``gp-sun``) and whose
+    model ``aim --model auto`` uses."""
+    from .aim_choice import aim_models
+
+    return sorted(h for h, m in aim_models(workdir).items() if m["model"] == "gp")
+
+
+def _time_split_gp(workdir, hid: str, spec, time_params, model, cfg: dict):
+    """The GP of ``model``'s structure and fade lengths fitted again on the time split's training
+    rows on top of fit-coarse's time-split parameters ``time_params`` (28,), as the sweep's
+    forward check fits it (:func:`heliocal.pipeline.stages.selection.gp_time_errors`)."""
+    import dataclasses
+
+    from ..models.gp import GPConfig
+    from ..models.gp_heliostat import fit_heliostat_gps
+
+    keys = ["heliostat_id", "measurement_id"]
+    rows = read_artifact(workdir, MEASUREMENTS, heliostats=[hid]).merge(
+        read_artifact(workdir, SPLIT, heliostats=[hid], columns=keys + ["time_split"]), on=keys)
+    labels = rows["time_split"].to_numpy(object)
+    config = dataclasses.replace(GPConfig.from_dict(cfg["gp_config"]),
+                                 structures=(model.structure,))
+    fits = fit_heliostat_gps(rows, labels, spec, MeasurementBatch.from_frame(rows), time_params,
+                             config, np.ones(int((labels == "validation").sum())),
+                             lengths=(model.fade.length_deg,),
+                             time_length_days=model.fade.length_days)
+    return fits[model.structure].model
+
+
+def gp_calibration_rows(workdir, setting: str) -> pd.DataFrame:
+    """Per held-out row of ``setting`` of the heliostats aim aims with the GP correction
+    (:func:`gp_selected`): the GP-corrected model's actual error (selected_predictions.parquet;
+    forward: the GP fitted on the time split's training rows), ``expected_before_mrad`` (the
+    coarse budget alone) and ``expected_mrad`` (through the GP's predictive variance at the
+    row's sun, time and env: :func:`.aim_budget.fine_level_mrad`) [mrad], the level source."""
+    from ..artifacts.schemas import SELECTED_PREDICTIONS
+    from ..models.gp import GPCorrection
+    from .aim import load_model
+
+    ids = gp_selected(workdir)
+    if not ids:
+        return pd.DataFrame()
+    specs, selected, budgets = _coarse_budgets(workdir, setting, ids)
+    rows, last_train, actual = _test_rows(workdir, setting, SELECTED_PREDICTIONS, ids)
+    out = []
+    for hid, g in rows.groupby("heliostat_id"):
+        if hid not in budgets or not np.isfinite(g[actual]).any():
+            continue
+        cfg, state = load_model(workdir, "selected", hid)
+        model = GPCorrection.from_model(cfg, state)
+        if setting == "forward":
+            model = _time_split_gp(workdir, hid, specs[hid], selected[hid]["params"], model, cfg)
+        gp = model.predict_rows(g)
+        b = MeasurementBatch.from_frame(g)
+        args = (budgets[hid], specs[hid], selected[hid]["params"], b.steps, b.sun, b.focal_spot,
+                _days(g, last_train, hid, setting))
+        out.append(pd.DataFrame({
+            "heliostat_id": hid, "actual_mrad": g[actual].to_numpy(float),
+            "expected_before_mrad": expected_error_mrad(*args),
+            "expected_mrad": expected_error_mrad(*args,
+                                                 explained_mrad2=gp.explained_variance_mrad2,
+                                                 fine_noise_mrad2=gp.noise_mrad2),
+            "level_source": budgets[hid].level_source}))
     return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
 
 

@@ -9,7 +9,8 @@ rows as arrays: the sun from NREL SPA for every row in one call (each at its hel
 and for the coarse model (and the nominal geometry) the inverse kinematics and the expected
 error's Jacobian as tensor operations over the rows of one kinematic type, each row a batch of
 one with its own parameters and spec, so that each row's numbers are those of one ``aim``.
-A fine model's steps are a fixed point per row (:mod:`.aim`), solved row by row.
+A fine model's steps are a fixed point per row (:mod:`.aim`), solved row by row; a GP's
+predictive variance at each row enters its expected error (:func:`.aim_budget.fine_level_mrad`).
 
 Every row of the schedule gets one output row: ``status`` ``ok``, or ``rejected`` with the
 reason (an unknown heliostat or target, a heliostat without a coarse fit or location, the sun
@@ -40,7 +41,7 @@ from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.sun import spa_sun_position, sun_vector_enu
 from ..runtime.process_state import one_thread, restores_process_state
 from ..models.uncertainty import aim_variance_mrad2
-from .aim_budget import ErrorBudget, error_budgets, sun_distance_deg
+from .aim_budget import ErrorBudget, error_budgets, fine_level_mrad, sun_distance_deg
 from .fit_coarse import coarse_row_parameters
 
 __all__ = [
@@ -362,10 +363,11 @@ def _aim_batch(field: _Field, hid: np.ndarray, spec: HeliostatSpec, params: torc
 
 
 def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
-                steps: np.ndarray) -> None:
-    """The steps of the ok rows whose heliostat aims with a fine model, in place in ``steps``:
-    :func:`.aim.heliostat_aims` per heliostat (its model read once, a fixed point per aim); a
-    failure is the row's reason."""
+                steps: np.ndarray, gp_terms: np.ndarray) -> None:
+    """The steps of the ok rows whose heliostat aims with a fine model, in place in ``steps``,
+    and a GP's part of their expected error in ``gp_terms`` (R, 2) (``explained_mrad2``,
+    ``noise_mrad2`` of :class:`.aim.FineAim`): :func:`.aim.heliostat_aims` per heliostat (its
+    model read once, a fixed point per aim); a failure is the row's reason."""
     fine = rows.ok & ~np.isin(chosen.astype(str), ["coarse", "nominal", "None"])
     if not fine.any():
         return
@@ -384,7 +386,8 @@ def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
                 steps[i] = np.nan
                 rows.reject(np.arange(len(steps)) == i, str(result))
             else:
-                steps[i] = result
+                steps[i] = result.steps
+                gp_terms[i] = result.explained_mrad2, result.noise_mrad2
 
 
 def _flags(field: _Field, rows: _Rows, fitted: np.ndarray, sun: np.ndarray) -> dict:
@@ -401,14 +404,16 @@ def _flags(field: _Field, rows: _Rows, fitted: np.ndarray, sun: np.ndarray) -> d
             "days_since_last_row": days}
 
 
-def _expected(field: _Field, rows: _Rows, variance: np.ndarray, days: np.ndarray) -> np.ndarray:
+def _expected(field: _Field, rows: _Rows, variance: np.ndarray, days: np.ndarray,
+              gp_terms: np.ndarray) -> np.ndarray:
     """(R,) expected error [mrad]: the parameters' variance plus each row's level at its days
-    since its heliostat's last row (:meth:`.aim_budget.ErrorBudget.level_at`); NaN where the
-    variance is."""
+    since its heliostat's last row (:meth:`.aim_budget.ErrorBudget.level_at`), through a GP's
+    predictive variance where ``gp_terms`` (R, 2) has one (:func:`.aim_budget.fine_level_mrad`; 0:
+    the level as it is); NaN where the variance is."""
     level = np.full(len(rows.hid), np.nan)
     for h, idx in _heliostat_rows(rows.hid, np.isfinite(variance)):
         level[idx] = field.budgets[h].level_at(days[idx])
-    return np.sqrt(variance + level ** 2)
+    return np.sqrt(variance + fine_level_mrad(level, gp_terms[:, 0], gp_terms[:, 1]) ** 2)
 
 
 def _aim_rows(field: _Field, schedule: pd.DataFrame,
@@ -424,11 +429,12 @@ def _aim_rows(field: _Field, schedule: pd.DataFrame,
     chosen = _per_row({h: field.models.get(h, {}).get("model", "coarse") for h in field.selected},
                       rows.hid)
     steps, variance = _coarse_aims(field, rows, chosen, np.where(rows.ok[:, None], sun, 0.0))
-    _fine_steps(field, rows, chosen, sun, steps)
+    gp_terms = np.zeros((len(rows.hid), 2))
+    _fine_steps(field, rows, chosen, sun, steps, gp_terms)
     steps[~rows.ok] = np.nan
     rows.reject(~np.isfinite(steps).all(axis=1), "the aim point is out of the actuators' reach")
     flags = _flags(field, rows, fitted, sun)
-    expected = _expected(field, rows, variance, flags["days_since_last_row"])
+    expected = _expected(field, rows, variance, flags["days_since_last_row"], gp_terms)
     expected = np.where(np.isfinite(steps).all(axis=1), expected, np.nan)
     if max_expected_error_mrad is not None:
         rows.reject(~(expected <= max_expected_error_mrad),
