@@ -91,7 +91,6 @@ ZYGOTE = textwrap.dedent("""
     import heliocal.pipeline.stages.ingest, heliocal.pipeline.stages.split
     import heliocal.pipeline.stages.fit_coarse, heliocal.pipeline.stages.fit_hybrid
     import heliocal.pipeline.stages.sweep, heliocal.pipeline.stages.report
-    import torch._dynamo  # what torch.optim imports on its first optimizer (1 s in every run)
     from heliocal.cli.app import app
     import heliocal.pipeline.artifacts.transaction as transaction
 

@@ -62,8 +62,9 @@ def test_workers_get_one_thread_env_and_the_caller_keeps_its_own(monkeypatch):
 
 
 def test_warm_up_imports_the_stage_modules_once_in_the_fork_server(tmp_path):
-    """Workers forked after warm_up(modules) start with those modules and torch._dynamo imported
-    (the fork server imported them) and not others; without warm_up none is. Fresh interpreters: a process
+    """Workers forked after warm_up(modules) start with those modules imported (the fork server
+    imported them) and not others, torch's compiler (torch._dynamo) among them; without warm_up
+    none is. Fresh interpreters: a process
     has one fork server, and this one's may already run."""
     import os
     import subprocess
@@ -84,9 +85,8 @@ def test_warm_up_imports_the_stage_modules_once_in_the_fork_server(tmp_path):
                               capture_output=True, text=True)
         assert proc.returncode == 0, proc.stderr[-2000:]
         out[mode] = proc.stdout.strip()
-    # torch._dynamo (TRAINING_IMPORTS) comes with every warm-up (checked: without it in the
-    # server's preload the third entry is False)
-    assert out == {"warm": "[True, False, True, True, False, True]",
+    # the networks' training no longer needs torch._dynamo (models/adam.py): nothing imports it
+    assert out == {"warm": "[True, False, False, True, False, False]",
                    "cold": "[False, False, False, False, False, False]"}
 
 

@@ -21,6 +21,7 @@ from ..physics.lm import SPEC_TENSORS, stack_specs
 from ..physics.metrics import error_mrad, measured_normal
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..runtime.process_state import single_threaded
+from .adam import LeafAdam
 from .coarse import MeasurementBatch, metrics_frame
 from .network import (FeatureEncoder, Layers, flatten_layers, init_mlp, layer_views, mlp_columns,
                       output_scales)
@@ -161,19 +162,6 @@ def problem_as(problem: FineProblem, dtype: torch.dtype) -> FineProblem:
     return dataclasses.replace(problem, spec=spec, data=data, base=cast(problem.base),
                                scales=cast(problem.scales), context=cast(problem.context),
                                cached_features=cast(problem.features()))
-
-
-def _keep_rows_of_leaf(theta: torch.Tensor, opt: torch.optim.Adam, keep: torch.Tensor, lr: float):
-    """A new (L', T) leaf of the kept rows and an Adam that continues from their moments (Adam
-    is elementwise, so the kept members follow exactly the path they would have followed)."""
-    state = opt.state[theta]
-    new = theta.detach()[keep].clone().requires_grad_(True)
-    new_opt = torch.optim.Adam([new], lr=lr)
-    if state:
-        new_opt.state[new] = {"step": state["step"].clone(),
-                              "exp_avg": state["exp_avg"][keep].clone(),
-                              "exp_avg_sq": state["exp_avg_sq"][keep].clone()}
-    return new, new_opt
 
 
 def _pad_rows(t: torch.Tensor, n: int) -> torch.Tensor:
@@ -444,7 +432,7 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
     theta = torch.cat([theta, theta.new_zeros(len(theta), _aligned(theta.shape[1], align)
                                               - theta.shape[1])], 1).requires_grad_(True)
     cur = layer_views(theta, layers)
-    opt = torch.optim.Adam([theta], lr=config.learning_rate)
+    opt = LeafAdam(theta, lr=config.learning_rate)
     features = problem.features()                     # inputs do not change during training
     features = features.transpose(-1, -2).contiguous().transpose(-1, -2)  # rows contiguous
     has_val = vm.any(-1)
@@ -465,7 +453,7 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
             run_tm, run_vm, run_wd, run_n = run_tm[keep], run_vm[keep], run_wd[keep], run_n[keep]
             if features.dim() == 3:
                 features = features[keep]
-            theta, opt = _keep_rows_of_leaf(theta, opt, keep, config.learning_rate)
+            theta, opt = opt.keep_rows(keep)
             cur = layer_views(theta, layers)
         err = _errors_from_features(run_problem, cur, features)          # (L, N)
         sq = torch.where(run_tm, torch.nan_to_num(err, nan=0.0) ** 2, torch.zeros_like(err))
@@ -489,7 +477,7 @@ def train_members(problem: FineProblem, train_mask, val_mask, weight_decays, see
         if epoch == config.max_epochs or not bool(active.any()):
             break
         loss = (train_mse + run_wd * (theta ** 2).sum(-1)).sum()
-        opt.zero_grad(set_to_none=False)
+        opt.zero_grad()
         loss.backward()
         with torch.no_grad():
             theta.grad.nan_to_num_(nan=0.0, posinf=0.0, neginf=0.0)

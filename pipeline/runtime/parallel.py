@@ -215,19 +215,12 @@ def warm_up(modules: Sequence[str], *, workers: int | None = None, scheduler: st
             or "forkserver" not in mp.get_all_start_methods()):
         return
     ctx = mp.get_context("forkserver")
-    # __main__: the default preload; torch._dynamo: torch.optim imports it on the first optimizer
-    # a process builds (about 1 s of CPU in every worker that trains a network)
-    ctx.set_forkserver_preload(["__main__", *modules, *TRAINING_IMPORTS])
+    ctx.set_forkserver_preload(["__main__", *modules])   # __main__: the default preload
     # the server imports numpy and torch: with the one-thread variables, as the pool's workers
     with _environment({var: "1" for var in _ONE_THREAD_ENV}):
         from multiprocessing import forkserver
         forkserver.ensure_running()   # returns once started; the imports run in the server
 
-
-#: What the first training in a process imports besides the stages' own modules: every torch
-#: optimizer's construction imports torch's compiler front end (``torch._dynamo``, about 1 s of
-#: CPU and 70 MiB; heliocal never compiles). :func:`warm_up` imports it once in the fork server.
-TRAINING_IMPORTS = ("torch._dynamo",)
 
 #: The pools of the running :func:`shared_pool` block by worker count (``None``: no block).
 _SHARED_POOLS: dict[int, ProcessPoolExecutor] | None = None

@@ -24,9 +24,28 @@ import sys
 from typing import Callable, Iterator, TypeVar
 
 __all__ = ["ProcessState", "one_thread", "single_threaded", "restored_process_state",
-           "restores_process_state"]
+           "restores_process_state", "deterministic_torch"]
 
 F = TypeVar("F", bound=Callable)
+
+
+def deterministic_torch(mode: bool = True, *, warn_only: bool = True) -> None:
+    """Set torch's deterministic-algorithms flag, as ``torch.use_deterministic_algorithms(mode,
+    warn_only=warn_only)`` does for the kernels heliocal runs (eager CPU ops).
+
+    That public function also sets the flag in the configuration of torch's compiler and so
+    imports ``torch._inductor`` (and ``torch._dynamo``) on its first call: about 1.1 s of CPU in
+    every process, more than heliocal's own modules take to import. heliocal never compiles, so
+    this sets only the kernels' flag (``torch._C._set_deterministic_algorithms``, what the
+    public function calls), and falls back to the public function on a torch without it.
+    ``torch.are_deterministic_algorithms_enabled()`` reads the flag either way."""
+    import torch
+
+    setter = getattr(torch._C, "_set_deterministic_algorithms", None)
+    if setter is None:
+        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    else:
+        setter(mode, warn_only=warn_only)
 
 
 @contextlib.contextmanager
@@ -101,8 +120,8 @@ class ProcessState(dict):
         if (torch.are_deterministic_algorithms_enabled() != settings["deterministic"]
                 or torch.is_deterministic_algorithms_warn_only_enabled()
                 != settings["deterministic_warn_only"]):
-            torch.use_deterministic_algorithms(settings["deterministic"],
-                                               warn_only=settings["deterministic_warn_only"])
+            deterministic_torch(settings["deterministic"],
+                                warn_only=settings["deterministic_warn_only"])
         threads = settings.get("threads")
         if threads is not None and torch.get_num_threads() != threads:
             torch.set_num_threads(threads)

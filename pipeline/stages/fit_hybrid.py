@@ -106,7 +106,7 @@ from ..runtime.parallel import map_tasks, warm_up
 from .fit_coarse import coarse_row_parameters, load_selected_parameters, load_split_labels
 from ..vocabulary import HYBRID_BATCH_SIZE
 from .forward import load_time_labels, load_time_parameters
-from ..runtime.process_state import restores_process_state, single_threaded
+from ..runtime.process_state import deterministic_torch, restores_process_state, single_threaded
 
 __all__ = [
     "run_fit_hybrid",
@@ -139,7 +139,7 @@ def _hybrid_chunk_task(task):
     """Heliostats of ``fit-hybrid`` that train as one batched program (a picklable task for
     :func:`map_tasks`). pretrained-nn heliostats are fitted one by one."""
     items, mode, weight_decay, seed, config, pretrain_config = task
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    deterministic_torch()
     t0 = time.perf_counter()
     prepared = []
     for hid, rows, hrow, sel in items:
@@ -332,7 +332,7 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
     mark_rerunnable(txn)
     warm_up((__name__,), workers=workers, scheduler=scheduler, dask_address=dask_address)
     check_fine_model_inputs(workdir)
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    deterministic_torch()
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
     helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats).set_index("heliostat_id", drop=False)
     measurements["split"] = load_split_labels(workdir, measurements).to_numpy()

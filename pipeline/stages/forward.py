@@ -57,6 +57,7 @@ from ..physics.metrics import error_mrad, measured_normal
 from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import PARAMETER_NAMES, HeliostatSpec
 from ..runtime.parallel import map_tasks
+from ..runtime.process_state import deterministic_torch
 from ..vocabulary import MIN_IMPROVEMENT
 
 __all__ = [
@@ -179,7 +180,7 @@ def _sweep_time_task(task) -> list[tuple[str, np.ndarray]]:
     heliostat its selected model trained on the time split's training rows, error_mrad of every
     row (rows' order)."""
     kind, entries, cfg, weight_decays, path, train_path = task
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    deterministic_torch()
     out = []
     hrows = [pd.Series(e.hrow) for e in entries]
     labels = [time_rows(e.labels) for e in entries]

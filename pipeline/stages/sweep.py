@@ -62,7 +62,7 @@ from ..models.selection import SelectionRule
 from ..models.training import (MEMBER_ALIGN, FineProblem, MemberResult, build_problem,
                                ensemble_errors_mrad, stack_problems, take_rows, train_members)
 from ..runtime.parallel import default_workers, map_tasks, warm_up
-from ..runtime.process_state import restores_process_state
+from ..runtime.process_state import deterministic_torch, restores_process_state
 from ..vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCTAVE_BANDS,
                           NeuralBaseline)
 from .fit_coarse import coarse_fit_options, coarse_row_parameters
@@ -349,7 +349,7 @@ def _study_heliostat(item, sizes, presets, variants, weight_decays, seeds, path,
 
 def _sweep_task(task):
     """One task of the sweep for :func:`map_tasks`: a production chunk or a study heliostat."""
-    torch.use_deterministic_algorithms(True, warn_only=True)
+    deterministic_torch()
     kind, args = task
     if kind == "select":
         return _select_chunk(*args)
