@@ -16,7 +16,8 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               SchedulerChoice, Seed, Workdir, Workers, command, emit, fmt_number,
-                              incremental_line, progress_bar, stdout)
+                              incremental_line, progress_bar, start_stage_workers,
+                              stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig
 from heliocal.pipeline.vocabulary import (HYBRID_BATCH_SIZE, AimModel, FineMode, PretrainVariant,
@@ -119,6 +120,7 @@ def fit_hybrid_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Train the fine model (or a baseline) on each heliostat's training rows."""
+    start_stage_workers("fit-hybrid", workers, scheduler.value, dask_address)
     from heliocal.pipeline.models.pretrained import PretrainConfig
     from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 

@@ -10,7 +10,7 @@ from typing import Annotated, Optional
 import typer
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Seed, Workdir, Workers,
-                              command, emit, stdout)
+                              command, emit, start_stage_workers, stdout)
 from heliocal.pipeline.vocabulary import PLAN_DEFAULT_DAYS, PLAN_MIN_ELEVATION_DEG
 
 __all__ = ["plan_cmd"]
@@ -78,6 +78,7 @@ def plan_cmd(
     """Which heliostats to measure next, and when: plan.parquet, plan.csv (time order, for a
     plant scheduler), each row chosen for the largest drop of its heliostat's expected
     year-round aim error."""
+    start_stage_workers("plan", workers)
     from heliocal.pipeline.stages.plan import run_plan
 
     summary = run_plan(workdir, start=start, days=days, per_day=per_day, budget=budget,

@@ -10,7 +10,8 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
-                              incremental_line, progress_bar, stdout)
+                              incremental_line, progress_bar, start_stage_workers,
+                              stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig, ScreenConfig
 from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT,
@@ -135,6 +136,7 @@ def sweep_cmd(
 ) -> None:
     """Select every heliostat's model (coarse, hybrid or GP) at its full training size; study the
     training size on a sample of heliostats."""
+    start_stage_workers("sweep", workers, scheduler.value, dask_address)
     from heliocal.pipeline.models.pretrained import PretrainConfig
     from heliocal.pipeline.stages.sweep import run_sweep, weight_decay_grid
 

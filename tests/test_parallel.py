@@ -235,3 +235,18 @@ def test_results_are_unpickled_with_the_collector_paused_and_restored():
         assert _loads(pickle.dumps(_SeesCollector())) is False and not gc.isenabled()
     finally:
         gc.enable()
+
+
+def test_each_stage_preload_names_its_own_module_and_importable_ones():
+    """The command line starts a stage's fork server from STAGE_PRELOADS before importing the
+    stage, and the stage's warm-up then keeps that server: an entry must name the command's own
+    stage module first (the stage's functions are what the workers run) and only modules that
+    exist (a typo would make the server fail to start)."""
+    import importlib.util
+
+    from heliocal.pipeline.runtime.parallel import STAGE_PRELOADS
+
+    assert set(STAGE_PRELOADS) == {"fit-coarse", "fit-hybrid", "sweep", "plan"}
+    for command, modules in STAGE_PRELOADS.items():
+        assert modules[0] == "heliocal.pipeline.stages." + command.replace("-", "_"), command
+        assert all(importlib.util.find_spec(m) is not None for m in modules), modules

@@ -47,7 +47,7 @@ from ..errors import ClusterError, ParameterError, check_choice, check_int
 from .process_state import one_thread
 from ..vocabulary import Scheduler
 
-__all__ = ["default_workers", "map_tasks", "shared_pool", "warm_up", "SCHEDULERS"]
+__all__ = ["default_workers", "map_tasks", "shared_pool", "warm_up", "SCHEDULERS", "STAGE_PRELOADS"]
 
 SCHEDULERS = Scheduler.values()
 
@@ -197,6 +197,18 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
                     progress(k + 1, total)
         return out
     return _map_local(func, tasks, workers, progress, chunks_per_worker)
+
+
+#: What each stage's fork server imports (:func:`warm_up`), by command: the stage's module (with
+#: it torch and heliocal) and what its tasks import besides. The command line starts the server
+#: with these before it imports the stage itself, so that the two imports run side by side; the
+#: stage's own :func:`warm_up` then finds the server running.
+STAGE_PRELOADS = {
+    "fit-coarse": ("heliocal.pipeline.stages.fit_coarse", "ruptures"),
+    "fit-hybrid": ("heliocal.pipeline.stages.fit_hybrid",),
+    "sweep": ("heliocal.pipeline.stages.sweep",),
+    "plan": ("heliocal.pipeline.stages.plan",),
+}
 
 
 def warm_up(modules: Sequence[str], *, workers: int | None = None, scheduler: str = "local",
