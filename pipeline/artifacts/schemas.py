@@ -479,7 +479,7 @@ SELECTION = ArtifactSchema(
                 "training size (a hybrid ensemble, the GP correction, with `sweep "
                 "--select-pretrained` the pre-trained network) where it beats fit-coarse's "
                 "selected preset on the distance-weighted validation rows by the rule's margins "
-                "(and, with date inputs, is not worse forward in time), else that coarse model "
+                "(and is not worse forward in time), else that coarse model "
                 "(docs/hybrid.md \"Selection\").",
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
