@@ -1,6 +1,6 @@
 """The sweep's production selection of one heliostat (issue 35): its fine candidates at their
-fades, the rule of :mod:`heliocal.pipeline.models.selection`, the forward-in-time check of a
-model with date inputs (issue 33) and what the sweep writes for the choice.
+fades, the rule of :mod:`heliocal.pipeline.models.selection`, the forward-in-time check of
+every fine choice (issue 33) and what the sweep writes for the choice.
 
 A :class:`CandidatePool` collects one heliostat's candidates as the sweep trains them:
 
