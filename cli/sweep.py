@@ -86,11 +86,11 @@ def sweep_cmd(
              f"{100 * MIN_IMPROVEMENT:g} % margin rule.")] = False,
     time_split: Annotated[bool, typer.Option(
         "--time-split/--no-time-split",
-        help="Also evaluate the selected hybrids forward in time: train each again on the "
-             "time split's training rows (split.parquet time_split); a selected hybrid worse "
-             "there than the coarse model falls back to the static choice (without this "
-             "option its check is left out: selection.parquet forward_check). Coarse and GP "
-             "selections always get it (cheap).")] = False,
+        help="Also evaluate the selected networks (hybrids, pretrained-nn) forward in time: "
+             "train each again on the time split's training rows (split.parquet time_split); "
+             "a selected network worse there than the coarse model falls back to the static "
+             "choice (without this option its check is left out: selection.parquet "
+             "forward_check). Coarse and GP selections always get it (cheap).")] = False,
     gp: Annotated[bool, typer.Option(
         "--gp/--no-gp",
         help="The Gaussian-process correction of the coarse model is a candidate (and a line "

@@ -1,17 +1,22 @@
-"""The sweep's selection of one heliostat (stages/selection.py): the forward-in-time check of a
-chosen model with date inputs and its fallback to the static choice (issue 33, item 3).
+"""The sweep's selection of one heliostat (stages/selection.py): the forward-in-time check of
+every chosen fine model and its fallback to the static choice (issue 33, item 3).
 
-The heliostat and its errors are written out here: ten rows whose split.parquet ``time_split``
-labels are four train, three validation and three test rows; the coarse model's time-split
-errors are 1 mrad on every row.
+The unit tests' heliostat and its errors are written out here: ten rows whose split.parquet
+``time_split`` labels are four train, three validation and three test rows; the coarse model's
+time-split errors are 1 mrad on every row. The GP tests simulate a static heliostat (150 rows of
+a year, 0.1 mrad noise) and add a sky pattern to its focal spots that lasts the whole year or
+only its first 100 rows, the time split's training rows.
 """
 
 import math
+import shutil
 
 import numpy as np
 import pandas as pd
+import pytest
 
-from heliocal.pipeline.stages.selection import HeliostatChoice, apply_forward_checks, time_labels
+from heliocal.pipeline.stages.selection import (CandidatePool, HeliostatChoice,
+                                                apply_forward_checks, time_labels)
 
 IDS = [f"m{i}" for i in range(10)]
 TIME = ["train"] * 4 + ["validation"] * 3 + ["test"] * 3
@@ -84,8 +89,105 @@ def test_without_its_time_split_training_a_hybrid_is_kept_and_says_so():
     assert math.isnan(res["selection"]["time_val_error_mrad"])
 
 
-def test_a_model_without_date_inputs_is_not_checked():
+def test_a_choice_checked_at_its_choice_is_not_checked_again():
     res = _result(1.2)
-    res["choice"].date_inputs = False   # e.g. the GP's sun structure
+    res["choice"].fallback = None       # a GP: CandidatePool.choose checked it already
     apply_forward_checks([res], {"H1": _Item()})
     assert res["selection"]["model"] == "hybrid" and res["selection"]["forward_check"] == ""
+
+
+def test_the_pretrained_network_without_date_inputs_is_checked_too():
+    res = _result(1.2)
+    res["choice"].date_inputs = False   # pretrained-nn: no date inputs, trained by the forward pass
+    res["selection"]["model"] = "pretrained-nn"
+    apply_forward_checks([res], {"H1": _Item()})
+    assert res["selection"]["model"] == "coarse"
+    assert res["selection"]["forward_check"].startswith("failed (pretrained-nn)")
+
+
+# ------------------------------------------------------------------------------------------------
+# a GP without time input, chosen on the kNN split, refitted on the time split
+# ------------------------------------------------------------------------------------------------
+def _sky_pattern_heliostat(root, lasting: bool):
+    """The sweep's view of a simulated static heliostat whose focal spots carry the sky pattern
+    (sin(az / 10 deg), 0.5 cos(el / 8 deg)) mrad along the target plane's (horizontal, vertical)
+    axes: on every row (``lasting``), or on its first 100 rows only (the time split's training
+    rows; the latest 30 are its test rows, the 20 before them its validation rows)."""
+    from heliocal.pipeline.io.staged import IngestOptions
+    from heliocal.pipeline.models.simulator import simulate_field, target_plane_axes
+    from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
+    from heliocal.pipeline.stages.ingest import run_ingest
+    from heliocal.pipeline.stages.simulate import write_field
+    from heliocal.pipeline.stages.split import run_split
+    from heliocal.pipeline.stages.sweep_inputs import SweepHeliostat, read_sweep_inputs
+
+    field = simulate_field(1, seed=11, measurements=(150, 150), dynamic_fraction=0.0,
+                           noise_mrad=0.1)
+    m = field.measurements                          # rows in time order
+    az, el = m["sun_azimuth_deg"].to_numpy(), m["sun_elevation_deg"].to_numpy()
+    pattern = np.column_stack([np.sin(az / 10), 0.5 * np.cos(el / 8)])
+    if not lasting:
+        pattern[100:] = 0.0
+    horizontal, vertical = target_plane_axes(
+        m[["target_normal_e", "target_normal_n", "target_normal_u"]].to_numpy())
+    metres = m["distance_m"].to_numpy()[:, None] / 1000.0
+    shift = metres * (pattern[:, :1] * horizontal + pattern[:, 1:] * vertical)
+    for i, axis in enumerate("enu"):
+        m[f"focal_spot_{axis}_m"] += shift[:, i]
+    write_field(field, root / "field")
+    work = root / "work"
+    run_ingest([root / "field" / "paint"], work, IngestOptions())
+    run_split(work)
+    run_fit_coarse(work, rolling_origins=3)
+    return SweepHeliostat.of(next(iter(read_sweep_inputs(work, None).values())))
+
+
+def _gp_without_time_pool(h) -> CandidatePool:
+    """The heliostat's candidates: the coarse model and a GP of the sun alone (no date input)."""
+    from heliocal.pipeline.models.fade import TIME_FADE_DAYS
+    from heliocal.pipeline.models.gp import GPConfig
+    from heliocal.pipeline.models.gp_heliostat import fit_heliostat_gps
+    from heliocal.pipeline.stages.fit_coarse import coarse_row_parameters
+
+    pool = CandidatePool(h)
+    config = GPConfig(structures=("sun",))
+    fits = fit_heliostat_gps(h.rows, h.labels, h.spec, h.data,
+                             coarse_row_parameters(h.selected, h.rows["timestamp"]), config,
+                             pool.weights, time_length_days=TIME_FADE_DAYS)
+    pool.add_gp(fits, config)
+    assert [c.info["date_inputs"] for c in pool.candidates] == [False]
+    return pool
+
+
+@pytest.fixture(scope="module")
+def sky_pattern_pools(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sky-pattern")
+    pools = {lasting: _gp_without_time_pool(_sky_pattern_heliostat(root / str(lasting), lasting))
+             for lasting in (True, False)}
+    yield pools
+    shutil.rmtree(root, ignore_errors=True)
+
+
+@pytest.mark.slow
+def test_a_gp_without_time_worse_forward_falls_back_to_the_coarse_model(sky_pattern_pools):
+    pool = sky_pattern_pools[False]
+    # on the kNN split, whose rows mix the months, the GP wins: the rule alone would choose it
+    assert pool._pick(pool.candidates)[0].model == "gp"
+    sel = pool.choose().selection
+    assert sel["model"] == "coarse"
+    assert sel["forward_check"] == "failed (gp): fell back to the static choice"
+    # forward in time the pattern is gone: the coarse model refitted on the first 100 rows errs
+    # by the noise there (0.1 mrad per axis: a mean of 0.1 sqrt(pi / 2) = 0.125 mrad), while the
+    # GP refitted on them carries the pattern it learnt into the later rows
+    assert sel["coarse_time_val_error_mrad"] == pytest.approx(0.125, abs=0.04)
+    assert sel["time_val_error_mrad"] > 2 * sel["coarse_time_val_error_mrad"]
+
+
+@pytest.mark.slow
+def test_a_gp_without_time_no_worse_forward_is_kept(sky_pattern_pools):
+    # the pattern lasts: the GP refitted on the first 100 rows still corrects the later ones,
+    # down to near the noise (0.125 mrad), where the coarse model misses the pattern
+    sel = sky_pattern_pools[True].choose().selection
+    assert sel["model"] == "gp" and sel["forward_check"] == "passed"
+    assert sel["time_val_error_mrad"] == pytest.approx(0.125, abs=0.04)
+    assert sel["coarse_time_val_error_mrad"] > 2 * sel["time_val_error_mrad"]

@@ -479,7 +479,7 @@ SELECTION = ArtifactSchema(
                 "training size (a hybrid ensemble, the GP correction, with `sweep "
                 "--select-pretrained` the pre-trained network) where it beats fit-coarse's "
                 "selected preset on the distance-weighted validation rows by the rule's margins "
-                "(and, with date inputs, is not worse forward in time), else that coarse model "
+                "(and is not worse forward in time), else that coarse model "
                 "(docs/hybrid.md \"Selection\").",
     columns=(
         C("heliostat_id", "string", "", "Heliostat."),
@@ -516,9 +516,10 @@ SELECTION = ArtifactSchema(
           "path's first weight decays gained less than half the networks' margin: stopped)."),
         C("screen_gain", "float64", "", "The best relative gain of the screen's ensembles over "
           "the coarse model on the weighted validation rows (missing: not run).", nullable=True),
-        C("forward_check", "string", "", "Forward-in-time check of a selected model with date "
-          "inputs (empty: none needed): passed, failed (the static choice is selected instead), "
-          "or not checked (no time split, or a sweep without its forward pass)."),
+        C("forward_check", "string", "", "Forward-in-time check of a selected fine model (empty: "
+          "the coarse model, or no time split): passed, failed (MODEL) (the static choice is "
+          "selected instead), or not checked (a network without its time-split training: a sweep "
+          "without --time-split)."),
         C("time_val_error_mrad", "float64", "mrad", "The forward check's figure: mean error on "
           "the time split's validation rows of the checked model trained on its training rows.",
           nullable=True),

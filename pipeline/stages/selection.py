@@ -1,6 +1,6 @@
 """The sweep's production selection of one heliostat (issue 35): its fine candidates at their
-fades, the rule of :mod:`heliocal.pipeline.models.selection`, the forward-in-time check of a
-model with date inputs (issue 33) and what the sweep writes for the choice.
+fades, the rule of :mod:`heliocal.pipeline.models.selection`, the forward-in-time check of
+every fine choice (issue 33) and what the sweep writes for the choice.
 
 A :class:`CandidatePool` collects one heliostat's candidates as the sweep trains them:
 
@@ -13,14 +13,18 @@ A :class:`CandidatePool` collects one heliostat's candidates as the sweep trains
   the fallback of the forward check, and the simpler model of the one-standard-error rule);
 - with ``sweep --select-pretrained`` the pre-trained network (no fade: it predicts steps).
 
-:meth:`CandidatePool.choose` applies the rule. A choice with date inputs (a hybrid, a GP with
-time) must not be worse forward in time than the static choice (issue 33, item 3): on the time
-split's validation rows, the same model trained on the time split's training rows against
-fit-coarse's time-split fit. A GP is checked here (its time-split fit costs tens of
-milliseconds); a hybrid's time-split training is the sweep's forward pass
+:meth:`CandidatePool.choose` applies the rule. Every fine choice must not be worse forward in
+time than the static choice (issue 33, item 3): on the time split's validation rows, the same
+model trained on the time split's training rows against fit-coarse's time-split fit. A plant
+aims forward in time, and a model without date inputs can fail there too: a GP of the sun
+alone fitted to a misfit of its training period learns it as a sky pattern that does not last
+(a simulated heliostat: 3.57 mrad forward against its coarse model's 0.35). A GP, with time or
+without, is checked here (its time-split fit costs tens of milliseconds); a network's (a
+hybrid's, the pre-trained network's) time-split training is the sweep's forward pass
 (:func:`heliocal.pipeline.stages.forward.add_sweep_time_split`), after which
-:func:`apply_forward_check` falls back to the static choice (the rule among the candidates
-without date inputs) where the hybrid is worse.
+:func:`apply_forward_checks` falls back to the static choice where the network is worse. The
+static choice is the rule among the GPs without time input and the coarse model, each such GP
+itself checked forward.
 """
 
 from __future__ import annotations
@@ -91,8 +95,8 @@ class HeliostatChoice:
     ----------
     selection : its selection.parquet row; state : its model file ({"state", "config"}; None
     for the coarse model); predictions : its selected_predictions rows; date_inputs : the model
-    has date inputs (forward check); fallback : the static choice it falls back to when the
-    forward check fails (None: it has no date inputs, or the check was made already);
+    has date inputs; fallback : the static choice it falls back to when the forward check of
+    :func:`apply_forward_checks` fails (None: a GP or the coarse model, checked already);
     time_errors : (N,) error_mrad of the model trained on the time split, where the selection
     knows it (the coarse model's from fit-coarse, a GP's refitted; None: a network's, which the
     sweep's forward pass trains).
@@ -197,29 +201,40 @@ class CandidatePool:
         return (None, None) if k is None else (candidates[k], judged[k])
 
     def choose(self) -> HeliostatChoice:
-        """The rule's choice; a GP with time is checked forward in time here, a hybrid gets
-        the static choice as its :attr:`HeliostatChoice.fallback`."""
+        """The rule's choice, checked forward in time (module docstring): a GP, with or without
+        time, is refitted on the time split here and gives way to the static choice where it is
+        worse there; a network gets the static choice as its :attr:`HeliostatChoice.fallback`
+        for :func:`apply_forward_checks`."""
         chosen, judged = self._pick(self.candidates)
-        static = [c for c in self.candidates if not c.info["date_inputs"]]
-        if chosen is not None and chosen.info["kind"] == "gp" and chosen.info["date_inputs"]:
-            forward = self._gp_forward(chosen)
-            if forward is not None and not all(map(math.isfinite, forward)):
-                forward = None                      # no time-split validation rows to judge on
-            if forward is not None and not _no_worse(*forward):
-                out = self._outputs(*self._pick(static))
-                out.selection.update(forward_check="failed: fell back to the static choice",
-                                     time_val_error_mrad=forward[0],
-                                     coarse_time_val_error_mrad=forward[1])
-                return out
-            out = self._outputs(chosen, judged)
-            if forward is not None:
-                out.selection.update(forward_check="passed", time_val_error_mrad=forward[0],
-                                     coarse_time_val_error_mrad=forward[1])
+        forward = self._gp_forward(chosen)
+        if forward is not None and not _no_worse(*forward):
+            out = self._static_choice(exclude=chosen)
+            out.selection.update(forward_check=f"failed ({chosen.model}): fell back to the "
+                                               "static choice", time_val_error_mrad=forward[0],
+                                 coarse_time_val_error_mrad=forward[1])
             return out
         out = self._outputs(chosen, judged)
-        if out.date_inputs:
-            out.fallback = self._outputs(*self._pick(static))
+        if forward is not None:
+            out.selection.update(forward_check="passed", time_val_error_mrad=forward[0],
+                                 coarse_time_val_error_mrad=forward[1])
+        elif chosen is not None and chosen.info["kind"] != "gp":
+            out.fallback = self._static_choice(exclude=chosen)
         return out
+
+    def _static_choice(self, exclude: Candidate) -> HeliostatChoice:
+        """What stands in for ``exclude`` where it is worse forward in time: the rule among the
+        GPs without time input (other than ``exclude``) and the coarse model, each GP itself
+        refitted on the time split and passed over where it is worse there, down to the coarse
+        model. The networks are left out: their time-split training is the sweep's forward
+        pass, made for the chosen model only, so a network could not be checked in its place."""
+        static = [c for c in self.candidates if not c.info["date_inputs"] and c is not exclude
+                  and c.info["kind"] == "gp"]
+        while True:
+            chosen, judged = self._pick(static)
+            forward = self._gp_forward(chosen)
+            if forward is None or _no_worse(*forward):
+                return self._outputs(chosen, judged)
+            static.remove(chosen)
 
     def _time_errors(self, chosen: Candidate) -> np.ndarray | None:
         """A GP's error_mrad (N,) trained on the time split (cached in its info); None without
@@ -233,15 +248,17 @@ class CandidatePool:
                 chosen.info["gp_config"]))
         return chosen.info["time_errors"]
 
-    def _gp_forward(self, chosen: Candidate) -> tuple[float, float] | None:
+    def _gp_forward(self, chosen: Candidate | None) -> tuple[float, float] | None:
         """(the GP's, the coarse model's) mean error on the time split's validation rows, both
-        trained on its training rows; None without a time split."""
-        errors = self._time_errors(chosen)
+        trained on its training rows; None for a choice that is not a GP, without a time split
+        or without time-split validation rows to judge on."""
+        errors = None if chosen is None else self._time_errors(chosen)
         if errors is None:
             return None
         val = time_labels(self.h.rows, self.h.split_rows) == "validation"
         coarse = self.h.coarse[self.h.selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
-        return mean_or_nan(errors[val]), mean_or_nan(coarse[val])
+        forward = mean_or_nan(errors[val]), mean_or_nan(coarse[val])
+        return forward if all(map(math.isfinite, forward)) else None
 
     # ------------------------------------------------------------------------------ outputs
     def _outputs(self, chosen: Candidate | None, judged: Judgement | None) -> HeliostatChoice:
@@ -376,16 +393,17 @@ def _with_time_errors(choice: HeliostatChoice, labels: np.ndarray | None,
 
 def apply_forward_checks(results: list[dict], inputs: dict) -> None:
     """The forward-in-time check of the chosen networks, after the sweep's forward pass (in
-    place; module docstring): a result whose choice has date inputs and a static fallback keeps
-    it when its mean error on the time split's validation rows is at most the coarse model's,
-    else takes the fallback. Without its time-split errors (no time split, or a sweep without
-    its forward pass) it is kept and ``forward_check`` says it was not checked.
+    place; module docstring): a result whose choice has a static fallback (a hybrid, or the
+    pre-trained network) keeps it when its mean error on the time split's validation rows is at
+    most the coarse model's, else takes the fallback. Without its time-split errors (no time
+    split, or a sweep without its forward pass) it is kept and ``forward_check`` says it was not
+    checked.
 
     ``inputs``: heliostat -> its :class:`heliocal.pipeline.stages.sweep_inputs.SweepInputs`.
     """
     for res in results:
         choice = res.get("choice")
-        if choice is None or not choice.date_inputs or choice.fallback is None:
+        if choice is None or choice.fallback is None:
             continue
         item = inputs[res["selection"]["heliostat_id"]]
         rows = item.rows.reset_index(drop=True)
