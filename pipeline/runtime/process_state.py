@@ -10,6 +10,8 @@ worker pools), but a library must not leave them changed for the program that ca
 * :func:`restores_process_state`: a decorator for the entry points of the library (the stages,
   ``aim_steps``): whatever the call did to torch's deterministic flag, its thread count or
   ``os.environ`` is undone when it returns or raises.
+* :func:`deterministic_torch`: set torch's deterministic flag for its kernels without importing
+  torch's compiler (which ``torch.use_deterministic_algorithms`` does).
 
 torch is imported inside the functions, so importing this module stays cheap (the CLI imports
 the stages lazily, but tools that only read artifacts should not pay for torch either).
