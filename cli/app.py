@@ -173,9 +173,11 @@ def _quiet_multiprocessing_threads() -> None:
     threading.excepthook = hook
 
 
-def command(name: str, **kwargs) -> Callable:
+def command(name: str, *, writes: bool = False, **kwargs) -> Callable:
     """Register a subcommand that turns :class:`HeliocalError` into one stderr line and exit 1,
-    and SIGINT / SIGTERM into one line and exit 130 / 143."""
+    and SIGINT / SIGTERM into one line and exit 130 / 143. A command that ``writes`` its
+    ``--workdir`` is refused at once while another stage writes there, before it imports its
+    stage (the stage's own lock still decides)."""
 
     def decorator(func: Callable) -> Callable:
         @functools.wraps(func)
@@ -183,6 +185,10 @@ def command(name: str, **kwargs) -> Callable:
             _setup_logging(bool(kw.get("quiet", False)))
             try:
                 with _sigterm_raises():
+                    if writes:
+                        from heliocal.pipeline.artifacts.workdir_lock import refuse_if_busy
+
+                        refuse_if_busy(kw["workdir"])
                     return func(*args, **kw)
             except HeliocalError as exc:
                 fail(str(exc))

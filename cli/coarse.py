@@ -50,7 +50,7 @@ def _human(summary: dict) -> None:
                      f"{', '.join(chosen) if chosen else 'none'}.", markup=False)
 
 
-@command("fit-coarse")
+@command("fit-coarse", writes=True)
 def fit_coarse_cmd(
     workdir: Workdir = DEFAULT_WORKDIR,
     preset: Annotated[CoarsePreset, typer.Option(

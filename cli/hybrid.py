@@ -60,7 +60,7 @@ def _floats(text: str, name: str) -> tuple[float, ...]:
     return values
 
 
-@command("fit-hybrid")
+@command("fit-hybrid", writes=True)
 def fit_hybrid_cmd(
     workdir: Workdir = DEFAULT_WORKDIR,
     mode: Annotated[Mode, typer.Option(

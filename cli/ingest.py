@@ -49,7 +49,7 @@ def _human(summary: dict) -> None:
         stdout.print(invalid_id_message(summary["rejected_by_reason"]["invalid_heliostat_id"]))
 
 
-@command("ingest")
+@command("ingest", writes=True)
 def ingest_cmd(
     sources: Annotated[list[Path], typer.Argument(help="PAINT folders and/or CSV/Parquet logs.")],
     workdir: Workdir = DEFAULT_WORKDIR,

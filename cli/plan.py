@@ -46,7 +46,7 @@ def _human(summary: dict) -> None:
                      + (" ..." if len(missing) > 10 else ""), markup=False)
 
 
-@command("plan")
+@command("plan", writes=True)
 def plan_cmd(
     start: Annotated[str, typer.Option(
         "--start", help="First day of the plan, e.g. 2024-06-01 (the site's solar day).")],

@@ -42,7 +42,7 @@ def _human(summary: dict) -> None:
                  f"{summary['markdown']}, {summary['metrics']}", markup=False)
 
 
-@command("report")
+@command("report", writes=True)
 def report_cmd(
     workdir: Workdir = DEFAULT_WORKDIR,
     compare: Annotated[Optional[Path], typer.Option(

@@ -49,7 +49,7 @@ def _print_summary(summary: dict) -> None:
     stdout.print(f"wrote {summary['artifact']}", markup=False)
 
 
-@command("split-knn")
+@command("split-knn", writes=True)
 def split_knn(
     workdir: Workdir = DEFAULT_WORKDIR,
     method: Annotated[Method, typer.Option(

@@ -48,7 +48,7 @@ def _human(summary: dict) -> None:
         stdout.print(f"training-size study: {', '.join(summary['study_heliostats'])}")
 
 
-@command("sweep")
+@command("sweep", writes=True)
 def sweep_cmd(
     workdir: Workdir = DEFAULT_WORKDIR,
     n_train: Annotated[Optional[str], typer.Option(

@@ -79,6 +79,33 @@ def test_cli_writers_are_refused_and_readers_are_not(holder, runner, stage):
     assert json.loads(runner.invoke(app, ["info", str(wd), "--json"]).stdout)["writer"]["pid"] == proc.pid
 
 
+#: Runs the console script's main on argv[1:] in a fresh process and prints, after its exit,
+#: its exit code and whether the stages' heavy libraries were imported.
+CLI_THEN_MODULES = """
+import sys
+from heliocal.cli.main import main
+sys.argv = ["heliocal", *sys.argv[1:]]
+try:
+    main()
+except SystemExit as exc:
+    print(exc.code, "torch" in sys.modules, "pandas" in sys.modules)
+"""
+
+
+@pytest.mark.parametrize("stage", ["fit-coarse", "sweep", "plan"])
+def test_a_second_writer_is_refused_before_its_stage_is_imported(holder, stage):
+    # the holder's record answers the command before it imports its stage (torch, pandas:
+    # seconds), with the message the stage's own lock gives (the test above)
+    wd, proc = holder
+    argv = [stage, "--workdir", str(wd), "--quiet"] + (["--start", "2024-03-01"] if stage == "plan" else [])
+    out = subprocess.run([sys.executable, "-c", CLI_THEN_MODULES, *argv], capture_output=True,
+                         text=True, timeout=120)
+    assert out.stdout.split() == ["1", "False", "False"], (out.stdout, out.stderr)
+    lines = out.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        f"Error: {wd} is being written by `heliocal sweep` (pid {proc.pid} on this machine"), lines
+
+
 def test_ingest_is_refused_too(holder, runner, good_dir):
     wd, _ = holder
     result = runner.invoke(app, ["ingest", str(good_dir / "juelich_log_small.csv"), "--workdir",

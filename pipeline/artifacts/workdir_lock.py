@@ -40,7 +40,8 @@ from typing import Callable, Iterator
 from ..errors import InputError, WorkdirBusyError
 from .paths import kind_of, read_regular
 
-__all__ = ["LOCK_FILENAME", "workdir_lock", "lock_holder", "locks_workdir", "holds_workdir_lock"]
+__all__ = ["LOCK_FILENAME", "workdir_lock", "lock_holder", "locks_workdir", "holds_workdir_lock",
+           "refuse_if_busy"]
 
 log = logging.getLogger("heliocal.artifacts")
 
@@ -72,6 +73,18 @@ def lock_holder(workdir: str | os.PathLike) -> dict | None:
         return None
     finally:
         os.close(fd)
+
+
+def refuse_if_busy(workdir: str | os.PathLike) -> None:
+    """Raise :class:`WorkdirBusyError`, with :func:`workdir_lock`'s message, when another process
+    or thread writes ``workdir`` now; else return. Takes no lock: the stage's own
+    :func:`workdir_lock` still decides. A command asks this before it imports its stage, so a
+    second writer hears at once instead of after the imports (torch and the stage: seconds)."""
+    if holds_workdir_lock(workdir):   # this thread's own stage, re-entered
+        return
+    holder = lock_holder(workdir)
+    if holder is not None:
+        raise WorkdirBusyError(_busy_message(Path(workdir), holder or None))
 
 
 def _read_holder(path: Path) -> dict | None:
