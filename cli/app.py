@@ -224,18 +224,6 @@ def emit(summary: dict[str, Any], as_json: bool, human: Callable[[dict], None] |
             stdout.print(f"{key}: {value}")
 
 
-def start_stage_workers(stage: str, workers: int | None, scheduler: str = "local",
-                        dask_address: str | None = None) -> None:
-    """Start the local workers' fork server of ``stage`` (a command name of
-    :data:`~heliocal.pipeline.runtime.parallel.STAGE_PRELOADS`) before this process imports the
-    stage: the server's import of torch and the stage runs beside this process's own instead of
-    after it (about 2.5 s each). The stage's own warm-up then finds the server running; nothing
-    happens where it would not start one (one worker, Dask)."""
-    from heliocal.pipeline.runtime.parallel import STAGE_PRELOADS, warm_up
-
-    warm_up(STAGE_PRELOADS[stage], workers=workers, scheduler=scheduler, dask_address=dask_address)
-
-
 @contextlib.contextmanager
 def progress_bar(description: str, quiet: bool):
     """A rich progress bar with ETA on stderr; yields ``advance(done, total, label)``.

@@ -10,8 +10,8 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, IncrementalFlag, JsonFlag, QuietFlag,
                               Scheduler, SchedulerChoice, Workdir, Workers, command, emit,
-                              fmt_number, incremental_line, progress_bar,
-                              start_stage_workers, stdout)
+                              fmt_number, incremental_line, progress_bar, stdout)
+from heliocal.pipeline.runtime.parallel import warm_up_stage
 from heliocal.pipeline.vocabulary import (DEFAULT_ROLLING_ORIGINS, CoarseLoss, CoarsePreset,
                                          CoarsePrior, CoarseSolver, RobustStart)
 
@@ -91,7 +91,8 @@ def fit_coarse_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Fit the coarse (rigid-body) model on each heliostat's training rows."""
-    start_stage_workers("fit-coarse", workers, scheduler.value, dask_address)
+    warm_up_stage("fit-coarse", workers=workers, scheduler=scheduler.value,
+                  dask_address=dask_address)   # before the stage's import: side by side
     from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 
     with progress_bar("fit-coarse", quiet) as advance:

@@ -16,10 +16,10 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               SchedulerChoice, Seed, Workdir, Workers, command, emit, fmt_number,
-                              incremental_line, progress_bar, start_stage_workers,
-                              stdout)
+                              incremental_line, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig
+from heliocal.pipeline.runtime.parallel import warm_up_stage
 from heliocal.pipeline.vocabulary import (HYBRID_BATCH_SIZE, AimModel, FineMode, PretrainVariant,
                                          TrainingDtype)
 
@@ -120,7 +120,8 @@ def fit_hybrid_cmd(
     quiet: QuietFlag = False,
 ) -> None:
     """Train the fine model (or a baseline) on each heliostat's training rows."""
-    start_stage_workers("fit-hybrid", workers, scheduler.value, dask_address)
+    warm_up_stage("fit-hybrid", workers=workers, scheduler=scheduler.value,
+                  dask_address=dask_address)   # before the stage's import: side by side
     from heliocal.pipeline.models.pretrained import PretrainConfig
     from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 

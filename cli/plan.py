@@ -10,7 +10,8 @@ from typing import Annotated, Optional
 import typer
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, JsonFlag, QuietFlag, Seed, Workdir, Workers,
-                              command, emit, start_stage_workers, stdout)
+                              command, emit, stdout)
+from heliocal.pipeline.runtime.parallel import warm_up_stage
 from heliocal.pipeline.vocabulary import PLAN_DEFAULT_DAYS, PLAN_MIN_ELEVATION_DEG
 
 __all__ = ["plan_cmd"]
@@ -78,7 +79,7 @@ def plan_cmd(
     """Which heliostats to measure next, and when: plan.parquet, plan.csv (time order, for a
     plant scheduler), each row chosen for the largest drop of its heliostat's expected
     year-round aim error."""
-    start_stage_workers("plan", workers)
+    warm_up_stage("plan", workers=workers)   # before the stage's import: side by side
     from heliocal.pipeline.stages.plan import run_plan
 
     summary = run_plan(workdir, start=start, days=days, per_day=per_day, budget=budget,

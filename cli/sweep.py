@@ -10,10 +10,10 @@ from rich.table import Table
 
 from heliocal.cli.app import (DEFAULT_WORKDIR, DaskAddress, JsonFlag, QuietFlag, Scheduler,
                               SchedulerChoice, Workdir, Workers, command, emit, fmt_number,
-                              incremental_line, progress_bar, start_stage_workers,
-                              stdout)
+                              incremental_line, progress_bar, stdout)
 from heliocal.pipeline.errors import ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig, ScreenConfig
+from heliocal.pipeline.runtime.parallel import warm_up_stage
 from heliocal.pipeline.vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT,
                                          OCTAVE_BANDS, NeuralBaseline, PretrainVariant,
                                          SweepScreen, TrainingDtype)
@@ -136,7 +136,8 @@ def sweep_cmd(
 ) -> None:
     """Select every heliostat's model (coarse, hybrid or GP) at its full training size; study the
     training size on a sample of heliostats."""
-    start_stage_workers("sweep", workers, scheduler.value, dask_address)
+    warm_up_stage("sweep", workers=workers, scheduler=scheduler.value,
+                  dask_address=dask_address)   # before the stage's import: side by side
     from heliocal.pipeline.models.pretrained import PretrainConfig
     from heliocal.pipeline.stages.sweep import run_sweep, weight_decay_grid
 

@@ -247,12 +247,11 @@ def _robust_start(p0: torch.Tensor, spec: HeliostatSpec, data: MeasurementBatch,
                 else:
                     strokes = p0[i_str:i_str + 1]
                 for _ in range(3):  # global grid, then two finer grids around the best
-                    ga, gs = torch.meshgrid(angles, strokes, indexing="ij")
                     pred = _grid_joint_angles(p0, spec, data.steps[ok], axis, angles, strokes)
                     diff = torch.remainder(pred - target[ok] + math.pi, 2 * math.pi) - math.pi
                     score = torch.nan_to_num(diff.abs(), nan=10.0).median(dim=-1).values
-                    k = int(torch.argmin(score))
-                    a0, s0 = float(ga.reshape(-1)[k]), float(gs.reshape(-1)[k])
+                    k = int(torch.argmin(score))           # row k: angle k // S, stroke k % S
+                    a0, s0 = float(angles[k // len(strokes)]), float(strokes[k % len(strokes)])
                     da = float(angles[1] - angles[0]) if len(angles) > 1 else 0.0
                     ds = float(strokes[1] - strokes[0]) if len(strokes) > 1 else 0.0
                     if da:

@@ -47,7 +47,8 @@ from ..errors import ClusterError, ParameterError, check_choice, check_int
 from .process_state import one_thread
 from ..vocabulary import Scheduler
 
-__all__ = ["default_workers", "map_tasks", "shared_pool", "warm_up", "SCHEDULERS", "STAGE_PRELOADS"]
+__all__ = ["default_workers", "map_tasks", "shared_pool", "warm_up", "warm_up_stage", "SCHEDULERS",
+           "STAGE_PRELOADS"]
 
 SCHEDULERS = Scheduler.values()
 
@@ -199,10 +200,8 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
     return _map_local(func, tasks, workers, progress, chunks_per_worker)
 
 
-#: What each stage's fork server imports (:func:`warm_up`), by command: the stage's module (with
-#: it torch and heliocal) and what its tasks import besides. The command line starts the server
-#: with these before it imports the stage itself, so that the two imports run side by side; the
-#: stage's own :func:`warm_up` then finds the server running.
+#: What each stage's fork server imports (:func:`warm_up_stage`), by command: the stage's module
+#: (with it torch and heliocal) and what its tasks import besides.
 STAGE_PRELOADS = {
     "fit-coarse": ("heliocal.pipeline.stages.fit_coarse", "ruptures"),
     "fit-hybrid": ("heliocal.pipeline.stages.fit_hybrid",),
@@ -232,6 +231,16 @@ def warm_up(modules: Sequence[str], *, workers: int | None = None, scheduler: st
     with _environment({var: "1" for var in _ONE_THREAD_ENV}):
         from multiprocessing import forkserver
         forkserver.ensure_running()   # returns once started; the imports run in the server
+
+
+def warm_up_stage(command: str, *, workers: int | None = None, scheduler: str = "local",
+                  dask_address: str | None = None) -> None:
+    """:func:`warm_up` with the stage ``command``'s :data:`STAGE_PRELOADS`. The command line
+    calls it before it imports the stage (the server's imports of torch and the stage then run
+    beside its own, about 2.5 s each); the stage calls it first too, and then finds the server
+    running."""
+    warm_up(STAGE_PRELOADS[command], workers=workers, scheduler=scheduler,
+            dask_address=dask_address)
 
 
 #: The pools of the running :func:`shared_pool` block by worker count (``None``: no block).

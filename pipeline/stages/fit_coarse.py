@@ -35,7 +35,7 @@ from ..physics.jacobian import residual_and_jacobian
 from ..physics.metrics import mean_or_nan as _mean
 from ..physics.parameters import (PARAMETER_NAMES, PARAMETER_UNITS, PRESET_NAMES, HeliostatSpec,
                                   nominal_parameters)
-from ..runtime.parallel import STAGE_PRELOADS, map_tasks, shared_pool, warm_up
+from ..runtime.parallel import map_tasks, shared_pool, warm_up_stage
 from ..runtime.process_state import restores_process_state
 from .coarse_prior import (PRIOR_MODES, attach_prior_columns, finish_table, plan_field_prior,
                            prior_columns, prior_frame, summary_of, with_field_prior,
@@ -535,7 +535,7 @@ def run_fit_coarse(workdir: str | Path, *, preset: str = "auto", loss: str = "so
     if incremental and not heliostats and carry_over_unchanged(
             current_transaction(workdir, "fit-coarse"), opts):
         return coarse_kept_summary(workdir, preset, loss)
-    warm_up(STAGE_PRELOADS["fit-coarse"], workers=workers, scheduler=scheduler, dask_address=dask_address)
+    warm_up_stage("fit-coarse", workers=workers, scheduler=scheduler, dask_address=dask_address)
     helio, rows_of = _read_rows(workdir, heliostats)
     presets = AUTO_PRESETS if preset == "auto" else (preset,)
     kwargs = {"loss": loss, "f_scale_mrad": f_scale_mrad, "robust_start": robust_start}

@@ -102,7 +102,7 @@ from ..models.selection import SelectionRule, choose_fade, row_validation_weight
 from ..models.training import (FineProblem, build_problem, faded_errors_mrad, predict_ensembles,
                                predictions_frame, stack_problems, take_rows, train_members)
 from ..physics.parameters import HeliostatSpec
-from ..runtime.parallel import STAGE_PRELOADS, map_tasks, warm_up
+from ..runtime.parallel import map_tasks, warm_up_stage
 from .fit_coarse import coarse_row_parameters, load_selected_parameters, load_split_labels
 from ..vocabulary import HYBRID_BATCH_SIZE
 from .forward import load_time_labels, load_time_parameters
@@ -330,7 +330,7 @@ def run_fit_hybrid(workdir: str | Path, *, mode: str = "hybrid", weight_decay: f
         return {"workdir": str(workdir), "mode": mode, "weight_decay": weight_decay, "seed": seed,
                 "heliostats": [], "incremental": {"unchanged": True}}
     mark_rerunnable(txn)
-    warm_up(STAGE_PRELOADS["fit-hybrid"], workers=workers, scheduler=scheduler, dask_address=dask_address)
+    warm_up_stage("fit-hybrid", workers=workers, scheduler=scheduler, dask_address=dask_address)
     check_fine_model_inputs(workdir)
     deterministic_torch()
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)

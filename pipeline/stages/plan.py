@@ -31,7 +31,7 @@ from ..models.design import aim_rows, heliostat_designs, year_variance_mrad2
 from ..models.schedule import (GridCandidates, Limits, RowCandidates, greedy_schedule, slot_grid,
                                year_sun_grid)
 from ..models.uncertainty import aim_jacobian, covariance_after
-from ..runtime.parallel import STAGE_PRELOADS, map_tasks, shared_pool, warm_up
+from ..runtime.parallel import map_tasks, shared_pool, warm_up_stage
 from ..runtime.process_state import restores_process_state
 from ..vocabulary import PLAN_MIN_ELEVATION_DEG
 from .fit_coarse import load_selected_parameters, load_split_labels
@@ -347,7 +347,7 @@ def run_plan(workdir: str | Path, *, start, days: int, per_day: int | None = Non
     (start, days, per_day, budget, max_per_heliostat, spacing_minutes, min_elevation_deg,
      seed) = _check_options(start, days, per_day, budget, max_per_heliostat, spacing_minutes,
                             min_elevation_deg, seed, from_existing)
-    warm_up(STAGE_PRELOADS["plan"], workers=workers)
+    warm_up_stage("plan", workers=workers)
     workdir = Path(workdir)
     helio = _read_heliostats(workdir, heliostats)
     site = plant_site(workdir, helio)

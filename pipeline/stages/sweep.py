@@ -61,7 +61,7 @@ from ..models.pretrained import PretrainConfig
 from ..models.selection import SelectionRule
 from ..models.training import (MEMBER_ALIGN, FineProblem, MemberResult, build_problem,
                                ensemble_errors_mrad, stack_problems, take_rows, train_members)
-from ..runtime.parallel import STAGE_PRELOADS, default_workers, map_tasks, warm_up
+from ..runtime.parallel import default_workers, map_tasks, warm_up_stage
 from ..runtime.process_state import deterministic_torch, restores_process_state
 from ..vocabulary import (DEFAULT_STUDY, HYBRID_BATCH_SIZE, MIN_IMPROVEMENT, OCTAVE_BANDS,
                           NeuralBaseline)
@@ -516,7 +516,7 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     if incremental and not heliostats and carry_over_unchanged(txn, request):
         return _kept_summary(workdir, txn)
     mark_rerunnable(txn)
-    warm_up(STAGE_PRELOADS["sweep"], workers=workers, scheduler=scheduler, dask_address=dask_address)
+    warm_up_stage("sweep", workers=workers, scheduler=scheduler, dask_address=dask_address)
     items = read_sweep_inputs(workdir, heliostats)
     selected = {hid: item.selected for hid, item in items.items()}
     helio = pd.DataFrame([item.hrow for item in items.values()],
