@@ -18,7 +18,7 @@ import torch
 
 from .. import __version__
 from ..artifacts.audit import refuse_links
-from ..artifacts.paths import atomic_write_text, flush_to_disk, safe_child
+from ..artifacts.paths import atomic_write_text, flush_to_disk, safe_child, safe_name
 from ..artifacts.workdir_lock import LOCK_FILENAME, locks_workdir
 from ..errors import InputError
 from ..models.changes import event_json
@@ -186,25 +186,27 @@ def _write_paint(out: Path, field_: SimulatedField, paint_ids: list[str], is_pai
                  spot_wgs: np.ndarray) -> dict[str, str]:
     """The juelich heliostats as a PAINT folder (properties, one calibration file per
     measurement, timestamps.json) and as a WGS84 log (calibration_log.csv); returns the files."""
-    meas = field_.measurements
     files: dict[str, str] = {}
-    stamps = {}
+    calibration_dirs = {}
     for hid in paint_ids:
-        h = field_.heliostats[hid]
         hdir = safe_child(out / "paint", hid)
         atomic_write_text(safe_child(hdir, f"{hid}-heliostat-properties.json"),
-                          json_text(h.paint_properties))
-    for i in np.flatnonzero(is_paint):
-        r = meas.iloc[i]
+                          json_text(field_.heliostats[hid].paint_properties))
+        calibration_dirs[hid] = hdir / "calibration"
+    rows = _rows_of(field_.measurements, is_paint)
+    stamps = {}
+    for r, spot in zip(rows, spot_wgs[is_paint]):
         hid, mid = r["heliostat_id"], r["measurement_id"]
         doc = {"motor_position": {"axis_1_motor_position": int(r["axis_1_steps"]),
                                   "axis_2_motor_position": int(r["axis_2_steps"])},
                "target_name": r["target_name"],
                "sun_elevation": float(r["sun_elevation_deg"]),
                "sun_azimuth": float(r["sun_azimuth_deg"]),
-               "focal_spot": {"UTIS": [float(v) for v in spot_wgs[i]]}}
-        atomic_write_text(safe_child(safe_child(out / "paint", hid) / "calibration",
-                                     f"{mid}-calibration-properties.json"),
+               "focal_spot": {"UTIS": [float(v) for v in spot]}}
+        # the heliostat's folder was checked above; each name is checked as a plain file name,
+        # and the atomic write renames over the name (never writes through a link there)
+        folder = calibration_dirs[hid]
+        atomic_write_text(folder / safe_name(f"{mid}-calibration-properties.json", folder),
                           json.dumps(doc) + "\n", durable=False)
         stamps[f"{hid}_{mid}"] = _iso(r["timestamp"])
     flush_to_disk()   # the calibration files at once, before the index that lists them
@@ -217,19 +219,26 @@ def _write_paint(out: Path, field_: SimulatedField, paint_ids: list[str], is_pai
               "heliostat_lat", "heliostat_lon", "heliostat_alt",
               "focal_spot_lat", "focal_spot_lon", "focal_spot_alt",
               "target_center_lat", "target_center_lon", "target_center_alt", "temperature"]
-    rows = []
-    for i in np.flatnonzero(is_paint):
-        r = meas.iloc[i]
+    lines = []
+    for r, spot in zip(rows, spot_wgs[is_paint]):
         h = field_.heliostats[r["heliostat_id"]]
         t = field_.targets[r["target_name"]]["center_wgs84"]
-        rows.append([r["heliostat_id"], _iso(r["timestamp"]), r["measurement_id"],
-                     r["sun_elevation_deg"], r["sun_azimuth_deg"],
-                     int(r["axis_1_steps"]), int(r["axis_2_steps"]), r["target_name"],
-                     h.row["latitude_deg"], h.row["longitude_deg"], h.row["altitude_m"],
-                     *spot_wgs[i], *t, r["temperature_c"]])
-    atomic_write_text(out / "calibration_log.csv", _csv(header, rows))
+        lines.append([r["heliostat_id"], _iso(r["timestamp"]), r["measurement_id"],
+                      r["sun_elevation_deg"], r["sun_azimuth_deg"],
+                      int(r["axis_1_steps"]), int(r["axis_2_steps"]), r["target_name"],
+                      h.row["latitude_deg"], h.row["longitude_deg"], h.row["altitude_m"],
+                      *spot, *t, r["temperature_c"]])
+    atomic_write_text(out / "calibration_log.csv", _csv(header, lines))
     files["wgs84_log"] = "calibration_log.csv"
     return files
+
+
+def _rows_of(measurements: pd.DataFrame, keep: np.ndarray) -> list[dict]:
+    """The rows ``keep`` (bool mask) of ``measurements`` as dicts, each value as ``.iloc`` gives
+    it (one pass over the columns: a row at a time through pandas costs more than the write)."""
+    picked = measurements[keep]
+    columns = {c: list(picked[c]) for c in picked.columns}
+    return [dict(zip(columns, values)) for values in zip(*columns.values())]
 
 
 def _write_enu(out: Path, field_: SimulatedField, enu_ids: list[str],
