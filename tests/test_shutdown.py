@@ -115,7 +115,9 @@ def _foreground_signals() -> None:
 
 def _wait_for_workers(proc: subprocess.Popen, tag: str, scheduler: str, timeout: float = 90) -> dict:
     """Wait until the run's two worker processes exist (local: children of the forkserver;
-    dask: processes started with multiprocessing's spawn), then let them compute for 1.5 s."""
+    dask: processes started with multiprocessing's spawn), then let them work: 0.5 s for the
+    local workers (forked with the stage imported, they compute at once), 1.5 s for Dask's
+    (spawned, they import heliocal first)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         assert proc.poll() is None, proc.communicate()
@@ -125,7 +127,7 @@ def _wait_for_workers(proc: subprocess.Popen, tag: str, scheduler: str, timeout:
         else:
             workers = [p for p, d in procs.items() if "spawn_main" in d["cmd"]]
         if len(workers) >= 2:
-            time.sleep(1.5)
+            time.sleep(0.5 if scheduler == "local" else 1.5)
             return procs
         time.sleep(0.2)
     proc.kill()
