@@ -24,7 +24,13 @@ did not see): :class:`LevelGrowth` learns from the field's rolling-origin rows h
 fitted model grows with ``days_since_last_row`` (each heliostat's errors divided by their own root
 mean square, pooled over the field, in bins of :data:`GROWTH_EDGES_DAYS`, never decreasing with
 time), and an aim's level is the source's level times the growth at the aim's days over the
-growth at the days of the rows the level was measured on (:meth:`ErrorBudget.level_at`).
+growth at the days of the rows the level was measured on (:meth:`ErrorBudget.level_at`). Beyond
+the age of the last bin with enough rows the bins know nothing, and the level's variance grows
+linearly in the days past it (or past the level's own rows, if later), as a random walk's or a
+field of random steps' does, at the field's rate (:func:`drift_rate_mrad2_per_day`: the
+within-heliostat slope of the rolling-origin rows' normalised squared errors on their days, times
+the field's median mean squared error [mrad^2/d]); without two measured bins there is no slope
+and the level stays flat beyond them.
 
 The level is at least the noise term, so an aim never expects less than its measurements'
 scatter.
@@ -74,6 +80,8 @@ __all__ = [
     "expected_error_mrad",
     "fine_level_mrad",
     "days_since",
+    "drift_rate_mrad2_per_day",
+    "normalised_drift_rate_per_day",
     "LevelGrowth",
     "sun_distance_deg",
 ]
@@ -108,9 +116,20 @@ class LevelGrowth:
     ``factor`` (len(:data:`GROWTH_EDGES_DAYS`) + 1,): the root mean square of the normalised
     rolling-origin errors (each heliostat's divided by its own root mean square) in each bin of
     days, non-decreasing (a bin below the one before takes its value); 1 everywhere without
-    rolling-origin rows (no growth known: the level as measured)."""
+    rolling-origin rows (no growth known: the level as measured).
+
+    ``last_measured_days`` [d]: the age the last measured bin's factor stands for (the mean
+    ``days_since_last_row`` of its rows; a bin is measured with enough rows and heliostats).
+    ``drift_mrad2_per_day`` [mrad^2/d]: beyond that age, where the bins hold the factor flat, the
+    level's variance keeps growing linearly in the days, as a random walk's or a field of
+    independent steps' does (:meth:`ErrorBudget.level_at`), at the field's rate
+    :func:`drift_rate_mrad2_per_day` of all its rolling-origin rows; 0 (flat beyond) with fewer
+    than two measured bins (no slope measured between ages).
+    """
 
     factor: np.ndarray
+    last_measured_days: float = float("inf")
+    drift_mrad2_per_day: float = 0.0
 
     @classmethod
     def none(cls) -> "LevelGrowth":
@@ -128,16 +147,22 @@ class LevelGrowth:
         norm = (r["error_mrad"] / rms[rms > 0]).to_numpy(float)
         bins = _growth_bin(r["days_since_last_row"].to_numpy(float))
         factor = np.ones(len(GROWTH_EDGES_DAYS) + 1)
+        measured = np.zeros(len(factor), bool)
         for b in range(len(factor)):
             inside = bins == b
-            enough = (inside.sum() >= MIN_GROWTH_ROWS
-                      and r["heliostat_id"][inside].nunique() >= MIN_GROWTH_HELIOSTATS)
-            factor[b] = (float(np.sqrt(np.mean(norm[inside] ** 2))) if enough
+            measured[b] = (inside.sum() >= MIN_GROWTH_ROWS
+                           and r["heliostat_id"][inside].nunique() >= MIN_GROWTH_HELIOSTATS)
+            factor[b] = (float(np.sqrt(np.mean(norm[inside] ** 2))) if measured[b]
                          else factor[b - 1] if b else np.nan)
         if np.isnan(factor[0]):      # too few rows in the first bin: start at the first measured
-            measured = factor[np.isfinite(factor)]
-            factor = np.where(np.isfinite(factor), factor, measured[0] if len(measured) else 1.0)
-        return cls(np.maximum.accumulate(factor))
+            found = factor[np.isfinite(factor)]
+            factor = np.where(np.isfinite(factor), factor, found[0] if len(found) else 1.0)
+        if measured.sum() < 2:
+            return cls(np.maximum.accumulate(factor))
+        last_bin = bins == np.flatnonzero(measured)[-1]
+        return cls(np.maximum.accumulate(factor),
+                   last_measured_days=float(r["days_since_last_row"][last_bin].mean()),
+                   drift_mrad2_per_day=drift_rate_mrad2_per_day(r))
 
     def at(self, days) -> np.ndarray:
         """The growth at ``days`` (array; NaN days: the first bin's)."""
@@ -148,6 +173,55 @@ class LevelGrowth:
         :meth:`at` over them (the first bin's without rows)."""
         g = self.at(days)
         return float(np.sqrt(np.mean(g ** 2))) if len(g) else float(self.factor[0])
+
+    def drift_variance_mrad2(self, days, reference_days: float) -> np.ndarray:
+        """The variance [mrad^2] the level gains beyond the measured ages by ``days`` (array
+        [d]): ``drift_mrad2_per_day`` times the days past both ``last_measured_days`` and
+        ``reference_days`` (the days of the level's own rows, which already carry the drift up
+        to them); 0 for NaN days."""
+        start_days = max(self.last_measured_days, float(np.nan_to_num(reference_days)))
+        beyond_days = np.maximum(np.nan_to_num(np.asarray(days, float), nan=0.0) - start_days, 0.0)
+        return self.drift_mrad2_per_day * beyond_days
+
+
+def drift_rate_mrad2_per_day(rolling: pd.DataFrame) -> float:
+    """The field's growth of a heliostat's squared error per day [mrad^2/d] from rolling-origin
+    rows (``heliostat_id``, ``days_since_last_row``, ``error_mrad``), in two named steps:
+
+    1. :func:`normalised_drift_rate_per_day`: the relative rate [1/d], each heliostat's squared
+       errors divided by their own mean, so that no heliostat's scale dominates (as the bins of
+       :class:`LevelGrowth`);
+    2. times the median over the heliostats of their mean squared error [mrad^2]: the rate of
+       the field's typical heliostat, in absolute units, added alike to every heliostat's
+       variance (a drift or a step of the geometry does not scale with a heliostat's noise).
+    """
+    r = rolling[["heliostat_id", "days_since_last_row", "error_mrad"]].dropna()
+    if r.empty:
+        return 0.0
+    mean_square_mrad2 = (r["error_mrad"] ** 2).groupby(r["heliostat_id"].astype(str)).mean()
+    return normalised_drift_rate_per_day(r) * float(np.median(mean_square_mrad2))
+
+
+def normalised_drift_rate_per_day(rolling: pd.DataFrame) -> float:
+    """The within-heliostat least-squares slope [1/d] of the normalised squared error (each
+    row's ``error_mrad ** 2`` over its heliostat's mean of them) on ``days_since_last_row``,
+    each heliostat's own means of both taken out (a common slope, each heliostat its own
+    intercept); never negative (an error does not shrink by waiting); 0 without a spread of
+    days."""
+    heliostat = rolling["heliostat_id"].astype(str).to_numpy()
+    days = rolling["days_since_last_row"].to_numpy(float)
+    error2_mrad2 = rolling["error_mrad"].to_numpy(float) ** 2
+    mean2_mrad2 = pd.Series(error2_mrad2).groupby(heliostat).transform("mean").to_numpy()
+    keep = mean2_mrad2 > 0
+    heliostat, days = heliostat[keep], days[keep]
+    relative = error2_mrad2[keep] / mean2_mrad2[keep]
+    days_centred = days - pd.Series(days).groupby(heliostat).transform("mean").to_numpy()
+    relative_mean = pd.Series(relative).groupby(heliostat).transform("mean").to_numpy()
+    relative_centred = relative - relative_mean
+    spread = float(np.sum(days_centred ** 2))
+    if spread <= 0.0:
+        return 0.0
+    return max(float(np.sum(days_centred * relative_centred)) / spread, 0.0)
 
 
 def _growth_bin(days: np.ndarray) -> np.ndarray:
@@ -173,6 +247,8 @@ class ErrorBudget:
     last_row_utc : time of the heliostat's last measurement (None without one).
     growth : the field's :class:`LevelGrowth` (none: the level at every time).
     growth_reference : the growth the level's rows carry (:meth:`LevelGrowth.reference`).
+    reference_days : the mean days [d] since the model's last row of the level's rows (0 for
+        rows without a time: the kNN validation rows lie among the training rows).
     noise_floor_mrad : the level never goes below it (``sqrt(2)`` times the training noise).
     """
 
@@ -184,14 +260,18 @@ class ErrorBudget:
     growth: LevelGrowth = field(default_factory=LevelGrowth.none)
     growth_reference: float = 1.0
     noise_floor_mrad: float = 0.0
+    reference_days: float = 0.0
 
     def level_at(self, days_since_last_row) -> np.ndarray:
         """(M,) the level [mrad] of aims ``days_since_last_row`` (M,) after the heliostat's last
-        row: the measured level times the growth from its rows' days to the aims' (NaN days:
-        the level as measured)."""
+        row: the measured level times the growth from its rows' days to the aims', and beyond
+        the gaps the growth was measured on the field's drift variance added in quadrature
+        (:meth:`LevelGrowth.drift_variance_mrad2`) (NaN days: the level as measured)."""
         days = np.asarray(days_since_last_row, float).reshape(-1)
         scale = np.where(np.isfinite(days), self.growth.at(days) / self.growth_reference, 1.0)
-        return np.maximum(self.level_mrad * scale, self.noise_floor_mrad)
+        drift_mrad2 = self.growth.drift_variance_mrad2(days, self.reference_days)
+        return np.maximum(np.sqrt((self.level_mrad * scale) ** 2 + drift_mrad2),
+                          self.noise_floor_mrad)
 
 
 def error_level_mrad(held_out_mrad, noise_mrad: float) -> float:
@@ -441,8 +521,8 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         covariance = covariances.get(hid)
         noise = covariance.noise_mrad if covariance is not None else float("nan")
         grows = LevelGrowth.none() if nominal else growth   # no fit whose age could grow
-        level, source, reference = _level(_heliostat_sources(sources, hid, nominal),
-                                          _heliostat_sources(source_days, hid, nominal),
+        days = _heliostat_sources(source_days, hid, nominal)
+        level, source, reference = _level(_heliostat_sources(sources, hid, nominal), days,
                                           noise, grows, level_sources)
         if nominal:
             source = "nominal validation" if source == "validation" else source
@@ -450,8 +530,17 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         out[hid] = ErrorBudget(covariance, level, source, sun[train[hid]],
                                None if pd.isna(latest) else latest, growth=grows,
                                growth_reference=reference,
-                               noise_floor_mrad=error_level_mrad((), noise))
+                               noise_floor_mrad=error_level_mrad((), noise),
+                               reference_days=_mean_days(days.get(source, ())))
     return out
+
+
+def _mean_days(days) -> float:
+    """The mean [d] of a level source's rows' days (0 without any: rows among the training
+    rows)."""
+    d = np.asarray(days, float)
+    d = d[np.isfinite(d)]
+    return float(d.mean()) if len(d) else 0.0
 
 
 def _group_levels(wd: CommittedWorkdir, ids) -> dict[str, dict]:
