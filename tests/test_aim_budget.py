@@ -151,7 +151,7 @@ def test_beyond_the_measured_gaps_the_level_s_variance_grows_linearly_with_days(
     # Closed form of the level 60 days out: sqrt(0.25 + 0.01 x 60) = 0.9220 mrad, whether the
     # level was measured on next-day rows (2 d) or on rows 40 d out; the bins alone held it flat
     # beyond 20 d (sqrt(0.25 + 0.01 x 20) = 0.671 mrad). Exact up to rounding (rel 1e-9).
-    from heliocal.pipeline.stages.aim_budget import (drift_rate_mrad2_per_day,
+    from heliocal.pipeline.stages.aim_growth import (drift_rate_mrad2_per_day,
                                                      normalised_drift_rate_per_day)
 
     noise, drift = 0.25, 0.01
