@@ -133,6 +133,49 @@ def test_a_fit_worse_than_the_nominal_geometry_next_day_falls_back():
                             )["model"] == "coarse"
 
 
+def _drifting_rolling(noise_mrad2: float, drift_mrad2_per_day: float,
+                      days=(0.5, 2.0, 5.0, 15.0, 25.0), heliostats=("A", "B", "C"),
+                      rows_per_day=10):
+    """Rolling-origin rows of a field whose squared error grows linearly with the days since the
+    fit's last row, ``noise + drift * days`` [mrad^2] (each row exactly at its mean square)."""
+    import pandas as pd
+
+    rows = [(hid, d, math.sqrt(noise_mrad2 + drift_mrad2_per_day * d))
+            for hid in heliostats for d in days for _ in range(rows_per_day)]
+    return pd.DataFrame(rows, columns=["heliostat_id", "days_since_last_row", "error_mrad"])
+
+
+def test_beyond_the_measured_gaps_the_level_s_variance_grows_linearly_with_days():
+    # a random walk: 0.25 mrad^2 of noise, 0.01 mrad^2 more per day since the last row, rows at
+    # 0.5-25 d (the bins to 30 d measured, the last one's rows at 15 and 25 d: 20 d on average).
+    # Closed form of the level 60 days out: sqrt(0.25 + 0.01 x 60) = 0.9220 mrad, whether the
+    # level was measured on next-day rows (2 d) or on rows 40 d out; the bins alone held it flat
+    # beyond 20 d (sqrt(0.25 + 0.01 x 20) = 0.671 mrad). Exact up to rounding (rel 1e-9).
+    from heliocal.pipeline.stages.aim_growth import (drift_rate_mrad2_per_day,
+                                                     normalised_drift_rate_per_day)
+
+    noise, drift = 0.25, 0.01
+    rolling = _drifting_rolling(noise, drift)
+    assert drift_rate_mrad2_per_day(rolling) == pytest.approx(drift, rel=1e-9)
+    # the relative slope is the drift over the field's mean square, 0.25 + 0.01 x 9.5 d
+    assert normalised_drift_rate_per_day(rolling) == pytest.approx(drift / (noise + drift * 9.5))
+    g = LevelGrowth.from_rolling(rolling)
+    assert g.last_measured_days == pytest.approx(20.0)
+    at = lambda d: math.sqrt(noise + drift * d)  # noqa: E731
+    next_day = ErrorBudget(None, at(2.0), "next-day", np.zeros((0, 3)), None, growth=g,
+                           growth_reference=g.reference([2.0]), reference_days=2.0)
+    got = next_day.level_at([2.0, 20.0, 60.0, 200.0, float("nan")])
+    assert got == pytest.approx([at(2.0), at(20.0), at(60.0), at(200.0), at(2.0)], rel=1e-9)
+    later = ErrorBudget(None, at(40.0), "time-split validation", np.zeros((0, 3)), None,
+                        growth=g, growth_reference=g.reference([40.0]), reference_days=40.0)
+    assert later.level_at([60.0]) == pytest.approx([at(60.0)], rel=1e-9)
+    # errors that do not grow give no drift; with one measured bin there is no slope to extend
+    assert LevelGrowth.from_rolling(_drifting_rolling(noise, 0.0)).drift_mrad2_per_day == 0.0
+    one_bin = LevelGrowth.from_rolling(_drifting_rolling(noise, drift, days=(12.0, 20.0, 29.0)))
+    assert one_bin.drift_mrad2_per_day == 0.0
+    assert one_bin.at([60.0]) == pytest.approx(one_bin.at([12.0]))
+
+
 # --------------------------------------------------------------------------------------------
 # simulated heliostats, end to end
 # --------------------------------------------------------------------------------------------

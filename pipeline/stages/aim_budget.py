@@ -20,11 +20,18 @@ one the spot reveals, as ``error_mrad`` everywhere in heliocal). Two parts add i
   the measurement noise, drift and steps between calibration days, model error.
 
 The level grows with the time since the model's last row (re-mounting, drift, seasons the rows
-did not see): :class:`LevelGrowth` learns from the field's rolling-origin rows how the error of a
-fitted model grows with ``days_since_last_row`` (each heliostat's errors divided by their own root
-mean square, pooled over the field, in bins of :data:`GROWTH_EDGES_DAYS`, never decreasing with
-time), and an aim's level is the source's level times the growth at the aim's days over the
-growth at the days of the rows the level was measured on (:meth:`ErrorBudget.level_at`).
+did not see): :class:`.aim_growth.LevelGrowth` learns from the field's rolling-origin rows how
+the error of a fitted model grows with ``days_since_last_row`` (each heliostat's errors divided
+by their own root mean square, pooled over the field, in bins of
+:data:`.aim_growth.GROWTH_EDGES_DAYS`, never decreasing with time), and an aim's level is the
+source's level times the growth at the aim's days over the growth at the days of the rows the
+level was measured on (:meth:`ErrorBudget.level_at`). Beyond the age of the last bin with enough
+rows the bins know nothing, and the level's variance grows linearly in the days past it (or past
+the level's own rows, if later), as a random walk's or a field of random steps' does, at the
+field's rate (:func:`.aim_growth.drift_rate_mrad2_per_day`: the within-heliostat slope of the
+rolling-origin rows' normalised squared errors on their days, times the field's median mean
+squared error [mrad^2/d]); without two measured bins there is no slope and the level stays flat
+beyond them.
 
 The level is at least the noise term, so an aim never expects less than its measurements'
 scatter.
@@ -62,6 +69,7 @@ from ..models.coarse import MeasurementBatch, normal_errors_mrad, prior_sigma
 from ..models.uncertainty import (ParameterCovariance, aim_jacobian, aim_variance_mrad2,
                                   covariance_from_rows, fit_row_terms)
 from ..physics.parameters import HeliostatSpec
+from .aim_growth import LevelGrowth
 
 __all__ = [
     "ErrorBudget",
@@ -92,67 +100,6 @@ GROUP_SOURCE = "heliostats like it"
 #: Held-out rows a level source needs to be used.
 MIN_LEVEL_ROWS = 3
 
-#: Edges [d] of the bins of days since the model's last row in which :class:`LevelGrowth` is
-#: measured: a day, then steps of about 3x (a calibration campaign, a week, a month, a season).
-GROWTH_EDGES_DAYS = (1.0, 3.0, 10.0, 30.0, 100.0)
-
-#: Rolling-origin rows (and heliostats) a growth bin needs; a bin with fewer takes the previous
-#: bin's growth.
-MIN_GROWTH_ROWS, MIN_GROWTH_HELIOSTATS = 30, 3
-
-
-@dataclass(frozen=True)
-class LevelGrowth:
-    """How the held-out error grows with the days since a model's last row, field-wide.
-
-    ``factor`` (len(:data:`GROWTH_EDGES_DAYS`) + 1,): the root mean square of the normalised
-    rolling-origin errors (each heliostat's divided by its own root mean square) in each bin of
-    days, non-decreasing (a bin below the one before takes its value); 1 everywhere without
-    rolling-origin rows (no growth known: the level as measured)."""
-
-    factor: np.ndarray
-
-    @classmethod
-    def none(cls) -> "LevelGrowth":
-        return cls(np.ones(len(GROWTH_EDGES_DAYS) + 1))
-
-    @classmethod
-    def from_rolling(cls, rolling: pd.DataFrame) -> "LevelGrowth":
-        """From rolling_origin.parquet's ``heliostat_id``, ``days_since_last_row`` and
-        ``error_mrad``."""
-        r = rolling[["heliostat_id", "days_since_last_row", "error_mrad"]].dropna()
-        if r.empty:
-            return cls.none()
-        rms = r.groupby("heliostat_id")["error_mrad"].transform(lambda e: np.sqrt(np.mean(e ** 2)))
-        r = r[rms > 0]
-        norm = (r["error_mrad"] / rms[rms > 0]).to_numpy(float)
-        bins = _growth_bin(r["days_since_last_row"].to_numpy(float))
-        factor = np.ones(len(GROWTH_EDGES_DAYS) + 1)
-        for b in range(len(factor)):
-            inside = bins == b
-            enough = (inside.sum() >= MIN_GROWTH_ROWS
-                      and r["heliostat_id"][inside].nunique() >= MIN_GROWTH_HELIOSTATS)
-            factor[b] = (float(np.sqrt(np.mean(norm[inside] ** 2))) if enough
-                         else factor[b - 1] if b else np.nan)
-        if np.isnan(factor[0]):      # too few rows in the first bin: start at the first measured
-            measured = factor[np.isfinite(factor)]
-            factor = np.where(np.isfinite(factor), factor, measured[0] if len(measured) else 1.0)
-        return cls(np.maximum.accumulate(factor))
-
-    def at(self, days) -> np.ndarray:
-        """The growth at ``days`` (array; NaN days: the first bin's)."""
-        return self.factor[_growth_bin(np.nan_to_num(np.asarray(days, float), nan=0.0))]
-
-    def reference(self, days) -> float:
-        """The growth a level measured on rows at ``days`` carries: the root mean square of
-        :meth:`at` over them (the first bin's without rows)."""
-        g = self.at(days)
-        return float(np.sqrt(np.mean(g ** 2))) if len(g) else float(self.factor[0])
-
-
-def _growth_bin(days: np.ndarray) -> np.ndarray:
-    return np.searchsorted(np.asarray(GROWTH_EDGES_DAYS), days, side="left")
-
 _BATCH_COLUMNS = ["heliostat_id", "measurement_id", "timestamp", "axis_1_steps", "axis_2_steps",
                   "sun_e", "sun_n", "sun_u", "focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m",
                   "target_e_m", "target_n_m", "target_u_m", "target_normal_e", "target_normal_n",
@@ -173,6 +120,8 @@ class ErrorBudget:
     last_row_utc : time of the heliostat's last measurement (None without one).
     growth : the field's :class:`LevelGrowth` (none: the level at every time).
     growth_reference : the growth the level's rows carry (:meth:`LevelGrowth.reference`).
+    reference_days : the mean days [d] since the model's last row of the level's rows (0 for
+        rows without a time: the kNN validation rows lie among the training rows).
     noise_floor_mrad : the level never goes below it (``sqrt(2)`` times the training noise).
     """
 
@@ -184,14 +133,18 @@ class ErrorBudget:
     growth: LevelGrowth = field(default_factory=LevelGrowth.none)
     growth_reference: float = 1.0
     noise_floor_mrad: float = 0.0
+    reference_days: float = 0.0
 
     def level_at(self, days_since_last_row) -> np.ndarray:
         """(M,) the level [mrad] of aims ``days_since_last_row`` (M,) after the heliostat's last
-        row: the measured level times the growth from its rows' days to the aims' (NaN days:
-        the level as measured)."""
+        row: the measured level times the growth from its rows' days to the aims', and beyond
+        the gaps the growth was measured on the field's drift variance added in quadrature
+        (:meth:`LevelGrowth.drift_variance_mrad2`) (NaN days: the level as measured)."""
         days = np.asarray(days_since_last_row, float).reshape(-1)
         scale = np.where(np.isfinite(days), self.growth.at(days) / self.growth_reference, 1.0)
-        return np.maximum(self.level_mrad * scale, self.noise_floor_mrad)
+        drift_mrad2 = self.growth.drift_variance_mrad2(days, self.reference_days)
+        return np.maximum(np.sqrt((self.level_mrad * scale) ** 2 + drift_mrad2),
+                          self.noise_floor_mrad)
 
 
 def error_level_mrad(held_out_mrad, noise_mrad: float) -> float:
@@ -441,8 +394,8 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         covariance = covariances.get(hid)
         noise = covariance.noise_mrad if covariance is not None else float("nan")
         grows = LevelGrowth.none() if nominal else growth   # no fit whose age could grow
-        level, source, reference = _level(_heliostat_sources(sources, hid, nominal),
-                                          _heliostat_sources(source_days, hid, nominal),
+        days = _heliostat_sources(source_days, hid, nominal)
+        level, source, reference = _level(_heliostat_sources(sources, hid, nominal), days,
                                           noise, grows, level_sources)
         if nominal:
             source = "nominal validation" if source == "validation" else source
@@ -450,8 +403,17 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
         out[hid] = ErrorBudget(covariance, level, source, sun[train[hid]],
                                None if pd.isna(latest) else latest, growth=grows,
                                growth_reference=reference,
-                               noise_floor_mrad=error_level_mrad((), noise))
+                               noise_floor_mrad=error_level_mrad((), noise),
+                               reference_days=_mean_days(days.get(source, ())))
     return out
+
+
+def _mean_days(days) -> float:
+    """The mean [d] of a level source's rows' days (0 without any: rows among the training
+    rows)."""
+    d = np.asarray(days, float)
+    d = d[np.isfinite(d)]
+    return float(d.mean()) if len(d) else 0.0
 
 
 def _group_levels(wd: CommittedWorkdir, ids) -> dict[str, dict]:
