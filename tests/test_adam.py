@@ -1,9 +1,11 @@
-"""The fine networks' optimiser (pipeline/models/adam.py) and what a training imports.
+"""The networks' optimisers (pipeline/models/adam.py) and what a training imports.
 
-Reference: ``torch.optim.Adam`` with its defaults, the optimiser ``LeafAdam`` writes out op for
-op. Same start, same gradients: the parameters and both moments must agree to the bit at every
-step, in float32 (the training's dtype) and float64, also after the rows of stopped members are
-dropped mid-training (what train_members does when a quarter of its members stop).
+References: ``torch.optim.Adam`` with its defaults, which ``LeafAdam`` writes out op for op, and
+``torch.optim.Adamax`` with ``torch.optim.lr_scheduler.ReduceLROnPlateau``, which ``Adamax`` and
+``ReduceOnPlateau`` write out. Same start, same gradients: the parameters and the optimiser's
+state must agree to the bit at every step, in float32 (the training's dtype) and float64, also
+after the rows of stopped members are dropped mid-training (what train_members does when a
+quarter of its members stop) and across the learning-rate cuts of a plateau.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from heliocal.pipeline.models.adam import LeafAdam
+from heliocal.pipeline.models.adam import Adamax, LeafAdam, ReduceOnPlateau
 
 TESTS = Path(__file__).resolve().parent
 
@@ -62,6 +64,42 @@ def test_leaf_adam_takes_torch_adams_steps_to_the_bit(dtype):
     assert ours.shape == (4, 40) and opt_ours.steps == 120
     # the loss went down: the steps are real ones, not a comparison of two idle leaves
     assert float(_loss(ours.detach(), target)) < float(_loss(start[keep], target)) - 1.0
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_adamax_and_its_plateau_take_torchs_steps_to_the_bit(dtype):
+    # three leaves of a network's shapes; the scheduler watches a loss that stops improving
+    # after step 40 (a plateau held by the watched value), so torch cuts the rate twice
+    gen = torch.Generator().manual_seed(11)
+    shapes = [(5, 6), (6,), (1, 6)]
+    starts = [torch.randn(*sh, generator=gen, dtype=dtype) for sh in shapes]
+    targets = [torch.randn(*sh, generator=gen, dtype=dtype) for sh in shapes]
+    ours = [t.clone().requires_grad_(True) for t in starts]
+    theirs = [t.clone().requires_grad_(True) for t in starts]
+    opt_ours = Adamax(ours, lr=2e-2)
+    opt_theirs = torch.optim.Adamax(theirs, lr=2e-2)
+    sched_ours = ReduceOnPlateau(opt_ours, factor=0.5, patience=4)
+    sched_theirs = torch.optim.lr_scheduler.ReduceLROnPlateau(opt_theirs, factor=0.5, patience=4)
+    for step in range(90):
+        watched = []
+        for leaves, opt in ((ours, opt_ours), (theirs, opt_theirs)):
+            opt.zero_grad()
+            loss = sum(_loss(theta, target) for theta, target in zip(leaves, targets))
+            loss.backward()
+            opt.step()
+            watched.append(min(float(loss.detach()), 10.0 - step) if step < 40 else 1.0)
+        sched_ours.step(watched[0])
+        sched_theirs.step(watched[1])
+        assert opt_ours.lr == opt_theirs.param_groups[0]["lr"], step
+        for k, (a, b) in enumerate(zip(ours, theirs)):
+            state = opt_theirs.state[b]
+            assert torch.equal(a, b), (step, k)
+            assert torch.equal(opt_ours.exp_avg[k], state["exp_avg"]), (step, k)
+            assert torch.equal(opt_ours.exp_inf[k], state["exp_inf"]), (step, k)
+    # the plateau cut the rate (2e-2 -> 1e-2 -> ... : every 5 steps after step 40)
+    assert opt_ours.lr < 2e-2 / 2 ** 5
+    start_loss = sum(float(_loss(t, g)) for t, g in zip(starts, targets))
+    assert sum(float(_loss(t.detach(), g)) for t, g in zip(ours, targets)) < start_loss - 1.0
 
 
 def test_a_training_imports_neither_torch_compiler_nor_its_configuration():

@@ -40,6 +40,7 @@ from ..physics.parameters import HeliostatSpec
 from ..physics.vectors import unit_vector
 from ..runtime.process_state import single_threaded
 from ..vocabulary import PretrainVariant
+from .adam import Adamax, ReduceOnPlateau
 from .coarse import MeasurementBatch
 from .network import Layers, init_mlp, layers_to_state, mlp_forward
 
@@ -312,7 +313,7 @@ def _fit_residual(coarse: torch.Tensor, spec: HeliostatSpec, data: MeasurementBa
     layers = init_mlp([5, *config.hidden, 1], [seed, seed + 1], zero_last=True)
     leaves = [t.clone().requires_grad_(True) for wb in layers for t in wb]
     cur = [(leaves[2 * k], leaves[2 * k + 1]) for k in range(len(layers))]
-    opt = torch.optim.Adamax(leaves, lr=config.residual_lr)
+    opt = Adamax(leaves, lr=config.residual_lr)
     best = [(w.detach().clone(), b.detach().clone()) for w, b in cur]
     best_val, best_epoch, since, epoch = val_error(best), 0, 0, 0
     idx = torch.nonzero(fit).flatten()
@@ -356,8 +357,8 @@ def _fit_paper(coarse: torch.Tensor, spec: HeliostatSpec, hrow, rows: pd.DataFra
     layers = init_mlp(sizes, [seed, seed + 1], zero_last=False)
     leaves = [t.clone().requires_grad_(True) for wb in layers for t in wb]
     cur = [(leaves[2 * k], leaves[2 * k + 1]) for k in range(len(layers))]
-    opt = torch.optim.Adamax(leaves, lr=config.pretrain_lr)
-    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=5)
+    opt = Adamax(leaves, lr=config.pretrain_lr)
+    sched = ReduceOnPlateau(opt, factor=0.5, patience=5)
     best, best_loss, since, epochs = None, math.inf, 0, 0
     for epoch in range(config.pretrain_epochs):
         perm = torch.randperm(len(x_tr), generator=torch_gen)
@@ -398,8 +399,8 @@ def _fit_paper(coarse: torch.Tensor, spec: HeliostatSpec, hrow, rows: pd.DataFra
     tr_idx = torch.as_tensor(np.flatnonzero(train))
     leaves = [t.clone().requires_grad_(True) for wb in pre_layers for t in wb]
     cur = [(leaves[2 * k], leaves[2 * k + 1]) for k in range(len(layers))]
-    opt = torch.optim.Adamax(leaves, lr=config.finetune_lr)
-    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=config.patience // 3)
+    opt = Adamax(leaves, lr=config.finetune_lr)
+    sched = ReduceOnPlateau(opt, factor=0.5, patience=config.patience // 3)
     best = [(w.detach().clone(), b.detach().clone()) for w, b in cur]
     with torch.no_grad():
         nrm, _ = normals_for(best)
