@@ -17,7 +17,8 @@ update computes every heliostat again (the script refuses, from the sweep's mani
     flock /tmp/heliocal-heavy.lock .venv/bin/python benchmarks/update_phase.py --runs 3
     .venv/bin/python benchmarks/update_phase.py --until sweep   # a copy ready for the sweep
 
-``--until STAGE`` stops before STAGE, leaves the copy and prints STAGE's command (for a profiler).
+``--full DIR`` times the update on another kept full run (one built by other code, with that
+code checked out). ``--until STAGE`` stops before STAGE, leaves the copy and prints STAGE's command (for a profiler).
 Options as ``field.py``: ``--heliostats`` (200), ``--update-heliostats`` (20), ``--workers`` (2),
 ``--out`` (runs/field-bench).
 """
@@ -63,9 +64,11 @@ def main() -> None:
                                                          "work directory first")
     ap.add_argument("--runs", type=int, default=1)
     ap.add_argument("--until", default=None, help="stop before this update stage")
+    ap.add_argument("--full", type=Path, default=None,
+                    help="the kept full run (default OUT/full-<heliostats>-w<workers>)")
     args = ap.parse_args()
     info = field.write_field(args.out / f"field-{args.heliostats}", args.heliostats)
-    full = args.out / f"full-{args.heliostats}-w{args.workers}"
+    full = args.full or args.out / f"full-{args.heliostats}-w{args.workers}"
     if args.build:
         shutil.rmtree(full, ignore_errors=True)
         for cmd in _phases(args, full)["full"]:
