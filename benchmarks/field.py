@@ -233,11 +233,11 @@ def split_update(field_dir: Path, n_update: int | None = None,
     return base, update, n
 
 
-def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
-    """The full method, a daily update and a rerun on unchanged inputs, timed in one run."""
-    base, update, n_update = split_update(field_dir, args.update_heliostats)
-    wd = args.out / f"run-{args.heliostats}-all-w{workers}"
-    shutil.rmtree(wd, ignore_errors=True)
+def phase_commands(args, field_dir: Path, wd: Path, base: Path, update: Path,
+                   workers: int) -> dict[str, list[list[str]]]:
+    """The heliocal commands of :func:`run_all`'s phases (``full``, ``update``, ``rerun``) on
+    the work directory ``wd``: ``base`` and ``update`` are :func:`split_update`'s logs; ``args``
+    gives ``solver``, ``sweep_args`` and ``later``."""
     props = ["--properties", str(field_dir / "paint"), "--workdir", str(wd)]
     w = ["--workers", str(workers)]
     coarse = ["fit-coarse", "--workdir", str(wd), "--preset", "static-20", *w,
@@ -253,6 +253,15 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
         "rerun": [["split-knn", "--workdir", str(wd), "--incremental"],
                   [*coarse, "--incremental"], *[[*c, "--incremental"] for c in later]],
     }
+    return phases
+
+
+def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
+    """The full method, a daily update and a rerun on unchanged inputs, timed in one run."""
+    base, update, n_update = split_update(field_dir, args.update_heliostats)
+    wd = args.out / f"run-{args.heliostats}-all-w{workers}"
+    shutil.rmtree(wd, ignore_errors=True)
+    phases = phase_commands(args, field_dir, wd, base, update, workers)
     print(f"update: {n_update} heliostats x {UPDATE_ROWS} new rows; workers={workers}", flush=True)
     table = []
     for phase, commands in phases.items():

@@ -202,3 +202,15 @@ def test_help_needs_no_heavy_library(argv):
              "file=sys.stderr)")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
     assert json.loads(out.stderr.strip().splitlines()[-1]) == []
+
+
+def test_a_report_without_a_field_prior_imports_no_torch_for_its_prior_page():
+    """The report imports the field prior's model code (torch with it, about 1.3 s of a daily
+    update's report) only when the work directory has a field prior to show."""
+    probe = ("import sys, types\nimport heliocal.pipeline.stages.report as report\n"
+             "groups = report._prior_groups(types.SimpleNamespace(field_prior=None, "
+             "coarse_params=None, heliostats=None))\n"
+             "print(groups, 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["[]", "False"]

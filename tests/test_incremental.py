@@ -382,6 +382,35 @@ def test_value_digest_tells_values_apart_and_equal_values_alike():
     assert value_digest({**build(), "other": None}) != base
 
 
+def test_value_digest_tells_string_and_time_columns_apart():
+    """Frames are hashed column by column, strings as their lengths and bytes: strings whose
+    concatenation is the same, a missing string, a time one microsecond later, a value moved
+    to the next column each give another digest; equal frames built anew (or sliced out of a
+    larger one) hash alike."""
+    from heliocal.pipeline.artifacts.incremental import value_digest
+
+    def build(ids=("ab", "c"), t0="2024-01-01 10:00:00", names=("x", "y")):
+        return pd.DataFrame({"id": list(ids), "target": list(names),
+                             "t": pd.to_datetime([t0, "2024-01-02 00:00:00.000000"], utc=True, format="ISO8601").as_unit("us"),
+                             "v": [1.0, 2.0]})
+
+    base = value_digest(build())
+    assert value_digest(build()) == base
+    wide = pd.concat([build(), build(ids=("zz", "zz"))], ignore_index=True)
+    assert value_digest(wide.iloc[:2].reset_index(drop=True)) == base
+    for changed in (build(ids=("a", "bc")), build(ids=("ab", None)), build(ids=("ab", "c\0")),
+                    build(t0="2024-01-01 10:00:00.000001"), build(names=("y", "x")),
+                    build().rename(columns={"id": "target", "target": "id"})):
+        assert value_digest(changed) != base
+    moved = build()
+    moved[["id", "target"]] = moved[["target", "id"]].to_numpy()
+    assert value_digest(moved) != base
+    texts = pd.DataFrame({"s": pd.Series(["a", "b"], dtype="str")})
+    assert value_digest(texts) == value_digest(texts.copy())
+    assert value_digest(texts) != value_digest(pd.DataFrame({"s": pd.Series(["ab", ""],
+                                                                            dtype="str")}))
+
+
 def _report_files(wd: Path) -> dict[str, bytes]:
     """Every file of ``wd``'s report but its manifest, with the work directory's path (in
     titles and hints) replaced by ``WD``."""

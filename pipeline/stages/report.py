@@ -282,12 +282,13 @@ def _cdf_task(table, floor: float | None, floor_source: str) -> FigureTask:
 def _prior_groups(inp) -> list:
     """The field-prior page's groups (none without a field prior), with the model's
     conventions the report package does not import: each fit's deviation from nominal and
-    each heliostat's group."""
-    from .coarse_prior import heliostat_groups, with_deviations
-
+    each heliostat's group. The model's code (with it torch, about 1.3 s of a daily update's
+    report) is imported only when there is a field prior to show."""
     if inp.field_prior is None or inp.field_prior.empty or inp.coarse_params is None \
             or inp.heliostats is None:
         return []
+    from .coarse_prior import heliostat_groups, with_deviations
+
     return prior_groups(inp.field_prior, with_deviations(inp.coarse_params),
                         heliostat_groups(inp.heliostats))
 
