@@ -234,8 +234,9 @@ def _write_paint(out: Path, field_: SimulatedField, paint_ids: list[str], is_pai
 
 
 def _rows_of(measurements: pd.DataFrame, keep: np.ndarray) -> list[dict]:
-    """The rows ``keep`` (bool mask) of ``measurements`` as dicts, each value as ``.iloc`` gives
-    it (one pass over the columns: a row at a time through pandas costs more than the write)."""
+    """The rows ``keep`` (bool mask) of ``measurements`` as dicts of plain Python values (the
+    same text in the files as a row's values through ``.iloc``): one pass over the columns, where
+    a row at a time through pandas costs more than writing the row."""
     picked = measurements[keep]
     columns = {c: list(picked[c]) for c in picked.columns}
     return [dict(zip(columns, values)) for values in zip(*columns.values())]
@@ -244,14 +245,12 @@ def _rows_of(measurements: pd.DataFrame, keep: np.ndarray) -> list[dict]:
 def _write_enu(out: Path, field_: SimulatedField, enu_ids: list[str],
                is_paint: np.ndarray) -> dict[str, str]:
     """The az-el heliostats as an ENU log with its TOML properties; returns the files."""
-    meas = field_.measurements
     files: dict[str, str] = {}
     header = ["heliostat_id", "measurement_id", "timestamp", "sun_azimuth_deg",
               "sun_elevation_deg", "axis_1_steps", "axis_2_steps", "target_name",
               "focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m", "temperature"]
     rows = []
-    for i in np.flatnonzero(~is_paint):
-        r = meas.iloc[i]
+    for r in _rows_of(field_.measurements, ~is_paint):
         rows.append([r["heliostat_id"], r["measurement_id"], _iso(r["timestamp"]),
                      r["sun_azimuth_deg"], r["sun_elevation_deg"], int(r["axis_1_steps"]),
                      int(r["axis_2_steps"]), r["target_name"], r["focal_spot_e_m"],
