@@ -32,17 +32,17 @@ class _Item:
         self.coarse = {"static-6": pd.DataFrame({"time_error_mrad": np.ones(10)})}
 
 
-def _choice(model, time_errors=None, date_inputs=False, fallback=None):
+def _choice(model, time_errors=None, fallback=None):
     predictions = pd.DataFrame({"measurement_id": IDS, "error_mrad": np.zeros(10)})
     return HeliostatChoice({"heliostat_id": "H1", "model": model, "forward_check": ""}, None,
-                           predictions, date_inputs, fallback, time_errors)
+                           predictions, fallback, time_errors)
 
 
 def _result(hybrid_time_val: float):
     """A chosen hybrid whose forward pass gave ``hybrid_time_val`` on the time-validation rows,
     with the coarse model as its static fallback."""
     fallback = _choice("coarse", time_errors=np.full(10, 1.0))
-    choice = _choice("hybrid", date_inputs=True, fallback=fallback)
+    choice = _choice("hybrid", fallback=fallback)
     choice.predictions["time_error_mrad"] = hybrid_time_val
     return {"selection": choice.selection, "selected_state": {"state": "hybrid"},
             "predictions": choice.predictions, "choice": choice}
@@ -97,8 +97,7 @@ def test_a_choice_checked_at_its_choice_is_not_checked_again():
 
 
 def test_the_pretrained_network_without_date_inputs_is_checked_too():
-    res = _result(1.2)
-    res["choice"].date_inputs = False   # pretrained-nn: no date inputs, trained by the forward pass
+    res = _result(1.2)                 # pretrained-nn: trained on the time split by the forward pass
     res["selection"]["model"] = "pretrained-nn"
     apply_forward_checks([res], {"H1": _Item()})
     assert res["selection"]["model"] == "coarse"

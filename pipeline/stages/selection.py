@@ -94,8 +94,8 @@ class HeliostatChoice:
     Attributes
     ----------
     selection : its selection.parquet row; state : its model file ({"state", "config"}; None
-    for the coarse model); predictions : its selected_predictions rows; date_inputs : the model
-    has date inputs; fallback : the static choice it falls back to when the forward check of
+    for the coarse model); predictions : its selected_predictions rows; fallback : the static
+    choice it falls back to when the forward check of
     :func:`apply_forward_checks` fails (None: a GP or the coarse model, checked already);
     time_errors : (N,) error_mrad of the model trained on the time split, where the selection
     knows it (the coarse model's from fit-coarse, a GP's refitted; None: a network's, which the
@@ -105,7 +105,6 @@ class HeliostatChoice:
     selection: dict
     state: dict | None
     predictions: pd.DataFrame
-    date_inputs: bool = False
     fallback: "HeliostatChoice | None" = None
     time_errors: np.ndarray | None = None
 
@@ -290,7 +289,7 @@ class CandidatePool:
         if "fade" in state["config"]:
             length = state["config"]["fade"]["length_deg"]
             selection["fade_length_deg"] = math.inf if length is None else float(length)
-        return HeliostatChoice(selection, state, selected_frame(h, metrics), info["date_inputs"],
+        return HeliostatChoice(selection, state, selected_frame(h, metrics),
                                time_errors=self._time_errors(chosen))
 
     def _common(self, mode: str, chosen: Candidate) -> dict:
