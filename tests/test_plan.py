@@ -276,7 +276,8 @@ def test_plan_end_to_end(runner, ingested, tmp_path):
     wd = tmp_path / "work"
     shutil.copytree(ingested, wd)
     for argv in (["split-knn", "--workdir", str(wd)],
-                 ["fit-coarse", "--workdir", str(wd), "--preset", "static-6", "--workers", "1"]):
+                 ["fit-coarse", "--workdir", str(wd), "--preset", "static-6", "--workers", "1",
+                  "--rolling-origins", "0"]):   # plan reads no rolling-origin rows
         assert runner.invoke(app, argv).exit_code == 0
     result = runner.invoke(app, ["plan", "--workdir", str(wd), "--start", "2024-06-01",
                                  "--days", "2", "--per-day", "5", "--spacing", "5", "--json",

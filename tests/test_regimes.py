@@ -166,7 +166,7 @@ def changing_field(tmp_path_factory):
     with mock.patch.object(coarse_regimes, "regime_of_rows", no_episodes):
         fit_coarse.run_fit_coarse(work, rolling_origins=0)   # only its parameters are kept
     before, errors_before = params(), errors()
-    fit_coarse.run_fit_coarse(work)
+    fit_coarse.run_fit_coarse(work, rolling_origins=0)   # the rolling origins come after selection
     meas = read_artifact(work, MEASUREMENTS, columns=["heliostat_id", "measurement_id", "timestamp"])
     split = read_artifact(work, SPLIT, columns=["heliostat_id", "measurement_id", "split"])
     seen = meas.merge(split, on=["heliostat_id", "measurement_id"])

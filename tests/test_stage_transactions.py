@@ -60,7 +60,9 @@ pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[1]
 PAINT = REPO / "sample_data" / "juelich" / "paint"
-COARSE = ["--preset", "static-6", "--workers", "1"]
+#: fit-coarse as these tests need it: one preset, no rolling-origin evaluation (what they check is
+#: the transaction around the writes, which the evaluation does not change; test_rolling.py checks it)
+COARSE = ["--preset", "static-6", "--workers", "1", "--rolling-origins", "0"]
 HYBRID = ["--max-epochs", "20", "--workers", "1"]
 SWEEP = ["--n-train", "60", "--wd-max", "1", "--wd-min", "0.1", "--ensemble", "1", "--baselines",
          "none", "--no-octaves", "--max-epochs", "20", "--stage-epochs", "20", "--workers", "1"]
@@ -173,7 +175,7 @@ def test_exception_inside_a_stage_commits_nothing(wd, monkeypatch):
 
     monkeypatch.setattr(coarse, "write_artifact", second_write_fails)
     with pytest.raises(RuntimeError):
-        run_fit_coarse(wd, preset="stone-8", workers=1)
+        run_fit_coarse(wd, preset="stone-8", workers=1, rolling_origins=0)
     assert calls == ["coarse_params", "coarse_predictions"]
     assert {p: sha256(wd / p) for p in before} == before  # the first write was never visible
     assert not list(wd.glob(".txn-*"))
@@ -233,7 +235,7 @@ def test_case_4_reingest_during_fit_coarse_leaves_a_stale_fit(wd, monkeypatch):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(coarse, "map_tasks", reingest_then_fit)
-    run_fit_coarse(wd, preset="static-6", workers=1)
+    run_fit_coarse(wd, preset="static-6", workers=1, rolling_origins=0)
     new_ids = set(read_artifact(wd, MEASUREMENTS)["measurement_id"])
     assert (len(old_ids), len(new_ids)) == (496, 177)
     # the fit records the measurements it read, not the ones present when it wrote
@@ -326,7 +328,7 @@ def test_case_5_without_a_working_lock_the_second_run_does_not_commit(wd, monkey
 def test_case_6_fit_coarse_for_one_heliostat_keeps_the_others(wd, runner):
     params, preds = read_artifact(wd, COARSE_PARAMS), read_artifact(wd, COARSE_PREDICTIONS)
     _ok(runner, "fit-coarse", "--workdir", wd, "--heliostat", "BE36", "--preset", "stone-8",
-        "--workers", "1")
+        "--workers", "1", "--rolling-origins", "0")
     new_params, new_preds = read_artifact(wd, COARSE_PARAMS), read_artifact(wd, COARSE_PREDICTIONS)
     assert sorted(new_params["heliostat_id"].unique()) == ["BE36", "BF41", "BH35"]
     for old, new in ((params, new_params), (preds, new_preds)):
@@ -418,7 +420,8 @@ def test_case_7_changed_or_stale_selection_is_refused_by_aim(wd, runner):
     assert line.startswith(f"Error: {wd}/selection.parquet was changed after `heliocal sweep` "
                            "wrote it")
     (wd / "selection.parquet").write_bytes(good)
-    _ok(runner, "fit-coarse", "--workdir", wd, "--preset", "stone-8", "--workers", "1")
+    _ok(runner, "fit-coarse", "--workdir", wd, "--preset", "stone-8", "--workers", "1",
+        "--rolling-origins", "0")
     line = _one_line_error(_run(runner, *args))
     assert line == (f"Error: {wd}/selection.parquet is stale: coarse_params.parquet changed "
                     f"after it was written; rerun `heliocal sweep --workdir {wd}` first")

@@ -37,7 +37,7 @@ def fitted(tmp_path_factory) -> Path:
 
     runner = CliRunner()
     wd = tmp_path_factory.mktemp("aim") / "wd"
-    for args in (["ingest", PAINT], ["split-knn"], ["fit-coarse", "--preset", "static-6"],
+    for args in (["ingest", PAINT], ["split-knn"], ["fit-coarse", "--preset", "static-6", "--rolling-origins", "0"],
                  ["fit-hybrid", "--max-epochs", "20", "--ensemble", "1"]):
         result = _run(runner, *args, "--workdir", wd, "--workers", "1", "--quiet") \
             if args[0].startswith("fit") else _run(runner, *args, "--workdir", wd, "--quiet")
