@@ -6,7 +6,9 @@ The ``.pt`` file holds the networks' tensors (a state dict saved with :func:`tor
 (:mod:`heliocal.pipeline.artifacts.transaction`), so they are committed together; :func:`read_model` reads
 both through the stage's manifest and checks that the weights are the ones the configuration was
 written with. Loading never runs code from a file: :func:`torch.load` with ``weights_only=True``
-accepts tensors and plain containers only.
+accepts tensors and plain containers only. :func:`read_model_config` makes the same checks but
+for the tensors, without torch, for readers of the configuration alone (the report's GP
+correction map, stored there: :mod:`heliocal.pipeline.models.gp_map`).
 """
 
 from __future__ import annotations
