@@ -167,26 +167,43 @@ def test_aim_with_the_gp_puts_the_corrected_beam_on_the_aim_point(gp_workdir):
         abs(out["axis_2_steps"] - coarse["axis_2_steps"]) > 1
 
 
+@pytest.fixture(scope="module")
+def gp_swept_workdir(gp_workdir, tmp_path_factory):
+    """gp_workdir after a sweep that selects SYN1's GP correction (the hybrids held at the coarse
+    model by a weight decay of 1000): ``hybrid/selected/SYN1`` is a GP model. Tests that write
+    into it (a report) copy it first."""
+    import shutil
+
+    from heliocal.pipeline.models.config import PathConfig
+    from heliocal.pipeline.stages.sweep import run_sweep
+
+    wd = tmp_path_factory.mktemp("gp-swept") / "wd"
+    shutil.copytree(gp_workdir[0], wd)
+    run_sweep(wd, study=0, weight_decays=[1000.0], extra_bands=(), workers=1,
+              path=PathConfig(stage_epochs=20))
+    return wd
+
+
+def _copy(workdir, tmp_path):
+    import shutil
+
+    shutil.copytree(workdir, tmp_path / "wd")
+    return tmp_path / "wd"
+
+
 @pytest.mark.slow
-def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_workdir, tmp_path):
+def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_swept_workdir, tmp_path):
     # SYN1's monthly tilt: the GP correction wins the selection against the coarse model (the
     # hybrids held at it by a weight decay of 1000); aim --model auto aims with it; the report
     # draws its correction map
-    import shutil
-
     from test_hybrid import HID
 
     from heliocal.pipeline.artifacts.schemas import SELECTION
     from heliocal.pipeline.artifacts.store import read_artifact
-    from heliocal.pipeline.models.config import PathConfig
     from heliocal.pipeline.stages.aim import aim_steps
     from heliocal.pipeline.stages.report import run_report
-    from heliocal.pipeline.stages.sweep import run_sweep
 
-    wd = tmp_path / "wd"
-    shutil.copytree(gp_workdir[0], wd)
-    run_sweep(wd, study=0, weight_decays=[1000.0], extra_bands=(), workers=1,
-              path=PathConfig(stage_epochs=20))
+    wd = _copy(gp_swept_workdir, tmp_path)
     sel = read_artifact(wd, SELECTION).set_index("heliostat_id").loc[HID]
     assert sel["model"] in ("gp", "gp-sun"), sel.to_dict()
     assert sel["weighted_val_error_mrad"] <= 0.9 * sel["coarse_weighted_val_error_mrad"]
@@ -206,6 +223,101 @@ def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_workdir,
             assert (rows["expected_mrad"] < rows["expected_before_mrad"]).any()
     summary = run_report(wd, workers=1)
     assert any(f.endswith(f"gp_correction_{HID}.png") for f in summary["figures"])
+
+
+# --------------------------------------------------------------------------------------------
+# the correction map the report draws: stored with the model by its stage (models/gp_map.py)
+# --------------------------------------------------------------------------------------------
+def _assert_same_map(got: dict, want: dict):
+    """Every array of the two maps bit for bit, every other entry equal."""
+    assert sorted(got) == sorted(want)
+    for key, value in want.items():
+        if isinstance(value, np.ndarray):
+            assert got[key].shape == value.shape and np.array_equal(got[key], value), key
+        else:
+            assert got[key] == value, key
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["gp", "selected"])
+def test_the_stored_gp_map_is_the_one_computed_from_the_model(gp_workdir, gp_swept_workdir,
+                                                              mode):
+    # fit-hybrid --mode gp (hybrid/gp/) and the sweep (hybrid/selected/) store the map that
+    # correction_grid computes from the model as its files give it back: the same bits
+    from test_hybrid import HID
+
+    from heliocal.pipeline.models.gp_heliostat import correction_grid
+    from heliocal.pipeline.models.gp_map import MAP_KEY, stored_correction_map
+    from heliocal.pipeline.stages.aim import load_model
+
+    wd = gp_workdir[0] if mode == "gp" else gp_swept_workdir
+    cfg, state = load_model(wd, mode, HID)
+    assert cfg["mode"] == "gp" and cfg[MAP_KEY]["n_azimuth"] == 64
+    stored = stored_correction_map(cfg)
+    _assert_same_map(stored, correction_grid(GPCorrection.from_model(cfg, state)))
+    assert stored["mean_h"].shape == (40, 64) and np.abs(stored["mean_h"]).max() > 0.01
+
+
+@pytest.mark.slow
+def test_the_report_draws_a_stored_gp_map_without_importing_torch(gp_swept_workdir, tmp_path):
+    # a fresh process: the report (its figures drawn in that process) reads the stored map with
+    # numpy and json; torch and scikit-learn (about 1.5 s of a report's CPU) stay unimported
+    import subprocess
+    import sys
+
+    from test_hybrid import HID
+
+    wd = _copy(gp_swept_workdir, tmp_path)
+    probe = ("import json, sys\nfrom heliocal.pipeline.stages.report import run_report\n"
+             f"summary = run_report({str(wd)!r}, workers=1)\n"
+             "print(json.dumps([[f.rsplit('/', 1)[-1] for f in summary['figures']], "
+             "sorted(m for m in ('torch', 'sklearn') if m in sys.modules)]))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    figures, heavy = json.loads(out.stdout.strip().splitlines()[-1])
+    assert f"gp_correction_{HID}.png" in figures
+    assert heavy == []
+
+
+@pytest.mark.slow
+def test_a_gp_model_without_a_stored_map_has_its_map_computed(gp_swept_workdir, tmp_path):
+    # a model written before maps were stored: the report computes the map from the model, the
+    # same arrays and the same figure; a malformed stored map is a one-line error naming the file
+    from test_hybrid import HID
+    from workdir_tools import recommit
+
+    from heliocal.pipeline.errors import SchemaError
+    from heliocal.pipeline.models.gp_map import MAP_KEY
+    from heliocal.pipeline.stages.aim_choice import aim_models
+    from heliocal.pipeline.stages.report import _gp_maps, run_report
+
+    wd = _copy(gp_swept_workdir, tmp_path)
+    png = wd / "report" / "figures" / f"gp_correction_{HID}.png"
+    stored = _gp_maps(wd, aim_models(wd))
+    run_report(wd, workers=1)
+    drawn = png.read_bytes()
+    rel = f"hybrid/selected/{HID}.json"
+    cfg = json.loads((wd / rel).read_text())
+
+    def rewrite(section):
+        new = {k: v for k, v in cfg.items() if k != MAP_KEY}
+        if section is not None:
+            new[MAP_KEY] = section
+        (wd / rel).write_text(json.dumps(new, indent=1, sort_keys=True))
+        recommit(wd, rel)
+
+    rewrite(None)
+    computed = _gp_maps(wd, aim_models(wd))
+    assert list(computed) == [HID]
+    _assert_same_map(computed[HID], stored[HID])
+    png.unlink()
+    run_report(wd, workers=1)
+    assert png.read_bytes() == drawn
+    rewrite({**cfg[MAP_KEY], "mean_h_mrad": cfg[MAP_KEY]["mean_h_mrad"][:-12]})
+    with pytest.raises(SchemaError, match=rf"{HID}.json holds no readable correction map .*"
+                                          r"rerun `heliocal sweep"):
+        run_report(wd, workers=1)
 
 
 # --------------------------------------------------------------------------------------------

@@ -126,7 +126,8 @@ def test_workers_get_the_figures_in_chunks_of_at_most_fifty(monkeypatch):
 
     calls = []
 
-    def fake_map(func, tasks, workers, chunks_per_worker):
+    def fake_map(func, tasks, workers, chunks_per_worker, torch_threads=True):
+        assert not torch_threads    # figures run no torch: torch is not imported for them
         calls.append((len(tasks), workers, chunks_per_worker))
         return [(b"png", None)] * len(tasks)
 

@@ -6,7 +6,9 @@ The ``.pt`` file holds the networks' tensors (a state dict saved with :func:`tor
 (:mod:`heliocal.pipeline.artifacts.transaction`), so they are committed together; :func:`read_model` reads
 both through the stage's manifest and checks that the weights are the ones the configuration was
 written with. Loading never runs code from a file: :func:`torch.load` with ``weights_only=True``
-accepts tensors and plain containers only.
+accepts tensors and plain containers only. :func:`read_model_config` makes the same checks but
+for the tensors, without torch, for readers of the configuration alone (the report's GP
+correction map, stored there: :mod:`heliocal.pipeline.models.gp_map`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import json
 import os
 import pickle
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
 
@@ -26,8 +29,8 @@ from .paths import artifact_path
 from .store import artifact_present, check_fresh, committed_fingerprint
 from .manifests import CommittedWorkdir
 
-__all__ = ["model_files", "write_model", "read_model", "fine_model_inputs",
-           "check_fine_model_inputs"]
+__all__ = ["model_files", "model_stage", "write_model", "CheckedModel", "read_model_config",
+           "read_model", "fine_model_inputs", "check_fine_model_inputs"]
 
 
 def model_files(mode: str, heliostat_id: str) -> tuple[str, str]:
@@ -89,22 +92,41 @@ def _check_shapes(state: Mapping, cfg: dict, path: Path, hint: str) -> None:
                           f"{path.with_suffix('.json').name} describes; rerun {hint}")
 
 
-def read_model(workdir, stage: str, mode: str, heliostat_id: str, *,
-               hint: str) -> tuple[dict, dict] | None:
-    """(configuration, state dict) of a committed model, or ``None`` if ``stage`` committed none.
+def model_stage(workdir, mode: str) -> tuple[str, str]:
+    """(stage, command in backticks) that writes the models of ``mode``: ``selected`` is the
+    sweep's (``hybrid/selected/``), every other mode ``fit-hybrid --mode <mode>``'s."""
+    if mode == "selected":
+        return "sweep", f"`heliocal sweep --workdir {workdir}`"
+    return "fit-hybrid", f"`heliocal fit-hybrid --workdir {workdir} --mode {mode}`"
 
-    ``workdir`` is the work directory or its :class:`CommittedWorkdir`.
+
+@dataclass(frozen=True)
+class CheckedModel:
+    """A committed model's files, read through the stage's manifest and checked as far as that
+    needs no torch (:func:`read_model_config`).
+
+    Attributes
+    ----------
+    config : the parsed configuration; config_path, weights_path : the files on disk.
+    weights : the weights file's bytes (the SHA-256 its configuration records).
+    """
+
+    config: dict
+    config_path: Path
+    weights_path: Path
+    weights: bytes
+
+
+def read_model_config(workdir, stage: str, mode: str, heliostat_id: str, *,
+                      hint: str) -> CheckedModel | None:
+    """A committed model's configuration and weights' bytes, or ``None`` if ``stage`` committed
+    none: every check of :func:`read_model` but the weights' content (their tensors and shapes),
+    without importing torch.
 
     Raises
     ------
-    StageInputError : a model file exists but no complete run of ``stage`` wrote it.
-    SchemaError : a file was changed after the run, is empty or corrupt, holds something other
-        than tensors, the weights are not the ones the configuration records, or the
-        configuration is another heliostat's or mode's (files swapped). Every message names the
-        file and the command that writes it again (``hint``).
+    StageInputError, SchemaError : as :func:`read_model`.
     """
-    import torch
-
     wd = CommittedWorkdir.of(workdir)
     cfg_rel, pt_rel = model_files(mode, heliostat_id)
     m = wd.manifest(stage)
@@ -131,21 +153,44 @@ def read_model(workdir, stage: str, mode: str, heliostat_id: str, *,
                           f"{hint}")
     if not pt_file.data:
         raise SchemaError(f"{pt_file.path} is empty, not a torch model file; rerun {hint}")
+    return CheckedModel(cfg, cfg_file.path, pt_file.path, pt_file.data)
+
+
+def read_model(workdir, stage: str, mode: str, heliostat_id: str, *,
+               hint: str) -> tuple[dict, dict] | None:
+    """(configuration, state dict) of a committed model, or ``None`` if ``stage`` committed none.
+
+    ``workdir`` is the work directory or its :class:`CommittedWorkdir`.
+
+    Raises
+    ------
+    StageInputError : a model file exists but no complete run of ``stage`` wrote it.
+    SchemaError : a file was changed after the run, is empty or corrupt, holds something other
+        than tensors, the weights are not the ones the configuration records, or the
+        configuration is another heliostat's or mode's (files swapped). Every message names the
+        file and the command that writes it again (``hint``).
+    """
+    import torch
+
+    found = read_model_config(workdir, stage, mode, heliostat_id, hint=hint)
+    if found is None:
+        return None
+    path = found.weights_path
     try:
-        state = torch.load(io.BytesIO(pt_file.data), weights_only=True)
+        state = torch.load(io.BytesIO(found.weights), weights_only=True)
     except pickle.UnpicklingError as exc:
         raise SchemaError(
-            f"{pt_file.path} was refused: it holds objects other than tensors (heliocal loads "
+            f"{path} was refused: it holds objects other than tensors (heliocal loads "
             f"model files with weights_only=True and never runs code from them: "
             f"{_short(exc).split('.')[0]}); delete it and rerun {hint}") from None
     except (RuntimeError, EOFError, ValueError, OSError, zipfile.BadZipFile, KeyError,
             AttributeError, TypeError) as exc:
-        raise SchemaError(f"{pt_file.path} is not a readable torch model file (truncated or "
+        raise SchemaError(f"{path} is not a readable torch model file (truncated or "
                           f"corrupt: {_short(exc)}); rerun {hint}") from None
     if not isinstance(state, dict):
-        raise SchemaError(f"{pt_file.path} does not hold a state dict of tensors; rerun {hint}")
-    _check_shapes(state, cfg, pt_file.path, hint)
-    return cfg, state
+        raise SchemaError(f"{path} does not hold a state dict of tensors; rerun {hint}")
+    _check_shapes(state, found.config, path, hint)
+    return found.config, state
 
 
 #: Modes whose configuration names another folder than its own (the sweep's selected model is a

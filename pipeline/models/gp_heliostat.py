@@ -5,6 +5,7 @@ steps that aim with it (``aim``). The model itself: :mod:`heliocal.pipeline.mode
 
 from __future__ import annotations
 
+import json
 import math
 import time as _time
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ from ..physics.sun import sun_angles_from_vector
 from .fade import FADE_LENGTHS_DEG
 from .gp import (GPConfig, GPCorrection, GPPrediction, best_structure, correct_normals,
                  fit_gp_corrections, pointing_frame, pointing_residuals_mrad)
+from .gp_map import MAP_KEY, MapGrid, map_figure_data, map_grid, map_section
 from .selection import choose_fade
 
 __all__ = [
@@ -30,6 +32,7 @@ __all__ = [
     "fit_heliostat_gp",
     "gp_aim_steps",
     "correction_grid",
+    "with_correction_map",
 ]
 
 
@@ -233,24 +236,25 @@ def correction_grid(model: GPCorrection, time_s: float | None = None, *, n_azimu
     """The faded correction of ``model`` on a grid of sun positions around its training rows
     (``margin_deg`` beyond them, elevation within 0-90 deg) at the time ``time_s`` [s since 1970]
     (default: its latest training row's): what the report's correction map draws
-    (:func:`heliocal.pipeline.report.figures.plot_gp_correction`)."""
-    train = model.fade.train_sun_deg
-    times = model.fade.train_time_s[np.isfinite(model.fade.train_time_s)]
-    if time_s is None:
-        time_s = float(times.max()) if len(times) else math.nan
-    az = np.linspace(train[:, 0].min() - margin_deg, train[:, 0].max() + margin_deg, n_azimuth)
-    el = np.linspace(max(0.0, train[:, 1].min() - margin_deg),
-                     min(90.0, train[:, 1].max() + margin_deg), n_elevation)
-    aa, ee = np.meshgrid(az, el)
-    t = np.full(aa.size, time_s)
-    fade = model.fade.weights(aa.ravel(), ee.ravel(), t)
-    pred = model.predict(model.inputs.encode(aa.ravel(), ee.ravel(), t,
-                                             np.zeros((aa.size, len(model.inputs.env)))
-                                             if model.inputs.env else None), fade)
-    when = (pd.Timestamp(time_s, unit="s", tz="UTC").strftime("%Y-%m-%d")
-            if math.isfinite(time_s) else "no date")
-    return {"azimuth_deg": az, "elevation_deg": el,
-            "mean_h": pred.mean_mrad[:, 0].reshape(aa.shape),
-            "mean_v": pred.mean_mrad[:, 1].reshape(aa.shape), "fade": fade.reshape(aa.shape),
-            "train_sun_deg": train, "structure": model.structure,
-            "fade_length_deg": model.fade.length_deg, "when": when}
+    (:func:`heliocal.pipeline.report.figures.plot_gp_correction`;
+    :func:`heliocal.pipeline.models.gp_map.map_figure_data`)."""
+    grid = map_grid(model.fade, time_s, n_azimuth=n_azimuth, n_elevation=n_elevation,
+                    margin_deg=margin_deg)
+    return map_figure_data(grid, model.fade, _grid_mean_mrad(model, grid), model.structure)
+
+
+def with_correction_map(config: dict, state: dict) -> dict:
+    """``config`` of a GP model with its correction map stored (:mod:`.gp_map`), computed from
+    the model as its files give it back (the configuration through a JSON round trip, the
+    tensors as they are), so the stored map is the one the report would compute from them."""
+    model = GPCorrection.from_model(json.loads(json.dumps(config)), state)
+    grid = map_grid(model.fade)
+    return {**config, MAP_KEY: map_section(grid, _grid_mean_mrad(model, grid))}
+
+
+def _grid_mean_mrad(model: GPCorrection, grid: MapGrid) -> np.ndarray:
+    """(E * A, 2) the faded correction [mrad] at the grid's points (env inputs at 0)."""
+    az, el, t = grid.points()
+    env = np.zeros((az.size, len(model.inputs.env))) if model.inputs.env else None
+    return model.predict(model.inputs.encode(az, el, t, env),
+                         model.fade.weights(az, el, t)).mean_mrad

@@ -163,7 +163,7 @@ def _chunks(tasks: Sequence[Any], n: int) -> list[list[Any]]:
 def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = None,
               scheduler: str = "local", dask_address: str | None = None,
               progress: Callable[[int, int], None] | None = None,
-              chunks_per_worker: int = 4) -> list:
+              chunks_per_worker: int = 4, torch_threads: bool = True) -> list:
     """``[func(t) for t in tasks]``, spread over processes or a Dask cluster, in task order.
 
     Parameters
@@ -178,6 +178,8 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
     progress : called as ``progress(done, total)`` after each finished chunk.
     chunks_per_worker : tasks are grouped into ``workers * chunks_per_worker`` chunks to keep
         scheduling overhead low while balancing load.
+    torch_threads : ``False`` for tasks that run no torch: in this process (``workers`` 1) torch is
+        then not imported to be set to one thread (:func:`.process_state.one_thread`).
     """
     check_choice(scheduler, "scheduler", "map_tasks", SCHEDULERS)
     if dask_address:
@@ -191,7 +193,7 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
         return _map_dask(func, tasks, workers, dask_address, progress, chunks_per_worker)
     if workers == 1 or total == 1:
         out = []
-        with one_thread(blas=True):
+        with one_thread(blas=True, torch_threads=torch_threads):
             for k, t in enumerate(tasks):
                 out.append(func(t))
                 if progress:

@@ -51,15 +51,19 @@ def deterministic_torch(mode: bool = True, *, warn_only: bool = True) -> None:
 
 
 @contextlib.contextmanager
-def one_thread(*, blas: bool = False) -> Iterator[None]:
+def one_thread(*, blas: bool = False, torch_threads: bool = True) -> Iterator[None]:
     """Run torch on one thread (and with ``blas=True`` the BLAS pools behind numpy and scipy,
     through threadpoolctl): the networks and per-heliostat problems are tiny, and with several
     threads the per-call overhead of the intra-op pool dominates (a 177 x 2 x 2 ``bmm`` takes 2 us
-    on one thread and up to milliseconds on two busy ones). Restores the previous settings."""
-    import torch
+    on one thread and up to milliseconds on two busy ones). Restores the previous settings.
+    ``torch_threads=False`` leaves torch alone, for work that runs none (the report's figures):
+    importing it only to set its threads costs about 1.3 s."""
+    torch = None
+    if torch_threads:
+        import torch
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
+        before = torch.get_num_threads()
+        torch.set_num_threads(1)
     limits = None
     if blas:
         try:
@@ -71,7 +75,8 @@ def one_thread(*, blas: bool = False) -> Iterator[None]:
     try:
         yield
     finally:
-        torch.set_num_threads(before)
+        if torch is not None:
+            torch.set_num_threads(before)
         if limits is not None:
             limits.restore_original_limits()
 

@@ -20,7 +20,8 @@ import pandas as pd
 import torch
 
 from ..artifacts.manifests import CommittedWorkdir
-from ..artifacts.modelfiles import check_fine_model_inputs, fine_model_inputs, read_model
+from ..artifacts.modelfiles import (check_fine_model_inputs, fine_model_inputs, model_stage,
+                                    read_model)
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REGIME_PARAMS, REGIMES
 from ..artifacts.store import artifact_columns, artifact_present, read_artifact
 from ..errors import (FitError, HeliocalError, InputError, ParameterError, StageInputError,
@@ -105,10 +106,7 @@ def load_model(workdir, mode: str, heliostat_id: str) -> tuple[dict, Layers] | N
     rerun. ``workdir`` is the work directory or its :class:`CommittedWorkdir`.
     """
     wd = CommittedWorkdir.of(workdir)
-    if mode == "selected":
-        stage, hint = "sweep", f"`heliocal sweep --workdir {wd}`"
-    else:
-        stage, hint = "fit-hybrid", f"`heliocal fit-hybrid --workdir {wd} --mode {mode}`"
+    stage, hint = model_stage(wd, mode)
     found = read_model(wd, stage, mode, heliostat_id, hint=hint)
     if found is None:
         return None

@@ -97,7 +97,7 @@ from ..models.pretrained import PretrainConfig, fit_pretrained
 from ..models.fade import (FADE_LENGTHS_DEG, NETWORK_TIME_FADE_DAYS, NO_FADE, TIME_FADE_DAYS,
                            Fade)
 from ..models.gp import GPConfig
-from ..models.gp_heliostat import fit_heliostat_gp
+from ..models.gp_heliostat import fit_heliostat_gp, with_correction_map
 from ..models.selection import SelectionRule, choose_fade, row_validation_weights
 from ..models.training import (FineProblem, build_problem, faded_errors_mrad, predict_ensembles,
                                predictions_frame, stack_problems, take_rows, train_members)
@@ -244,9 +244,10 @@ def _gp_outputs(hid, rows, hrow, sel, labels, spec, data, coarse_pred, coarse,
            "gp_config": gp_config.to_dict(), "gp": fit.model.to_dict(),
            "base_params": sel["params"].tolist(), "free": sel["free"].tolist(),
            "coarse_preset": sel["preset"]}
+    state = fit.model.to_state()
     info = {"structure": fit.model.structure, "fade_length_deg": fit.lengths[fit.chosen]}
     return _hybrid_outputs(hid, "gp", sel, labels, problem, fit.normal, fit.position, coarse_pred,
-                           fit.model.to_state(), cfg, info, fit.wall_time_s)
+                           state, with_correction_map(cfg, state), info, fit.wall_time_s)
 
 
 def _hybrid_outputs(hid, mode, sel, labels, problem, normal, position, coarse_pred, state, cfg,

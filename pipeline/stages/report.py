@@ -45,13 +45,15 @@ from pathlib import Path
 from typing import Sequence
 
 from ..artifacts.manifests import current_transaction
+from ..artifacts.modelfiles import model_stage, read_model_config
 from ..artifacts.unchanged import INCREMENTAL_KEY, carry_over_unchanged
 from ..artifacts.paths import artifact_path, safe_child, safe_name
 from ..artifacts.schemas import COARSE_PARAMS
 from ..artifacts.store import read_provenance
 from ..artifacts.transaction import stage_transaction
 from ..artifacts.workdir_lock import locks_workdir
-from ..errors import check_choice, check_int
+from ..errors import SchemaError, check_choice, check_int
+from ..models.gp_map import stored_correction_map
 from ..report.field import (ALERT_MRAD, ERROR_LINES_MRAD, field_summary, field_table, tower_en_m,
                             svg_field_map, worst)
 from ..report.floor import MeasurementFloor, find_measurement_floor
@@ -295,18 +297,52 @@ def _prior_groups(inp) -> list:
 
 def _gp_maps(workdir: Path, choices: dict) -> dict[str, dict]:
     """heliostat -> its GP correction on a sky grid, for every heliostat whose model (the one aim
-    uses, ``choices`` of :func:`aim_models`) is a GP correction."""
-    gps = {hid: choice for hid, choice in choices.items()
+    uses, ``choices`` of :func:`aim_models`) is a GP correction: the map its stage stored in the
+    model's configuration (:mod:`heliocal.pipeline.models.gp_map`, read with numpy and json), or
+    for a model written before maps were stored, computed from the model as its stage would."""
+    gps = {hid: choice["model_dir"] for hid, choice in choices.items()
            if choice.get("model") == "gp" and choice.get("model_dir") is not None}
-    if not gps:   # the GP's modules (torch, scikit-learn) take about 3 s to import
-        return {}
+    out, unstored = {}, {}
+    for hid, mode in gps.items():
+        grid = _stored_gp_map(workdir, mode, hid)
+        if grid is None:
+            unstored[hid] = mode
+        else:
+            out[hid] = grid
+    if unstored:
+        log.info("computing the GP correction maps of %d heliostats whose models were written "
+                 "before maps were stored (rerun their stage to store them): %s", len(unstored),
+                 ", ".join(sorted(unstored)))
+        out.update(_computed_gp_maps(workdir, unstored))
+    return {hid: out[hid] for hid in gps if hid in out}
+
+
+def _stored_gp_map(workdir: Path, mode: str, heliostat_id: str) -> dict | None:
+    """The map stored in a GP model's configuration (``None``: no committed model, or one
+    written without a map). The files are checked as ``load_model`` checks them but for the
+    weights' tensors, which need torch and which the map does not read."""
+    stage, hint = model_stage(workdir, mode)
+    found = read_model_config(workdir, stage, mode, heliostat_id, hint=hint)
+    if found is None:
+        return None
+    try:
+        return stored_correction_map(found.config)
+    except (ValueError, KeyError, TypeError) as exc:
+        why = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise SchemaError(f"{found.config_path} holds no readable correction map ({why}); "
+                          f"rerun {hint}") from None
+
+
+def _computed_gp_maps(workdir: Path, modes: dict[str, str]) -> dict[str, dict]:
+    """heliostat -> its GP correction map computed from its model (imports the GP's modules:
+    torch and scikit-learn, about 1.5 s)."""
     from ..models.gp import GPCorrection
     from ..models.gp_heliostat import correction_grid
     from .aim import load_model
 
     out = {}
-    for hid, choice in gps.items():
-        fitted = load_model(workdir, choice["model_dir"], hid)
+    for hid, mode in modes.items():
+        fitted = load_model(workdir, mode, hid)
         if fitted is not None:
             out[hid] = correction_grid(GPCorrection.from_model(*fitted))
     return out

@@ -90,7 +90,8 @@ def drawn_or_kept(txn, out: Path, tasks: Sequence[FigureTask], workers: int,
     per_worker = max(4, math.ceil(len(todo) / (n_workers * FIGURES_PER_CHUNK)))
     drawn = dict(zip((t.filename for t in todo),
                      map_tasks(render_task, todo, workers=n_workers,
-                               chunks_per_worker=per_worker) if todo else []))
+                               chunks_per_worker=per_worker, torch_threads=False)
+                     if todo else []))
     results = {t.filename: kept[t.filename] if t.filename in kept else drawn[t.filename]
                for t in tasks}
     txn.extra[INCREMENTAL_KEY] = {

@@ -39,7 +39,7 @@ import torch
 from ..models.coarse import metrics_frame
 from ..models.fade import FADE_LENGTHS_DEG, NETWORK_TIME_FADE_DAYS, TIME_FADE_DAYS, Fade
 from ..models.gp import GPConfig
-from ..models.gp_heliostat import HeliostatGP, fit_heliostat_gps
+from ..models.gp_heliostat import HeliostatGP, fit_heliostat_gps, with_correction_map
 from ..models.network import layers_to_state
 from ..models.selection import (Candidate, Judgement, SelectionRule, choose_fade,
                                 row_validation_weights, select)
@@ -316,7 +316,8 @@ class CandidatePool:
         fit = chosen.info["fit"]
         config = {**self._common("gp", chosen), "gp_config": chosen.info["gp_config"].to_dict(),
                   "gp": fit.model.to_dict(), "fade": fit.model.fade.to_dict()}
-        return ({"state": fit.model.to_state(), "config": config},
+        state = fit.model.to_state()
+        return ({"state": state, "config": with_correction_map(config, state)},
                 metrics_frame(self.h.data, fit.normal, fit.position))
 
     def _pretrained_state(self, chosen: Candidate):
