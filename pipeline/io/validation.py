@@ -24,6 +24,7 @@ from .staged import ENV_ABS_MAX, IngestOptions, Staged, Target, time_bounds
 
 __all__ = [
     "to_float_frame",
+    "float_columns",
     "validate_rows",
     "MedianVsThreshold",
     "SourceChecks",
@@ -37,6 +38,13 @@ def to_float_frame(df: pd.DataFrame, names: Sequence[str]) -> pd.DataFrame:
     """Columns ``names`` of ``df`` as floats (:func:`_to_float`; a missing column all NaN)."""
     return pd.DataFrame({n: _to_float(df[n]) if n in df else np.nan for n in names},
                         index=df.index)
+
+
+def float_columns(df: pd.DataFrame, names: Sequence[str]) -> list[np.ndarray]:
+    """Columns ``names`` of ``df`` as float arrays, as :func:`to_float_frame` reads them (a
+    missing column all NaN), without building a frame."""
+    return [_to_float_array(df[n].to_numpy(dtype=object)) if n in df else np.full(len(df), np.nan)
+            for n in names]
 
 
 def _to_float(series: pd.Series) -> pd.Series:
@@ -162,23 +170,44 @@ def _inherit_positions(st: Staged, df: pd.DataFrame) -> dict:
     heliostats = dict(st.heliostats)
     if st.kind not in ("wgs84-log", "enu-log"):
         return heliostats
-    pos = to_float_frame(df, ["heliostat_e_m", "heliostat_n_m", "heliostat_u_m"])
-    for hid, grp in pos.groupby(df["heliostat_id"], sort=False):
-        if hid in heliostats or not isinstance(hid, str) or not hid:
-            continue
-        good = grp.dropna()
-        if st.kind == "enu-log" or good.empty:
-            continue
-        med = good.median().to_numpy()
-        wgs = (np.nan, np.nan, np.nan)
-        if "_hpos_wgs84" in df:
-            w = pd.DataFrame(df.loc[good.index, "_hpos_wgs84"].tolist(), columns=list("abc"))
-            wgs = tuple(float(x) for x in w.median())
-        heliostats[hid] = default_properties_row(hid, med, wgs)
+    ids = df["heliostat_id"].tolist()
+    if st.kind == "wgs84-log":  # an ENU log's heliostats all come from its properties
+        _add_default_rows(df, ids, heliostats)
     for a in "enu":
-        df[f"heliostat_{a}_m"] = df["heliostat_id"].map(
-            {h: r[f"heliostat_{a}_m"] for h, r in heliostats.items()})
+        df[f"heliostat_{a}_m"] = _per_row_float(ids, {h: r[f"heliostat_{a}_m"]
+                                                      for h, r in heliostats.items()})
     return heliostats
+
+
+def _add_default_rows(df: pd.DataFrame, ids: list, heliostats: dict) -> None:
+    """Default property rows of a WGS84 log's heliostats without one, at the median logged ENU
+    position [m] of the rows whose position is complete (and their median WGS84 position [deg,
+    deg, m], missing values skipped); heliostats without such a row get none."""
+    pos = np.stack(float_columns(df, ["heliostat_e_m", "heliostat_n_m", "heliostat_u_m"]), axis=1)
+    groups: dict[str, list[int]] = {}  # rows of each heliostat, in order of first appearance
+    for k, hid in enumerate(ids):
+        if isinstance(hid, str) and hid and hid not in heliostats:
+            groups.setdefault(hid, []).append(k)
+    wgs_cells = df["_hpos_wgs84"].tolist() if "_hpos_wgs84" in df else None
+    for hid, rows in groups.items():
+        good = [k for k in rows if not np.isnan(pos[k]).any()]
+        if not good:
+            continue
+        med = np.array([np.median(pos[good, j]) for j in range(3)])
+        wgs = (np.nan, np.nan, np.nan)
+        if wgs_cells is not None:
+            w = np.array([wgs_cells[k] for k in good], dtype=float).reshape(len(good), 3)
+            wgs = tuple(float(np.median(c[~np.isnan(c)])) if (~np.isnan(c)).any() else math.nan
+                        for c in w.T)
+        heliostats[hid] = default_properties_row(hid, med, wgs)
+
+
+def _per_row_float(ids: list, values: dict):
+    """``values`` of each row's heliostat id (NaN for an id without one), as floats when every
+    value is a float; otherwise as ``Series.map`` gives them (an integer column stays one)."""
+    if all(isinstance(v, float) for v in values.values()):
+        return np.array([values.get(h, np.nan) for h in ids], dtype=float)
+    return pd.Series(ids, dtype=object).map(values).to_numpy()
 
 
 def _check_required(st: Staged, df: pd.DataFrame, reject: _Rejections) -> list[str]:
