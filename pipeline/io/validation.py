@@ -151,16 +151,14 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
     _check_spot(df, opts, tgt, reject)
     _check_duplicates(df, reject)
 
-    kept = df.loc[reject.open].copy()
     rejected = pd.DataFrame({
         "source_file": df["source_file"], "source_row": df["source_row"],
         "heliostat_id": df["heliostat_id"].map(lambda v: v if isinstance(v, str) and v else None),
         "measurement_id": df["measurement_id"].map(
             lambda v: v if isinstance(v, str) and v else None),
         "reason": reject.reasons(), "detail": reject.details(), "raw": df["raw"]}).loc[~reject.open]
-    cols = MEASUREMENTS.column_names()
-    kept = kept[cols + env_cols + (["qa_env_blanked"] if env_cols else [])]
-    return kept, rejected, heliostats
+    cols = MEASUREMENTS.column_names() + env_cols + (["qa_env_blanked"] if env_cols else [])
+    return df.loc[reject.open, cols], rejected, heliostats
 
 
 def _inherit_positions(st: Staged, df: pd.DataFrame) -> dict:
