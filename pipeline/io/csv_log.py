@@ -24,7 +24,7 @@ from .sources import TOWER_FILENAME, find_tower_file, read_tower
 from .spill import SortedSpill
 from .staged import IngestOptions, Staged, Target
 from .text import open_csv_text, shorten
-from .validation import to_float_frame
+from .validation import float_columns
 
 __all__ = [
     "read_log_rows",
@@ -180,9 +180,12 @@ def _log_column_usage(header: Sequence[str], kind: str) -> set[str]:
 
 def _numeric_stats(values: pd.Series) -> tuple[int, int, bool]:
     """(non-empty cells, numeric non-empty cells, all integers) of an extra log column."""
-    numeric = pd.to_numeric(values.replace("", np.nan), errors="coerce")
-    nonempty = values.astype(str).str.strip() != ""
-    return (int(nonempty.sum()), int(numeric[nonempty].notna().sum()),
+    cells = values.to_numpy(dtype=object).copy()
+    cells[np.array([isinstance(v, str) and v == "" for v in cells], dtype=bool)] = np.nan
+    numeric = pd.to_numeric(cells, errors="coerce")
+    nonempty = np.array([not isinstance(v, str) or v.strip() != "" for v in values.tolist()],
+                        dtype=bool)
+    return (int(nonempty.sum()), int((~pd.isna(numeric[nonempty])).sum()),
             bool(pd.api.types.is_integer_dtype(numeric)))
 
 
@@ -460,8 +463,8 @@ def stage_log_rows(raw: pd.DataFrame, ctx: LogContext) -> Staged:
         for src, dst in (("focal_spot", "focal_spot"), ("heliostat", "heliostat"),
                          ("target_center", "target")):
             _wgs84_columns_to_enu(df, src, dst, ctx.reference)
-        hpos = to_float_frame(df, ["heliostat_lat", "heliostat_lon", "heliostat_alt"])
-        df["_hpos_wgs84"] = list(zip(hpos["heliostat_lat"], hpos["heliostat_lon"], hpos["heliostat_alt"]))
+        hpos = float_columns(df, ["heliostat_lat", "heliostat_lon", "heliostat_alt"])
+        df["_hpos_wgs84"] = list(zip(*(c.tolist() for c in hpos)))
     else:
         for name in _ENU_LOG_COLUMNS:
             df[name] = raw[ctx.columns[name]] if name in ctx.columns else ""
@@ -476,9 +479,9 @@ def stage_log_rows(raw: pd.DataFrame, ctx: LogContext) -> Staged:
 def _wgs84_columns_to_enu(df: pd.DataFrame, src: str, dst: str, reference) -> None:
     """Columns ``{src}_lat/lon/alt`` (text) -> ``{dst}_e_m/n_m/u_m`` (NaN where any is missing)."""
     names = [f"{src}_lat", f"{src}_lon", f"{src}_alt"]
-    wgs = to_float_frame(df, names)
-    ok = wgs.notna().all(axis=1)
-    enu = wgs84_to_enu(*(wgs[c].where(ok, 0) for c in names), reference)
+    wgs = float_columns(df, names)
+    ok = ~np.isnan(np.stack(wgs)).any(axis=0)
+    enu = wgs84_to_enu(*(np.where(ok, c, 0.0) for c in wgs), reference)
     for axis, values in zip("enu", enu):
         df[f"{dst}_{axis}_m"] = np.where(ok, values, np.nan)
 

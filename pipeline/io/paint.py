@@ -326,23 +326,28 @@ def stage_paint(folder: Path, opts: IngestOptions) -> Staged:
     if frame.empty:
         raise InputError(f"{folder}: no calibration files (<HID>/calibration/<id>-calibration-"
                          "properties.json) found; check the PAINT folder")
-    # focal spot WGS84 -> ENU (vectorised over the rows that have one)
-    for col in ("focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"):
-        frame[col] = np.nan
-    has = frame["_spot_wgs84"].map(lambda s: isinstance(s, tuple)) if "_spot_wgs84" in frame else None
-    if has is not None and has.any():
-        arr = np.array(frame.loc[has, "_spot_wgs84"].tolist(), float)
-        e, n, u = wgs84_to_enu(arr[:, 0], arr[:, 1], arr[:, 2], tower.reference)
-        frame.loc[has, "focal_spot_e_m"], frame.loc[has, "focal_spot_n_m"] = e, n
-        frame.loc[has, "focal_spot_u_m"] = u
-    frame = frame.drop(columns=["_spot_wgs84"], errors="ignore")
-    for a in "enu":  # missing (unknown_heliostat) unless the heliostat has a properties file
-        frame[f"heliostat_{a}_m"] = np.nan
-    for hid, row in heliostats.items():
-        sel = frame["heliostat_id"] == hid
-        for a in "enu":
-            frame.loc[sel, f"heliostat_{a}_m"] = row[f"heliostat_{a}_m"]
+    _add_positions(frame, heliostats, tower.reference)
     return Staged(frame, heliostats, tower.targets, tower.reference, "paint")
+
+
+def _add_positions(frame: pd.DataFrame, heliostats: dict, reference) -> None:
+    """The staged rows' focal spot in ENU [m] (from its WGS84 triplet, NaN without one) and their
+    heliostat's position [m] (NaN unless the heliostat has a properties file), as columns."""
+    n = len(frame)
+    spots = frame["_spot_wgs84"].tolist() if "_spot_wgs84" in frame else [None] * n
+    has = np.array([isinstance(s, tuple) for s in spots], dtype=bool)
+    enu = np.full((3, n), np.nan)
+    if has.any():  # vectorised over the rows that have one
+        arr = np.array([s for s, h in zip(spots, has) if h], float)
+        enu[:, has] = wgs84_to_enu(arr[:, 0], arr[:, 1], arr[:, 2], reference)
+    for k, a in enumerate("enu"):
+        frame[f"focal_spot_{a}_m"] = enu[k]
+    if "_spot_wgs84" in frame:
+        del frame["_spot_wgs84"]
+    ids = frame["heliostat_id"].tolist()
+    for a in "enu":
+        frame[f"heliostat_{a}_m"] = np.array(
+            [heliostats[h][f"heliostat_{a}_m"] if h in heliostats else np.nan for h in ids], float)
 
 
 def _outside_reason(path: Path, inside: Path) -> str | None:

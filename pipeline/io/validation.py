@@ -24,6 +24,7 @@ from .staged import ENV_ABS_MAX, IngestOptions, Staged, Target, time_bounds
 
 __all__ = [
     "to_float_frame",
+    "float_columns",
     "validate_rows",
     "MedianVsThreshold",
     "SourceChecks",
@@ -39,53 +40,86 @@ def to_float_frame(df: pd.DataFrame, names: Sequence[str]) -> pd.DataFrame:
                         index=df.index)
 
 
+def float_columns(df: pd.DataFrame, names: Sequence[str]) -> list[np.ndarray]:
+    """Columns ``names`` of ``df`` as float arrays, as :func:`to_float_frame` reads them (a
+    missing column all NaN), without building a frame."""
+    return [_to_float_array(df[n].to_numpy(dtype=object)) if n in df else np.full(len(df), np.nan)
+            for n in names]
+
+
 def _to_float(series: pd.Series) -> pd.Series:
-    """A column of cells as floats: text stripped and read as a number, blank, unreadable and
-    non-finite cells NaN.
+    """A column of cells as floats (:func:`_to_float_array`), as a Series on its index."""
+    return pd.Series(_to_float_array(series.to_numpy(dtype=object)), index=series.index)
+
+
+def _to_float_array(cells: np.ndarray) -> np.ndarray:
+    """An object array of cells as floats: text stripped and read as a number, blank, unreadable
+    and non-finite cells NaN.
 
     One pass of plain Python over the cells and one of :func:`pandas.to_numeric` over the array:
     a frame of a few rows (a day's log, a streamed chunk) spends its time in per-call overhead,
     a large one in the per-cell loop, which a ``Series.map`` would run as well."""
-    cells = series.to_numpy(dtype=object)
     cells = np.array([np.nan if v == "" else v for v in
                       (v.strip() if isinstance(v, str) else v for v in cells)], dtype=object)
     values = pd.to_numeric(cells, errors="coerce").astype(float)
-    return pd.Series(np.where(np.isfinite(values), values, np.nan), index=series.index)
+    return np.where(np.isfinite(values), values, np.nan)
 
 
 # ------------------------------------------------------------------------------------------------
 # validation: one reason per rejected row, in a fixed order
 # ------------------------------------------------------------------------------------------------
 class _Rejections:
-    """The first rejection reason and detail of each row: a check rejects only rows no earlier
-    check rejected (the readers' own rejections, ``_reject``, come first)."""
+    """The first rejection reason and detail of each row (by position in the staged frame): a
+    check rejects only rows no earlier check rejected (the readers' own rejections, ``_reject``,
+    come first). Kept in numpy arrays: a check on a few rows costs no pandas call."""
 
     def __init__(self, df: pd.DataFrame):
-        self.reason = pd.Series([r[0] if r else None for r in df["_reject"]], index=df.index,
-                                dtype=object)
-        self.detail = pd.Series([r[1] if r else None for r in df["_reject"]], index=df.index,
-                                dtype=object)
+        first = df["_reject"].tolist()
+        self.index = df.index
+        self.reason = np.array([r[0] if r else None for r in first] or [], dtype=object)
+        self.detail = np.array([r[1] if r else None for r in first] or [], dtype=object)
+        self.open = np.array([not r for r in first], dtype=bool)  # rows no check has rejected
 
     def __call__(self, mask, code: str, text) -> None:
-        """Reject the rows ``mask`` not yet rejected with reason ``code`` and ``text`` (one text,
-        or a Series of texts per row)."""
-        mask = mask & self.reason.isna()
-        if mask.any():
-            self.reason[mask] = code
-            self.detail[mask] = text[mask] if isinstance(text, pd.Series) else text
+        """Reject the rows ``mask`` (booleans per row) not yet rejected with reason ``code`` and
+        ``text``: one text, a sequence of texts per row, or a function of the positions of the
+        rows it rejects that returns their texts (only those rows' texts are made)."""
+        rows = np.flatnonzero(np.asarray(mask, dtype=bool) & self.open)
+        if not len(rows):
+            return
+        self.reason[rows] = code
+        if isinstance(text, str):
+            self.detail[rows] = text
+        elif callable(text):
+            texts = np.empty(len(rows), dtype=object)
+            texts[:] = list(text(rows))
+            self.detail[rows] = texts
+        else:
+            self.detail[rows] = np.asarray(text, dtype=object)[rows]
+        self.open[rows] = False
 
-    @property
-    def open(self) -> pd.Series:
-        """Rows no check has rejected so far."""
-        return self.reason.isna()
+    def reasons(self) -> pd.Series:
+        return pd.Series(self.reason, index=self.index, dtype=object)
+
+    def details(self) -> pd.Series:
+        return pd.Series(self.detail, index=self.index, dtype=object)
 
 
-def _blank(df: pd.DataFrame, col: str) -> pd.Series:
+def _is_blank(v) -> bool:
+    return v is None or (isinstance(v, float) and math.isnan(v)) or (
+        isinstance(v, str) and v.strip() == "")
+
+
+def _blank(df: pd.DataFrame, col: str) -> np.ndarray:
     """Rows whose ``col`` is empty (None, NaN, blank text; every row if there is no column)."""
     if col not in df:
-        return pd.Series(True, index=df.index)
-    return df[col].map(lambda v: v is None or (isinstance(v, float) and math.isnan(v))
-                       or (isinstance(v, str) and v.strip() == ""))
+        return np.ones(len(df), dtype=bool)
+    return np.array([_is_blank(v) for v in df[col].tolist()], dtype=bool)
+
+
+def _texts(text, values: list):
+    """Detail texts of rejected rows: ``text(value)`` of each row's value in ``values``."""
+    return lambda rows: [text(values[k]) for k in rows]
 
 
 def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
@@ -104,27 +138,27 @@ def validate_rows(st: Staged, opts: IngestOptions, checks: "SourceChecks"):
     _check_numbers(st, df, reject, spot_raw)
     env_cols = _blank_faulty_env(df)
     _check_timestamps(df, opts, checks, reject)
-    known_h = df["heliostat_id"].isin(list(heliostats))
+    ids = df["heliostat_id"].tolist()
+    known_h = np.array([isinstance(h, str) and h in heliostats for h in ids], dtype=bool)
     reject(~known_h, "unknown_heliostat",
-           df["heliostat_id"].map(lambda h: f"no properties or position for heliostat {h!r}"))
+           _texts(lambda h: f"no properties or position for heliostat {h!r}", ids))
     tgt = _resolve_targets(df, st.targets)
     reject(~tgt, "unknown_target",
-           df["target_name"].map(lambda t: f"target {t!r} is not in the tower/targets file"))
+           _texts(lambda t: f"target {t!r} is not in the tower/targets file",
+                  df["target_name"].tolist()))
     _check_sun(st, df, opts, checks, reject, heliostats)
     _check_steps(df, heliostats, known_h, reject)
     _check_spot(df, opts, tgt, reject)
     _check_duplicates(df, reject)
 
-    kept = df.loc[reject.open].copy()
     rejected = pd.DataFrame({
         "source_file": df["source_file"], "source_row": df["source_row"],
         "heliostat_id": df["heliostat_id"].map(lambda v: v if isinstance(v, str) and v else None),
         "measurement_id": df["measurement_id"].map(
             lambda v: v if isinstance(v, str) and v else None),
-        "reason": reject.reason, "detail": reject.detail, "raw": df["raw"]}).loc[~reject.open]
-    cols = MEASUREMENTS.column_names()
-    kept = kept[cols + env_cols + (["qa_env_blanked"] if env_cols else [])]
-    return kept, rejected, heliostats
+        "reason": reject.reasons(), "detail": reject.details(), "raw": df["raw"]}).loc[~reject.open]
+    cols = MEASUREMENTS.column_names() + env_cols + (["qa_env_blanked"] if env_cols else [])
+    return df.loc[reject.open, cols], rejected, heliostats
 
 
 def _inherit_positions(st: Staged, df: pd.DataFrame) -> dict:
@@ -134,23 +168,44 @@ def _inherit_positions(st: Staged, df: pd.DataFrame) -> dict:
     heliostats = dict(st.heliostats)
     if st.kind not in ("wgs84-log", "enu-log"):
         return heliostats
-    pos = to_float_frame(df, ["heliostat_e_m", "heliostat_n_m", "heliostat_u_m"])
-    for hid, grp in pos.groupby(df["heliostat_id"], sort=False):
-        if hid in heliostats or not isinstance(hid, str) or not hid:
-            continue
-        good = grp.dropna()
-        if st.kind == "enu-log" or good.empty:
-            continue
-        med = good.median().to_numpy()
-        wgs = (np.nan, np.nan, np.nan)
-        if "_hpos_wgs84" in df:
-            w = pd.DataFrame(df.loc[good.index, "_hpos_wgs84"].tolist(), columns=list("abc"))
-            wgs = tuple(float(x) for x in w.median())
-        heliostats[hid] = default_properties_row(hid, med, wgs)
+    ids = df["heliostat_id"].tolist()
+    if st.kind == "wgs84-log":  # an ENU log's heliostats all come from its properties
+        _add_default_rows(df, ids, heliostats)
     for a in "enu":
-        df[f"heliostat_{a}_m"] = df["heliostat_id"].map(
-            {h: r[f"heliostat_{a}_m"] for h, r in heliostats.items()})
+        df[f"heliostat_{a}_m"] = _per_row_float(ids, {h: r[f"heliostat_{a}_m"]
+                                                      for h, r in heliostats.items()})
     return heliostats
+
+
+def _add_default_rows(df: pd.DataFrame, ids: list, heliostats: dict) -> None:
+    """Default property rows of a WGS84 log's heliostats without one, at the median logged ENU
+    position [m] of the rows whose position is complete (and their median WGS84 position [deg,
+    deg, m], missing values skipped); heliostats without such a row get none."""
+    pos = np.stack(float_columns(df, ["heliostat_e_m", "heliostat_n_m", "heliostat_u_m"]), axis=1)
+    groups: dict[str, list[int]] = {}  # rows of each heliostat, in order of first appearance
+    for k, hid in enumerate(ids):
+        if isinstance(hid, str) and hid and hid not in heliostats:
+            groups.setdefault(hid, []).append(k)
+    wgs_cells = df["_hpos_wgs84"].tolist() if "_hpos_wgs84" in df else None
+    for hid, rows in groups.items():
+        good = [k for k in rows if not np.isnan(pos[k]).any()]
+        if not good:
+            continue
+        med = np.array([np.median(pos[good, j]) for j in range(3)])
+        wgs = (np.nan, np.nan, np.nan)
+        if wgs_cells is not None:
+            w = np.array([wgs_cells[k] for k in good], dtype=float).reshape(len(good), 3)
+            wgs = tuple(float(np.median(c[~np.isnan(c)])) if (~np.isnan(c)).any() else math.nan
+                        for c in w.T)
+        heliostats[hid] = default_properties_row(hid, med, wgs)
+
+
+def _per_row_float(ids: list, values: dict):
+    """``values`` of each row's heliostat id (NaN for an id without one), as floats when every
+    value is a float; otherwise as ``Series.map`` gives them (an integer column stays one)."""
+    if all(isinstance(v, float) for v in values.values()):
+        return np.array([values.get(h, np.nan) for h in ids], dtype=float)
+    return pd.Series(ids, dtype=object).map(values).to_numpy()
 
 
 def _check_required(st: Staged, df: pd.DataFrame, reject: _Rejections) -> list[str]:
@@ -170,8 +225,9 @@ def _check_required(st: Staged, df: pd.DataFrame, reject: _Rejections) -> list[s
     return spot_raw
 
 
-def _timestamp_given(df: pd.DataFrame) -> pd.Series:
-    return ~_blank(df, "timestamp") if "timestamp" in df else pd.Series(False, index=df.index)
+def _timestamp_given(df: pd.DataFrame) -> np.ndarray:
+    """Rows with a timestamp cell that is not empty."""
+    return ~_blank(df, "timestamp") if "timestamp" in df else np.zeros(len(df), dtype=bool)
 
 
 def _check_numbers(st: Staged, df: pd.DataFrame, reject: _Rejections,
@@ -182,18 +238,21 @@ def _check_numbers(st: Staged, df: pd.DataFrame, reject: _Rejections,
     for col in ("axis_1_steps", "axis_2_steps", "sun_azimuth_deg", "sun_elevation_deg", *spot_raw):
         if col not in df:
             continue
-        raw_col = df[col]
-        val = _to_float(raw_col.astype(object))
+        raw = df[col].to_numpy(dtype=object)
+        cells = raw.tolist()
+        val = _to_float_array(raw)
         numeric[col] = val
-        bad = val.isna() & ~_blank(df, col)
-        reject(bad, "unparsable_number", raw_col.map(lambda v, c=col: f"{c}={v!r} is not a finite number"))
+        bad = np.isnan(val) & ~np.array([_is_blank(v) for v in cells], dtype=bool)
+        reject(bad, "unparsable_number", _texts(lambda v, c=col: f"{c}={v!r} is not a finite number", cells))
     if st.kind == "wgs84-log":
         for col, limit in (("focal_spot_lat", 90.0), ("focal_spot_lon", 180.0)):
             val = numeric[col]
-            reject(val.abs() > limit, "unparsable_number",
-                   val.map(lambda v, c=col, lim=limit: f"{c}={v!r} is outside [-{lim:g}, {lim:g}] deg"))
-        enu = to_float_frame(df, ["focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"])
-        reject(enu.isna().any(axis=1), "unparsable_number",
+            reject(np.abs(val) > limit, "unparsable_number",
+                   _texts(lambda v, c=col, lim=limit: f"{c}={v!r} is outside [-{lim:g}, {lim:g}] deg",
+                          val.tolist()))
+        enu = [_to_float_array(df[c].to_numpy(dtype=object))
+               for c in ("focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m")]
+        reject(np.isnan(np.stack(enu)).any(axis=0), "unparsable_number",
                "focal spot lat/lon/alt cannot be converted to ENU (not a point near the plant)")
     for col, val in numeric.items():
         df[col] = val
@@ -227,19 +286,19 @@ def _check_timestamps(df: pd.DataFrame, opts: IngestOptions, checks: "SourceChec
         ts = parsed.utc
         # a source whose timestamps are all naive or all ambiguous is refused (checks.finish)
         checks.add_timestamps(df, ts_given, parsed.naive, parsed.ambiguous)
-        reject(parsed.unparsable & ts_given, "unparsable_timestamp",
-               df["timestamp"].map(lambda v: f"timestamp {v!r} does not match --date-format "
-                                             f"{opts.date_format!r}" if opts.date_format else
-                                   f"timestamp {v!r} is not a UTC time"))
-        reject(parsed.local_problem.notna() & ts_given, "unparsable_timestamp",
+        texts = df["timestamp"].tolist()
+        reject(parsed.unparsable.to_numpy() & ts_given, "unparsable_timestamp", _texts(
+            lambda v: f"timestamp {v!r} does not match --date-format {opts.date_format!r}"
+            if opts.date_format else f"timestamp {v!r} is not a UTC time", texts))
+        reject(parsed.local_problem.notna().to_numpy() & ts_given, "unparsable_timestamp",
                parsed.local_problem)
-        reject(parsed.ambiguous & ts_given, "ambiguous_timestamp",
-               df["timestamp"].map(lambda v: f"timestamp {v!r} has day and month as numbers, "
-                                             "which heliocal cannot tell apart: give "
-                                             "--date-format (e.g. '%d.%m.%Y %H:%M:%S%z')"))
-        reject(parsed.naive & ts_given, "unparsable_timestamp",
-               df["timestamp"].map(lambda v: f"timestamp {v!r} has no time zone"))
-        reject(parsed.implausible.notna() & ts_given, "implausible_timestamp", parsed.implausible)
+        reject(parsed.ambiguous.to_numpy() & ts_given, "ambiguous_timestamp", _texts(
+            lambda v: f"timestamp {v!r} has day and month as numbers, which heliocal cannot tell "
+                      "apart: give --date-format (e.g. '%d.%m.%Y %H:%M:%S%z')", texts))
+        reject(parsed.naive.to_numpy() & ts_given, "unparsable_timestamp",
+               _texts(lambda v: f"timestamp {v!r} has no time zone", texts))
+        reject(parsed.implausible.notna().to_numpy() & ts_given, "implausible_timestamp",
+               parsed.implausible)
     df["timestamp"] = ts
 
 
@@ -249,80 +308,102 @@ def _check_sun(st: Staged, df: pd.DataFrame, opts: IngestOptions, checks: "Sourc
     (``qa_sun_spa_diff_deg``, ``qa_sun_mismatch``); out of range or below the horizon rejected;
     the sun vector columns written."""
     ts = df["timestamp"]
-    missing = pd.Series(np.nan, index=df.index)
-    az = df["sun_azimuth_deg"].astype(float) if "sun_azimuth_deg" in df else missing
-    el = df["sun_elevation_deg"].astype(float) if "sun_elevation_deg" in df else missing
+    missing = np.full(len(df), np.nan)
+    az = df["sun_azimuth_deg"].to_numpy(dtype=float) if "sun_azimuth_deg" in df else missing
+    el = df["sun_elevation_deg"].to_numpy(dtype=float) if "sun_elevation_deg" in df else missing
     if opts.azimuth_convention == AzimuthConvention.north_clockwise:
-        az = pd.Series(wrap_deg(180.0 - az.to_numpy()), index=df.index)
-    df["sun_source"] = np.where(az.notna() & el.notna(), "log", "spa")
-    df["qa_sun_spa_diff_deg"] = np.nan
+        az = wrap_deg(180.0 - az)
+    df["sun_source"] = np.where(~np.isnan(az) & ~np.isnan(el), "log", "spa")
+    spa_diff = np.full(len(df), np.nan)  # qa_sun_spa_diff_deg
     location = _location(st, heliostats)
-    can_spa = ts.notna() & reject.open
+    can_spa = ts.notna().to_numpy() & reject.open
     if location is not None and can_spa.any():
-        spa_az, spa_el = spa_sun_position(ts[can_spa], *location)
-        spa_az = pd.Series(spa_az, index=ts[can_spa].index)
-        spa_el = pd.Series(spa_el, index=ts[can_spa].index)
-        need = can_spa & (az.isna() | el.isna())
-        az = az.where(~need, spa_az.reindex(df.index))
-        el = el.where(~need, spa_el.reindex(df.index))
+        spa_az, spa_el = np.full(len(df), np.nan), np.full(len(df), np.nan)
+        spa_az[can_spa], spa_el[can_spa] = spa_sun_position(ts[can_spa], *location)
+        need = can_spa & (np.isnan(az) | np.isnan(el))
+        az, el = np.where(need, spa_az, az), np.where(need, spa_el, el)
         logged = can_spa & ~need
         if logged.any():
             v_log = sun_vector_enu(az[logged], el[logged])
             v_spa = sun_vector_enu(spa_az[logged], spa_el[logged])
             diff = np.degrees(np.arccos(np.clip((v_log * v_spa).sum(axis=1), -1, 1)))
-            df.loc[logged, "qa_sun_spa_diff_deg"] = diff
+            spa_diff[logged] = diff
             checks.add_sun(az[logged], el[logged], spa_az[logged], spa_el[logged], diff)
-    elif (az.isna() | el.isna()).any() and location is None:
-        reject(az.isna() | el.isna(), "missing_value", "sun angles are empty and there is no plant "
-               "location to compute them (pass --location LAT,LON,ALT)")
-    reject(az.isna() | el.isna(), "missing_value", "sun angles are empty and no timestamp")
+    elif (np.isnan(az) | np.isnan(el)).any() and location is None:
+        reject(np.isnan(az) | np.isnan(el), "missing_value", "sun angles are empty and there is "
+               "no plant location to compute them (pass --location LAT,LON,ALT)")
+    reject(np.isnan(az) | np.isnan(el), "missing_value", "sun angles are empty and no timestamp")
     reject((el > 90) | (el < -90) | (az < -360) | (az > 360), "sun_angle_out_of_range",
-           pd.Series([f"sun azimuth {a:g} deg / elevation {e:g} deg outside [-360, 360] / [-90, 90]"
-                      for a, e in zip(az, el)], index=df.index))
+           lambda rows: [f"sun azimuth {az[i]:g} deg / elevation {el[i]:g} deg outside "
+                         "[-360, 360] / [-90, 90]" for i in rows])
     reject(el <= 0, "sun_below_horizon",
-           el.map(lambda e: f"sun elevation {e:.3f} deg is not above the horizon"))
-    az = pd.Series(wrap_deg(az.to_numpy()), index=df.index)
+           lambda rows: [f"sun elevation {el[i]:.3f} deg is not above the horizon" for i in rows])
+    az = wrap_deg(az)
     df["sun_azimuth_deg"], df["sun_elevation_deg"] = az, el
-    vec = sun_vector_enu(az.fillna(0), el.fillna(0))
+    vec = sun_vector_enu(np.where(np.isnan(az), 0.0, az), np.where(np.isnan(el), 0.0, el))
     df["sun_e"], df["sun_n"], df["sun_u"] = vec[:, 0], vec[:, 1], vec[:, 2]
-    df["qa_sun_mismatch"] = df["qa_sun_spa_diff_deg"].fillna(0.0) > opts.sun_tolerance_deg
+    df["qa_sun_spa_diff_deg"] = spa_diff
+    df["qa_sun_mismatch"] = np.where(np.isnan(spa_diff), 0.0, spa_diff) > opts.sun_tolerance_deg
 
 
-def _check_steps(df: pd.DataFrame, heliostats: dict, known_h: pd.Series,
+def _check_steps(df: pd.DataFrame, heliostats: dict, known_h: np.ndarray,
                  reject: _Rejections) -> None:
     """Motor steps within each axis' range of the heliostat's properties."""
+    ids = df["heliostat_id"].tolist()
     for i in (1, 2):
-        lo = df["heliostat_id"].map({h: r[f"axis_{i}_min_steps"] for h, r in heliostats.items()})
-        hi = df["heliostat_id"].map({h: r[f"axis_{i}_max_steps"] for h, r in heliostats.items()})
-        steps = df[f"axis_{i}_steps"].astype(float)
+        lo = _per_row(ids, {h: r[f"axis_{i}_min_steps"] for h, r in heliostats.items()})
+        hi = _per_row(ids, {h: r[f"axis_{i}_max_steps"] for h, r in heliostats.items()})
+        steps = df[f"axis_{i}_steps"].to_numpy(dtype=float)
         out = known_h & ((steps < lo) | (steps > hi))
-        reject(out, "steps_out_of_range", pd.Series(
-            [f"axis_{i}_steps={s:g} outside [{a:g}, {b:g}]" for s, a, b in zip(steps, lo, hi)],
-            index=df.index))
+        reject(out, "steps_out_of_range", lambda rows, i=i, s=steps, a=lo, b=hi: [
+            f"axis_{i}_steps={s[k]:g} outside [{a[k]:g}, {b[k]:g}]" for k in rows])
 
 
-def _check_spot(df: pd.DataFrame, opts: IngestOptions, tgt: pd.Series,
+def _per_row(ids: list, values: dict) -> np.ndarray:
+    """``values`` of each row's heliostat id (NaN for an id without one): floats, or as objects
+    where a value is no number (compared as pandas compared them, raising on text)."""
+    if all(isinstance(v, (int, float, np.number)) for v in values.values()):
+        return np.array([values.get(h, np.nan) for h in ids], dtype=float)
+    return pd.Series(ids, dtype=object).map(values).to_numpy()
+
+
+def _check_spot(df: pd.DataFrame, opts: IngestOptions, tgt: np.ndarray,
                 reject: _Rejections) -> None:
-    """The focal spot within --max-spot-distance of its (known) target's centre."""
-    spot = df[["focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"]].astype(float).to_numpy()
-    center = df[["target_e_m", "target_n_m", "target_u_m"]].astype(float).to_numpy()
+    """Focal spot within ``max_spot_distance_m`` of the (known) target's centre."""
+    def column_stack(names):
+        return np.stack([df[c].to_numpy(dtype=float) for c in names], axis=1)
+
+    spot = column_stack(["focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"])
+    center = column_stack(["target_e_m", "target_n_m", "target_u_m"])
     dist = np.linalg.norm(spot - center, axis=1)
-    far = pd.Series(dist > opts.max_spot_distance_m, index=df.index) & tgt
-    reject(far, "focal_spot_far_from_target", pd.Series(
-        [f"focal spot {d:.1f} m from the target centre (limit {opts.max_spot_distance_m:g} m)"
-         for d in dist], index=df.index))
+    reject((dist > opts.max_spot_distance_m) & tgt, "focal_spot_far_from_target", lambda rows: [
+        f"focal spot {dist[k]:.1f} m from the target centre (limit "
+        f"{opts.max_spot_distance_m:g} m)" for k in rows])
 
 
 def _check_duplicates(df: pd.DataFrame, reject: _Rejections) -> None:
-    """A measurement id seen before for the same heliostat (the first occurrence is kept)."""
-    key = df["heliostat_id"].astype(str) + "\0" + df["measurement_id"].astype(str)
-    ok_so_far = reject.open
-    first_row = df.loc[ok_so_far].groupby(key[ok_so_far])["source_row"].transform("first")
-    dup = key[ok_so_far].duplicated(keep="first")
-    dup = dup.reindex(df.index, fill_value=False)
-    reject(dup, "duplicate_measurement_id", pd.Series(
-        [f"measurement id {m!r} already seen in source row {r}" for m, r in
-         zip(df["measurement_id"], first_row.reindex(df.index))], index=df.index))
+    """A measurement id seen before for the same heliostat (the first occurrence is kept).
+
+    Ids are compared as text (a measurement id 7 and "7" are the same). The detail names the
+    source row of the first occurrence, written as a float (``3.0``) when the chunk has rejected
+    rows (as pandas wrote the column with missing values for them)."""
+    open_rows = np.flatnonzero(reject.open)
+    if not len(open_rows):
+        return
+    as_float = len(open_rows) < len(df)
+    hids, mids = df["heliostat_id"].tolist(), df["measurement_id"].tolist()
+    source_rows = df["source_row"].tolist()
+    first: dict[tuple, object] = {}
+    dup = np.zeros(len(df), dtype=bool)
+    seen_in = [None] * len(df)
+    for k in open_rows:
+        key = (str(hids[k]), str(mids[k]))
+        if key in first:
+            dup[k], seen_in[k] = True, first[key]
+        else:
+            first[key] = float(source_rows[k]) if as_float else source_rows[k]
+    reject(dup, "duplicate_measurement_id", lambda rows: [
+        f"measurement id {mids[k]!r} already seen in source row {seen_in[k]}" for k in rows])
 
 
 def _id_text(value):
@@ -339,16 +420,17 @@ def _id_text(value):
 def _reject_invalid_ids(ids: pd.Series, reject) -> None:
     """Reject rows whose heliostat id is not a safe file name (invalid_heliostat_id): the detail
     names the problem and a valid id to rename it to."""
-    problems = {h: heliostat_id_problem(h) for h in ids.dropna().unique() if h != ""}
+    values = ids.tolist()
+    present = {h for h in values if not (h is None or (isinstance(h, float) and math.isnan(h)))}
+    problems = {h: heliostat_id_problem(h) for h in present if h != ""}
     bad = {h: p for h, p in problems.items() if p is not None}
     if not bad:
         return
     detail = {h: (f"heliostat id {h!r} cannot be used as a file name ({p}); rename it in the "
                   f"source to {HELIOSTAT_ID_RULE}, e.g. {suggest_heliostat_id(h)!r}")
               for h, p in bad.items()}
-    mask = ids.map(lambda h: h in bad if isinstance(h, str) else False).astype(bool)
-    reject(mask, "invalid_heliostat_id",
-           ids.map(lambda h: detail.get(h) if isinstance(h, str) else None))
+    mask = np.array([isinstance(h, str) and h in bad for h in values], dtype=bool)
+    reject(mask, "invalid_heliostat_id", lambda rows: [detail[values[k]] for k in rows])
 
 
 #: Day and month as numbers first (02.03.2023, 3/2/2023, 02-03-2023 ...): day.month or month/day
@@ -452,32 +534,33 @@ def _resolve_targets(df: pd.DataFrame, targets: dict[str, Target]) -> pd.Series:
     A target known only from the log's centre columns gets a normal pointing horizontally from
     the target toward the heliostat (documented assumption). Returns the mask of resolved rows.
     """
-    for col in ("target_e_m", "target_n_m", "target_u_m", "target_normal_e", "target_normal_n",
-                "target_normal_u"):
-        if col not in df:
-            df[col] = np.nan
-        df[col] = _to_float(df[col].astype(object))
-    names = df["target_name"]
-    known = names.isin(list(targets))
+    n = len(df)
+
+    def floats(names):
+        return np.stack([_to_float_array(df[c].to_numpy(dtype=object)) if c in df
+                         else np.full(n, np.nan) for c in names], axis=1).reshape(n, 3)
+
+    center = floats(["target_e_m", "target_n_m", "target_u_m"])
+    normal = floats(["target_normal_e", "target_normal_n", "target_normal_u"])
+    names = df["target_name"].tolist()
+    known = np.array([isinstance(t, str) and t in targets for t in names], dtype=bool)
     if known.any():
-        named = [targets[n] for n in names[known]]
-        df.loc[known, ["target_e_m", "target_n_m", "target_u_m"]] = np.array(
-            [t.center_enu for t in named], dtype=float)
-        df.loc[known, ["target_normal_e", "target_normal_n", "target_normal_u"]] = np.array(
-            [t.normal_enu for t in named], dtype=float)
-    has_center = df[["target_e_m", "target_n_m", "target_u_m"]].notna().all(axis=1)
-    no_normal = df[["target_normal_e", "target_normal_n", "target_normal_u"]].isna().any(axis=1)
-    fill = has_center & no_normal
+        named = [targets[t] for t, k in zip(names, known) if k]
+        center[known] = np.array([t.center_enu for t in named], dtype=float)
+        normal[known] = np.array([t.normal_enu for t in named], dtype=float)
+    has_center = ~np.isnan(center).any(axis=1)
+    fill = has_center & np.isnan(normal).any(axis=1)
     if fill.any():
-        d = (df.loc[fill, ["heliostat_e_m", "heliostat_n_m"]].to_numpy(float)
-             - df.loc[fill, ["target_e_m", "target_n_m"]].to_numpy(float))
+        d = (np.stack([df[c].to_numpy(dtype=float)[fill] for c in ("heliostat_e_m",
+                                                                   "heliostat_n_m")], axis=1)
+             - center[fill, :2])
         norm = np.linalg.norm(d, axis=1, keepdims=True)
         d = np.where(norm > 0, d / np.where(norm > 0, norm, 1), [[0.0, 1.0]])
-        df.loc[fill, "target_normal_e"] = d[:, 0]
-        df.loc[fill, "target_normal_n"] = d[:, 1]
-        df.loc[fill, "target_normal_u"] = 0.0
-    resolved = has_center & df[["target_normal_e", "target_normal_n", "target_normal_u"]].notna().all(axis=1)
-    return resolved & names.map(lambda v: isinstance(v, str) and v != "")
+        normal[fill] = np.column_stack([d, np.zeros(len(d))])
+    for k, a in enumerate("enu"):
+        df[f"target_{a}_m"], df[f"target_normal_{a}"] = center[:, k], normal[:, k]
+    resolved = has_center & ~np.isnan(normal).any(axis=1)
+    return resolved & np.array([isinstance(t, str) and t != "" for t in names], dtype=bool)
 
 
 def _location(st: Staged, heliostats: dict[str, dict]):
