@@ -254,3 +254,21 @@ def test_failed_ingest_keeps_previous_artifacts(tmp_path):
     assert (tmp_path / "measurements.parquet").read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["heliostats.parquet", "ingest.manifest.json",
                                                          "measurements.parquet", "rejected.parquet"]
+
+
+def test_a_duplicate_names_its_first_row_as_an_integer_beside_other_rejections(tmp_path):
+    # juelich_log_small.csv's data row 4 takes row 2's sample id, and row 1's azimuth is text:
+    # rows are numbered 1-based after the header, so the duplicate's detail names row 2 (it said
+    # "row 2.0" when the chunk also held a rejected row)
+    log = _edited_small_log(tmp_path, 1, "sun_azimuth", lambda v: "east")
+    rows = list(csv.reader(io.StringIO(log.read_text())))
+    sid = rows[0].index("sample_id")
+    rows[4][sid] = rows[2][sid]
+    out = io.StringIO()
+    csv.writer(out, lineterminator="\n").writerows(rows)
+    log.write_text(out.getvalue())
+    rejected = _ingest(tmp_path / "wd", str(log))["rejected"].set_index("source_row")
+    assert rejected.loc[1, "reason"] == "unparsable_number"
+    assert rejected.loc[4, "reason"] == "duplicate_measurement_id"
+    assert rejected.loc[4, "detail"] == (f"measurement id {rows[2][sid]!r} already seen in "
+                                         "source row 2")

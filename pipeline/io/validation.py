@@ -385,12 +385,10 @@ def _check_duplicates(df: pd.DataFrame, reject: _Rejections) -> None:
     """A measurement id seen before for the same heliostat (the first occurrence is kept).
 
     Ids are compared as text (a measurement id 7 and "7" are the same). The detail names the
-    source row of the first occurrence, written as a float (``3.0``) when the chunk has rejected
-    rows (as pandas wrote the column with missing values for them)."""
+    source row (1-based) of the first occurrence."""
     open_rows = np.flatnonzero(reject.open)
     if not len(open_rows):
         return
-    as_float = len(open_rows) < len(df)
     hids, mids = df["heliostat_id"].tolist(), df["measurement_id"].tolist()
     source_rows = df["source_row"].tolist()
     first: dict[tuple, object] = {}
@@ -401,7 +399,7 @@ def _check_duplicates(df: pd.DataFrame, reject: _Rejections) -> None:
         if key in first:
             dup[k], seen_in[k] = True, first[key]
         else:
-            first[key] = float(source_rows[k]) if as_float else source_rows[k]
+            first[key] = int(source_rows[k])
     reject(dup, "duplicate_measurement_id", lambda rows: [
         f"measurement id {mids[k]!r} already seen in source row {seen_in[k]}" for k in rows])
 
