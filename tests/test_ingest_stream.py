@@ -24,7 +24,7 @@ from heliocal.cli.main import app
 from heliocal.pipeline.artifacts.store import read_artifact, read_provenance
 from heliocal.pipeline.errors import InputError
 from heliocal.pipeline.io.staged import IngestOptions
-from heliocal.pipeline.io.validation import MedianVsThreshold
+from heliocal.pipeline.io.source_checks import MedianVsThreshold
 from heliocal.pipeline.stages.ingest import ingest, run_ingest
 from heliocal.pipeline.artifacts.schemas import MEASUREMENTS
 from heliocal.pipeline.io.spill import SortedSpill

@@ -57,7 +57,8 @@ from ..io.paint import stage_paint
 from ..io.sources import detect_source, expand_sources
 from ..io.spill import SortedSpill
 from ..io.staged import IngestOptions, Staged
-from ..io.validation import SourceChecks, invalid_id_message, validate_rows
+from ..io.source_checks import SourceChecks
+from ..io.validation import invalid_id_message, validate_rows
 from ..vocabulary import DEFAULT_BATCH_ROWS
 from ..runtime.process_state import restores_process_state
 from .ingest_append import merge_new_rows, previous_tables, write_appended
