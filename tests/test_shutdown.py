@@ -86,12 +86,13 @@ def field_workdir(tmp_path_factory) -> Path:
     wd = root / "work"
     run_ingest([root / "field"], wd)
     run_split(wd, n_test=15, n_val=10)
-    run_fit_coarse(wd, preset="static-6", workers=1)
+    run_fit_coarse(wd, preset="static-6", workers=1, rolling_origins=0)
     from heliocal.pipeline.models.config import FineConfig, PathConfig
 
+    # "previous" artifacts that only have to stay as they are: no study, one quick path
     run_sweep(wd, n_train=[20], weight_decays=[1.0, 0.0], seeds=[0], baselines=(),
               config=FineConfig(max_epochs=20, ensemble=1), workers=1,
-              path=PathConfig(stage_epochs=20))
+              path=PathConfig(stage_epochs=20), study=0)
     return wd
 
 
