@@ -281,6 +281,26 @@ def test_the_report_draws_a_stored_gp_map_without_importing_torch(gp_swept_workd
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("model, imports_sklearn", [("coarse", False), ("gp", True)])
+def test_only_an_aim_through_the_gp_imports_its_modules(gp_swept_workdir, model, imports_sklearn):
+    # a fresh process: aiming the coarse model leaves the GP's modules (scikit-learn, about 0.9 s
+    # of every aim call) unimported; aiming the GP loads them, so the probe can see them
+    import subprocess
+    import sys
+
+    from test_hybrid import HID
+
+    probe = ("import json, sys\nfrom heliocal.pipeline.stages.aim import aim_steps\n"
+             f"out = aim_steps({str(gp_swept_workdir)!r}, {HID!r}, aim_point_enu=[0.5, -3.2, 36.5], "
+             f"time_utc='2023-05-03T11:00Z', model={model!r})\n"
+             "print(json.dumps([out['model'], 'sklearn' in sys.modules]))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == [model, imports_sklearn]
+
+
+@pytest.mark.slow
 def test_a_gp_model_without_a_stored_map_has_its_map_computed(gp_swept_workdir, tmp_path):
     # a model written before maps were stored: the report computes the map from the model, the
     # same arrays and the same figure; a malformed stored map is a one-line error naming the file

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
-from typing import Mapping
+from typing import TYPE_CHECKING, Mapping
 
 import numpy as np
 import pandas as pd
@@ -27,8 +27,6 @@ from ..artifacts.store import artifact_columns, artifact_present, read_artifact
 from ..errors import (FitError, HeliocalError, InputError, ParameterError, StageInputError,
                       check_choice)
 from ..models.fade import epoch_seconds, fade_weights
-from ..models.gp import GPCorrection, GPPrediction
-from ..models.gp_heliostat import gp_aim_steps
 from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
 from ..models.pretrained import PretrainedModel
 from ..models.training import FineProblem, grouped_components
@@ -41,6 +39,9 @@ from .aim_choice import aim_models  # the model aim --model auto uses (torch-fre
 from .coarse_prior import field_prior_note
 from .fit_coarse import coarse_row_parameters, load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
+
+if TYPE_CHECKING:   # the GP's modules import scikit-learn (about 0.9 s): only a GP aim loads them
+    from ..models.gp import GPPrediction
 
 __all__ = [
     "load_model",
@@ -359,13 +360,22 @@ def _gp_env_values(h: _Heliostat, cfg: dict, env: Mapping[str, float], time_utc)
     return [float(env[e]) for e in names]
 
 
+def _gp_aim_steps(cfg: dict, state, *args, **kwargs):
+    """:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps` of the GP model ``(cfg,
+    state)``; the GP's modules are imported here, so that aiming any other model does not."""
+    from ..models.gp import GPCorrection
+    from ..models.gp_heliostat import gp_aim_steps
+
+    return gp_aim_steps(GPCorrection.from_model(cfg, state), *args, **kwargs)
+
+
 def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: int,
               tolerance_steps: float):
     """(steps, coarse parameters, iterations, corrected normal) of a GP correction
     (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`)."""
     cfg, state = fitted
     env_values = _gp_env_values(h, cfg, env, time_utc)
-    fit = gp_aim_steps(GPCorrection.from_model(cfg, state), h.coarse, h.spec, sun, aim,
+    fit = _gp_aim_steps(cfg, state, h.coarse, h.spec, sun, aim,
                        None if time_utc is None else epoch_seconds([time_utc])[0],
                        env_values or None,
                        max_iterations=max_iterations, tolerance_steps=tolerance_steps)
@@ -482,7 +492,7 @@ def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu
     time_s = np.array([np.nan if t is None else epoch_seconds([t])[0] for t in times])
     sun = _unit(torch.tensor(np.asarray(sun_enu, np.float64)[ok]))
     aim = torch.tensor(np.asarray(aim_point_enu, np.float64)[ok])
-    fit = gp_aim_steps(GPCorrection.from_model(cfg, state), params, h.spec, sun, aim, time_s,
+    fit = _gp_aim_steps(cfg, state, params, h.spec, sun, aim, time_s,
                        np.array(env_rows) if env_rows[0] else None)
     with torch.no_grad():
         residual = error_mrad(reflect(-sun, fit.normal), aim - fit.position)
