@@ -23,7 +23,6 @@ from .source_checks import SourceChecks
 from .staged import ENV_ABS_MAX, IngestOptions, Staged, Target, time_bounds
 
 __all__ = [
-    "to_float_frame",
     "float_columns",
     "validate_rows",
     "invalid_id_message",
@@ -32,22 +31,11 @@ __all__ = [
 log = logging.getLogger("heliocal.ingest")
 
 
-def to_float_frame(df: pd.DataFrame, names: Sequence[str]) -> pd.DataFrame:
-    """Columns ``names`` of ``df`` as floats (:func:`_to_float`; a missing column all NaN)."""
-    return pd.DataFrame({n: _to_float(df[n]) if n in df else np.nan for n in names},
-                        index=df.index)
-
-
 def float_columns(df: pd.DataFrame, names: Sequence[str]) -> list[np.ndarray]:
-    """Columns ``names`` of ``df`` as float arrays, as :func:`to_float_frame` reads them (a
-    missing column all NaN), without building a frame."""
+    """Columns ``names`` of ``df`` as float arrays (:func:`_to_float_array`; a missing column all
+    NaN)."""
     return [_to_float_array(df[n].to_numpy(dtype=object)) if n in df else np.full(len(df), np.nan)
             for n in names]
-
-
-def _to_float(series: pd.Series) -> pd.Series:
-    """A column of cells as floats (:func:`_to_float_array`), as a Series on its index."""
-    return pd.Series(_to_float_array(series.to_numpy(dtype=object)), index=series.index)
 
 
 def _to_float_array(cells: np.ndarray) -> np.ndarray:
@@ -170,7 +158,7 @@ def _inherit_positions(st: Staged, df: pd.DataFrame) -> dict:
     if st.kind == "wgs84-log":  # an ENU log's heliostats all come from its properties
         _add_default_rows(df, ids, heliostats)
     for a in "enu":
-        df[f"heliostat_{a}_m"] = _per_row_float(ids, {h: r[f"heliostat_{a}_m"]
+        df[f"heliostat_{a}_m"] = _per_row(ids, {h: r[f"heliostat_{a}_m"]
                                                       for h, r in heliostats.items()})
     return heliostats
 
@@ -196,14 +184,6 @@ def _add_default_rows(df: pd.DataFrame, ids: list, heliostats: dict) -> None:
             wgs = tuple(float(np.median(c[~np.isnan(c)])) if (~np.isnan(c)).any() else math.nan
                         for c in w.T)
         heliostats[hid] = default_properties_row(hid, med, wgs)
-
-
-def _per_row_float(ids: list, values: dict):
-    """``values`` of each row's heliostat id (NaN for an id without one), as floats when every
-    value is a float; otherwise as ``Series.map`` gives them (an integer column stays one)."""
-    if all(isinstance(v, float) for v in values.values()):
-        return np.array([values.get(h, np.nan) for h in ids], dtype=float)
-    return pd.Series(ids, dtype=object).map(values).to_numpy()
 
 
 def _check_required(st: Staged, df: pd.DataFrame, reject: _Rejections) -> list[str]:
@@ -248,8 +228,7 @@ def _check_numbers(st: Staged, df: pd.DataFrame, reject: _Rejections,
             reject(np.abs(val) > limit, "unparsable_number",
                    _texts(lambda v, c=col, lim=limit: f"{c}={v!r} is outside [-{lim:g}, {lim:g}] deg",
                           val.tolist()))
-        enu = [_to_float_array(df[c].to_numpy(dtype=object))
-               for c in ("focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m")]
+        enu = float_columns(df, ["focal_spot_e_m", "focal_spot_n_m", "focal_spot_u_m"])
         reject(np.isnan(np.stack(enu)).any(axis=0), "unparsable_number",
                "focal spot lat/lon/alt cannot be converted to ENU (not a point near the plant)")
     for col, val in numeric.items():
@@ -358,9 +337,10 @@ def _check_steps(df: pd.DataFrame, heliostats: dict, known_h: np.ndarray,
 
 
 def _per_row(ids: list, values: dict) -> np.ndarray:
-    """``values`` of each row's heliostat id (NaN for an id without one): floats, or as objects
-    where a value is no number (compared as pandas compared them, raising on text)."""
-    if all(isinstance(v, (int, float, np.number)) for v in values.values()):
+    """``values`` of each row's heliostat id (NaN for an id without one), as ``Series.map`` gives
+    them (an integer column stays one, a text stays text); as a float array without pandas when
+    every value is a float (the properties' positions and step ranges)."""
+    if all(isinstance(v, float) for v in values.values()):
         return np.array([values.get(h, np.nan) for h in ids], dtype=float)
     return pd.Series(ids, dtype=object).map(values).to_numpy()
 
@@ -530,14 +510,9 @@ def _resolve_targets(df: pd.DataFrame, targets: dict[str, Target]) -> pd.Series:
     A target known only from the log's centre columns gets a normal pointing horizontally from
     the target toward the heliostat (documented assumption). Returns the mask of resolved rows.
     """
-    n = len(df)
-
-    def floats(names):
-        return np.stack([_to_float_array(df[c].to_numpy(dtype=object)) if c in df
-                         else np.full(n, np.nan) for c in names], axis=1).reshape(n, 3)
-
-    center = floats(["target_e_m", "target_n_m", "target_u_m"])
-    normal = floats(["target_normal_e", "target_normal_n", "target_normal_u"])
+    center = np.stack(float_columns(df, ["target_e_m", "target_n_m", "target_u_m"]), axis=1)
+    normal = np.stack(float_columns(df, ["target_normal_e", "target_normal_n", "target_normal_u"]),
+                      axis=1)
     names = df["target_name"].tolist()
     known = np.array([isinstance(t, str) and t in targets for t in names], dtype=bool)
     if known.any():
