@@ -376,9 +376,9 @@ def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: in
     cfg, state = fitted
     env_values = _gp_env_values(h, cfg, env, time_utc)
     fit = _gp_aim_steps(cfg, state, h.coarse, h.spec, sun, aim,
-                       None if time_utc is None else epoch_seconds([time_utc])[0],
-                       env_values or None,
-                       max_iterations=max_iterations, tolerance_steps=tolerance_steps)
+                        None if time_utc is None else epoch_seconds([time_utc])[0],
+                        env_values or None,
+                        max_iterations=max_iterations, tolerance_steps=tolerance_steps)
     if not bool(torch.isfinite(fit.steps).all()):
         raise _unreachable(h.id)
     h.gp_prediction = fit.prediction
@@ -493,7 +493,7 @@ def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu
     sun = _unit(torch.tensor(np.asarray(sun_enu, np.float64)[ok]))
     aim = torch.tensor(np.asarray(aim_point_enu, np.float64)[ok])
     fit = _gp_aim_steps(cfg, state, params, h.spec, sun, aim, time_s,
-                       np.array(env_rows) if env_rows[0] else None)
+                        np.array(env_rows) if env_rows[0] else None)
     with torch.no_grad():
         residual = error_mrad(reflect(-sun, fit.normal), aim - fit.position)
     explained = fit.prediction.explained_variance_mrad2
