@@ -184,6 +184,18 @@ def gp_swept_workdir(gp_workdir, tmp_path_factory):
     return wd
 
 
+def _in_fresh_process(code: str):
+    """The JSON that ``code`` prints last, run in a fresh Python process (``json`` and ``sys``
+    imported): what it imports is its own, not the test process's."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", "import json, sys\n" + code],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def _copy(workdir, tmp_path):
     import shutil
 
@@ -262,20 +274,14 @@ def test_the_stored_gp_map_is_the_one_computed_from_the_model(gp_workdir, gp_swe
 def test_the_report_draws_a_stored_gp_map_without_importing_torch(gp_swept_workdir, tmp_path):
     # a fresh process: the report (its figures drawn in that process) reads the stored map with
     # numpy and json; torch and scikit-learn (about 1.5 s of a report's CPU) stay unimported
-    import subprocess
-    import sys
-
     from test_hybrid import HID
 
     wd = _copy(gp_swept_workdir, tmp_path)
-    probe = ("import json, sys\nfrom heliocal.pipeline.stages.report import run_report\n"
-             f"summary = run_report({str(wd)!r}, workers=1)\n"
-             "print(json.dumps([[f.rsplit('/', 1)[-1] for f in summary['figures']], "
-             "sorted(m for m in ('torch', 'sklearn') if m in sys.modules)]))")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode == 0, out.stderr
-    figures, heavy = json.loads(out.stdout.strip().splitlines()[-1])
+    figures, heavy = _in_fresh_process(
+        "from heliocal.pipeline.stages.report import run_report\n"
+        f"summary = run_report({str(wd)!r}, workers=1)\n"
+        "print(json.dumps([[f.rsplit('/', 1)[-1] for f in summary['figures']], "
+        "sorted(m for m in ('torch', 'sklearn') if m in sys.modules)]))")
     assert f"gp_correction_{HID}.png" in figures
     assert heavy == []
 
@@ -285,19 +291,13 @@ def test_the_report_draws_a_stored_gp_map_without_importing_torch(gp_swept_workd
 def test_only_an_aim_through_the_gp_imports_its_modules(gp_swept_workdir, model, imports_sklearn):
     # a fresh process: aiming the coarse model leaves the GP's modules (scikit-learn, about 0.9 s
     # of every aim call) unimported; aiming the GP loads them, so the probe can see them
-    import subprocess
-    import sys
-
     from test_hybrid import HID
 
-    probe = ("import json, sys\nfrom heliocal.pipeline.stages.aim import aim_steps\n"
-             f"out = aim_steps({str(gp_swept_workdir)!r}, {HID!r}, aim_point_enu=[0.5, -3.2, 36.5], "
-             f"time_utc='2023-05-03T11:00Z', model={model!r})\n"
-             "print(json.dumps([out['model'], 'sklearn' in sys.modules]))")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode == 0, out.stderr
-    assert json.loads(out.stdout.strip().splitlines()[-1]) == [model, imports_sklearn]
+    assert _in_fresh_process(
+        "from heliocal.pipeline.stages.aim import aim_steps\n"
+        f"out = aim_steps({str(gp_swept_workdir)!r}, {HID!r}, aim_point_enu=[0.5, -3.2, 36.5], "
+        f"time_utc='2023-05-03T11:00Z', model={model!r})\n"
+        "print(json.dumps([out['model'], 'sklearn' in sys.modules]))") == [model, imports_sklearn]
 
 
 @pytest.mark.slow
