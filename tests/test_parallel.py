@@ -90,6 +90,31 @@ def test_warm_up_imports_the_stage_modules_once_in_the_fork_server(tmp_path):
                    "cold": "[False, False, False, False, False, False]"}
 
 
+def test_workers_of_tasks_without_torch_do_not_import_it(tmp_path):
+    """map_tasks(torch_threads=False) (the report's figures): the pool's workers leave torch
+    unimported; tasks that run torch (the default) get it imported and on one thread. A fresh
+    interpreter, whose fork server preloads nothing (this process's may have torch)."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "probe.py").write_text("import sys\n\n\ndef torch_threads(_):\n"
+                                       "    torch = sys.modules.get('torch')\n"
+                                       "    return None if torch is None else torch.get_num_threads()\n")
+    script = ("import sys\nfrom heliocal.pipeline.runtime.parallel import map_tasks\n"
+              "from probe import torch_threads\n"
+              "print(map_tasks(torch_threads, range(4), workers=2, chunks_per_worker=2,\n"
+              "                torch_threads=sys.argv[1] == 'torch'))\n")
+    out = {}
+    for mode in ("torch", "none"):
+        proc = subprocess.run([sys.executable, "-c", script, mode], cwd=tmp_path, timeout=120,
+                              env={**os.environ, "PYTHONPATH": str(tmp_path)},
+                              capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[mode] = proc.stdout.strip()
+    assert out == {"torch": "[1, 1, 1, 1]", "none": "[None, None, None, None]"}
+
+
 def _fail_on_3(x):
     if x == 3:
         raise ValueError("task 3 failed")

@@ -38,6 +38,7 @@ import os
 import pickle
 import select
 import signal
+import sys
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -116,21 +117,26 @@ def _watch_parent(pid: int, poll_seconds: float = 0.5) -> None:
 
 def _init_local_worker(parent_pid: int) -> None:
     """A local pool worker: one thread, ignores Ctrl-C (the caller stops it), dies with the
-    caller."""
+    caller. torch is set to one thread here only if the fork server imported it; otherwise the
+    first chunk of a task that runs torch imports and sets it (:func:`_run_chunk`)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _watch_parent(parent_pid)
-    _init_worker()
+    _init_worker(torch_threads=False)
     # what the worker starts with (the modules imported in the fork server) lives as long as
     # the worker: out of the collector's sight, its full collections pass over the tasks'
     # objects only (gc.freeze, the documented use for forked workers)
     gc.freeze()
 
 
-def _init_worker() -> None:
-    """One thread per worker process (torch and the BLAS behind numpy/scipy): N workers, N cores."""
-    import torch
-
-    torch.set_num_threads(1)
+def _init_worker(torch_threads: bool = True) -> None:
+    """One thread per worker process (torch and the BLAS behind numpy/scipy): N workers, N cores.
+    ``torch_threads=False`` (tasks that run no torch) sets torch's threads only if the process
+    has imported torch already, instead of importing it (about 1.3 s) to set them."""
+    torch = sys.modules.get("torch")
+    if torch is None and torch_threads:
+        import torch
+    if torch is not None:
+        torch.set_num_threads(1)
     try:
         from threadpoolctl import threadpool_limits
 
@@ -139,12 +145,12 @@ def _init_worker() -> None:
         pass
 
 
-def _run_chunk(func: Callable, chunk: Sequence[Any]) -> list:
-    _init_worker()
+def _run_chunk(func: Callable, chunk: Sequence[Any], torch_threads: bool = True) -> list:
+    _init_worker(torch_threads)
     return [func(task) for task in chunk]
 
 
-def _run_chunk_pickled(func: Callable, chunk: Sequence[Any]) -> bytes:
+def _run_chunk_pickled(func: Callable, chunk: Sequence[Any], torch_threads: bool = True) -> bytes:
     """:func:`_run_chunk` with the results pickled to bytes in the worker.
 
     Torch registers its own reducers with multiprocessing: a tensor in a result would travel
@@ -152,7 +158,7 @@ def _run_chunk_pickled(func: Callable, chunk: Sequence[Any]) -> bytes:
     (the state dicts of a few hundred networks) exhausts the descriptors passed over the
     socket ("received 0 items of ancdata") and breaks the pool. Plain pickle sends them by value.
     """
-    return pickle.dumps(_run_chunk(func, chunk), protocol=pickle.HIGHEST_PROTOCOL)
+    return pickle.dumps(_run_chunk(func, chunk, torch_threads), protocol=pickle.HIGHEST_PROTOCOL)
 
 
 def _chunks(tasks: Sequence[Any], n: int) -> list[list[Any]]:
@@ -178,8 +184,9 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
     progress : called as ``progress(done, total)`` after each finished chunk.
     chunks_per_worker : tasks are grouped into ``workers * chunks_per_worker`` chunks to keep
         scheduling overhead low while balancing load.
-    torch_threads : ``False`` for tasks that run no torch: in this process (``workers`` 1) torch is
-        then not imported to be set to one thread (:func:`.process_state.one_thread`).
+    torch_threads : ``False`` for tasks that run no torch: torch is then not imported to be set
+        to one thread, in this process (``workers`` 1, :func:`.process_state.one_thread`) or in
+        a worker (:func:`_init_worker`).
     """
     check_choice(scheduler, "scheduler", "map_tasks", SCHEDULERS)
     if dask_address:
@@ -190,7 +197,8 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
     if not tasks:
         return []
     if scheduler == "dask":
-        return _map_dask(func, tasks, workers, dask_address, progress, chunks_per_worker)
+        return _map_dask(func, tasks, workers, dask_address, progress, chunks_per_worker,
+                         torch_threads)
     if workers == 1 or total == 1:
         out = []
         with one_thread(blas=True, torch_threads=torch_threads):
@@ -199,7 +207,7 @@ def map_tasks(func: Callable, tasks: Sequence[Any], *, workers: int | None = Non
                 if progress:
                     progress(k + 1, total)
         return out
-    return _map_local(func, tasks, workers, progress, chunks_per_worker)
+    return _map_local(func, tasks, workers, progress, chunks_per_worker, torch_threads)
 
 
 #: What each stage's fork server imports (:func:`warm_up_stage`), by command: the stage's module
@@ -290,7 +298,7 @@ def _new_pool(workers: int) -> ProcessPoolExecutor:
     return pool
 
 
-def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
+def _map_local(func, tasks, workers, progress, chunks_per_worker, torch_threads) -> list:
     chunks = _chunks(tasks, workers * chunks_per_worker)
     results: list = [None] * len(chunks)
     done = 0
@@ -301,7 +309,8 @@ def _map_local(func, tasks, workers, progress, chunks_per_worker) -> list:
         if shared:
             _SHARED_POOLS[workers] = pool
     try:
-        pending = {pool.submit(_run_chunk_pickled, func, c): i for i, c in enumerate(chunks)}
+        pending = {pool.submit(_run_chunk_pickled, func, c, torch_threads): i
+                   for i, c in enumerate(chunks)}
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
             for fut in finished:
@@ -412,7 +421,7 @@ def _start_local_cluster(workers: int):
         raise
 
 
-def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> list:
+def _map_dask(func, tasks, workers, address, progress, chunks_per_worker, torch_threads) -> list:
     try:
         from distributed import as_completed
         from distributed.comm import CommClosedError
@@ -430,7 +439,7 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker) -> lis
         with _connect(address, cluster) as client:
             n = max(len(client.scheduler_info().get("workers", {})), 1)
             chunks = _chunks(tasks, n * chunks_per_worker)
-            futures = [client.submit(_run_chunk, func, c, pure=False) for c in chunks]
+            futures = [client.submit(_run_chunk, func, c, torch_threads, pure=False) for c in chunks]
             try:
                 index = {f.key: i for i, f in enumerate(futures)}
                 results: list = [None] * len(chunks)
