@@ -98,9 +98,10 @@ def test_workers_of_tasks_without_torch_do_not_import_it(tmp_path):
     import subprocess
     import sys
 
-    (tmp_path / "probe.py").write_text("import sys\n\n\ndef torch_threads(_):\n"
-                                       "    torch = sys.modules.get('torch')\n"
-                                       "    return None if torch is None else torch.get_num_threads()\n")
+    (tmp_path / "probe.py").write_text(
+        "import sys\n\n\ndef torch_threads(_):\n"
+        "    torch = sys.modules.get('torch')\n"
+        "    return None if torch is None else torch.get_num_threads()\n")
     script = ("import sys\nfrom heliocal.pipeline.runtime.parallel import map_tasks\n"
               "from probe import torch_threads\n"
               "print(map_tasks(torch_threads, range(4), workers=2, chunks_per_worker=2,\n"

@@ -439,7 +439,8 @@ def _map_dask(func, tasks, workers, address, progress, chunks_per_worker, torch_
         with _connect(address, cluster) as client:
             n = max(len(client.scheduler_info().get("workers", {})), 1)
             chunks = _chunks(tasks, n * chunks_per_worker)
-            futures = [client.submit(_run_chunk, func, c, torch_threads, pure=False) for c in chunks]
+            futures = [client.submit(_run_chunk, func, c, torch_threads, pure=False)
+                       for c in chunks]
             try:
                 index = {f.key: i for i, f in enumerate(futures)}
                 results: list = [None] * len(chunks)
