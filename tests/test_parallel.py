@@ -61,30 +61,37 @@ def test_workers_get_one_thread_env_and_the_caller_keeps_its_own(monkeypatch):
         assert worker_frozen > 1000
 
 
-def test_warm_up_imports_the_stage_modules_once_in_the_fork_server(tmp_path):
-    """Workers forked after warm_up(modules) start with those modules imported (the fork server
-    imported them) and not others, torch's compiler (torch._dynamo) among them; without warm_up
-    none is. Fresh interpreters: a process
-    has one fork server, and this one's may already run."""
+def _probe_in_fresh_processes(tmp_path, probe: str, script: str, modes) -> dict[str, str]:
+    """What ``script`` prints in a fresh interpreter per mode (its argv[1]), with ``probe``
+    saved as the importable module ``probe`` (the workers' task functions). A process has one
+    fork server, started with the modules of its first start: this one's may already run."""
     import os
     import subprocess
     import sys
 
-    (tmp_path / "probe.py").write_text("import sys\n\n\ndef loaded(name):\n"
-                                       "    return name in sys.modules\n")
+    (tmp_path / "probe.py").write_text(probe)
+    out = {}
+    for mode in modes:
+        proc = subprocess.run([sys.executable, "-c", script, mode], cwd=tmp_path, timeout=120,
+                              env={**os.environ, "PYTHONPATH": str(tmp_path)},
+                              capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[mode] = proc.stdout.strip()
+    return out
+
+
+def test_warm_up_imports_the_stage_modules_once_in_the_fork_server(tmp_path):
+    """Workers forked after warm_up(modules) start with those modules imported (the fork server
+    imported them) and not others, torch's compiler (torch._dynamo) among them; without warm_up
+    none is."""
+    probe = "import sys\n\n\ndef loaded(name):\n    return name in sys.modules\n"
     script = ("import sys\nfrom heliocal.pipeline.runtime.parallel import map_tasks, warm_up\n"
               "from probe import loaded\n"
               "names = ['heliocal.pipeline.models.regimes', 'heliocal.pipeline.models.simulator',"
               " 'torch._dynamo']\n"
               "if sys.argv[1] == 'warm':\n    warm_up(names[:1], workers=2)\n"
               "print(map_tasks(loaded, names * 2, workers=2))\n")
-    out = {}
-    for mode in ("warm", "cold"):
-        proc = subprocess.run([sys.executable, "-c", script, mode], cwd=tmp_path, timeout=120,
-                              env={**os.environ, "PYTHONPATH": str(tmp_path)},
-                              capture_output=True, text=True)
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        out[mode] = proc.stdout.strip()
+    out = _probe_in_fresh_processes(tmp_path, probe, script, ("warm", "cold"))
     # the networks' training no longer needs torch._dynamo (models/adam.py): nothing imports it
     assert out == {"warm": "[True, False, False, True, False, False]",
                    "cold": "[False, False, False, False, False, False]"}
@@ -92,27 +99,16 @@ def test_warm_up_imports_the_stage_modules_once_in_the_fork_server(tmp_path):
 
 def test_workers_of_tasks_without_torch_do_not_import_it(tmp_path):
     """map_tasks(torch_threads=False) (the report's figures): the pool's workers leave torch
-    unimported; tasks that run torch (the default) get it imported and on one thread. A fresh
-    interpreter, whose fork server preloads nothing (this process's may have torch)."""
-    import os
-    import subprocess
-    import sys
-
-    (tmp_path / "probe.py").write_text(
-        "import sys\n\n\ndef torch_threads(_):\n"
-        "    torch = sys.modules.get('torch')\n"
-        "    return None if torch is None else torch.get_num_threads()\n")
+    unimported; tasks that run torch (the default) get it imported and on one thread. Fresh
+    interpreters, whose fork server preloads nothing (this process's may have torch)."""
+    probe = ("import sys\n\n\ndef torch_threads(_):\n"
+             "    torch = sys.modules.get('torch')\n"
+             "    return None if torch is None else torch.get_num_threads()\n")
     script = ("import sys\nfrom heliocal.pipeline.runtime.parallel import map_tasks\n"
               "from probe import torch_threads\n"
               "print(map_tasks(torch_threads, range(4), workers=2, chunks_per_worker=2,\n"
               "                torch_threads=sys.argv[1] == 'torch'))\n")
-    out = {}
-    for mode in ("torch", "none"):
-        proc = subprocess.run([sys.executable, "-c", script, mode], cwd=tmp_path, timeout=120,
-                              env={**os.environ, "PYTHONPATH": str(tmp_path)},
-                              capture_output=True, text=True)
-        assert proc.returncode == 0, proc.stderr[-2000:]
-        out[mode] = proc.stdout.strip()
+    out = _probe_in_fresh_processes(tmp_path, probe, script, ("torch", "none"))
     assert out == {"torch": "[1, 1, 1, 1]", "none": "[None, None, None, None]"}
 
 
