@@ -185,6 +185,7 @@ def _with_study(root, with_curves: bool = True):
     return wd
 
 
+@pytest.mark.slow   # the report stage end to end, two and three times
 def test_the_page_draws_the_studys_curves_with_and_without_the_prior(tmp_path):
     from heliocal.pipeline.artifacts.schemas import SWEEP
     from heliocal.pipeline.report.prior_figures import size_medians
@@ -230,6 +231,7 @@ def test_the_page_draws_the_studys_curves_with_and_without_the_prior(tmp_path):
     assert (wd / "report" / "figures" / name).read_bytes() != drawn   # drawn again
 
 
+@pytest.mark.slow   # the report stage end to end, two and three times
 def test_no_curves_without_the_studys_fits_without_the_prior_or_without_a_prior(tmp_path):
     wd = _with_study(tmp_path / "a", with_curves=False)
     summary = run_report(wd, workers=1)
