@@ -29,6 +29,7 @@ def registered_app():
     from heliocal.cli import sweep as _sweep  # noqa: F401
     from heliocal.cli import info as _info  # noqa: F401
     from heliocal.cli import plan as _plan  # noqa: F401
+    from heliocal.cli import update as _update  # noqa: F401
 
     return app
 
