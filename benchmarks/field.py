@@ -40,7 +40,8 @@ and a daily update (:func:`run_all`): the field's log without the latest 5 rows 
 goes through ``ingest``, ``split-knn``, ``fit-coarse``,
 ``sweep --study 0`` and ``report``; then those rows through ``ingest --append`` and every
 later stage with ``--incremental``; then ``split-knn``, ``fit-coarse``, ``sweep`` and ``report``
-with ``--incremental`` once more on unchanged inputs.
+with ``--incremental`` once more on unchanged inputs; and the same update as one command,
+``heliocal update`` (phase ``update-cmd``), on a copy of the work directory the full method left.
 
 The simulated field is cached in OUT/field (delete it to simulate again).
 """
@@ -236,7 +237,8 @@ def split_update(field_dir: Path, n_update: int | None = None,
 def phase_commands(args, field_dir: Path, wd: Path, base: Path, update: Path,
                    workers: int) -> dict[str, list[list[str]]]:
     """The heliocal commands of :func:`run_all`'s phases (``full``, ``update``, ``rerun``) on
-    the work directory ``wd``: ``base`` and ``update`` are :func:`split_update`'s logs; ``args``
+    the work directory ``wd``, and ``update-cmd`` (``heliocal update``) on its copy ``<wd>-cmd``
+    as the full phase left it: ``base`` and ``update`` are :func:`split_update`'s logs; ``args``
     gives ``solver``, ``sweep_args`` and ``later``."""
     props = ["--properties", str(field_dir / "paint"), "--workdir", str(wd)]
     w = ["--workers", str(workers)]
@@ -252,6 +254,7 @@ def phase_commands(args, field_dir: Path, wd: Path, base: Path, update: Path,
                    *[[*c, "--incremental"] for c in later]],
         "rerun": [["split-knn", "--workdir", str(wd), "--incremental"],
                   [*coarse, "--incremental"], *[[*c, "--incremental"] for c in later]],
+        "update-cmd": [["update", str(update), "--workdir", f"{wd}-cmd", *w]],
     }
     return phases
 
@@ -260,7 +263,9 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
     """The full method, a daily update and a rerun on unchanged inputs, timed in one run."""
     base, update, n_update = split_update(field_dir, args.update_heliostats)
     wd = args.out / f"run-{args.heliostats}-all-w{workers}"
-    shutil.rmtree(wd, ignore_errors=True)
+    copy = Path(f"{wd}-cmd")          # the day before, for the update as one command
+    for folder in (wd, copy):
+        shutil.rmtree(folder, ignore_errors=True)
     phases = phase_commands(args, field_dir, wd, base, update, workers)
     print(f"update: {n_update} heliostats x {UPDATE_ROWS} new rows; workers={workers}", flush=True)
     table = []
@@ -270,15 +275,17 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
             wall, peak = run_stage(cmd)
             total += wall
             table.append((phase, cmd[0], wall, peak))
-            print(f"  {phase:6s} {cmd[0]:11s} {wall:8.1f} s  peak {peak.gib()}",
+            print(f"  {phase:10s} {cmd[0]:11s} {wall:8.1f} s  peak {peak.gib()}",
                   flush=True)
-        print(f"  {phase:6s} total       {total:8.1f} s", flush=True)
+        print(f"  {phase:10s} total       {total:8.1f} s", flush=True)
+        if phase == "full":
+            shutil.copytree(wd, copy)
     first = {stage: wall for phase, stage, wall, _ in table if phase == "full"}
     print(f"\n{info['heliostats']} heliostats, {workers} workers: phase, stage, wall, peak memory"
           " (rerun: share of the stage's first run)")
     for phase, stage, wall, peak in table:
         share = f"  {100 * wall / first[stage]:5.1f} %" if phase == "rerun" else ""
-        print(f"{phase:7s} {stage:11s} {wall:8.1f} s  {peak.gib()}{share}")
+        print(f"{phase:10s} {stage:11s} {wall:8.1f} s  {peak.gib()}{share}")
 
 
 def main() -> None:
