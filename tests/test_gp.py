@@ -421,3 +421,60 @@ def test_aim_s_expected_error_takes_the_gp_s_variance_and_is_the_coarse_one_far_
     far_coarse = aim_steps(wd, HID, aim_point_enu=aim, time_utc=later, model="coarse")
     assert far["expected_error_mrad"] == pytest.approx(far_coarse["expected_error_mrad"],
                                                        rel=1e-9)
+
+
+# ------------------------------------------------------------------------------------------------
+# the hyperparameter search's likelihood (models/gp_likelihood.py) against scikit-learn's
+# ------------------------------------------------------------------------------------------------
+def _gp_inputs(n: int = 60, n_env: int = 1, seed: int = 3):
+    """Encoded inputs like GPInputs' (azimuth, elevation, days, env) and two residual columns."""
+    rng = np.random.default_rng(seed)
+    x = np.c_[rng.uniform(-80, 80, n), rng.uniform(10, 60, n), np.sort(rng.uniform(0, 300, n)),
+              rng.normal(size=(n, n_env))]
+    x[5] = x[4]                 # two rows at one input: zero distances (nu 0.5's 0/0 case)
+    return x, rng.normal(size=(n, 2))
+
+
+@pytest.mark.parametrize("structure", ["sun", "sun+time", "sun*time"])
+@pytest.mark.parametrize("n_env", [0, 1])
+@pytest.mark.parametrize("time_nu", [0.5, 1.5, 2.5])
+def test_the_kernel_walk_and_the_likelihood_gradient_are_scikit_learn_s(structure, n_env,
+                                                                       time_nu):
+    """The reference is scikit-learn itself: its kernel's ``(K, gradient)`` and its regressor's
+    ``log_marginal_likelihood(theta, eval_gradient=True)`` at the start and at a moved theta,
+    against models/gp_likelihood.py's walk and regressor; equal to rounding (1e-12 relative,
+    the gradient's entries to 1e-9 of its largest)."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+
+    from heliocal.pipeline.models.gp import _kernel
+    from heliocal.pipeline.models.gp_likelihood import Regressor, kernel_and_gradient
+
+    x, y = _gp_inputs(n_env=n_env)
+    kernel = _kernel(structure, n_env, time_nu)
+    thetas = [kernel.theta, kernel.theta + np.random.default_rng(1).normal(
+        scale=0.5, size=len(kernel.theta))]
+    ours, ref = (cls(kernel, optimizer=None).fit(x, y)
+                 for cls in (Regressor, GaussianProcessRegressor))
+    for theta in thetas:
+        k = kernel.clone_with_theta(theta)
+        (K, G), (K_ref, G_ref) = kernel_and_gradient(k, x), k(x, eval_gradient=True)
+        np.testing.assert_allclose(K, K_ref, rtol=1e-12, atol=1e-14)
+        assert G.shape == G_ref.shape == (len(x), len(x), len(theta))
+        np.testing.assert_allclose(G, G_ref, rtol=1e-12, atol=1e-12 * np.abs(G_ref).max())
+        (lml, grad), (lml_ref, grad_ref) = (r.log_marginal_likelihood(theta, eval_gradient=True)
+                                            for r in (ours, ref))
+        assert lml == pytest.approx(lml_ref, rel=1e-12)
+        np.testing.assert_allclose(grad, grad_ref, rtol=0, atol=1e-9 * np.abs(grad_ref).max())
+
+
+def test_a_kernel_the_walk_does_not_know_is_scikit_learn_s():
+    """An exponentiated kernel is not one of the walk's nodes: scikit-learn evaluates it (the
+    same arrays, not a near copy)."""
+    from sklearn.gaussian_process.kernels import Exponentiation, RBF
+
+    from heliocal.pipeline.models.gp_likelihood import kernel_and_gradient
+
+    x, _ = _gp_inputs(n=20, n_env=0)
+    kernel = Exponentiation(RBF(10.0), 2.0)
+    (K, G), (K_ref, G_ref) = kernel_and_gradient(kernel, x), kernel(x, eval_gradient=True)
+    assert np.array_equal(K, K_ref) and np.array_equal(G, G_ref)

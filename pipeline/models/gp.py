@@ -57,13 +57,11 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 import torch
-
-from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import (RBF, ConstantKernel, Hyperparameter, Kernel, Matern,
-                                              WhiteKernel)
+from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Matern, WhiteKernel
 
 from ..errors import ParameterError, check_int
 from .fade import NO_FADE, Fade, epoch_seconds
+from .gp_likelihood import OnColumns, Regressor
 
 __all__ = [
     "GP_STRUCTURES",
@@ -244,57 +242,6 @@ class GPInputs:
 # ------------------------------------------------------------------------------------------------
 # kernels
 # ------------------------------------------------------------------------------------------------
-class OnColumns(Kernel):
-    """scikit-learn's kernels act on every input column; this one applies ``kernel`` to the
-    columns ``columns`` only (the sun angles, the time, the env columns)."""
-
-    def __init__(self, kernel, columns):
-        self.kernel = kernel
-        self.columns = columns
-
-    def get_params(self, deep=True):
-        params = dict(kernel=self.kernel, columns=self.columns)
-        if deep:
-            params.update(("kernel__" + k, v) for k, v in self.kernel.get_params().items())
-        return params
-
-    @property
-    def hyperparameters(self):
-        return [Hyperparameter("kernel__" + h.name, h.value_type, h.bounds, h.n_elements)
-                for h in self.kernel.hyperparameters]
-
-    @property
-    def theta(self):
-        return self.kernel.theta
-
-    @theta.setter
-    def theta(self, theta):
-        self.kernel.theta = theta
-
-    @property
-    def bounds(self):
-        return self.kernel.bounds
-
-    def __eq__(self, other):
-        return (type(self) is type(other) and self.kernel == other.kernel
-                and tuple(self.columns) == tuple(other.columns))
-
-    def _take(self, x):
-        return None if x is None else np.asarray(x)[:, list(self.columns)]
-
-    def __call__(self, X, Y=None, eval_gradient=False):
-        return self.kernel(self._take(X), self._take(Y), eval_gradient=eval_gradient)
-
-    def diag(self, X):
-        return self.kernel.diag(self._take(X))
-
-    def is_stationary(self):
-        return self.kernel.is_stationary()
-
-    def __repr__(self):
-        return f"{self.kernel!r} on {list(self.columns)}"
-
-
 def _kernel(structure: str, n_env: int, time_nu: float = 0.5):
     """The kernel of ``structure`` (module docstring) with its bounds and starting values; the
     last term is the noise."""
@@ -317,9 +264,9 @@ def _kernel(structure: str, n_env: int, time_nu: float = 0.5):
 
 
 def _regressor(kernel, restarts: int, seed: int, optimize: bool = True):
-    return GaussianProcessRegressor(kernel, optimizer="fmin_l_bfgs_b" if optimize else None,
-                                    n_restarts_optimizer=restarts if optimize else 0,
-                                    normalize_y=False, random_state=seed, copy_X_train=False)
+    return Regressor(kernel, optimizer="fmin_l_bfgs_b" if optimize else None,
+                     n_restarts_optimizer=restarts if optimize else 0,
+                     normalize_y=False, random_state=seed, copy_X_train=False)
 
 
 # ------------------------------------------------------------------------------------------------
