@@ -156,3 +156,32 @@ def test_update_refuses_a_stage_last_run_on_some_heliostats(tmp_path):
                                          r"\(--heliostat\).*run `heliocal fit-coarse --workdir"):
         run_update([logs["new"]], wd, workers=1)
     assert len(pd.read_parquet(wd / "measurements.parquet")) == rows   # nothing ingested
+
+
+@pytest.mark.slow
+def test_update_repeats_fit_hybrid_and_refuses_a_second_mode(tmp_path):
+    """fit-hybrid's manifest records its last mode: the update repeats that run (kept whole
+    when nothing changed, which shows the options it repeats are the recorded ones) and refuses
+    a work directory holding another mode's models, which it would leave on the old rows."""
+    from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
+
+    logs = _logs(tmp_path)
+    wd = tmp_path / "wd"
+    run_ingest([logs["old"]], wd, OPTIONS)
+    run_split(wd)
+    run_fit_coarse(wd, preset="static-6", rolling_origins=0, workers=1)
+    hybrid = dict(weight_decay=1e-3, config=FineConfig(max_epochs=10, ensemble=1), workers=1)
+    run_fit_hybrid(wd, mode="hybrid", **hybrid)
+    first = run_update([logs["new"]], wd, workers=1)
+    assert [s["stage"] for s in first["stages"]] == ["split-knn", "fit-coarse", "fit-hybrid"]
+    assert first["stages"][2]["unchanged"] is False          # retrained: its inputs changed
+    again = run_update([], wd, workers=1)
+    assert [s.get("unchanged") for s in again["stages"]] == [True, True, True]
+
+    run_fit_hybrid(wd, mode="nn-only", **hybrid)
+    rows = len(pd.read_parquet(wd / "measurements.parquet"))
+    with pytest.raises(InputError, match=r"holds fit-hybrid models of the modes hybrid, nn-only, "
+                                         r"and an update repeats the last fit-hybrid run only "
+                                         r"\(nn-only\)"):
+        run_update([logs["new"]], wd, workers=1)
+    assert len(pd.read_parquet(wd / "measurements.parquet")) == rows

@@ -69,6 +69,23 @@ def _refuse_partial(workdir: Path, stage: str, options: dict) -> None:
                          f"{workdir}` without --heliostat once, then update")
 
 
+def _refuse_other_modes(workdir: Path, mode: str) -> None:
+    """fit-hybrid's manifest records its last mode only; the models of another mode would stay
+    those of the old rows, so an update refuses a work directory that holds them."""
+    from ..artifacts.schemas import HYBRID_PREDICTIONS
+    from ..artifacts.store import artifact_present, read_artifact
+
+    if not artifact_present(workdir, HYBRID_PREDICTIONS):
+        return
+    modes = sorted(set(read_artifact(workdir, HYBRID_PREDICTIONS, columns=["model"])["model"]))
+    others = [m for m in modes if m != mode]
+    if others:
+        raise InputError(f"{workdir} holds fit-hybrid models of the modes {', '.join(modes)}, "
+                         f"and an update repeats the last fit-hybrid run only ({mode}): update "
+                         "stage by stage (`heliocal ingest NEW_LOG --append`, then each stage "
+                         "with --incremental, fit-hybrid once per mode)")
+
+
 def _split_kwargs(workdir: Path, o: dict) -> dict:
     return {k: o[k] for k in ("method", "k", "n_test", "n_val", "n_train", "metric", "seed")}
 
@@ -85,6 +102,7 @@ def _hybrid_kwargs(workdir: Path, o: dict) -> dict:
     from ..models.config import FineConfig
     from ..models.pretrained import PretrainConfig
 
+    _refuse_other_modes(workdir, o["mode"])
     return {"mode": o["mode"], "weight_decay": o["weight_decay"], "seed": o["__seed__"],
             "config": FineConfig.from_dict(o["fine_config"]),
             "pretrain_config": PretrainConfig.from_dict(o["pretrain_config"]),
