@@ -478,3 +478,21 @@ def test_a_kernel_the_walk_does_not_know_is_scikit_learn_s():
     kernel = Exponentiation(RBF(10.0), 2.0)
     (K, G), (K_ref, G_ref) = kernel_and_gradient(kernel, x), kernel(x, eval_gradient=True)
     assert np.array_equal(K, K_ref) and np.array_equal(G, G_ref)
+
+
+def test_a_matern_without_a_closed_form_is_left_to_scikit_learn():
+    """nu = 2 has no closed form here (scikit-learn evaluates Bessel functions): the regressor
+    searches with scikit-learn's kernel and reaches scikit-learn's likelihood."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import Matern, WhiteKernel
+
+    from heliocal.pipeline.models.gp_likelihood import Regressor, walks
+
+    x, y = _gp_inputs(n=30, n_env=0)
+    kernel = Matern([20.0, 20.0, 30.0], (1.0, 1e3), nu=2.0) + WhiteKernel(0.5, (1e-4, 1e1))
+    assert not walks(kernel) and walks(Matern(1.0, nu=1.5) + WhiteKernel())
+    theta = kernel.theta + 0.2
+    ours, ref = (cls(kernel, optimizer=None).fit(x, y).log_marginal_likelihood(
+        theta, eval_gradient=True) for cls in (Regressor, GaussianProcessRegressor))
+    assert ours[0] == pytest.approx(ref[0], rel=1e-12)
+    np.testing.assert_allclose(ours[1], ref[1], rtol=1e-9, atol=1e-9 * np.abs(ref[1]).max())

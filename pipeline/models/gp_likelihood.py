@@ -114,9 +114,13 @@ def _n_params(node) -> int:
         return _n_params(node.k1) + _n_params(node.k2)
     if isinstance(node, (ConstantKernel, WhiteKernel)):
         return 1
-    if type(node) in (Matern, RBF):
+    if type(node) is RBF or (type(node) is Matern and node.nu in _MATERN_NU):
         return np.size(node.length_scale) if node.anisotropic else 1
     raise _Unknown(node)
+
+
+#: The Matérn smoothness values with a closed form (scikit-learn's others need Bessel functions).
+_MATERN_NU = (0.5, 1.5, 2.5, math.inf)
 
 
 def _stationary(node, columns: tuple, X, G, cache) -> np.ndarray:
@@ -132,9 +136,10 @@ def _stationary(node, columns: tuple, X, G, cache) -> np.ndarray:
         with np.errstate(invalid="ignore", divide="ignore"):
             factor = np.where(r > 0, K / r, 0.0)
     elif nu == 1.5:
-        K = np.sqrt(3 * r2)
-        factor = 3 * np.exp(-K)
-        K = (1.0 + K) * np.exp(-K)
+        s = np.sqrt(3 * r2)
+        e = np.exp(-s)
+        K = (1.0 + s) * e
+        factor = 3 * e
     elif nu == 2.5:
         s = np.sqrt(5 * r2)
         e = np.exp(-s)
