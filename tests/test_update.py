@@ -21,7 +21,7 @@ import pytest
 
 from heliocal.pipeline.artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, REGIME_PARAMS,
                                                  REGIMES, ROLLING_ORIGIN, SPLIT)
-from heliocal.pipeline.errors import InputError
+from heliocal.pipeline.errors import InputError, ParameterError
 from heliocal.pipeline.models.config import FineConfig, PathConfig
 from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.stages.ingest import run_ingest
@@ -136,6 +136,8 @@ def test_update_of_a_workdir_without_ingested_rows_is_one_clear_error(tmp_path, 
     with pytest.raises(InputError, match="has no ingested measurements to update: run `heliocal "
                                          "ingest SOURCE --workdir"):
         run_update([], tmp_path / "empty")
+    with pytest.raises(ParameterError, match="The 'workers' parameter of update must be"):
+        run_update([], tmp_path / "empty", workers=0)
     result = runner.invoke(app, ["update", "--workdir", str(tmp_path / "empty")])
     assert result.exit_code == 1
     assert result.stderr.count("\n") == 1 and result.stderr.startswith("Error: ")

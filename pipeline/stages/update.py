@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from ..artifacts.manifests import load_manifest
-from ..errors import InputError
+from ..errors import InputError, check_int
 from ..runtime.parallel import STAGE_PRELOADS, default_workers, shared_pool, warm_up
 
 __all__ = ["UPDATE_STAGES", "StageRun", "recorded_runs", "run_update"]
@@ -220,9 +220,9 @@ def run_update(sources: Sequence[str | Path], workdir: str | Path, *,
     transaction) and the later ones as they were: ``run_update([], workdir)`` finishes them."""
     workdir = Path(workdir)
     sources = [Path(s) for s in sources]
+    workers = default_workers() if workers is None else check_int(workers, "workers", "update", 1)
     ingest_options = _ingest_options(workdir)   # also: was anything ingested here at all
     runs = recorded_runs(workdir)
-    workers = default_workers() if workers is None else workers
     t_start = time.perf_counter()
     out: dict = {"workdir": str(workdir), "ingest": None, "stages": []}
     with shared_pool():
