@@ -54,7 +54,8 @@ def day_before(tmp_path_factory):
 
 
 def _by_hand(wd: Path, new_log: Path) -> None:
-    """The day's update as README.md spells it: six commands, each with the day before's options."""
+    """The day's update as README.md spells it stage by stage, each stage with the day before's
+    options."""
     run_ingest([new_log], wd, OPTIONS, append=True)
     run_split(wd, incremental=True, **SPLIT_OPTIONS)
     run_fit_coarse(wd, incremental=True, **COARSE_OPTIONS)
