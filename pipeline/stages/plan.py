@@ -191,7 +191,8 @@ def _noise_groups(planned) -> tuple[list[int], list[int]]:
     for least in (MIN_NOISE_DOF, 1, -math.inf):
         own = [k for k, d in enumerate(dof) if d is not None and d >= least]
         if own:
-            return own, [k for k in range(len(planned)) if k not in set(own)]
+            mine = set(own)
+            return own, [k for k in range(len(planned)) if k not in mine]
     return [], list(range(len(planned)))
 
 
