@@ -52,13 +52,13 @@ class StageRun:
     kwargs: dict
 
 
-def _manifest_options(workdir: Path, stage: str) -> dict | None:
-    """The recorded options of ``stage``'s committed run in ``workdir`` (with its seed under
-    ``"__seed__"``), or ``None`` when it never ran there."""
+def _recorded(workdir: Path, stage: str) -> tuple[dict, int | None] | None:
+    """The recorded options and seed of ``stage``'s committed run in ``workdir``, or ``None``
+    when it never ran there."""
     manifest = load_manifest(workdir / _MANIFEST_FOLDER.get(stage, ""), stage)
     if manifest is None:
         return None
-    return {**(manifest.data.get("options") or {}), "__seed__": manifest.data.get("seed")}
+    return manifest.data.get("options") or {}, manifest.data.get("seed")
 
 
 def _refuse_partial(workdir: Path, stage: str, options: dict) -> None:
@@ -86,11 +86,11 @@ def _refuse_other_modes(workdir: Path, mode: str) -> None:
                          "with --incremental, fit-hybrid once per mode)")
 
 
-def _split_kwargs(workdir: Path, o: dict) -> dict:
+def _split_kwargs(workdir: Path, o: dict, seed: int | None) -> dict:
     return {k: o[k] for k in ("method", "k", "n_test", "n_val", "n_train", "metric", "seed")}
 
 
-def _coarse_kwargs(workdir: Path, o: dict) -> dict:
+def _coarse_kwargs(workdir: Path, o: dict, seed: int | None) -> dict:
     kwargs = {k: o[k] for k in ("preset", "loss", "f_scale_mrad", "robust_start", "solver",
                                 "rolling_origins", "prior", "prior_from")}
     # "none": a run without regimes, which only a measurement switch gives (not an option)
@@ -98,18 +98,18 @@ def _coarse_kwargs(workdir: Path, o: dict) -> dict:
     return kwargs
 
 
-def _hybrid_kwargs(workdir: Path, o: dict) -> dict:
+def _hybrid_kwargs(workdir: Path, o: dict, seed: int | None) -> dict:
     from ..models.config import FineConfig
     from ..models.pretrained import PretrainConfig
 
     _refuse_other_modes(workdir, o["mode"])
-    return {"mode": o["mode"], "weight_decay": o["weight_decay"], "seed": o["__seed__"],
+    return {"mode": o["mode"], "weight_decay": o["weight_decay"], "seed": seed,
             "config": FineConfig.from_dict(o["fine_config"]),
             "pretrain_config": PretrainConfig.from_dict(o["pretrain_config"]),
             "batch_size": o["batch_size"]}
 
 
-def _sweep_kwargs(workdir: Path, o: dict) -> dict:
+def _sweep_kwargs(workdir: Path, o: dict, seed: int | None) -> dict:
     from ..models.config import FineConfig, PathConfig, ScreenConfig
     from ..models.gp import GPConfig
     from ..models.pretrained import PretrainConfig
@@ -130,14 +130,14 @@ def _sweep_kwargs(workdir: Path, o: dict) -> dict:
             "rule": SelectionRule(**o["rule"]), "screen": ScreenConfig(**o["screen"])}
 
 
-def _report_kwargs(workdir: Path, o: dict) -> dict:
+def _report_kwargs(workdir: Path, o: dict, seed: int | None) -> dict:
     return {"out_dir": workdir / "report", "alert_mrad": o["alert_mrad"],
             "floor_mrad": o["floor_mrad"], "figures": o["figures"],
             "figures_for": o["figures_for"]}
 
 
 #: Per stage: its recorded options -> its run function's keyword arguments.
-_KWARGS: dict[str, Callable[[Path, dict], dict]] = {
+_KWARGS: dict[str, Callable[[Path, dict, int | None], dict]] = {
     "split-knn": _split_kwargs, "fit-coarse": _coarse_kwargs, "fit-hybrid": _hybrid_kwargs,
     "sweep": _sweep_kwargs, "report": _report_kwargs}
 
@@ -150,12 +150,13 @@ def recorded_runs(workdir: str | Path) -> list[StageRun]:
     workdir = Path(workdir)
     runs = []
     for stage in UPDATE_STAGES:
-        options = _manifest_options(workdir, stage)
-        if options is None:
+        recorded = _recorded(workdir, stage)
+        if recorded is None:
             continue
+        options, seed = recorded
         _refuse_partial(workdir, stage, options)
         try:
-            kwargs = _KWARGS[stage](workdir, options)
+            kwargs = _KWARGS[stage](workdir, options, seed)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{workdir}'s {stage} manifest does not record the options an update "
                              f"repeats ({type(exc).__name__}: {exc}); run `heliocal {stage} "
@@ -168,11 +169,11 @@ def _ingest_options(workdir: Path):
     """The :class:`~heliocal.pipeline.io.staged.IngestOptions` of ``workdir``'s last ingest."""
     from ..io.staged import IngestOptions
 
-    recorded = _manifest_options(workdir, "ingest")
+    recorded = _recorded(workdir, "ingest")
     if recorded is None:
         raise InputError(f"{workdir} has no ingested measurements to update: run `heliocal ingest "
                          f"SOURCE --workdir {workdir}` and the stages first")
-    o = {k: v for k, v in recorded.items() if k not in ("sources", "append", "__seed__")}
+    o = {k: v for k, v in recorded[0].items() if k not in ("sources", "append")}
     for key in ("tower", "properties"):
         o[key] = None if o.get(key) is None else Path(o[key])
     o["location"] = None if o.get("location") is None else tuple(o["location"])
