@@ -29,7 +29,7 @@ from heliocal.pipeline.stages.report import run_report
 from heliocal.pipeline.stages.split import run_split
 from heliocal.pipeline.stages.sweep import run_sweep
 from heliocal.pipeline.stages.update import recorded_runs, run_update
-from test_incremental import OPTIONS, _logs, _sweep_tables, assert_same_artifact
+from test_incremental import OPTIONS, _files, _logs, _sweep_tables, assert_same_artifact
 
 SPLIT_OPTIONS = dict(n_test=25, n_val=15, seed=3)
 COARSE_OPTIONS = dict(preset="static-6", rolling_origins=2, workers=1)
@@ -65,9 +65,9 @@ def _by_hand(wd: Path, new_log: Path) -> None:
 
 def _manifest_files(wd: Path) -> dict[str, dict]:
     """stage -> {file: SHA-256} of every committed stage of ``wd`` (the report's too)."""
-    paths = sorted(wd.glob("*.manifest.json")) + [wd / "report" / "report.manifest.json"]
-    return {p.name: {k: v["sha256"] for k, v in json.loads(p.read_text())["files"].items()}
-            for p in paths}
+    stages = [p.name.removesuffix(".manifest.json") for p in wd.glob("*.manifest.json")]
+    return {**{stage: _files(wd, stage) for stage in stages},
+            "report": _files(wd / "report", "report")}
 
 
 @pytest.mark.slow
