@@ -228,8 +228,11 @@ class Regressor(GaussianProcessRegressor):
     def log_marginal_likelihood(self, theta=None, eval_gradient=False, clone_kernel=True):
         if theta is None or not eval_gradient:
             return super().log_marginal_likelihood(theta, eval_gradient, clone_kernel)
-        kernel = self.kernel_.clone_with_theta(theta) if clone_kernel else self.kernel_
-        kernel.theta = theta
+        if clone_kernel:
+            kernel = self.kernel_.clone_with_theta(theta)
+        else:
+            kernel = self.kernel_
+            kernel.theta = theta
         if getattr(self, "_walk_of", None) is not self.X_train_:   # a new fit: its scratch
             self._walk_of, self._differences = self.X_train_, {}
             self._walks = walks(kernel)

@@ -550,7 +550,7 @@ def _split_increment(workdir, measurements: pd.DataFrame, plan, options: dict
     kept = reused_rows(previous, plan.reuse)
     ids = measurements["heliostat_id"].astype(str)
     counts = ids.value_counts()
-    split_before = set(kept["heliostat_id"])    # once: a set of the field's rows per reused id
+    split_before = set(kept["heliostat_id"])    # once, not once per reused heliostat
     skipped = [(h, int(counts[h])) for h in plan.reuse if h not in split_before]
     need = required_measurements(options["k"], options["n_test"], options["n_val"],
                                  options["n_train"])
