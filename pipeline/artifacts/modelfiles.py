@@ -29,8 +29,8 @@ from .paths import artifact_path
 from .store import artifact_present, check_fresh, committed_fingerprint
 from .manifests import CommittedWorkdir
 
-__all__ = ["model_files", "model_stage", "write_model", "CheckedModel", "read_model_config",
-           "read_model", "fine_model_inputs", "check_fine_model_inputs"]
+__all__ = ["model_files", "model_stage", "write_model", "rewrite_model_config", "CheckedModel",
+           "read_model_config", "read_model", "fine_model_inputs", "check_fine_model_inputs"]
 
 
 def model_files(mode: str, heliostat_id: str) -> tuple[str, str]:
@@ -52,6 +52,21 @@ def write_model(txn, mode: str, heliostat_id: str, state: Mapping, config: dict)
     cfg_rel, pt_rel = model_files(mode, heliostat_id)
     config = {**config, "weights_sha256": hashlib.sha256(weights).hexdigest()}
     txn.write_bytes(pt_rel, weights)
+    txn.write_bytes(cfg_rel, json.dumps(config, indent=1, sort_keys=True).encode())
+
+
+def rewrite_model_config(txn, model: "CheckedModel", mode: str, heliostat_id: str,
+                         config: dict) -> None:
+    """Stage a committed model (``model``, read by :func:`read_model_config` from the run
+    ``txn`` follows) again in ``txn`` with the configuration ``config`` and its weights as they
+    are: the weights file is carried over unchanged when the previous run committed it, so its
+    tensors are neither loaded nor saved again; the configuration records the same
+    ``weights_sha256``."""
+    cfg_rel, pt_rel = model_files(mode, heliostat_id)
+    txn.carry_over([pt_rel])
+    if pt_rel not in txn.files:          # not the previous run's file: stage its bytes
+        txn.write_bytes(pt_rel, model.weights)
+    config = {**config, "weights_sha256": hashlib.sha256(model.weights).hexdigest()}
     txn.write_bytes(cfg_rel, json.dumps(config, indent=1, sort_keys=True).encode())
 
 

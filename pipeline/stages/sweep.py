@@ -71,10 +71,10 @@ from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
 from .study_prior import heliostat_priors, prior_rows_of, study_coarse_rows
 from .sweep_screen import SCREEN_FAILED, ScreenVerdict, screen_margin, screen_verdicts
-from .sweep_increment import (SweepPlan, chunk_size, plan_sweep, sweep_chunks, sweep_digests,
+from .sweep_increment import (SweepPlan, chunk_size, plan_sweep, sweep_chunks,
                               write_sweep_outputs)
-from .sweep_inputs import (SweepHeliostat, SweepInputs, fit_pretrained_errors, read_sweep_inputs,
-                           sweep_row)
+from .sweep_inputs import (SweepHeliostat, SweepInputs, SweepInputsTable, fit_pretrained_errors,
+                           read_sweep_inputs, sweep_row)
 
 __all__ = ["default_ladder", "weight_decay_grid", "run_sweep", "hybrid_variants", "MIN_IMPROVEMENT",
            "train_path", "study_heliostats"]
@@ -518,12 +518,9 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
     mark_rerunnable(txn)
     warm_up_stage("sweep", workers=workers, scheduler=scheduler, dask_address=dask_address)
     items = read_sweep_inputs(workdir, heliostats)
-    selected = {hid: item.selected for hid, item in items.items()}
-    helio = pd.DataFrame([item.hrow for item in items.values()],
-                         index=list(items)) if items else None
     studied = study_heliostats(list(items), study, study_seed)
     coarse_options = coarse_fit_options(workdir)
-    chunks_of = _chunker(items, selected, helio, batch_size, workers)
+    chunks_of = _chunker(items, batch_size, workers)
     plan = _plan(txn, request, items, chunks_of, studied, coarse_options, incremental,
                  heliostats, time_split)
     tasks = [("select", ([items[h] for h in chunk], variants, weight_decays, seeds, path,
@@ -556,16 +553,21 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
             "incremental": plan.summary()}
 
 
-def _chunker(items: dict, selected: dict, helio, batch_size: int, workers: int | None):
+def _chunker(items: SweepInputsTable, batch_size: int, workers: int | None):
     """``chunks_of(ids)``: the training chunks of the heliostats ``ids``, at most ``batch_size``
     each, enough to keep ``workers`` busy and a whole number of rounds of them
     (:func:`~.sweep_increment.chunk_size`, :func:`~.sweep_increment.sweep_chunks`)."""
     spread = default_workers() if workers is None else workers
-    return lambda ids: sweep_chunks({h: items[h] for h in ids}, selected, helio, batch_size,
-                                    spread, chunk_size(len(ids), batch_size, spread))
+
+    def chunks_of(ids: Sequence[str]) -> list[list[str]]:
+        some = {h: items[h] for h in ids}
+        helio = pd.DataFrame([item.hrow for item in some.values()], index=list(some))
+        return sweep_chunks(some, {h: item.selected for h, item in some.items()}, helio,
+                            batch_size, spread, chunk_size(len(ids), batch_size, spread))
+    return chunks_of
 
 
-def _plan(txn, request: dict, items: dict, chunks_of, studied: list[str],
+def _plan(txn, request: dict, items: SweepInputsTable, chunks_of, studied: list[str],
           coarse_options: dict, incremental: bool, heliostats, time_split: bool) -> SweepPlan:
     """Which heliostats the run trains, in the chunks ``chunks_of(ids)`` makes
     (:mod:`.sweep_increment`): all of them without ``incremental``, for a run restricted to
@@ -573,9 +575,9 @@ def _plan(txn, request: dict, items: dict, chunks_of, studied: list[str],
     training batches the field's selected hybrids together)."""
     if heliostats:
         return SweepPlan(chunks_of(list(items)), why="a run of some heliostats (--heliostat)")
-    key = field_key("sweep", request, [], {"study_heliostats": studied,
-                                          "coarse_options": coarse_options})
-    plan = plan_sweep(txn, key, sweep_digests(items), chunks_of, incremental)
+    key = field_key("sweep", request, items.frames, {"study_heliostats": studied,
+                                                     "coarse_options": coarse_options})
+    plan = plan_sweep(txn, key, items.digests(), chunks_of, incremental)
     if plan.partial and time_split:
         return SweepPlan(chunks_of(list(items)), why=(
             "--time-split trains the field's selected hybrids forward in time in batches of one "

@@ -11,9 +11,10 @@ any position (tests/test_sweep_independence.py). So the unit of reuse is the hel
 update trains the heliostats whose inputs changed, in chunks of their own, and keeps the
 others' results, which are those a full rerun computes, bit for bit.
 
-What a heliostat's results depend on is its own :class:`SweepInputs` (rows with their split,
-heliostats.parquet row, fit-coarse's selected fit and predictions, the time-split fit):
-:func:`sweep_digests` hashes all of it. What the whole field shares goes into the field key
+What a heliostat's results depend on is its own :class:`~.sweep_inputs.SweepInputs` (rows with
+their split, heliostats.parquet row, fit-coarse's selected fit and predictions, the time-split
+fit): :meth:`~.sweep_inputs.SweepInputsTable.digests` hashes the heliostat's rows of every table
+those are taken from, at once for the field. What the whole field shares goes into the field key
 (:func:`heliocal.pipeline.artifacts.incremental.field_key`): the options and seeds, the code, the
 study's heliostats (a seeded choice among the field's ids) and fit-coarse's solver options that the
 study refits with. The GP candidates, the pre-trained network and the study are computed per
@@ -28,22 +29,15 @@ from typing import Callable, Mapping, Sequence
 
 import pandas as pd
 
-from ..artifacts.incremental import INCREMENTAL_KEY, code_identity, reused_rows, value_digest
-from ..artifacts.manifests import current_transaction
-from ..artifacts.modelfiles import read_model, write_model
+from ..artifacts.incremental import INCREMENTAL_KEY, code_identity, reused_rows
+from ..artifacts.manifests import CommittedWorkdir, current_transaction
+from ..artifacts.modelfiles import read_model_config, rewrite_model_config, write_model
 from ..artifacts.schemas import SELECTED_PREDICTIONS, SELECTION, SWEEP
 from ..artifacts.store import (merge_with_previous, previous_run_matches, read_artifact,
                                write_artifact)
 
-__all__ = ["SweepPlan", "chunk_size", "sweep_chunks", "sweep_digests", "plan_sweep",
+__all__ = ["SweepPlan", "chunk_size", "sweep_chunks", "plan_sweep",
            "write_sweep_outputs"]
-
-def sweep_digests(items: Mapping) -> dict[str, str]:
-    """heliostat id -> SHA-256 (hex) of everything the sweep reads for it (its
-    :class:`~.sweep_inputs.SweepInputs`: rows, split rows, heliostats.parquet row, selected coarse
-    fit with its regimes, coarse predictions and errors, time-split fit)."""
-    return {hid: value_digest(vars(items[hid])) for hid in sorted(items)}
-
 
 def chunk_size(n_heliostats: int, batch_size: int, workers: int) -> int:
     """Heliostats per training chunk when ``n_heliostats`` are trained on ``workers`` processes:
@@ -185,17 +179,17 @@ def _previous_tables(workdir: Path, plan: SweepPlan) -> dict:
 
 
 def _keep_models(workdir: Path, txn, ids: Sequence[str], hashes: dict) -> None:
-    """Write the previous sweep's selected models of ``ids`` again in this run, their weights as
-    they are and their configuration recording this run's inputs (``hashes``), as a full rerun
-    would record them; a heliostat whose selection is coarse has none."""
+    """Stage the previous sweep's selected models of ``ids`` again in this run: their weights
+    files as they are (carried over, verified against the manifest, not loaded) and their
+    configuration recording this run's inputs (``hashes``), as a full rerun would record them; a
+    heliostat whose selection is coarse has none. One :class:`CommittedWorkdir` reads them all,
+    so the sweep's manifest (two entries per model) is loaded and checked once, not per model."""
+    committed = CommittedWorkdir.of(workdir)
+    hint = f"`heliocal sweep --workdir {workdir}`"
     for hid in ids:
-        got = read_model(workdir, "sweep", "selected", hid,
-                         hint=f"`heliocal sweep --workdir {workdir}`")
-        if got is None:
-            continue
-        cfg, state = got
-        cfg = {k: v for k, v in cfg.items() if k != "weights_sha256"}
-        write_model(txn, "selected", hid, state, {**cfg, "inputs": hashes})
+        found = read_model_config(committed, "sweep", "selected", hid, hint=hint)
+        if found is not None:
+            rewrite_model_config(txn, found, "selected", hid, {**found.config, "inputs": hashes})
 
 
 def _by_heliostat(df: pd.DataFrame) -> pd.DataFrame:

@@ -6,14 +6,16 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd
 import torch
 
-from ..artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS, SPLIT
-from ..artifacts.store import check_fresh, read_artifact
+from ..artifacts.incremental import heliostat_digests
+from ..artifacts.schemas import (COARSE_PARAMS, COARSE_PREDICTIONS, HELIOSTATS, MEASUREMENTS,
+                                REGIME_PARAMS, REGIMES, SPLIT)
+from ..artifacts.store import artifact_present, check_fresh, read_artifact
 from ..errors import FitError
 from ..models.coarse import MeasurementBatch
 from ..models.pretrained import PretrainConfig, fit_pretrained
@@ -22,7 +24,7 @@ from ..physics.parameters import HeliostatSpec, nominal_parameters
 from .fit_coarse import load_selected_parameters
 from .forward import load_time_parameters
 
-__all__ = ["SweepInputs", "SweepHeliostat", "read_sweep_inputs", "coarse_by_model", "split_stats",
+__all__ = ["SweepInputs", "SweepHeliostat", "SweepInputsTable", "read_sweep_inputs", "coarse_by_model", "split_stats",
            "sweep_row", "fit_pretrained_errors"]
 
 
@@ -108,41 +110,98 @@ def fit_pretrained_errors(h: SweepHeliostat, coarse, labels, seed: int, config: 
     return model, info, normal, position, err, time.perf_counter() - t0
 
 
-def read_sweep_inputs(workdir: Path, heliostats: Sequence[str] | None) -> dict[str, SweepInputs]:
-    """Every heliostat's :class:`SweepInputs` (in id order): those with a coarse fit, its
-    predictions and training rows."""
+class SweepInputsTable(Mapping):
+    """Every heliostat's :class:`SweepInputs`, in id order, each built when first asked for: an
+    update trains a few heliostats of thousands, and the others need only their digest
+    (:meth:`digests`), taken from the tables at once.
+
+    ``frames``: the tables a heliostat's inputs are taken from (each with a ``heliostat_id``
+    column); ``build(hid)``: its inputs."""
+
+    def __init__(self, ids: Sequence[str], frames: Sequence[pd.DataFrame],
+                 build: Callable[[str], SweepInputs]):
+        self._ids, self._known, self._build = sorted(ids), set(ids), build
+        self.frames = list(frames)
+        self._built: dict[str, SweepInputs] = {}
+
+    def __getitem__(self, hid: str) -> SweepInputs:
+        if hid not in self._built:
+            if hid not in self._known:
+                raise KeyError(hid)
+            self._built[hid] = self._build(hid)
+        return self._built[hid]
+
+    def __iter__(self):
+        return iter(self._ids)
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def digests(self) -> dict[str, str]:
+        """heliostat id -> SHA-256 (hex) of its rows in every table its inputs are taken from
+        (:func:`~heliocal.pipeline.artifacts.incremental.heliostat_digests`: rows hashed by
+        value, in the tables' order) of what the sweep reads for it: its rows with their split,
+        its heliostats.parquet row, split rows and coarse_predictions rows, the
+        :data:`SELECTED_FIT_COLUMNS` of its selected coarse fit, and its selected regime
+        parameters and regimes; equal digests, equal inputs."""
+        digests = heliostat_digests(self.frames)
+        return {hid: digests[hid] for hid in self._ids}
+
+
+def read_sweep_inputs(workdir: Path, heliostats: Sequence[str] | None) -> SweepInputsTable:
+    """Every heliostat's :class:`SweepInputs` (in id order, built on demand): those with a coarse
+    fit, its predictions and training rows."""
     measurements = read_artifact(workdir, MEASUREMENTS, heliostats=heliostats)
-    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats).set_index("heliostat_id",
-                                                                                 drop=False)
+    helio = read_artifact(workdir, HELIOSTATS, heliostats=heliostats)
     check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})
     check_fresh(workdir, COARSE_PARAMS, {"measurements": MEASUREMENTS, "split": SPLIT})
     check_fresh(workdir, COARSE_PREDICTIONS, {"measurements": MEASUREMENTS, "split": SPLIT})
     split = read_artifact(workdir, SPLIT, heliostats=heliostats)
     selected = load_selected_parameters(workdir, heliostats)
-    params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
-                           columns=["heliostat_id", "preset", "selected", "val_error_mrad",
-                                    "test_error_mrad"])
-    params = params[params["selected"]].drop_duplicates("heliostat_id").set_index("heliostat_id")
+    all_params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats)
+    params = all_params[all_params["selected"]].drop_duplicates("heliostat_id").set_index(
+        "heliostat_id")
     preds = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats)
     time_params = load_time_parameters(workdir, heliostats)
-    pred_of = dict(tuple(preds.groupby("heliostat_id", sort=False)))
     merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
                                 on=["heliostat_id", "measurement_id"], how="inner")
     rows_of = dict(tuple(merged.groupby("heliostat_id", sort=False)))   # not a scan per heliostat
     split_of = dict(tuple(split.groupby("heliostat_id", sort=False)))
-    items = {}
-    for hid in sorted(selected):
-        rows = rows_of.get(hid)
-        srows = split_of.get(hid)
-        if rows is None or srows is None or hid not in helio.index or hid not in pred_of:
-            continue
-        if not (srows["split"] == "train").any():
-            continue
-        items[hid] = SweepInputs(hid, rows, helio.loc[hid].to_dict(), srows, selected[hid],
-                                 coarse_by_model(pred_of[hid], rows),
-                                 float(params.loc[hid, "val_error_mrad"]),
-                                 float(params.loc[hid, "test_error_mrad"]), time_params.get(hid))
-    if not items:
+    pred_of = dict(tuple(preds.groupby("heliostat_id", sort=False)))
+    helio_of = helio.set_index("heliostat_id", drop=False)
+    trained = set(split.loc[split["split"] == "train", "heliostat_id"].astype(str))
+    ids = [hid for hid in sorted(selected) if hid in rows_of and hid in split_of
+           and hid in helio_of.index and hid in pred_of and hid in trained]
+    if not ids:
         raise FitError(f"no heliostat in {workdir} has a coarse fit and training rows; run "
                        f"`heliocal fit-coarse --workdir {workdir}` first")
-    return items
+
+    def build(hid: str) -> SweepInputs:
+        rows = rows_of[hid]
+        return SweepInputs(hid, rows, helio_of.loc[hid].to_dict(), split_of[hid], selected[hid],
+                           coarse_by_model(pred_of[hid], rows),
+                           float(params.loc[hid, "val_error_mrad"]),
+                           float(params.loc[hid, "test_error_mrad"]), time_params.get(hid))
+
+    fit = all_params.loc[all_params["selected"], list(SELECTED_FIT_COLUMNS)]
+    frames = [merged, helio, split, fit, preds, *_regime_frames(workdir, heliostats)]
+    return SweepInputsTable(ids, frames, build)
+
+
+#: The columns of coarse_params.parquet's selected rows a heliostat's inputs hold
+#: (:func:`~.fit_coarse.load_selected_parameters`, the errors, the time-split fit): what else
+#: fit-coarse records there (the next-day errors, fit diagnostics) does not reach the sweep.
+SELECTED_FIT_COLUMNS = ("heliostat_id", "parameter_index", "preset", "fitted", "free", "nominal",
+                        "std_error", "val_error_mrad", "test_error_mrad", "time_fitted")
+
+
+def _regime_frames(workdir: Path, heliostats: Sequence[str] | None) -> list[pd.DataFrame]:
+    """The selected rows of regime_params.parquet and the rows of regimes.parquet, where
+    fit-coarse wrote them (what a selected regime-aware model reads of its heliostat)."""
+    frames = []
+    if artifact_present(workdir, REGIME_PARAMS):
+        table = read_artifact(workdir, REGIME_PARAMS, heliostats=heliostats)
+        frames.append(table[table["selected"]])
+    if artifact_present(workdir, REGIMES):
+        frames.append(read_artifact(workdir, REGIMES, heliostats=heliostats))
+    return frames
