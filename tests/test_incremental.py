@@ -312,19 +312,24 @@ def test_incremental_sweep_trains_the_changed_heliostat_and_equals_a_full_rerun(
     study rows are kept with it. Every
     artifact equals the full rerun's bit for bit (structure and every value; only ``wall_time_s``,
     the run's own timing, is left out), and so do the selected models' weights and
-    configurations (whose recorded inputs are the updated work directory's)."""
+    configurations (whose recorded inputs are the updated work directory's); the kept
+    heliostats' weights files are carried over as they were."""
     from heliocal.pipeline.models.config import FineConfig, PathConfig
+    from heliocal.pipeline.models.selection import SelectionRule
     from heliocal.pipeline.stages.sweep import run_sweep
 
     root = Path(field[1]).parent
     wd = shutil.copytree(root / "before-update", tmp_path / "wd")
     config = FineConfig(max_epochs=30, ensemble=2)
+    # no margin: a network better on validation is selected, so kept heliostats have models too
+    eager = SelectionRule(min_improvement=0.0, min_improvement_gp=0.0, alpha=1.0, one_se=False)
     sweep = dict(weight_decays=[1e-2, 0.0], config=config, extra_bands=(), study=["ST20"],
                  n_train=[20], baselines=(), path=PathConfig(stage_epochs=30), workers=1,
-                 batch_size=batch_size)
+                 batch_size=batch_size, rule=eager)
     first = run_sweep(wd, **sweep)
     assert first["incremental"]["why_all"] == "not --incremental"
     day_before = _sweep_tables(wd)
+    first_run = json.loads((wd / "sweep.manifest.json").read_text())
     logs = field[0]
     run_ingest([logs["new"]], wd, OPTIONS, append=True)
     run_split(wd, incremental=True)
@@ -349,6 +354,17 @@ def test_incremental_sweep_trains_the_changed_heliostat_and_equals_a_full_rerun(
         assert sorted(state) == sorted(full_models[hid][1]), hid
         for k, t in state.items():
             assert torch.equal(t, full_models[hid][1][k]), (hid, k)
+    # the kept heliostats' weights files are the day before's, carried over (not loaded and
+    # saved again): the same file, listed with the first run's id; their configurations are new
+    update_run = json.loads((wd / "sweep.manifest.json").read_text())
+    kept_weights = [rel for rel in first_run["files"] if rel.endswith(".pt")
+                    and not rel.endswith("/SP13.pt")]
+    assert kept_weights, "no kept heliostat has a selected model: the check would be empty"
+    for rel in kept_weights:
+        assert update_run["files"][rel] == first_run["files"][rel], rel
+        assert update_run["files"][rel]["run_id"] == first_run["run_id"] != update_run["run_id"]
+        config = rel[:-len(".pt")] + ".json"
+        assert update_run["files"][config]["run_id"] == update_run["run_id"], config
     # SP13's results moved with its rows (so keeping its chunk by mistake would fail above);
     # the others' are the day before's
     for name, df in day_before.items():
@@ -357,6 +373,29 @@ def test_incremental_sweep_trains_the_changed_heliostat_and_equals_a_full_rerun(
         assert len(old) != len(new) or not old.equals(new), name
         others = lambda t: t[~t["heliostat_id"].isin(trained)].reset_index(drop=True)  # noqa: E731
         pd.testing.assert_frame_equal(others(df), others(inc_tables[name]), check_exact=True)
+
+
+def test_sweep_digests_follow_what_the_sweep_reads_of_each_heliostat(field):
+    """The sweep's per-heliostat digests (:meth:`SweepInputsTable.digests`) hash the heliostat's
+    rows of the tables its inputs are taken from: a selected fit's parameter moved on SQ04
+    changes SQ04's digest alone; the coarse_params columns the sweep does not read are not in
+    the tables at all, and neither are the presets fit-coarse did not select."""
+    from heliocal.pipeline.stages.sweep_inputs import (SELECTED_FIT_COLUMNS, SweepInputsTable,
+                                                       read_sweep_inputs)
+
+    items = read_sweep_inputs(field[1], None)
+    base = items.digests()
+    assert sorted(base) == list(items) == ["SP13", "SQ04", "SS48", "ST20"]
+    fit = items.frames[3]
+    assert list(fit.columns) == list(SELECTED_FIT_COLUMNS)
+    per_heliostat = fit.groupby("heliostat_id").size()
+    assert (per_heliostat == 28).all()       # the selected preset's 28 parameters, no other
+    moved = fit.copy()
+    row = moved.index[(moved["heliostat_id"] == "SQ04") & (moved["parameter_index"] == 3)]
+    moved.loc[row, "fitted"] += 1e-12
+    frames = [*items.frames[:3], moved, *items.frames[4:]]
+    digests = SweepInputsTable(list(items), frames, build=lambda hid: None).digests()
+    assert [h for h in base if digests[h] != base[h]] == ["SQ04"]
 
 
 def test_value_digest_tells_values_apart_and_equal_values_alike():
