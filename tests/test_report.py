@@ -530,3 +530,36 @@ def test_alert_list_of_regimes(full_report):
     assert "Alert list" in md
     alerts = [line for line in md.splitlines() if "regime 1 starts" in line]
     assert len(alerts) == 1 and "AA01" in alerts[0] and "2.50" in alerts[0]
+
+
+def test_error_statistics_are_numpy_s_median_percentile_and_mean_to_the_bit():
+    """metrics.json's statistics read the median and 95th percentile off one sort; the reference
+    is numpy's own ``np.median`` and ``np.percentile(.., 95)`` (method linear), which they must
+    equal exactly: lengths 1 to 400 (odd and even, ties, a tiny and a huge scale) and NaNs,
+    which count in ``n`` only."""
+    from heliocal.pipeline.report.metrics import error_statistics
+
+    rng = np.random.default_rng(7)
+    for trial in range(3000):
+        n = 1 + trial % 400
+        err = rng.gamma(1.5, 0.3, n) * 10.0 ** rng.uniform(-4, 4)
+        if trial % 3 == 0:
+            err = np.round(err, 1)                       # ties
+        if trial % 5 == 0 and n > 2:
+            err[rng.choice(n, 2, replace=False)] = np.nan
+        got = error_statistics(pd.DataFrame({"error_mrad": err}))
+        finite = err[np.isfinite(err)]
+        assert (got["n"], got["n_finite"]) == (n, len(finite))
+        want = {"mean_error_mrad": finite.mean(), "median_error_mrad": np.median(finite),
+                "p95_error_mrad": np.percentile(finite, 95)}
+        for key, value in want.items():
+            assert got[key] == round(float(value), 4) or (got[key] == 0.0 and round(
+                float(value), 4) == 0), (trial, key)
+    # and without rounding: the helpers themselves against numpy, bit for bit
+    from heliocal.pipeline.report.metrics import _sorted_median, _sorted_quantile
+
+    for n in range(1, 300):
+        values = rng.lognormal(0.0, 1.0, n)
+        ordered = np.sort(values)
+        assert _sorted_median(ordered) == np.median(values), n
+        assert _sorted_quantile(ordered, 0.95) == np.percentile(values, 95), n

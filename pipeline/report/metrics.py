@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from ..artifacts.manifests import committed_entry
+from ..artifacts.manifests import all_manifests, checked_relative_path
 from ..artifacts.provenance import git_revision
 from .inputs import ReportInputs
 
@@ -84,21 +84,51 @@ def error_statistics(rows: pd.DataFrame) -> dict:
 
 
 def _statistics(err: np.ndarray, beam: np.ndarray | None, spot: np.ndarray | None) -> dict:
-    """:func:`error_statistics` of the arrays of one group of rows."""
+    """:func:`error_statistics` of the arrays of one group of rows.
+
+    metrics.json holds these for every heliostat, model and split (some 40,000 groups at 2,000
+    heliostats), so the median and percentile are read off one sort with numpy's own arithmetic
+    (:func:`_sorted_quantile`) instead of a call of ``np.median`` and ``np.percentile`` each:
+    the same numbers to the bit, at a tenth of the cost."""
     ok = np.isfinite(err)
     out = {"n": int(len(err)), "n_finite": int(ok.sum()),
            "mean_error_mrad": None, "median_error_mrad": None, "p95_error_mrad": None,
            "mean_beam_error_mrad": None, "mean_spot_offset_m": None}
     if ok.any():
         e = err[ok]
-        out.update(mean_error_mrad=_r(e.mean()), median_error_mrad=_r(np.median(e)),
-                   p95_error_mrad=_r(np.percentile(e, 95)))
+        ordered = np.sort(e)
+        out.update(mean_error_mrad=_r(e.mean()), median_error_mrad=_r(_sorted_median(ordered)),
+                   p95_error_mrad=_r(_sorted_quantile(ordered, 0.95)))
     for v, key in ((beam, "mean_beam_error_mrad"), (spot, "mean_spot_offset_m")):
         if v is not None:
             v = v[np.isfinite(v)]
             if len(v):
                 out[key] = _r(v.mean())
     return out
+
+
+def _sorted_median(ordered: np.ndarray) -> float:
+    """``np.median`` of the ascending finite values ``ordered`` (not empty): the middle value, or
+    the two middle ones' sum over 2 (``np.mean`` of the pair)."""
+    n, mid = len(ordered), len(ordered) // 2
+    if n % 2:
+        return float(ordered[mid])
+    return (float(ordered[mid - 1]) + float(ordered[mid])) / 2
+
+
+def _sorted_quantile(ordered: np.ndarray, q: float) -> float:
+    """``np.quantile(ordered, q)`` (method ``linear``) of the ascending finite values
+    ``ordered`` (not empty), in numpy's arithmetic: the virtual index ``(n - 1) q``, its floor,
+    and numpy's two-sided interpolation between the neighbours (exact at both ends)."""
+    n = len(ordered)
+    index = (n - 1) * q
+    if index >= n - 1:
+        return float(ordered[-1])
+    below = math.floor(index)
+    t = index - below
+    a, b = float(ordered[below]), float(ordered[below + 1])
+    diff = b - a
+    return b - diff * (1 - t) if t >= 0.5 else a + diff * t
 
 
 #: Suffix of sweep.parquet's models of the training-size study fitted without fit-coarse's
@@ -205,8 +235,8 @@ def compute_metrics(inp: ReportInputs) -> dict:
     helios = {}
     # each frame grouped by heliostat once (a mask per heliostat would cost rows x heliostats)
     ts_by = {h: g for h, g in ts.groupby(m["heliostat_id"].to_numpy(), sort=False)}
-    split_by = ({h: g for h, g in inp.split.groupby("heliostat_id", sort=False)}
-                if inp.split is not None else {})
+    split_counts = _counts_by_heliostat(inp.split, "split") if inp.split is not None else {}
+    test_distance = _test_distances(inp.split)
     models_of = _model_statistics(inp.predictions) if inp.predictions is not None else {}
     degenerate = degenerate_heliostats(inp)
     forward = _forward_in_time(inp, finals, degenerate)
@@ -224,12 +254,10 @@ def compute_metrics(inp: ReportInputs) -> dict:
             "models": {},
         }
         if inp.split is not None:
-            s = split_by.get(hid, inp.split.iloc[:0])
-            counts = s["split"].value_counts()
-            h["split_counts"] = {k: int(counts[k]) for k in sorted(counts.index, key=split_sort_key)}
-            test = s[s["split"] == "test"]
-            if len(test) and "nearest_train_distance_deg" in s.columns:
-                h["test_train_distance_deg"] = _r(test["nearest_train_distance_deg"].mean())
+            counts = split_counts.get(hid, {})
+            h["split_counts"] = {k: counts[k] for k in sorted(counts, key=split_sort_key)}
+            if hid in test_distance:
+                h["test_train_distance_deg"] = _r(test_distance[hid].mean())
         f = finals.get(hid, {})
         for key in h["selection"]:
             v = f.get(key)
@@ -247,7 +275,7 @@ def compute_metrics(inp: ReportInputs) -> dict:
         "metrics_schema_version": METRICS_SCHEMA_VERSION,
         "heliocal_version": __version__,
         "git_revision": git_revision(),
-        "inputs": {name: _committed_sha256(inp.workdir, name) for name in sorted(inp.paths)},
+        "inputs": _committed_sha256s(inp.workdir, sorted(inp.paths)),
         "data": data,
         "heliostats": helios,
         "field": {"forward_in_time": forward[1], "degenerate_heliostats": sorted(degenerate)},
@@ -257,6 +285,25 @@ def compute_metrics(inp: ReportInputs) -> dict:
 #: The two models of the forward-in-time comparison: fit-coarse's selected preset and the final
 #: model (the one metrics.json's selection names).
 FORWARD_ROLES = ("coarse", "final")
+
+
+def _counts_by_heliostat(frame: pd.DataFrame, column: str) -> dict[str, dict[str, int]]:
+    """heliostat -> value of ``column`` -> rows (missing values not counted; a heliostat whose
+    values are all missing is left out), from one groupby of the whole frame."""
+    counts = frame.groupby([frame["heliostat_id"], frame[column]], sort=False).size()
+    out: dict[str, dict[str, int]] = {}
+    for (hid, value), n in counts.items():
+        out.setdefault(hid, {})[value] = int(n)
+    return out
+
+
+def _test_distances(split: pd.DataFrame | None) -> dict[str, pd.Series]:
+    """heliostat -> its kNN test rows' ``nearest_train_distance_deg`` (heliostats with test
+    rows)."""
+    if split is None or "nearest_train_distance_deg" not in split.columns:
+        return {}
+    test = split.loc[split["split"] == "test", ["heliostat_id", "nearest_train_distance_deg"]]
+    return dict(tuple(test.groupby("heliostat_id", sort=False)["nearest_train_distance_deg"]))
 
 
 def _empty_forward(final: dict) -> dict:
@@ -309,8 +356,7 @@ def _forward_in_time(inp: ReportInputs, finals: dict,
         terr = rows["time_error_mrad"].to_numpy(float)
         knn = (rows["split"] == "test").to_numpy()
         tt = (rows["time_split"] == "test").to_numpy()
-        tcounts = {hid: {k: int(v) for k, v in g.value_counts().items()}
-                   for hid, g in tcol.groupby(split["heliostat_id"].to_numpy()) if g.notna().any()}
+        tcounts = _counts_by_heliostat(split.assign(time_split=tcol), "time_split")
         for (role, hid), idx in rows.groupby(["role", "heliostat_id"]).indices.items():
             entry = per.setdefault(hid, _empty_forward(finals.get(hid, {})))
             entry["time_split_counts"] = {k: tcounts.get(hid, {})[k] for k in sorted(
@@ -383,10 +429,17 @@ def _model_statistics(p: pd.DataFrame) -> dict:
             for hid, models in out.items()}
 
 
-def _committed_sha256(workdir: Path, filename: str) -> str | None:
-    """SHA-256 of an input artifact as its run committed it (verified when it was read)."""
-    found = committed_entry(workdir, filename)
-    return None if found is None else found[1]["sha256"]
+def _committed_sha256s(workdir: Path, filenames) -> dict[str, str | None]:
+    """filename -> SHA-256 of the input artifact as its run committed it (verified when it was
+    read; None if no manifest lists it), the work directory's manifests loaded once: the first
+    manifest by stage that lists it, as
+    :func:`heliocal.pipeline.artifacts.manifests.committed_entry` finds it."""
+    manifests = all_manifests(workdir)
+    out = {}
+    for name in filenames:
+        rel = checked_relative_path(name)
+        out[name] = next((m.files[rel]["sha256"] for m in manifests if rel in m.files), None)
+    return out
 
 
 def metrics_json(metrics: dict) -> str:
