@@ -376,25 +376,26 @@ def test_incremental_sweep_trains_the_changed_heliostat_and_equals_a_full_rerun(
 
 
 def test_sweep_digests_follow_what_the_sweep_reads_of_each_heliostat(field):
-    """The sweep's per-heliostat digests (:meth:`SweepInputsTable.digests`) hash the heliostat's
-    rows of the tables its inputs are taken from: a selected fit's parameter moved on SQ04
-    changes SQ04's digest alone; the coarse_params columns the sweep does not read are not in
-    the tables at all, and neither are the presets fit-coarse did not select."""
-    from heliocal.pipeline.stages.sweep_inputs import (SELECTED_FIT_COLUMNS, SweepInputsTable,
-                                                       read_sweep_inputs)
+    """The sweep's per-heliostat digests (:func:`sweep_digests`) hash the heliostat's rows of
+    the tables its inputs are taken from: a selected fit's parameter moved on SQ04 changes SQ04's
+    digest alone; the coarse_params columns the sweep does not read are not in the tables at
+    all, and neither are the presets fit-coarse did not select."""
+    from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS
+    from heliocal.pipeline.artifacts.store import read_artifact
+    from heliocal.pipeline.stages.sweep_inputs import (SELECTED_FIT_COLUMNS, read_sweep_inputs,
+                                                       sweep_digests)
 
     items = read_sweep_inputs(field[1], None)
-    base = items.digests()
-    assert sorted(base) == list(items) == ["SP13", "SQ04", "SS48", "ST20"]
-    fit = items.frames[3]
-    assert list(fit.columns) == list(SELECTED_FIT_COLUMNS)
-    per_heliostat = fit.groupby("heliostat_id").size()
-    assert (per_heliostat == 28).all()       # the selected preset's 28 parameters, no other
+    assert sorted(items.digests) == list(items) == ["SP13", "SQ04", "SS48", "ST20"]
+    assert list(items.schemas[3].columns) == list(SELECTED_FIT_COLUMNS)
+    params = read_artifact(field[1], COARSE_PARAMS)
+    fit = params.loc[params["selected"], list(SELECTED_FIT_COLUMNS)]
+    assert (fit.groupby("heliostat_id").size() == 28).all()   # the selected preset's, no other
+    base = sweep_digests([fit], list(items))
     moved = fit.copy()
     row = moved.index[(moved["heliostat_id"] == "SQ04") & (moved["parameter_index"] == 3)]
     moved.loc[row, "fitted"] += 1e-12
-    frames = [*items.frames[:3], moved, *items.frames[4:]]
-    digests = SweepInputsTable(list(items), frames, build=lambda hid: None).digests()
+    digests = sweep_digests([moved], list(items))
     assert [h for h in base if digests[h] != base[h]] == ["SQ04"]
 
 

@@ -575,9 +575,9 @@ def _plan(txn, request: dict, items: SweepInputsTable, chunks_of, studied: list[
     training batches the field's selected hybrids together)."""
     if heliostats:
         return SweepPlan(chunks_of(list(items)), why="a run of some heliostats (--heliostat)")
-    key = field_key("sweep", request, items.frames, {"study_heliostats": studied,
-                                                     "coarse_options": coarse_options})
-    plan = plan_sweep(txn, key, items.digests(), chunks_of, incremental)
+    key = field_key("sweep", request, items.schemas, {"study_heliostats": studied,
+                                                      "coarse_options": coarse_options})
+    plan = plan_sweep(txn, key, items.digests, chunks_of, incremental)
     if plan.partial and time_split:
         return SweepPlan(chunks_of(list(items)), why=(
             "--time-split trains the field's selected hybrids forward in time in batches of one "

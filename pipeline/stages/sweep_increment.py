@@ -13,8 +13,8 @@ others' results, which are those a full rerun computes, bit for bit.
 
 What a heliostat's results depend on is its own :class:`~.sweep_inputs.SweepInputs` (rows with
 their split, heliostats.parquet row, fit-coarse's selected fit and predictions, the time-split
-fit): :meth:`~.sweep_inputs.SweepInputsTable.digests` hashes the heliostat's rows of every table
-those are taken from, at once for the field. What the whole field shares goes into the field key
+fit): :func:`~.sweep_inputs.sweep_digests` hashes the heliostat's rows of every table those are
+taken from, at once for the field. What the whole field shares goes into the field key
 (:func:`heliocal.pipeline.artifacts.incremental.field_key`): the options and seeds, the code, the
 study's heliostats (a seeded choice among the field's ids) and fit-coarse's solver options that the
 study refits with. The GP candidates, the pre-trained network and the study are computed per

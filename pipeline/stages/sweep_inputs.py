@@ -24,7 +24,8 @@ from ..physics.parameters import HeliostatSpec, nominal_parameters
 from .fit_coarse import load_selected_parameters
 from .forward import load_time_parameters
 
-__all__ = ["SweepInputs", "SweepHeliostat", "SweepInputsTable", "read_sweep_inputs", "coarse_by_model", "split_stats",
+__all__ = ["SweepInputs", "SweepHeliostat", "SweepInputsTable", "sweep_digests",
+           "read_sweep_inputs", "coarse_by_model", "split_stats",
            "sweep_row", "fit_pretrained_errors"]
 
 
@@ -112,16 +113,20 @@ def fit_pretrained_errors(h: SweepHeliostat, coarse, labels, seed: int, config: 
 
 class SweepInputsTable(Mapping):
     """Every heliostat's :class:`SweepInputs`, in id order, each built when first asked for: an
-    update trains a few heliostats of thousands, and the others need only their digest
-    (:meth:`digests`), taken from the tables at once.
+    update trains a few heliostats of thousands, and the others need only their digest.
 
-    ``frames``: the tables a heliostat's inputs are taken from (each with a ``heliostat_id``
-    column); ``build(hid)``: its inputs."""
+    Attributes
+    ----------
+    digests : heliostat id -> SHA-256 (hex) of its rows in every table its inputs are taken from
+        (:func:`sweep_digests`).
+    schemas : those tables without rows (their columns and dtypes, for the field key).
+    """
 
     def __init__(self, ids: Sequence[str], frames: Sequence[pd.DataFrame],
                  build: Callable[[str], SweepInputs]):
         self._ids, self._known, self._build = sorted(ids), set(ids), build
-        self.frames = list(frames)
+        self.digests = sweep_digests(frames, self._ids)
+        self.schemas = [df.iloc[:0] for df in frames]   # the tables themselves are not kept
         self._built: dict[str, SweepInputs] = {}
 
     def __getitem__(self, hid: str) -> SweepInputs:
@@ -137,15 +142,16 @@ class SweepInputsTable(Mapping):
     def __len__(self) -> int:
         return len(self._ids)
 
-    def digests(self) -> dict[str, str]:
-        """heliostat id -> SHA-256 (hex) of its rows in every table its inputs are taken from
-        (:func:`~heliocal.pipeline.artifacts.incremental.heliostat_digests`: rows hashed by
-        value, in the tables' order) of what the sweep reads for it: its rows with their split,
-        its heliostats.parquet row, split rows and coarse_predictions rows, the
-        :data:`SELECTED_FIT_COLUMNS` of its selected coarse fit, and its selected regime
-        parameters and regimes; equal digests, equal inputs."""
-        digests = heliostat_digests(self.frames)
-        return {hid: digests[hid] for hid in self._ids}
+
+def sweep_digests(frames: Sequence[pd.DataFrame], ids: Sequence[str]) -> dict[str, str]:
+    """heliostat id (of ``ids``) -> SHA-256 (hex) of its rows in ``frames``
+    (:func:`~heliocal.pipeline.artifacts.incremental.heliostat_digests`: rows hashed by value, in
+    the tables' order). :func:`read_sweep_inputs` passes what the sweep reads for a heliostat: its
+    rows with their split, its heliostats.parquet row, split rows and coarse_predictions rows,
+    the :data:`SELECTED_FIT_COLUMNS` of its selected coarse fit, and its selected regime
+    parameters and regimes; so equal digests, equal inputs."""
+    digests = heliostat_digests(frames)
+    return {hid: digests[hid] for hid in ids}
 
 
 def read_sweep_inputs(workdir: Path, heliostats: Sequence[str] | None) -> SweepInputsTable:
