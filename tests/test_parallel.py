@@ -112,6 +112,25 @@ def test_workers_of_tasks_without_torch_do_not_import_it(tmp_path):
     assert out == {"torch": "[1, 1, 1, 1]", "none": "[None, None, None, None]"}
 
 
+def test_tasks_with_tensors_travel_by_value_without_a_descriptor_server(tmp_path):
+    """A sweep's tasks hold tensors (the coarse fits). Sent through torch's multiprocessing
+    reducers each would be a file descriptor, which the caller hands over from a server thread
+    that the worker connects to; a worker stopped (SIGTERM) during that handshake made the
+    thread print a traceback beside the one `Error:` line (tests/test_shutdown.py, seen once in
+    a full run). The chunks now travel pickled by value: the results are the tasks' sums
+    (1 + 2 + 3 + 4 + 5 = 15, plus 5 k), and no descriptor server was started."""
+    probe = ("def total(task):\n"
+             "    return float(task['x'].sum())\n")
+    script = ("import torch\nfrom multiprocessing import resource_sharer\n"
+              "from heliocal.pipeline.runtime.parallel import map_tasks\n"
+              "from probe import total\n"
+              "out = map_tasks(total, [{'x': torch.arange(1.0, 6.0) + k} for k in range(6)],\n"
+              "                workers=2, chunks_per_worker=2)\n"
+              "print(out, resource_sharer._resource_sharer._thread is None)\n")
+    out = _probe_in_fresh_processes(tmp_path, probe, script, ("run",))
+    assert out == {"run": "[15.0, 20.0, 25.0, 30.0, 35.0, 40.0] True"}
+
+
 def _fail_on_3(x):
     if x == 3:
         raise ValueError("task 3 failed")

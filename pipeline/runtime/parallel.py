@@ -153,12 +153,26 @@ def _run_chunk(func: Callable, chunk: Sequence[Any], torch_threads: bool = True)
 def _run_chunk_pickled(func: Callable, chunk: Sequence[Any], torch_threads: bool = True) -> bytes:
     """:func:`_run_chunk` with the results pickled to bytes in the worker.
 
-    Torch registers its own reducers with multiprocessing: a tensor in a result would travel
-    as a shared-memory file descriptor, one per tensor, and a chunk with thousands of them
-    (the state dicts of a few hundred networks) exhausts the descriptors passed over the
-    socket ("received 0 items of ancdata") and breaks the pool. Plain pickle sends them by value.
+    Torch registers its own reducers with multiprocessing: a tensor would travel as a
+    shared-memory file descriptor, one per tensor. A result with thousands of them (the state
+    dicts of a few hundred networks) exhausts the descriptors passed over the socket ("received
+    0 items of ancdata") and breaks the pool. A task's tensors (a sweep's coarse fits) would be
+    handed over by a thread of the caller that the worker connects to, and a worker stopped
+    during that handshake (SIGTERM) makes the thread print a traceback; so the caller sends
+    each chunk :class:`ByValue`. Plain pickle sends both by value.
     """
     return pickle.dumps(_run_chunk(func, chunk, torch_threads), protocol=pickle.HIGHEST_PROTOCOL)
+
+
+class ByValue:
+    """A chunk of tasks that multiprocessing pickles by value (plain pickle: tensors with their
+    data, no file descriptor) when it sends it to a worker, which receives the chunk itself."""
+
+    def __init__(self, chunk: Sequence[Any]):
+        self.chunk = chunk
+
+    def __reduce__(self):
+        return pickle.loads, (pickle.dumps(self.chunk, protocol=pickle.HIGHEST_PROTOCOL),)
 
 
 def _chunks(tasks: Sequence[Any], n: int) -> list[list[Any]]:
@@ -309,7 +323,7 @@ def _map_local(func, tasks, workers, progress, chunks_per_worker, torch_threads)
         if shared:
             _SHARED_POOLS[workers] = pool
     try:
-        pending = {pool.submit(_run_chunk_pickled, func, c, torch_threads): i
+        pending = {pool.submit(_run_chunk_pickled, func, ByValue(c), torch_threads): i
                    for i, c in enumerate(chunks)}
         while pending:
             finished, _ = wait(pending, return_when=FIRST_COMPLETED)
