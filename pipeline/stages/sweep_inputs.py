@@ -124,14 +124,14 @@ class SweepInputsTable(Mapping):
 
     def __init__(self, ids: Sequence[str], frames: Sequence[pd.DataFrame],
                  build: Callable[[str], SweepInputs]):
-        self._ids, self._known, self._build = sorted(ids), set(ids), build
+        self._ids, self._build = sorted(ids), build
         self.digests = sweep_digests(frames, self._ids)
         self.schemas = [df.iloc[:0] for df in frames]   # the tables themselves are not kept
         self._built: dict[str, SweepInputs] = {}
 
     def __getitem__(self, hid: str) -> SweepInputs:
         if hid not in self._built:
-            if hid not in self._known:
+            if hid not in self.digests:
                 raise KeyError(hid)
             self._built[hid] = self._build(hid)
         return self._built[hid]
@@ -164,9 +164,10 @@ def read_sweep_inputs(workdir: Path, heliostats: Sequence[str] | None) -> SweepI
     check_fresh(workdir, COARSE_PREDICTIONS, {"measurements": MEASUREMENTS, "split": SPLIT})
     split = read_artifact(workdir, SPLIT, heliostats=heliostats)
     selected = load_selected_parameters(workdir, heliostats)
-    all_params = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats)
-    params = all_params[all_params["selected"]].drop_duplicates("heliostat_id").set_index(
-        "heliostat_id")
+    fit = read_artifact(workdir, COARSE_PARAMS, heliostats=heliostats,
+                        columns=[*SELECTED_FIT_COLUMNS, "selected"])
+    fit = fit.loc[fit["selected"], list(SELECTED_FIT_COLUMNS)]
+    params = fit.drop_duplicates("heliostat_id").set_index("heliostat_id")
     preds = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats)
     time_params = load_time_parameters(workdir, heliostats)
     merged = measurements.merge(split[["heliostat_id", "measurement_id", "split"]],
@@ -189,7 +190,6 @@ def read_sweep_inputs(workdir: Path, heliostats: Sequence[str] | None) -> SweepI
                            float(params.loc[hid, "val_error_mrad"]),
                            float(params.loc[hid, "test_error_mrad"]), time_params.get(hid))
 
-    fit = all_params.loc[all_params["selected"], list(SELECTED_FIT_COLUMNS)]
     frames = [merged, helio, split, fit, preds, *_regime_frames(workdir, heliostats)]
     return SweepInputsTable(ids, frames, build)
 
