@@ -101,6 +101,12 @@ def sweep_cmd(
                          "least half the networks' margin on the weighted validation rows "
                          "(selection.parquet screen). off: the full path for every "
                          "heliostat.")] = SweepScreen.on,
+    stage_gain: Annotated[float, typer.Option(
+        min=0.0, max=1.0,
+        help="With --screen on: past the screen's weight decays, each band set's path trains "
+             "the next weight decay only where the last one raised its best gain over the "
+             "coarse model (weighted validation rows) by at least this share; 0 trains every "
+             "passing heliostat's whole path.")] = ScreenConfig.stage_gain,
     pretrain_variant: Annotated[PretrainVariant, typer.Option(
         "--pretrain-variant", help="Variant of the pre-trained network (candidate and "
                                    "baseline): residual (correction to the coarse inverse "
@@ -158,5 +164,6 @@ def sweep_cmd(
                             pretrain_config=PretrainConfig(variant=pretrain_variant.value),
                             select_pretrained=select_pretrained, time_split=time_split, gp=gp,
                             incremental=incremental,
-                            screen=ScreenConfig(enabled=screen == SweepScreen.on))
+                            screen=ScreenConfig(enabled=screen == SweepScreen.on,
+                                                stage_gain=stage_gain))
     emit(summary, json_, _human)

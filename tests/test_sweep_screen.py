@@ -9,6 +9,7 @@ left after a rigid-body fit) and SS48 carries a gear error of period 4000 steps.
 
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -17,12 +18,12 @@ import pytest
 from heliocal.pipeline.artifacts.schemas import SELECTION, SWEEP
 from heliocal.pipeline.io.staged import IngestOptions
 from heliocal.pipeline.models.config import FineConfig, ScreenConfig
-from heliocal.pipeline.models.selection import SelectionRule
+from heliocal.pipeline.models.selection import Candidate, SelectionRule
 from heliocal.pipeline.stages.fit_coarse import run_fit_coarse
 from heliocal.pipeline.stages.ingest import run_ingest
 from heliocal.pipeline.stages.split import run_split
 from heliocal.pipeline.stages.sweep import run_sweep
-from heliocal.pipeline.stages.sweep_screen import screen_margin
+from heliocal.pipeline.stages.sweep_screen import goes_on, screen_margin, stage_gains
 
 SYNTHETIC = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic"
 
@@ -108,3 +109,73 @@ def test_screen_off_trains_every_path_and_the_screen_is_seeded(synthetic_workdir
         run_sweep(w, heliostats=["SQ04"], **QUICK)
         gains.append(pd.read_parquet(w / SELECTION.filename)["screen_gain"].to_numpy())
     assert np.array_equal(gains[0], gains[1])
+
+
+# ------------------------------------------------------------------------------------------------
+# past the screen: a band set's path goes on while it keeps gaining
+# ------------------------------------------------------------------------------------------------
+def test_a_path_goes_on_while_its_last_weight_decay_gained_the_stage_gain():
+    assert goes_on([0.10, 0.30], 0.01)                  # the last stage gained 0.20
+    assert not goes_on([0.10, 0.30, 0.305], 0.01)       # 0.005 < 0.01
+    assert goes_on([0.10, 0.30, 0.31], 0.01)            # exactly the stage gain
+    assert not goes_on([0.30], 0.01)                    # one stage: nothing to compare
+    assert not goes_on([math.nan, 0.2], 0.01)           # no finite gain before
+    assert goes_on([0.30, 0.30], 0.0)                   # 0: the whole path
+
+
+def test_stage_gains_are_the_band_set_s_running_best_per_weight_decay():
+    # coarse errors 1 mrad on four equally weighted validation rows: an ensemble with errors e
+    # gains 1 - mean(e); two seeds per weight decay, the best of them counts, and another band
+    # set's ensembles do not
+    pool = SimpleNamespace(val=np.array([True, True, True, True, False]),
+                           coarse_errors=np.ones(5), weights=np.full(4, 0.25), candidates=[])
+
+    def add(model, wd, errors):
+        pool.candidates.append(Candidate(model, np.asarray(errors, float), (2,),
+                                         {"weight_decay": wd}))
+
+    add("hybrid", 1.0, [1.0, 1.0, 1.0, 1.0])           # 0
+    add("hybrid", 1.0, [0.9, 0.9, 0.9, 0.9])           # 0.1, same weight decay, other seed
+    add("hybrid-octaves", 1.0, [0.0, 0.0, 0.0, 0.0])   # another band set: 1.0, not counted
+    add("hybrid", 0.1, [0.7, 0.7, 0.7, 0.7])           # 0.3
+    add("hybrid", 0.01, [0.8, 0.8, 0.8, 0.8])          # 0.2: the running best stays 0.3
+    assert stage_gains(pool, "hybrid") == pytest.approx([0.1, 0.3, 0.3], abs=1e-12)
+    assert stage_gains(pool, "hybrid-octaves") == pytest.approx([1.0], abs=1e-12)
+
+
+#: a longer path (weight decays 1 .. 1e-4 and 0), integer bands only, no GP
+LONG = dict(QUICK, weight_decays=[1.0, 0.1, 0.01, 1e-3, 1e-4, 0.0])
+
+
+@pytest.fixture(scope="module")
+def long_paths(synthetic_workdir):
+    """SS48's sweep along LONG with the default stage gain and with 0 (the whole path): for each,
+    its hybrid rows of sweep.parquet (weight decay, val and test error) and its selection."""
+    out = {}
+    for gain in (ScreenConfig.stage_gain, 0.0):
+        run_sweep(synthetic_workdir, heliostats=["SS48"], screen=ScreenConfig(stage_gain=gain),
+                  **LONG)
+        sweep = pd.read_parquet(synthetic_workdir / SWEEP.filename)
+        rows = sweep[(sweep["heliostat_id"] == "SS48") & (sweep["model"] == "hybrid")]
+        sel = pd.read_parquet(synthetic_workdir / SELECTION.filename).set_index("heliostat_id")
+        rows = rows.sort_values("weight_decay", ascending=False)      # the path's order
+        out[gain] = (rows[["weight_decay", "val_error_mrad", "test_error_mrad"]]
+                     .reset_index(drop=True), sel.loc["SS48"])
+    return out
+
+
+@pytest.mark.slow
+def test_a_passing_path_stops_where_it_stops_gaining_and_trains_the_same_networks(long_paths):
+    # SS48 passes the screen; with the default stage gain its path stops before weight decay 0
+    # (measured: after 1e-3, whose gain over 0.01 is below 0.01), and the weight decays it
+    # trained are the whole path's networks to the bit (the same warm-started continuation)
+    stopped, stopped_sel = long_paths[ScreenConfig.stage_gain]
+    whole, whole_sel = long_paths[0.0]
+    assert len(whole) == 6
+    assert 3 <= len(stopped) < 6
+    pd.testing.assert_frame_equal(stopped, whole.iloc[:len(stopped)], check_exact=True)
+    # the same choice: the whole path's (measured: the hybrid at weight decay 0.01, test 0.270
+    # mrad against coarse 0.395) is among the weight decays trained
+    assert whole_sel["weight_decay"] in set(stopped["weight_decay"])
+    for column in ("model", "weight_decay", "weighted_val_error_mrad", "test_error_mrad"):
+        assert stopped_sel[column] == whole_sel[column]

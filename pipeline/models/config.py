@@ -154,15 +154,22 @@ class ScreenConfig:
         (``SelectionRule.min_improvement``): the rest of the path may gain more than its start,
         so the screen asks for part of the margin only. A rule whose network margin is not
         positive cannot be screened for (every heliostat trains its path).
+    stage_gain : where the screen passes, each band set trains its first ``stages`` weight
+        decays and goes on, one weight decay at a time, while the last one raised the band
+        set's best relative gain over the coarse model (on the weighted validation rows) by at
+        least this much; ``0`` trains every band set's whole path. Why 0.01:
+        docs/experiments/sweep-screen.md, "Where the path stops gaining".
     """
 
     enabled: bool = True
     stages: int = 3
     share: float = 0.5
+    stage_gain: float = 0.01
 
     def validated(self) -> "ScreenConfig":
         check_int(self.stages, "stages", "sweep_screen", 1)
         check_float(self.share, "share", "sweep_screen", 0.0, 1.0)
+        check_float(self.stage_gain, "stage_gain", "sweep_screen", 0.0, 1.0)
         return self
 
     def to_dict(self) -> dict:

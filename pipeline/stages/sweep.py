@@ -70,7 +70,7 @@ from .forward import add_sweep_time_split
 from .selection import CandidatePool, apply_forward_checks, study_gps
 from .split import restrict_training
 from .study_prior import heliostat_priors, prior_rows_of, study_coarse_rows
-from .sweep_screen import SCREEN_FAILED, ScreenVerdict, screen_margin, screen_verdicts
+from .sweep_screen import ScreenVerdict, goes_on, screen_margin, screen_verdicts, stage_gains
 from .sweep_increment import (SweepPlan, chunk_size, plan_sweep, sweep_chunks,
                               write_sweep_outputs)
 from .sweep_inputs import (SweepHeliostat, SweepInputs, SweepInputsTable, fit_pretrained_errors,
@@ -152,22 +152,29 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
 # ------------------------------------------------------------------------------------------------
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
-def _train_variant(helios, pools, out_rows, kind, cfg, weight_decays, seeds, path,
-                   initial=None):
-    """Train one band set's weight-decay path (``weight_decays``, strong to weak) for ``helios``
-    (one batched program per weight decay), add each ensemble to its heliostat's pool and sweep
-    rows (in place; the three lists in the same order) and return the last weight decay's
-    layers, or ``initial`` when there was none. ``initial``: the layers to go on from (the
-    members in the order this call stacks them: heliostat, seed, ensemble network)."""
-    n_seeds, k_ens = len(seeds), cfg.ensemble
+def _band_set_problems(helios, cfg):
+    """Each heliostat's fine problem of band set ``cfg`` on all its rows, and the same on its
+    training and validation rows alone (what a training stacks)."""
     problems = [build_problem(h.rows, h.hrow, coarse_row_parameters(   # each row its regime's
         h.selected, h.rows["timestamp"]), h.selected["free"], cfg) for h in helios]
     fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
-    taken = [take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
+    return problems, [take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
+
+
+def _train_stages(helios, problems, taken, pools, out_rows, kind, cfg, weight_decays, seeds,
+                  path, initial=None):
+    """Train one band set's weight decays ``weight_decays`` (strong to weak) for ``helios``
+    (one batched program per weight decay; ``problems``, ``taken``: :func:`_band_set_problems`),
+    add each ensemble to its heliostat's pool and sweep rows (in place; every list in the same
+    order) and return the last weight decay's layers, or ``initial`` when there was none.
+    ``initial``: the layers to go on from (the members in the order this call stacks them:
+    heliostat, seed, ensemble network)."""
+    n_seeds, k_ens = len(seeds), cfg.ensemble
     per_h = n_seeds * k_ens           # networks per heliostat: seeds x ensemble
     # aligned: each heliostat's networks train to the same bits in any chunk (MEMBER_ALIGN)
     stacked, valid = stack_problems([t for t in taken for _ in range(per_h)], MEMBER_ALIGN)
     n = stacked.data.steps.shape[1]
+    fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
     labels_fit = np.array([np.resize(h.labels[f], n) for h, f in zip(helios, fitting)
                            for _ in range(per_h)])
     net_seeds = [x for _ in helios for s in seeds for x in ensemble_seeds(s, k_ens)]
@@ -199,26 +206,52 @@ def _members_of(layers, keep: Sequence[int], per_h: int):
     return [(w[index], b[index]) for w, b in layers]
 
 
+def _go_on(helios, problems, taken, pools, out_rows, kind, cfg, weight_decays, seeds, path,
+           stage_gain, last):
+    """The rest of one band set's path, ``weight_decays`` (strong to weak), one at a time, for
+    the heliostats whose path still gains (:func:`~.sweep_screen.goes_on` with
+    ``stage_gain``), each from its networks in ``last`` (stacked as ``helios``; the lists as
+    for :func:`_train_stages`, in place)."""
+    per_h = len(seeds) * cfg.ensemble
+    going = list(range(len(helios)))
+    for wd in weight_decays:
+        on = [k for k, i in enumerate(going) if goes_on(stage_gains(pools[i], kind), stage_gain)]
+        if not on:
+            return
+        going, last = [going[k] for k in on], _members_of(last, on, per_h)
+        pick = lambda xs: [xs[i] for i in going]                               # noqa: E731
+        last = _train_stages(pick(helios), pick(problems), pick(taken), pick(pools),
+                             pick(out_rows), kind, cfg, [wd], seeds, path, initial=last)
+
+
 def _train_candidates(helios, pools, out_rows, variants, weight_decays, seeds, path,
                       screen: ScreenConfig, rule: SelectionRule) -> list[ScreenVerdict]:
     """Every band set's weight-decay path for the heliostats that pass the screen (in place, as
-    :func:`_train_variant`); return each heliostat's :class:`ScreenVerdict`. The screen is the
+    :func:`_train_stages`); return each heliostat's :class:`ScreenVerdict`. The screen is the
     first band set's path up to its ``screen.stages``-th weight decay, trained for every
-    heliostat; the path goes on from there only where it passes
-    (:func:`heliocal.pipeline.stages.sweep_screen.screen_verdicts`)."""
+    heliostat; where it passes, every band set trains as many weight decays and goes on past
+    them while its path keeps gaining (:mod:`.sweep_screen`)."""
     (kind, cfg), others = variants[0], variants[1:]
     order = _path_order(weight_decays)
     margin = screen_margin(screen, rule)
     n_first = len(order) if margin is None else min(screen.stages, len(order))
-    last = _train_variant(helios, pools, out_rows, kind, cfg, order[:n_first], seeds, path)
+    problems, taken = _band_set_problems(helios, cfg)
+    last = _train_stages(helios, problems, taken, pools, out_rows, kind, cfg, order[:n_first],
+                         seeds, path)
     verdicts = screen_verdicts(pools, margin)
     keep = [i for i, v in enumerate(verdicts) if v.trains_path]
-    if keep:
-        sub = ([helios[i] for i in keep], [pools[i] for i in keep], [out_rows[i] for i in keep])
-        _train_variant(*sub, kind, cfg, order[n_first:], seeds, path,
-                       initial=_members_of(last, keep, len(seeds) * cfg.ensemble))
-        for kind_, cfg_ in others:
-            _train_variant(*sub, kind_, cfg_, order, seeds, path)
+    if not keep:
+        return verdicts
+    pick = lambda xs: [xs[i] for i in keep]                                    # noqa: E731
+    helios, pools, out_rows = pick(helios), pick(pools), pick(out_rows)
+    _go_on(helios, pick(problems), pick(taken), pools, out_rows, kind, cfg, order[n_first:],
+           seeds, path, screen.stage_gain, _members_of(last, keep, len(seeds) * cfg.ensemble))
+    for kind_, cfg_ in others:
+        problems, taken = _band_set_problems(helios, cfg_)
+        last = _train_stages(helios, problems, taken, pools, out_rows, kind_, cfg_,
+                             order[:n_first], seeds, path)
+        _go_on(helios, problems, taken, pools, out_rows, kind_, cfg_, order[n_first:], seeds,
+               path, screen.stage_gain, last)
     return verdicts
 
 
@@ -545,11 +578,10 @@ def run_sweep(workdir: str | Path, *, n_train: Sequence[int] | None = None,
                                     plan if not heliostats else None, opts, seed=seeds[0])
     return {"workdir": str(workdir), "selection": selection.to_dict("records"),
             "study_heliostats": studied,
-            "members_per_heliostat": {   # ensembles trained: the screen's alone where it failed
-                r["heliostat_id"]: len(seeds) * (
-                    min(screen.stages, len(weight_decays)) if r["screen"] == SCREEN_FAILED
-                    else len(weight_decays) * len(variants))
-                for r in (res["selection"] for res in chosen)},
+            "members_per_heliostat": {   # ensembles trained (seed x band set x weight decay)
+                res["selection"]["heliostat_id"]: sum(
+                    row["model"].startswith("hybrid") for row in res["rows"])
+                for res in chosen},
             "incremental": plan.summary()}
 
 

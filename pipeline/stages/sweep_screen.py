@@ -23,6 +23,13 @@ screen costs such a heliostat nothing. Elsewhere the path stops: the heliostat's
 the coarse model, the screen's ensembles and the GP (fitted either way); selection.parquet's
 ``screen`` says ``failed`` and ``screen_gain`` gives the figure. Why half the margin, and what it
 costs and saves: docs/experiments/sweep-screen.md.
+
+Past the screen, a band set's path goes on one weight decay at a time only while it keeps
+gaining: each band set trains its first ``ScreenConfig.stages`` weight decays, and the next one
+only where the last raised the band set's best gain by at least ``ScreenConfig.stage_gain`` (1 %
+of the coarse model's weighted validation error). Warm-started from the last, a weaker weight
+decay starts where the stronger one was best, so a path that has stopped gaining mostly trains
+the same networks again (:func:`goes_on`).
 """
 
 from __future__ import annotations
@@ -34,8 +41,8 @@ from typing import Sequence
 from ..models.config import ScreenConfig
 from ..models.selection import SelectionRule, paired_gain
 
-__all__ = ["ScreenVerdict", "screen_margin", "best_gain", "screen_verdicts", "SCREEN_OFF",
-           "SCREEN_PASSED", "SCREEN_FAILED"]
+__all__ = ["ScreenVerdict", "screen_margin", "best_gain", "screen_verdicts", "stage_gains",
+           "goes_on", "SCREEN_OFF", "SCREEN_PASSED", "SCREEN_FAILED"]
 
 #: selection.parquet ``screen`` values: not run, path trained, path stopped after the screen.
 SCREEN_OFF, SCREEN_PASSED, SCREEN_FAILED = "off", "passed", "failed"
@@ -70,17 +77,47 @@ def screen_margin(screen: ScreenConfig, rule: SelectionRule) -> float | None:
     return float(screen.share * rule.min_improvement)
 
 
+def _relative_gain(pool, candidate) -> float:
+    """``candidate``'s relative gain over the coarse model on ``pool``'s weighted validation rows
+    (at its chosen fade, as the rule sees it); NaN without validation rows."""
+    if not pool.val.any():
+        return math.nan
+    d, _, base = paired_gain(pool.coarse_errors[pool.val], candidate.val_errors, pool.weights)
+    return d / base if math.isfinite(d) and base > 0 else math.nan
+
+
 def best_gain(pool) -> float:
     """The best relative gain over the coarse model on the weighted validation rows among the
-    network candidates of ``pool`` (a ``CandidatePool``: each at its chosen fade, as the rule
-    sees it); NaN without validation rows or candidates."""
-    gains = []
-    if pool.val.any():
-        for c in pool.candidates:
-            d, _, base = paired_gain(pool.coarse_errors[pool.val], c.val_errors, pool.weights)
-            if math.isfinite(d) and base > 0:
-                gains.append(d / base)
+    network candidates of ``pool`` (a ``CandidatePool``); NaN without validation rows or
+    candidates."""
+    gains = [g for g in (_relative_gain(pool, c) for c in pool.candidates) if math.isfinite(g)]
     return max(gains) if gains else math.nan
+
+
+def stage_gains(pool, kind: str) -> list[float]:
+    """The best relative gain of band set ``kind``'s ensembles in ``pool`` after each weight
+    decay of its path trained so far, in the order trained (a running maximum over the
+    weight decay's seeds and the ones before; NaN until a stage has a finite gain)."""
+    by_decay: dict[float, list[float]] = {}
+    for c in pool.candidates:
+        if c.model == kind:
+            by_decay.setdefault(c.info["weight_decay"], []).append(_relative_gain(pool, c))
+    out, best = [], math.nan
+    for gains in by_decay.values():
+        finite = [g for g in gains if math.isfinite(g)]
+        if finite:
+            best = max(finite) if math.isnan(best) else max(best, *finite)
+        out.append(best)
+    return out
+
+
+def goes_on(gains: Sequence[float], stage_gain: float) -> bool:
+    """Whether a band set's path trains its next weight decay, given its :func:`stage_gains`:
+    where its last weight decay raised the best gain by at least ``stage_gain`` (``0``: always;
+    a gain that is not finite stops it)."""
+    if stage_gain <= 0:
+        return True
+    return len(gains) >= 2 and gains[-1] - gains[-2] >= stage_gain
 
 
 def screen_verdicts(pools: Sequence, margin: float | None) -> list[ScreenVerdict]:
