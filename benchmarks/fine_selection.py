@@ -211,6 +211,8 @@ RULES = {
     "network margin 10 %": {"min_improvement": 0.10},
     "Bonferroni, alpha 0.05": {"multiplicity": "bonferroni", "alpha": 0.05},
     "no one-se preference": {"one_se": False},
+    "one-se band: the best's error SE": {"one_se_of": "error"},
+    "one-se band: paired difference SE": {"one_se_of": "difference"},
 }
 
 

@@ -73,8 +73,9 @@ def test_select_keeps_the_simplest_candidate_within_one_standard_error():
     rule = SelectionRule(min_improvement=0.1, alpha=0.05, multiplicity="bonferroni")
     kept, judged = select(coarse, [complex_, small, noisy, simple], w, rule)
     assert [j.passed for j in judged] == [True, False, False, True]
-    # the gains' se is the noise's sd / sqrt(20), about 0.0045 mrad: `simple` is 0.01 mrad
-    # (more than one se) worse than the best, `complex_`, which is kept
+    # the best's se (its errors' and, the coarse errors being constant, its gain's) is the
+    # noise's sd / sqrt(20), about 0.0045 mrad: `simple` is 0.01 mrad (more than one se) worse
+    # than the best, `complex_`, which is kept
     se = judged[0].se_mrad
     assert se == pytest.approx(np.std(noise, ddof=1) / math.sqrt(20), rel=1e-9)
     assert se < 0.01 and kept == 0
@@ -84,6 +85,36 @@ def test_select_keeps_the_simplest_candidate_within_one_standard_error():
     assert kept == 1
     # nothing passes: the coarse model stays
     assert select(coarse, [small, noisy], w, rule)[0] is None
+
+
+def test_the_one_se_band_is_the_best_s_own_standard_error_not_its_gain_s():
+    # a dynamic heliostat's coarse errors alternate 0.2 / 0.9 mrad from row to row; the best
+    # candidate is 0.25 mrad on every row up to +-0.01, a simpler one 0.08 mrad worse. The
+    # best's gain over the coarse model then has a standard error of sd(0.2/0.9 pattern) /
+    # sqrt(20) = 0.0826 mrad, its errors one of 0.01 * sqrt(20/19) / sqrt(20) = 0.0023 mrad
+    n = 20
+    coarse = np.tile([0.2, 0.9], n // 2)
+    wiggle = np.tile([0.01, -0.01], n // 2)
+    best = _candidate("hybrid", 0.25 + wiggle, (3,))
+    simple = _candidate("hybrid", 0.33 + wiggle, (2,))
+    w = np.full(n, 1 / n)
+    base = dict(min_improvement=0.1, alpha=1.0)
+    judged = select(coarse, [best, simple], w, SelectionRule(**base))[1]
+    assert all(j.passed for j in judged)                         # 55 % and 40 % better
+    assert judged[0].se_mrad == pytest.approx(np.std(coarse - best.val_errors, ddof=1)
+                                              / math.sqrt(n), rel=1e-9)
+    assert judged[0].se_mrad == pytest.approx(0.0826, abs=1e-4)
+    # the default band, 0.25 + 0.0023 mrad, leaves the simpler candidate out: the best is kept
+    assert SelectionRule().one_se_of == "error"
+    assert select(coarse, [best, simple], w, SelectionRule(**base))[0] == 0
+    # the gain's band, 0.25 + 0.0826 mrad, takes in a candidate 32 % worse on every row
+    assert select(coarse, [best, simple], w, SelectionRule(**base, one_se_of="gain"))[0] == 1
+    # the paired difference (0.08 on every row, no spread) keeps the best too
+    assert select(coarse, [best, simple], w,
+                  SelectionRule(**base, one_se_of="difference"))[0] == 0
+    # within the best's own se the simpler one is kept: 0.002 mrad worse
+    near = _candidate("hybrid", 0.252 + wiggle, (2,))
+    assert select(coarse, [best, near], w, SelectionRule(**base))[0] == 1
 
 
 def test_the_relative_margin_grows_with_the_candidates_flexibility():
@@ -146,6 +177,9 @@ def test_choose_fade_takes_the_lowest_weighted_mean_and_ties_go_shorter():
 
 
 def test_rule_settings_are_checked():
+    with pytest.raises(ParameterError, match=r"The 'one_se_of' parameter of select must be one "
+                                             r"of gain, error, difference. Got 'se' instead."):
+        SelectionRule(one_se_of="se").validated()
     with pytest.raises(ParameterError, match=r"The 'alpha' parameter of select must be"):
         SelectionRule(alpha=0.0).validated()
     with pytest.raises(ParameterError, match=r"The 'weights' parameter of select must have one "
