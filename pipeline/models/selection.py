@@ -89,9 +89,8 @@ class SelectionRule:
         gain over the coarse model (the rule before the fourteenth session: as wide as the
         coarse errors vary from row to row, 0.03-0.10 mrad on the 200-heliostat benchmark
         field's dynamic heliostats, where it kept candidates up to 31 % worse on validation
-        than the best); ``difference``, each
-        candidate's paired difference from the best. Measured:
-        docs/experiments/fine-selection.md, "The one-standard-error band".
+        than the best); ``difference``, each candidate's paired difference from the best.
+        Measured: docs/experiments/fine-selection.md, "The one-standard-error band".
     multiplicity : ``maxt`` (module docstring) or ``bonferroni`` (``Phi^-1(1 - alpha / m)``).
     draws : random sign patterns of ``maxt`` (seeded with ``seed``).
     """
@@ -335,8 +334,8 @@ def select(coarse_errors, candidates: Sequence[Candidate], weights,
     return min(near, key=lambda i: (candidates[i].complexity, judged[i].mean_mrad)), judged
 
 
-def _near_best(candidate: Candidate, best: Candidate, judged: "Judgement", judged_best: "Judgement",
-               weights, one_se_of: str) -> bool:
+def _near_best(candidate: Candidate, best: Candidate, judged: "Judgement",
+               judged_best: "Judgement", weights, one_se_of: str) -> bool:
     """Whether ``candidate`` is within one standard error of ``best`` on the weighted validation
     rows, the standard error as :attr:`SelectionRule.one_se_of` says."""
     if one_se_of == "difference":

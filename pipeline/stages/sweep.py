@@ -152,13 +152,23 @@ def train_path(problem: FineProblem, train_mask, val_mask, seeds: Sequence[int],
 # ------------------------------------------------------------------------------------------------
 # production selection: a chunk of heliostats, full training size
 # ------------------------------------------------------------------------------------------------
+def _take(items: Sequence, index: Sequence[int]) -> list:
+    """``items`` at the positions ``index``, in that order."""
+    return [items[i] for i in index]
+
+
+def _fitting_rows(h) -> np.ndarray:
+    """bool (N,): the rows of heliostat ``h`` a training uses (train and validation)."""
+    return np.isin(h.labels, ("train", "validation"))
+
+
 def _band_set_problems(helios, cfg):
     """Each heliostat's fine problem of band set ``cfg`` on all its rows, and the same on its
     training and validation rows alone (what a training stacks)."""
     problems = [build_problem(h.rows, h.hrow, coarse_row_parameters(   # each row its regime's
         h.selected, h.rows["timestamp"]), h.selected["free"], cfg) for h in helios]
-    fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
-    return problems, [take_rows(p, torch.as_tensor(f)) for p, f in zip(problems, fitting)]
+    return problems, [take_rows(p, torch.as_tensor(_fitting_rows(h)))
+                      for p, h in zip(problems, helios)]
 
 
 def _train_stages(helios, problems, taken, pools, out_rows, kind, cfg, weight_decays, seeds,
@@ -174,8 +184,7 @@ def _train_stages(helios, problems, taken, pools, out_rows, kind, cfg, weight_de
     # aligned: each heliostat's networks train to the same bits in any chunk (MEMBER_ALIGN)
     stacked, valid = stack_problems([t for t in taken for _ in range(per_h)], MEMBER_ALIGN)
     n = stacked.data.steps.shape[1]
-    fitting = [np.isin(h.labels, ("train", "validation")) for h in helios]
-    labels_fit = np.array([np.resize(h.labels[f], n) for h, f in zip(helios, fitting)
+    labels_fit = np.array([np.resize(h.labels[_fitting_rows(h)], n) for h in helios
                            for _ in range(per_h)])
     net_seeds = [x for _ in helios for s in seeds for x in ensemble_seeds(s, k_ens)]
     last = initial
@@ -218,10 +227,10 @@ def _go_on(helios, problems, taken, pools, out_rows, kind, cfg, weight_decays, s
         on = [k for k, i in enumerate(going) if goes_on(stage_gains(pools[i], kind), stage_gain)]
         if not on:
             return
-        going, last = [going[k] for k in on], _members_of(last, on, per_h)
-        pick = lambda xs: [xs[i] for i in going]                               # noqa: E731
-        last = _train_stages(pick(helios), pick(problems), pick(taken), pick(pools),
-                             pick(out_rows), kind, cfg, [wd], seeds, path, initial=last)
+        going, last = _take(going, on), _members_of(last, on, per_h)
+        last = _train_stages(*(_take(xs, going) for xs in (helios, problems, taken, pools,
+                                                           out_rows)),
+                             kind, cfg, [wd], seeds, path, initial=last)
 
 
 def _train_candidates(helios, pools, out_rows, variants, weight_decays, seeds, path,
@@ -242,10 +251,10 @@ def _train_candidates(helios, pools, out_rows, variants, weight_decays, seeds, p
     keep = [i for i, v in enumerate(verdicts) if v.trains_path]
     if not keep:
         return verdicts
-    pick = lambda xs: [xs[i] for i in keep]                                    # noqa: E731
-    helios, pools, out_rows = pick(helios), pick(pools), pick(out_rows)
-    _go_on(helios, pick(problems), pick(taken), pools, out_rows, kind, cfg, order[n_first:],
-           seeds, path, screen.stage_gain, _members_of(last, keep, len(seeds) * cfg.ensemble))
+    helios, pools, out_rows = _take(helios, keep), _take(pools, keep), _take(out_rows, keep)
+    _go_on(helios, _take(problems, keep), _take(taken, keep), pools, out_rows, kind, cfg,
+           order[n_first:], seeds, path, screen.stage_gain,
+           _members_of(last, keep, len(seeds) * cfg.ensemble))
     for kind_, cfg_ in others:
         problems, taken = _band_set_problems(helios, cfg_)
         last = _train_stages(helios, problems, taken, pools, out_rows, kind_, cfg_,
