@@ -20,7 +20,7 @@ import torch
 
 from heliocal.pipeline.models.config import FineConfig, PathConfig
 from heliocal.pipeline.models.selection import SelectionRule
-from heliocal.pipeline.stages import sweep
+from heliocal.pipeline.stages import sweep, sweep_path
 from heliocal.pipeline.stages.selection import CandidatePool
 from heliocal.pipeline.stages.sweep_increment import sweep_chunks
 from heliocal.pipeline.stages.sweep_inputs import SweepHeliostat, read_sweep_inputs
@@ -45,11 +45,12 @@ def main() -> None:
         times: dict[int, list[float]] = {1: [], 32: []}
         for _ in range(args.repeats):
             for align in (1, 32):
-                sweep.MEMBER_ALIGN = align          # the layout _train_variant stacks with
+                sweep_path.MEMBER_ALIGN = align     # the layout _train_stages stacks with
                 pools = [CandidatePool(h, SelectionRule()) for h in helios]
                 t0 = time.perf_counter()
-                sweep._train_variant(helios, pools, [[] for _ in helios], kind, cfg, [1e-2], [0],
-                                     PathConfig())
+                problems, taken = sweep_path._band_set_problems(helios, cfg)
+                sweep_path._train_stages(helios, problems, taken, pools, [[] for _ in helios],
+                                         kind, cfg, [1e-2], [0], PathConfig())
                 times[align].append(time.perf_counter() - t0)
                 totals[align] += times[align][-1]
         print(f"{len(chunk)} heliostats, longest {longest} rows: align 1 "

@@ -6,7 +6,7 @@ Copies WORKDIR (a work directory after ``fit-coarse``, e.g. one that ``benchmark
 this process, with each of these functions timed where it runs (the workers are forked from a
 fork server that imports this module, so the timers are in them too): reading the inputs, the
 plan (the per-heliostat digests of ``--incremental``), the pool's map, each training chunk
-(``_select_chunk``) with its band sets' training (``_train_candidates``) and its GP fits, the
+(``_select_chunk``) with its band sets' training (``train_candidates``) and its GP fits, the
 forward-in-time pass and writing the outputs. Prints one line per call: process, start and end
 [s since this process started], duration, name. Usage::
 
@@ -52,7 +52,7 @@ def _timed(name: str, label: str | None = None) -> None:
 
 
 _stamp("imports (heliocal's sweep stage)", T0, time.time())
-for _name in ("read_sweep_inputs", "_plan", "map_tasks", "_select_chunk", "_train_candidates",
+for _name in ("read_sweep_inputs", "_plan", "map_tasks", "_select_chunk", "train_candidates",
               "add_sweep_time_split", "apply_forward_checks", "write_sweep_outputs"):
     _timed(_name)
 _timed("fit_heliostat_gps", "gp (one heliostat)")
