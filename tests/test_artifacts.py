@@ -37,6 +37,24 @@ def test_write_read_round_trip_sorted(tmp_path):
     assert prov["options"] == {"k": 1}
 
 
+def test_string_columns_read_as_python_strings_with_nan_for_missing(tmp_path):
+    # what pandas' astype(object) of the Arrow column gives (the reference): str values, a
+    # float NaN where a value is missing; repeated values converted once are equal values
+    rows = pd.concat([_rejected()] * 3, ignore_index=True)
+    rows["source_row"] = range(len(rows))
+    write_artifact(rows, tmp_path, REJECTED, stage="ingest")
+    df = read_artifact(tmp_path, REJECTED)
+    table = pq.read_table(tmp_path / "rejected.parquet")
+    for column in ("heliostat_id", "measurement_id", "source_file"):
+        expected = table.column(column).to_pandas().astype(object)
+        got = df[column]
+        assert got.dtype == object
+        assert [type(v) for v in got] == [type(v) for v in expected]
+        assert got.isna().tolist() == expected.isna().tolist()
+        assert got.dropna().tolist() == expected.dropna().tolist()
+    assert df["heliostat_id"].isna().sum() == 3 and set(df["heliostat_id"].dropna()) == {"AA31"}
+
+
 def test_missing_column_is_refused_on_write(tmp_path):
     with pytest.raises(SchemaError, match="required columns \\['raw'\\] are missing"):
         write_artifact(_rejected().drop(columns=["raw"]), tmp_path, REJECTED, stage="ingest")

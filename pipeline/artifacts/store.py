@@ -27,6 +27,7 @@ import os
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping, Sequence
 
+import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -344,8 +345,21 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
     df = table.to_pandas()
     for c in schema.columns:
         if c.name in df.columns and c.dtype == "string":
-            df[c.name] = df[c.name].astype(object)
+            df[c.name] = pd.Series(_python_strings(table.column(c.name)), index=df.index,
+                                   dtype=object)
     return df
+
+
+def _python_strings(column: pa.ChunkedArray) -> np.ndarray:
+    """An Arrow string column as an object array of Python strings, missing values NaN (what
+    pandas' ``astype(object)`` of it gives), each distinct string converted once: a field's
+    string columns repeat a few values over many rows (heliostat ids, splits, models), and
+    making a Python object per row took most of a field-scale read."""
+    encoded = column.combine_chunks().dictionary_encode()
+    distinct = np.empty(len(encoded.dictionary) + 1, dtype=object)
+    distinct[:-1] = encoded.dictionary.to_pylist()
+    distinct[-1] = np.nan
+    return distinct[encoded.indices.fill_null(len(encoded.dictionary)).to_numpy()]
 
 
 def artifact_columns(workdir, schema: ArtifactSchema) -> list[str]:
