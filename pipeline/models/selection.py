@@ -225,13 +225,19 @@ def paired_gain(coarse_errors, errors, weights) -> tuple[float, float, float]:
     if not ok.any():
         return float("nan"), float("nan"), float("nan")
     c, e, w = c[ok], e[ok], w[ok] / w[ok].sum()
-    g = c - e
-    d = float((w * g).sum())
+    d, se = _weighted_mean_se(c - e, w)
+    return d, se, float((w * c).sum())
+
+
+def _weighted_mean_se(values: np.ndarray, w: np.ndarray) -> tuple[float, float]:
+    """(weighted mean, its standard error) of finite ``values`` under weights ``w`` that sum to
+    1, the standard error by the weights' effective number of rows (:func:`paired_gain`);
+    infinite with at most one effective row."""
+    mean = float((w * values).sum())
     n_eff = 1.0 / float((w ** 2).sum())
     if n_eff <= 1.0:
-        return d, float("inf"), float((w * c).sum())
-    se = math.sqrt(n_eff / (n_eff - 1.0) * float((w ** 2 * (g - d) ** 2).sum()))
-    return d, se, float((w * c).sum())
+        return mean, float("inf")
+    return mean, math.sqrt(n_eff / (n_eff - 1.0) * float((w ** 2 * (values - mean) ** 2).sum()))
 
 
 def choose_fade(errors_by_length: Sequence[np.ndarray], weights) -> int:
@@ -342,7 +348,9 @@ def _near_best(candidate: Candidate, best: Candidate, judged: "Judgement",
         d, se, _ = paired_gain(candidate.val_errors, best.val_errors, weights)
         return not d > se
     if one_se_of == "error":
-        _, se, _ = paired_gain(best.val_errors, np.zeros_like(best.val_errors), weights)
+        errors, w = np.asarray(best.val_errors, np.float64), np.asarray(weights, np.float64)
+        ok = np.isfinite(errors) & (w > 0)
+        se = _weighted_mean_se(errors[ok], w[ok] / w[ok].sum())[1] if ok.any() else math.nan
     else:
         se = judged_best.se_mrad
     return judged.mean_mrad <= judged_best.mean_mrad + se
