@@ -378,3 +378,53 @@ def test_info_flags_hostile_entries(tmp_path):
     assert found["link"].startswith(f"a symbolic link to {victim}")
     assert "its run id 'x/../../victim_dir' is not a heliocal run id" in found[f"{STAGE}.manifest.json"]
     assert found["fifo.parquet"].startswith("a FIFO (named pipe)")
+
+
+# ------------------------------------------------------------------------------------------------
+# keep_same: a file rewritten with the bytes it has is kept, never read through a link
+# ------------------------------------------------------------------------------------------------
+def _run_keeping(root: Path, files: dict[str, bytes]) -> dict:
+    """A run of ``demo`` writing ``files`` with ``keep_same`` (as the report writes its pages);
+    returns its manifest's file entries."""
+    with workdir_lock(root, STAGE):
+        with transaction(root, STAGE) as txn:
+            for rel, data in files.items():
+                txn.write_bytes(rel, data, keep_same=True)
+    return load_manifest(root, STAGE).files
+
+
+def test_keep_same_keeps_a_file_with_the_same_bytes_and_writes_the_changed_one(tmp_path):
+    root, _, _ = _fresh(tmp_path)
+    first = load_manifest(root, STAGE).files
+    inode = os.stat(root / "a.txt").st_ino
+    files = _run_keeping(root, {"a.txt": b"first a", "sub/b.txt": b"second b"})
+    # a.txt: the first run's entry and file (same inode: not staged and renamed again)
+    assert files["a.txt"] == first["a.txt"]
+    assert os.stat(root / "a.txt").st_ino == inode
+    # sub/b.txt: changed bytes, written by this run
+    assert files["sub/b.txt"]["run_id"] != first["sub/b.txt"]["run_id"]
+    assert (root / "sub/b.txt").read_bytes() == b"second b"
+
+
+def test_keep_same_writes_again_a_file_changed_by_hand_since_its_run(tmp_path):
+    root, _, _ = _fresh(tmp_path)
+    first = load_manifest(root, STAGE).files
+    (root / "a.txt").write_bytes(b"edited")
+    files = _run_keeping(root, {"a.txt": b"first a"})
+    assert files["a.txt"]["run_id"] != first["a.txt"]["run_id"]
+    assert (root / "a.txt").read_bytes() == b"first a"
+
+
+def test_keep_same_does_not_read_or_keep_a_link_with_the_same_bytes_outside(tmp_path):
+    root, victim, _ = _fresh(tmp_path)
+    victim.write_bytes(b"first a")
+    os.remove(root / "a.txt")
+    os.symlink(victim, root / "a.txt")
+    try:
+        files = _run_keeping(root, {"a.txt": b"first a"})
+    except HeliocalError:
+        files = None                          # refused with one line: also acceptable
+    assert victim.read_bytes() == b"first a"
+    if files is not None:                     # committed: a regular file of its own in place
+        assert not os.path.islink(root / "a.txt")
+        assert (root / "a.txt").read_bytes() == b"first a"

@@ -63,7 +63,7 @@ from .manifests import (ACTIVE_TRANSACTION, MANIFEST_VERSION, InvalidManifest, M
                         manifest_path, staging_name)
 from .leftovers import (BUSY, OWNER_FILENAME, has_staging_folder, leftovers, remove_leftover,
                         stale_staging_folders, staging_in_use, try_lock, unlock)
-from .paths import confined, is_real_dir, link_message, sha256_of_file
+from .paths import confined, is_real_dir, link_message, read_regular, sha256_of_file
 from .workdir_lock import holds_workdir_lock
 
 __all__ = [
@@ -365,13 +365,31 @@ class StageTransaction:
         return self.root / rel
 
     def write_bytes(self, rel: str | os.PathLike, data: bytes, *, fingerprint: str | None = None,
-                    artifact: str | None = None) -> Path:
-        """Stage output ``rel`` with content ``data``; returns its final path."""
+                    artifact: str | None = None, keep_same: bool = False) -> Path:
+        """Stage output ``rel`` with content ``data``; returns its final path. With
+        ``keep_same``, a file the previous run committed with these very bytes (and still holds
+        them) is kept as it is instead (:meth:`carry_over`): no second copy, no fsync."""
+        sha = hashlib.sha256(data).hexdigest()
+        if keep_same and fingerprint is None and self._holds(rel, data, sha, artifact):
+            self.carry_over([rel])
+            return self.root / checked_relative_path(rel)
         path = self.staging_path(rel)
         with open(path, "wb") as fh:
             fh.write(data)
-        return self.add_file(rel, fingerprint=fingerprint, artifact=artifact,
-                             sha256=hashlib.sha256(data).hexdigest())
+        return self.add_file(rel, fingerprint=fingerprint, artifact=artifact, sha256=sha)
+
+    def _holds(self, rel: str | os.PathLike, data: bytes, sha: str, artifact: str | None) -> bool:
+        """Whether the previous run committed ``rel`` with SHA-256 ``sha`` (as ``artifact``) and
+        the regular file in place (not a link) still has the bytes ``data``."""
+        rel = checked_relative_path(rel)
+        entry = self.previous.files.get(rel) if self.previous is not None else None
+        if (entry is None or entry.get("sha256") != sha or entry.get("artifact") != artifact
+                or entry.get("fingerprint") not in (None, sha)):
+            return False
+        try:  # a link or anything but a regular file in place: written anew (and refused there)
+            return read_regular(confined(self.root, rel)) == data
+        except (OSError, UnsafePathError):
+            return False
 
     def carry_over(self, rels) -> None:
         """Keep files of the previous committed run unchanged in this run (partial runs)."""

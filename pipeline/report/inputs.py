@@ -121,8 +121,9 @@ def load_inputs(workdir: str | Path) -> ReportInputs:
                               f"SOURCE... --workdir {workdir}` first")
     inp = ReportInputs(workdir=workdir, measurements=_read(workdir, MEASUREMENTS.filename))
     inp.paths[MEASUREMENTS.filename] = workdir / MEASUREMENTS.filename
+    tables = {}                  # each file read once (the predictions are pooled below)
     for name in ("heliostats.parquet", "rejected.parquet") + _OPTIONAL:
-        df = _read(workdir, name)
+        df = tables[name] = _read(workdir, name)
         if df is None:
             continue
         inp.paths[name] = workdir / name
@@ -147,7 +148,7 @@ def load_inputs(workdir: str | Path) -> ReportInputs:
     preds = []
     for name in ("coarse_predictions.parquet", "hybrid_predictions.parquet",
                  "selected_predictions.parquet"):
-        df = _read(workdir, name)
+        df = tables[name]
         if df is not None:
             missing = [c for c in ("heliostat_id", "measurement_id", "model", "split", "error_mrad")
                        if c not in df.columns]

@@ -344,6 +344,8 @@ def _forward_in_time(inp: ReportInputs, finals: dict,
         rows = p[cols + (["time_error_mrad"] if "time_error_mrad" in p.columns else [])]
         if "time_error_mrad" not in rows.columns:
             rows = rows.assign(time_error_mrad=np.nan)
+        # only the final models' rows take part in the (inner) merge: filter them first
+        rows = rows[rows["model"].isin(want["model"].unique())]
         rows = rows.merge(want, on=["heliostat_id", "model"])
         # the coarse role's rows are fit-coarse's; a model name in several sources: its first
         rows = rows[(rows["role"] != "coarse") | (rows["source"] == "coarse_predictions")]

@@ -219,14 +219,18 @@ def nominal_fallback(entry: dict, time_val_error_mrad: float, nominal: dict | No
                          "calibration rows and refit")}
 
 
-def time_labelled_predictions(workdir: CommittedWorkdir, heliostats, columns) -> pd.DataFrame:
+def time_labelled_predictions(workdir: CommittedWorkdir, heliostats, columns,
+                              model: str | None = None) -> pd.DataFrame:
     """coarse_predictions.parquet's ``columns`` (with heliostat_id and measurement_id) of the
-    heliostats, each row with its time split label (``time_split``; None without split.parquet)."""
+    heliostats (the rows of ``model`` only, if given), each row with its time split label
+    (``time_split``; None without split.parquet)."""
     from ..artifacts.schemas import COARSE_PREDICTIONS, SPLIT
 
     keys = ["heliostat_id", "measurement_id"]
     p = read_artifact(workdir, COARSE_PREDICTIONS, heliostats=heliostats,
                       columns=keys + [c for c in columns if c not in keys])
+    if model is not None:
+        p = p[p["model"] == model]
     if not artifact_present(workdir, SPLIT):
         return p.assign(time_split=None)
     t = read_artifact(workdir, SPLIT, heliostats=heliostats, columns=keys + ["time_split"])
@@ -241,8 +245,8 @@ def _nominal_errors(workdir: CommittedWorkdir, heliostats) -> dict:
 
     if not artifact_present(workdir, COARSE_PREDICTIONS):
         return {}
-    p = time_labelled_predictions(workdir, heliostats, ["split", "model", "error_mrad"])
-    p = p[p["model"] == "nominal"]
+    p = time_labelled_predictions(workdir, heliostats, ["split", "model", "error_mrad"],
+                                  model="nominal")
     nan = float("nan")
     knn = p.groupby(["heliostat_id", "split"])["error_mrad"].mean()
     fwd = p.groupby(["heliostat_id", "time_split"])["error_mrad"].mean()

@@ -463,6 +463,7 @@ def _heliostat_pages(txn, out: Path, inp, helios: dict, table, blocks, wd_frame,
                               figs, prow, head, mrows, prev_next,
                               svg_next_day(rolling.get(hid)), nav_pages)
         path = safe_child(folder, row["page"])
-        txn.write_bytes(f"heliostats/{path.name}", page.encode("utf-8"))
+        # a daily update changes a few heliostats: the other pages stay the files they were
+        txn.write_bytes(f"heliostats/{path.name}", page.encode("utf-8"), keep_same=True)
         written.append(str(path))
     return written

@@ -473,30 +473,39 @@ def restrict_training(split_df: pd.DataFrame, n_train: int | None) -> pd.DataFra
     return out
 
 
-def _mean(values: pd.Series) -> float | None:
-    return float(values.mean()) if len(values) else None
+def _per_set(split_df: pd.DataFrame, labels: str, column: str | None = None) -> dict:
+    """``{(heliostat_id, set): value}`` over the sets of the column ``labels``: the row count,
+    or the mean of ``column`` (NaN where all its values are missing)."""
+    grouped = split_df.groupby(["heliostat_id", labels], sort=False, observed=True)
+    return (grouped.size() if column is None else grouped[column].mean()).to_dict()
 
 
 def summarize_split(split_df: pd.DataFrame) -> list[dict[str, Any]]:
     """Per heliostat: counts per set, mean kNN distance per set [°], and mean distance from
     the test rows to the nearest training row [°] (``None`` for an empty set)."""
+    counts = _per_set(split_df, "split")
+    knn = _per_set(split_df, "split", "knn_distance_deg")
+    nearest = _per_set(split_df, "split", "nearest_train_distance_deg")
+    timed = "time_split" in split_df.columns
+    tcounts = _per_set(split_df, "time_split") if timed else {}
+    sizes = split_df["heliostat_id"].value_counts(sort=False).to_dict()
+
+    def mean(table: dict, hid, s: str) -> float | None:
+        return float(table[hid, s]) if (hid, s) in table else None
+
     rows = []
-    for hid, g in split_df.groupby("heliostat_id", sort=True):
-        by = {s: g[g["split"] == s] for s in SPLIT_LABELS}
-        tcounts = (g["time_split"].value_counts() if "time_split" in g.columns
-                   else pd.Series(dtype=int))
+    for hid in sorted(split_df["heliostat_id"].unique()):
+        in_time = {s: int(tcounts.get((hid, s), 0)) for s in TIME_SPLIT_LABELS}
         rows.append({
             "heliostat_id": str(hid),
-            "n_measurements": int(len(g)),
-            "counts": {s: int(len(by[s])) for s in SPLIT_LABELS},
+            "n_measurements": int(sizes[hid]),
+            "counts": {s: int(counts.get((hid, s), 0)) for s in SPLIT_LABELS},
             # the forward-in-time split beside it; None: the heliostat has none (no timestamps)
-            "time_split_counts": ({s: int(tcounts.get(s, 0)) for s in TIME_SPLIT_LABELS}
-                                  if len(tcounts) else None),
-            "mean_knn_distance_deg": {s: _mean(by[s]["knn_distance_deg"])
+            "time_split_counts": in_time if sum(in_time.values()) else None,
+            "mean_knn_distance_deg": {s: mean(knn, hid, s)
                                       for s in ("train", "validation", "test")},
-            "mean_test_to_train_distance_deg": _mean(by["test"]["nearest_train_distance_deg"]),
-            "mean_validation_to_train_distance_deg":
-                _mean(by["validation"]["nearest_train_distance_deg"]),
+            "mean_test_to_train_distance_deg": mean(nearest, hid, "test"),
+            "mean_validation_to_train_distance_deg": mean(nearest, hid, "validation"),
         })
     return rows
 
