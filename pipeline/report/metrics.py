@@ -219,7 +219,7 @@ def compute_metrics(inp: ReportInputs) -> dict:
     ts = pd.to_datetime(m["timestamp"], utc=True) if "timestamp" in m.columns else pd.Series(
         pd.NaT, index=m.index, dtype="datetime64[ns, UTC]")
     rej = inp.rejected if inp.rejected is not None else pd.DataFrame(columns=["reason"])
-    hids = sorted(set(m["heliostat_id"]))
+    hids = sorted(m["heliostat_id"].unique())  # distinct first: a row-by-row walk is slow
     finals = final_models(inp)
     data = {
         "n_heliostats": len(hids),

@@ -287,6 +287,9 @@ def resolve_figures(blocks: Sequence[tuple], drawn: dict[str, tuple]) -> list[tu
 _MD_ALWAYS = frozenset("\\`*[]<>&|~$")
 
 
+#: Text without white space, :data:`_MD_ALWAYS` characters or ``_``: :func:`md_text` keeps it.
+_MD_PLAIN = re.compile(r"[^\s\\`*\[\]<>&|~$_]*\Z")
+
 #: Line starts that open a block (heading, quote, list, setext underline, thematic break).
 _MD_LINE_START = re.compile(r"^(?:([#>+=-])|(\d{1,9})([.)])(?=\s|$))")
 
@@ -301,7 +304,10 @@ def md_text(text, line_start: bool = True) -> str:
     the text begins a line; not in table cells); runs of white space (newlines too) become one
     space.
     """
-    text = re.sub(r"\s+", " ", str(text))
+    text = str(text)
+    if _MD_PLAIN.match(text) and not (line_start and _MD_LINE_START.match(text)):
+        return text                      # nothing to escape (most table cells: numbers, ids)
+    text = re.sub(r"\s+", " ", text)
     if line_start:
         text = text.lstrip()
     out = []

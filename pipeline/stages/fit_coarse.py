@@ -45,8 +45,8 @@ from .coarse_regimes import (REGIME_STEPS, ChunkResult, CoarseChunk, HeliostatRe
 from .increments import coarse_plan, with_previous
 from .rerun import coarse_kept_summary, coarse_options
 from .rolling import DEFAULT_MAX_ORIGINS, add_next_day, evaluate_rolling, rolling_chunks
-from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, load_time_labels,
-                      time_labels_of)
+from .forward import (TIME_COLUMN, chunks_per_worker, forward_guarded_choice, labels_by_row,
+                      load_time_labels, time_labels_of)
 
 __all__ = [
     "fit_heliostat_chunk",
@@ -76,9 +76,7 @@ def load_split_labels(workdir: Path, measurements: pd.DataFrame) -> pd.Series:
         return pd.Series("train", index=measurements.index)
     check_fresh(workdir, SPLIT, {"measurements": MEASUREMENTS})
     split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", "split"])
-    key = measurements["heliostat_id"] + "\0" + measurements["measurement_id"]
-    lookup = dict(zip(split["heliostat_id"] + "\0" + split["measurement_id"], split["split"]))
-    labels = key.map(lookup)
+    labels = pd.Series(labels_by_row(split, measurements, "split"), index=measurements.index)
     # heliostats the split left out (too few rows) are not fitted: mark them
     return labels.fillna("excluded")
 

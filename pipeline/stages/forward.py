@@ -48,6 +48,7 @@ import torch
 
 from ..artifacts.schemas import COARSE_PARAMS, SPLIT
 from ..artifacts.store import artifact_present, read_artifact
+from ..errors import SchemaError
 from ..models.coarse import MeasurementBatch
 from ..models.config import ensemble_seeds
 from ..models.fade import NETWORK_TIME_FADE_DAYS, Fade
@@ -83,11 +84,24 @@ def load_time_labels(workdir: str | Path, measurements: pd.DataFrame) -> np.ndar
     if not artifact_present(workdir, SPLIT):
         return np.full(len(measurements), None, dtype=object)
     split = read_artifact(workdir, SPLIT, columns=["heliostat_id", "measurement_id", TIME_COLUMN])
-    lookup = {(str(h), str(m)): v for h, m, v in zip(split["heliostat_id"], split["measurement_id"],
-                                                      split[TIME_COLUMN])}
-    return np.array([None if (v := lookup.get((str(h), str(m)))) is None or pd.isna(v) else str(v)
-                     for h, m in zip(measurements["heliostat_id"], measurements["measurement_id"])],
-                    dtype=object)
+    return labels_by_row(split, measurements, TIME_COLUMN)
+
+
+def labels_by_row(split: pd.DataFrame, rows: pd.DataFrame, column: str) -> np.ndarray:
+    """``split[column]`` for each of ``rows`` matched on (heliostat_id, measurement_id): an
+    object array, ``None`` where ``split`` has no such row or no label."""
+    keys = ["heliostat_id", "measurement_id"]
+    listed = pd.MultiIndex.from_frame(split[keys].astype(str))
+    if not listed.is_unique:
+        raise SchemaError("split.parquet lists a measurement more than once; rerun "
+                          "`heliocal split-knn`")
+    where = listed.get_indexer(pd.MultiIndex.from_frame(rows[keys].astype(str)))
+    values = split[column].to_numpy(dtype=object)
+    found = where >= 0
+    out = np.full(len(rows), None, dtype=object)
+    out[found] = values[where[found]]
+    out[pd.isna(out)] = None
+    return out
 
 
 def time_labels_of(rows: pd.DataFrame) -> np.ndarray | None:
