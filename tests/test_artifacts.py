@@ -9,8 +9,9 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from heliocal.pipeline.artifacts.store import (SCHEMA_VERSION, check_fresh, read_artifact,
-                                               read_provenance, write_artifact)
+from heliocal.pipeline.artifacts.store import (SCHEMA_VERSION, check_fresh, kept_reads,
+                                               read_artifact, read_provenance, write_artifact)
+from heliocal.pipeline.artifacts import store
 from heliocal.pipeline.artifacts.paths import atomic_path
 from heliocal.pipeline.errors import SchemaError, StageInputError
 from heliocal.pipeline.artifacts.schemas import MEASUREMENTS, REJECTED
@@ -53,6 +54,22 @@ def test_string_columns_read_as_python_strings_with_nan_for_missing(tmp_path):
         assert got.isna().tolist() == expected.isna().tolist()
         assert got.dropna().tolist() == expected.dropna().tolist()
     assert df["heliostat_id"].isna().sum() == 3 and set(df["heliostat_id"].dropna()) == {"AA31"}
+
+
+def test_kept_reads_decode_once_and_callers_cannot_change_the_kept_table(tmp_path):
+    write_artifact(_rejected(), tmp_path, REJECTED, stage="ingest")
+    with kept_reads():
+        first = read_artifact(tmp_path, REJECTED)
+        first["reason"] = "changed by the caller"         # a column replaced in place
+        first.loc[0, "source_row"] = 99                   # a value set in place
+        again = read_artifact(tmp_path, REJECTED)
+        pd.testing.assert_frame_equal(again, read_artifact(tmp_path, REJECTED))
+        assert again["reason"].tolist() == ["missing_value"] * 2    # as written
+        assert again["source_row"].tolist() == [1, 2]               # sorted on write
+        # new bytes of the artifact: read anew, not the kept table
+        write_artifact(_rejected(1), tmp_path, REJECTED, stage="ingest")
+        assert len(read_artifact(tmp_path, REJECTED)) == 1
+    assert store._KEPT is None                             # nothing kept outside the block
 
 
 def test_missing_column_is_refused_on_write(tmp_path):

@@ -24,6 +24,7 @@ import contextlib
 import json
 import logging
 import os
+from collections import OrderedDict
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Mapping, Sequence
 
@@ -50,6 +51,7 @@ __all__ = [
     "artifact_writer",
     "ArtifactWriter",
     "read_artifact",
+    "kept_reads",
     "artifact_columns",
     "read_provenance",
     "check_fresh",
@@ -284,6 +286,55 @@ def _missing_message(path: Path, schema: ArtifactSchema) -> str:
     return f"{path} is missing: run {_rerun(schema, path.parent)} first"
 
 
+#: The tables :func:`read_artifact` keeps inside :func:`kept_reads` (``None`` outside it):
+#: request (artifact, SHA-256 of its committed bytes, columns, heliostats) -> frame, the most
+#: recently used last.
+_KEPT: OrderedDict | None = None
+
+#: How much :func:`kept_reads` keeps: the frames' memory (shallow: strings read once per
+#: distinct value share their objects), the least recently used dropped first.
+KEPT_BYTES = 1 << 30
+
+
+@contextlib.contextmanager
+def kept_reads() -> Iterator[None]:
+    """Inside the block, :func:`read_artifact` decodes a request it has answered before only
+    once: the same committed bytes (by their SHA-256, verified on every read as always) with the
+    same columns and heliostats give a shallow copy of the kept frame, which pandas'
+    copy-on-write keeps apart from it. For ``heliocal update``, whose stages run in one process
+    and read the same measurements, split and predictions in turn. At most :data:`KEPT_BYTES`
+    are kept, and none of an artifact's earlier bytes once it has been read anew. Nested blocks
+    share the outermost one's tables."""
+    global _KEPT
+    outer = _KEPT
+    if outer is None:
+        _KEPT = OrderedDict()
+    try:
+        yield
+    finally:
+        if outer is None:
+            _KEPT = None
+
+
+def _kept(key: tuple) -> pd.DataFrame | None:
+    if _KEPT is None or key not in _KEPT:
+        return None
+    _KEPT.move_to_end(key)
+    return _KEPT[key][0].copy(deep=False)
+
+
+def _keep(key: tuple, df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` kept under ``key`` (inside :func:`kept_reads`); the caller gets a shallow copy."""
+    if _KEPT is None:
+        return df
+    for old in [k for k in _KEPT if k[0] == key[0] and k[1] != key[1]]:
+        del _KEPT[old]                   # the artifact's earlier bytes: not read again
+    _KEPT[key] = (df, int(df.memory_usage(index=True, deep=False).sum()))
+    while sum(size for _, size in _KEPT.values()) > KEPT_BYTES and len(_KEPT) > 1:
+        _KEPT.popitem(last=False)
+    return df.copy(deep=False)
+
+
 def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
                   columns: Sequence[str] | None = None,
                   heliostats: Iterable[str] | None = None) -> pd.DataFrame:
@@ -333,9 +384,16 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
     if absent:
         raise SchemaError(f"{path} lacks columns {absent}: rerun `heliocal {schema.producer} "
                           f"--workdir {path.parent}`")
+    if heliostats is not None:
+        heliostats = list(heliostats)
+    key = (schema.name, committed.entry.get("sha256"), tuple(columns) if columns else None,
+           None if heliostats is None else tuple(heliostats))
+    kept = _kept(key)
+    if kept is not None:
+        return kept
     filters = None
     if heliostats is not None:
-        filters = [("heliostat_id", "in", list(heliostats))]
+        filters = [("heliostat_id", "in", heliostats)]
     try:
         table = pq.read_table(pa.BufferReader(committed.data),
                               columns=list(columns) if columns else None, filters=filters)
@@ -347,7 +405,7 @@ def read_artifact(workdir: str | os.PathLike, schema: ArtifactSchema, *,
         if c.name in df.columns and c.dtype == "string":
             df[c.name] = pd.Series(_python_strings(table.column(c.name)), index=df.index,
                                    dtype=object)
-    return df
+    return _keep(key, df)
 
 
 def _python_strings(column: pa.ChunkedArray) -> np.ndarray:

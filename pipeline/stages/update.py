@@ -12,8 +12,10 @@ last ingest recorded. Without a log the stages alone run: after a failed update 
 then ingested already) or after a code change.
 
 What the one process saves over six: the imports (torch, pandas, scikit-learn, heliocal) happen
-once, and one pool of worker processes serves every stage, its fork server importing every
-stage's modules once (:func:`heliocal.pipeline.runtime.parallel.warm_up`).
+once, one pool of worker processes serves every stage, its fork server importing every
+stage's modules once (:func:`heliocal.pipeline.runtime.parallel.warm_up`), and an artifact that
+several stages read with the same request is decoded once
+(:func:`heliocal.pipeline.artifacts.store.kept_reads`).
 
 Paths in the recorded options (``--properties``, ``--tower``, ``--prior-from``) are used as
 recorded: run the update from the folder the stages were run from, as ``make`` does. Options that
@@ -30,6 +32,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from ..artifacts.manifests import load_manifest
+from ..artifacts.store import kept_reads
 from ..errors import InputError, check_int
 from ..runtime.parallel import STAGE_PRELOADS, default_workers, shared_pool, warm_up
 
@@ -226,7 +229,7 @@ def run_update(sources: Sequence[str | Path], workdir: str | Path, *,
     runs = recorded_runs(workdir)
     t_start = time.perf_counter()
     out: dict = {"workdir": str(workdir), "ingest": None, "stages": []}
-    with shared_pool():
+    with shared_pool(), kept_reads():   # the stages read the same artifacts in turn
         warm_up(list(dict.fromkeys(m for run in runs for m in STAGE_PRELOADS.get(run.stage, ()))),
                 workers=workers)
         if sources:
