@@ -41,7 +41,10 @@ goes through ``ingest``, ``split-knn``, ``fit-coarse``,
 ``sweep --study 0`` and ``report``; then those rows through ``ingest --append`` and every
 later stage with ``--incremental``; then ``split-knn``, ``fit-coarse``, ``sweep`` and ``report``
 with ``--incremental`` once more on unchanged inputs; and the same update as one command,
-``heliocal update`` (phase ``update-cmd``), on a copy of the work directory the full method left.
+``heliocal update`` (phase ``update-cmd``), on a copy of the work directory the full method left,
+put back at the same path (the stage-by-stage result moves to ``<wd>-stages``): a plant updates
+its work directory where it is, and the report's pages, which name their work directory, are kept
+where their bytes did not change.
 
 The simulated field is cached in OUT/field (delete it to simulate again).
 """
@@ -237,9 +240,9 @@ def split_update(field_dir: Path, n_update: int | None = None,
 def phase_commands(args, field_dir: Path, wd: Path, base: Path, update: Path,
                    workers: int) -> dict[str, list[list[str]]]:
     """The heliocal commands of :func:`run_all`'s phases (``full``, ``update``, ``rerun``) on
-    the work directory ``wd``, and ``update-cmd`` (``heliocal update``) on its copy ``<wd>-cmd``
-    as the full phase left it: ``base`` and ``update`` are :func:`split_update`'s logs; ``args``
-    gives ``solver``, ``sweep_args`` and ``later``."""
+    the work directory ``wd``, and ``update-cmd`` (``heliocal update``) on ``wd`` again, which
+    :func:`run_all` has put back as the full phase left it: ``base`` and ``update`` are
+    :func:`split_update`'s logs; ``args`` gives ``solver``, ``sweep_args`` and ``later``."""
     props = ["--properties", str(field_dir / "paint"), "--workdir", str(wd)]
     w = ["--workers", str(workers)]
     coarse = ["fit-coarse", "--workdir", str(wd), "--preset", "static-20", *w,
@@ -254,7 +257,7 @@ def phase_commands(args, field_dir: Path, wd: Path, base: Path, update: Path,
                    *[[*c, "--incremental"] for c in later]],
         "rerun": [["split-knn", "--workdir", str(wd), "--incremental"],
                   [*coarse, "--incremental"], *[[*c, "--incremental"] for c in later]],
-        "update-cmd": [["update", str(update), "--workdir", f"{wd}-cmd", *w]],
+        "update-cmd": [["update", str(update), "--workdir", str(wd), *w]],
     }
     return phases
 
@@ -263,13 +266,17 @@ def run_all(args, field_dir: Path, info: dict, workers: int) -> None:
     """The full method, a daily update and a rerun on unchanged inputs, timed in one run."""
     base, update, n_update = split_update(field_dir, args.update_heliostats)
     wd = args.out / f"run-{args.heliostats}-all-w{workers}"
-    copy = Path(f"{wd}-cmd")          # the day before, for the update as one command
-    for folder in (wd, copy):
+    copy = Path(f"{wd}-day0")         # the day before, for the update as one command
+    stages = Path(f"{wd}-stages")     # where the stage-by-stage update's result goes then
+    for folder in (wd, copy, stages):
         shutil.rmtree(folder, ignore_errors=True)
     phases = phase_commands(args, field_dir, wd, base, update, workers)
     print(f"update: {n_update} heliostats x {UPDATE_ROWS} new rows; workers={workers}", flush=True)
     table = []
     for phase, commands in phases.items():
+        if phase == "update-cmd":     # the day before, back at the work directory's path
+            wd.rename(stages)
+            copy.rename(wd)
         total = 0.0
         for cmd in commands:
             wall, peak = run_stage(cmd)
