@@ -335,22 +335,31 @@ def select(coarse_errors, candidates: Sequence[Candidate], weights,
     best = min(passed, key=lambda i: (judged[i].mean_mrad, candidates[i].complexity))
     if not rule.one_se:
         return best, judged
-    near = [i for i in passed if _near_best(candidates[i], candidates[best], judged[i],
-                                            judged[best], weights, rule.one_se_of)]
+    near = _within_one_se(candidates, judged, passed, best, weights, rule.one_se_of)
     return min(near, key=lambda i: (candidates[i].complexity, judged[i].mean_mrad)), judged
 
 
-def _near_best(candidate: Candidate, best: Candidate, judged: "Judgement",
-               judged_best: "Judgement", weights, one_se_of: str) -> bool:
-    """Whether ``candidate`` is within one standard error of ``best`` on the weighted validation
-    rows, the standard error as :attr:`SelectionRule.one_se_of` says."""
+def _within_one_se(candidates: Sequence[Candidate], judged: Sequence["Judgement"],
+                   passed: Sequence[int], best: int, weights, one_se_of: str) -> list[int]:
+    """The candidates of ``passed`` within one standard error of ``best`` on the weighted
+    validation rows, the standard error as :attr:`SelectionRule.one_se_of` says (the best's
+    own band is worked out once; ``difference`` pairs each candidate with the best)."""
     if one_se_of == "difference":
-        d, se, _ = paired_gain(candidate.val_errors, best.val_errors, weights)
-        return not d > se
-    if one_se_of == "error":
-        errors, w = np.asarray(best.val_errors, np.float64), np.asarray(weights, np.float64)
-        ok = np.isfinite(errors) & (w > 0)
-        se = _weighted_mean_se(errors[ok], w[ok] / w[ok].sum())[1] if ok.any() else math.nan
-    else:
-        se = judged_best.se_mrad
-    return judged.mean_mrad <= judged_best.mean_mrad + se
+        near = []
+        for i in passed:
+            d, se, _ = paired_gain(candidates[i].val_errors, candidates[best].val_errors, weights)
+            if not d > se:
+                near.append(i)
+        return near
+    se = (_error_se(candidates[best].val_errors, weights) if one_se_of == "error"
+          else judged[best].se_mrad)
+    limit = judged[best].mean_mrad + se
+    return [i for i in passed if judged[i].mean_mrad <= limit]
+
+
+def _error_se(errors, weights) -> float:
+    """The standard error of the weighted mean of ``errors`` [mrad] over its finite rows of
+    positive weight (:func:`_weighted_mean_se`); NaN without such rows."""
+    errors, w = np.asarray(errors, np.float64), np.asarray(weights, np.float64)
+    ok = np.isfinite(errors) & (w > 0)
+    return _weighted_mean_se(errors[ok], w[ok] / w[ok].sum())[1] if ok.any() else math.nan
