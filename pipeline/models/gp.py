@@ -31,6 +31,13 @@ signal variance in units of the training residuals' mean square (bounds 1e-4 .. 
   days of common misfit (short lengths) alike; the 3/2 form, measured beside it, gave the same
   marginal likelihoods within 1 on the Jülich heliostats;
 - env (with ``env`` columns): ``C RBF(env)`` with one length per column in [0.1, 100] std;
+- periodic (where :func:`~.periodic.find_periodic_error` finds a periodic error in the training
+  residuals against one axis's motor steps, false-alarm probability below 1e-3): ``C
+  ExpSineSquared(steps)`` with the periodogram's period held fixed and its length in [1, 20]
+  (close to a sinusoid): a gear's or a drive screw's error, which repeats with each turn.
+  Over the sky it looks like noise (a day's rows pass through many periods), so neither the sun
+  nor the time kernel can follow it; in the steps it extrapolates by its period. ``aim`` solves the steps and the
+  correction together (:func:`~.gp_heliostat.gp_aim_steps`);
 - noise: ``WhiteKernel`` in [1e-4, 10].
 
 Structures: ``sun`` (sun + noise), ``sun+time`` (additive: a sky pattern plus a level in time),
@@ -50,6 +57,7 @@ and at an aim only ``w (2 - w)`` of its reduction to the posterior variance is g
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -57,11 +65,13 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 import torch
-from sklearn.gaussian_process.kernels import RBF, ConstantKernel, Matern, WhiteKernel
+from sklearn.gaussian_process.kernels import (RBF, ConstantKernel, ExpSineSquared, Matern,
+                                              WhiteKernel)
 
 from ..errors import ParameterError, check_int
 from .fade import NO_FADE, Fade, epoch_seconds
 from .gp_likelihood import OnColumns, Regressor
+from .periodic import PeriodicError, find_periodic_error
 
 __all__ = [
     "GP_STRUCTURES",
@@ -100,6 +110,9 @@ class GPConfig:
     max_train_rows : a heliostat with more training rows uses a seeded subsample of this many
         (the fit costs O(n^3) per step).
     time_nu : smoothness of the time kernel's Matern form (0.5: Ornstein-Uhlenbeck; 1.5).
+    periodic : look for a periodic error in the motor steps of an axis
+        (:func:`~.periodic.find_periodic_error` on the training rows' residuals) and, where one
+        is found, add a periodic term in those steps to every structure (module docstring).
     """
 
     structures: tuple[str, ...] = ("sun", "sun+time")
@@ -108,6 +121,7 @@ class GPConfig:
     seed: int = 0
     max_train_rows: int = 600
     time_nu: float = 0.5
+    periodic: bool = True
 
     def validated(self) -> "GPConfig":
         if not self.structures:
@@ -174,19 +188,26 @@ def correct_normals(predicted: torch.Tensor, correction_mrad) -> torch.Tensor:
 # ------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class GPInputs:
-    """The GP's input encoding: sun azimuth and elevation [deg], time [days since ``t0_s``] and
-    the env columns standardised; rows without a time get ``fill_time_s`` (the training rows'
-    median), missing env values the mean (0 after standardising)."""
+    """The GP's input encoding: sun azimuth and elevation [deg], time [days since ``t0_s``], the
+    env columns standardised and, with a periodic error (``periodic_axis`` 1 or 2, of period
+    ``period_steps``), that axis's motor steps [steps]; rows without a time get ``fill_time_s``
+    (the training rows' median), missing env values the mean (0 after standardising), missing
+    steps ``fill_steps`` (the training rows' median)."""
 
     t0_s: float
     fill_time_s: float
     env: tuple[str, ...] = ()
     env_mean: tuple[float, ...] = ()
     env_std: tuple[float, ...] = ()
+    periodic_axis: int = 0
+    period_steps: float = math.nan
+    fill_steps: float = math.nan
 
     @classmethod
-    def fit(cls, rows: pd.DataFrame, env: Sequence[str] = ()) -> "GPInputs":
-        """Constants from the training rows (inputs only)."""
+    def fit(cls, rows: pd.DataFrame, env: Sequence[str] = (),
+            periodic: PeriodicError | None = None) -> "GPInputs":
+        """Constants from the training rows (inputs only) and the periodic error found in their
+        residuals (:func:`~.periodic.find_periodic_error`; None: no steps input)."""
         t = epoch_seconds(rows["timestamp"]) if "timestamp" in rows else np.array([np.nan])
         t = t[np.isfinite(t)]
         t0, fill = (float(t.min()), float(np.median(t))) if len(t) else (0.0, 0.0)
@@ -201,15 +222,26 @@ class GPInputs:
             v = v[np.isfinite(v)]
             means.append(float(v.mean()) if len(v) else 0.0)
             stds.append(float(v.std()) if len(v) and v.std() > 0 else 1.0)
-        return cls(t0, fill, tuple(env), tuple(means), tuple(stds))
+        if periodic is None:
+            return cls(t0, fill, tuple(env), tuple(means), tuple(stds))
+        steps = rows[f"axis_{periodic.axis}_steps"].to_numpy(np.float64)
+        return cls(t0, fill, tuple(env), tuple(means), tuple(stds), periodic.axis,
+                   float(periodic.period_steps), float(np.nanmedian(steps)))
+
+    @property
+    def period(self) -> float | None:
+        """The periodic error's period [steps], None without one."""
+        return float(self.period_steps) if self.periodic_axis else None
 
     @property
     def n_inputs(self) -> int:
-        return 3 + len(self.env)
+        return 3 + len(self.env) + (1 if self.periodic_axis else 0)
 
-    def encode(self, azimuth_deg, elevation_deg, time_s, env_values=None) -> np.ndarray:
-        """(N, 3 + E) inputs from sun angles [deg], times [s since 1970] (NaN: the fill time)
-        and raw env values (N, E) (NaN: the mean)."""
+    def encode(self, azimuth_deg, elevation_deg, time_s, env_values=None,
+               steps=None) -> np.ndarray:
+        """(N, n_inputs) inputs from sun angles [deg], times [s since 1970] (NaN: the fill time),
+        raw env values (N, E) (NaN: the mean) and motor steps (N, 2) (axis 1, axis 2; None or
+        NaN: the fill steps)."""
         az = np.asarray(azimuth_deg, np.float64).reshape(-1)
         t = np.asarray(time_s, np.float64).reshape(-1) if time_s is not None else np.full(len(az), np.nan)
         t = np.where(np.isfinite(t), t, self.fill_time_s)
@@ -218,6 +250,10 @@ class GPInputs:
             e = np.asarray(env_values, np.float64).reshape(len(az), len(self.env))
             z = (e - np.asarray(self.env_mean)) / np.asarray(self.env_std)
             cols += list(np.nan_to_num(z, nan=0.0).T)
+        if self.periodic_axis:
+            s = (np.full(len(az), np.nan) if steps is None else
+                 np.asarray(steps, np.float64).reshape(len(az), 2)[:, self.periodic_axis - 1])
+            cols.append(np.where(np.isfinite(s), s, self.fill_steps))
         return np.column_stack(cols)
 
     def encode_rows(self, rows: pd.DataFrame) -> np.ndarray:
@@ -225,26 +261,35 @@ class GPInputs:
         env = (rows[[f"env_{e}" for e in self.env]].apply(pd.to_numeric, errors="coerce")
                .to_numpy(np.float64) if self.env else None)
         time = epoch_seconds(rows["timestamp"]) if "timestamp" in rows else None
+        steps = (rows[["axis_1_steps", "axis_2_steps"]].to_numpy(np.float64)
+                 if self.periodic_axis and {"axis_1_steps", "axis_2_steps"} <= set(rows) else None)
         return self.encode(rows["sun_azimuth_deg"].to_numpy(np.float64),
-                           rows["sun_elevation_deg"].to_numpy(np.float64), time, env)
+                           rows["sun_elevation_deg"].to_numpy(np.float64), time, env, steps)
 
     def to_dict(self) -> dict:
-        return {"t0_s": self.t0_s, "fill_time_s": self.fill_time_s, "env": list(self.env),
-                "env_mean": list(self.env_mean), "env_std": list(self.env_std)}
+        d = {"t0_s": self.t0_s, "fill_time_s": self.fill_time_s, "env": list(self.env),
+             "env_mean": list(self.env_mean), "env_std": list(self.env_std)}
+        if self.periodic_axis:
+            d.update(periodic_axis=self.periodic_axis, period_steps=self.period_steps,
+                     fill_steps=self.fill_steps)
+        return d
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "GPInputs":
         return cls(float(d["t0_s"]), float(d["fill_time_s"]), tuple(d.get("env", ())),
                    tuple(float(v) for v in d.get("env_mean", ())),
-                   tuple(float(v) for v in d.get("env_std", ())))
+                   tuple(float(v) for v in d.get("env_std", ())),
+                   int(d.get("periodic_axis", 0)), float(d.get("period_steps", math.nan)),
+                   float(d.get("fill_steps", math.nan)))
 
 
 # ------------------------------------------------------------------------------------------------
 # kernels
 # ------------------------------------------------------------------------------------------------
-def _kernel(structure: str, n_env: int, time_nu: float = 0.5):
-    """The kernel of ``structure`` (module docstring) with its bounds and starting values; the
-    last term is the noise."""
+def _kernel(structure: str, n_env: int, time_nu: float = 0.5, period_steps: float | None = None):
+    """The kernel of ``structure`` (module docstring) with its bounds and starting values, with
+    the periodic term of a period ``period_steps`` [steps] (its input the column after the env
+    columns); the last term is the noise."""
     on = OnColumns
     var = lambda: ConstantKernel(0.5, (1e-4, 1e2))  # noqa: E731
     sun = lambda: on(Matern([20.0, 20.0], (2.0, 1e3), nu=2.5), (0, 1))  # noqa: E731
@@ -260,6 +305,8 @@ def _kernel(structure: str, n_env: int, time_nu: float = 0.5):
                              f"{', '.join(GP_STRUCTURES)}. Got {structure!r} instead.")
     if n_env:
         k = k + var() * on(RBF([1.0] * n_env, (0.1, 1e2)), tuple(range(3, 3 + n_env)))
+    if period_steps is not None:
+        k = k + var() * on(ExpSineSquared(2.0, period_steps, (1.0, 20.0), "fixed"), (3 + n_env,))
     return k + WhiteKernel(0.5, (1e-4, 1e1))
 
 
@@ -353,8 +400,9 @@ class GPCorrection:
         """scikit-learn's regressor at the stored hyperparameters (no optimisation: the same
         posterior as the fit's, from the stored training rows)."""
         if self._gp is None:
-            kernel = _kernel(self.structure, len(self.inputs.env), self.time_nu).clone_with_theta(
-                np.asarray(self.theta, np.float64))
+            kernel = _kernel(self.structure, len(self.inputs.env), self.time_nu,
+                             self.inputs.period)
+            kernel = kernel.clone_with_theta(np.asarray(self.theta, np.float64))
             self._gp = _regressor(kernel, 0, 0, optimize=False).fit(
                 self.x_train, self.y_train_mrad / self.y_scale_mrad)
         return self._gp
@@ -442,13 +490,16 @@ def fit_gp_corrections(rows: pd.DataFrame, residuals_mrad: np.ndarray,
         keep = np.sort(np.random.default_rng(config.seed).choice(
             len(rows), config.max_train_rows, replace=False))
         rows, y = rows.iloc[keep].reset_index(drop=True), y[keep]
-    inputs = GPInputs.fit(rows, config.env)
+    periodic = None
+    if config.periodic and {"axis_1_steps", "axis_2_steps"} <= set(rows):
+        periodic = find_periodic_error(rows[["axis_1_steps", "axis_2_steps"]].to_numpy(), y)
+    inputs = GPInputs.fit(rows, config.env, periodic)
     x = inputs.encode_rows(rows)
     scale = float(np.sqrt(np.mean(y ** 2))) or 1.0
     out = {}
     for structure in dict.fromkeys(config.structures):
-        gp = _regressor(_kernel(structure, len(config.env), config.time_nu), config.restarts,
-                        config.seed)
+        gp = _regressor(_kernel(structure, len(config.env), config.time_nu, inputs.period),
+                        config.restarts, config.seed)
         with warnings.catch_warnings():
             # a length at its upper bound is a finding (that input does not matter), not a fault
             warnings.simplefilter("ignore")

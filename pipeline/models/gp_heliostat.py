@@ -156,13 +156,14 @@ def gp_aim_steps(model: GPCorrection, params: torch.Tensor, spec, sun: torch.Ten
                  max_iterations: int = 50, tolerance_steps: float = 1e-6) -> GPAim:
     """Motor steps whose GP-corrected normal reflects the sun onto ``aim_point``, for K aims.
 
-    The correction ``g`` depends on the sun, the time and env, not on the steps, so the coarse
-    model must point its normal at ``n_c`` with ``correct(n_c, g) = n*`` (``n*`` the bisector of
-    the sun and the direction to the aim point): the coarse inverse kinematics aims at the point
-    the normal ``n_c`` reflects the sun to, at the aim point's distance. The mirror centre moves
-    with the steps, so this is iterated until the steps change by less than ``tolerance_steps``;
-    each aim stops on its own (the K aims are a batch of independent fixed points: an aim's steps
-    are those it would get alone), and one that becomes unreachable is NaN.
+    The coarse model must point its normal at ``n_c`` with ``correct(n_c, g) = n*`` (``n*`` the
+    bisector of the sun and the direction to the aim point): the coarse inverse kinematics aims
+    at the point the normal ``n_c`` reflects the sun to, at the aim point's distance. The mirror
+    centre moves with the steps, and a model with a periodic term's correction ``g`` with them
+    too (the sun, the time and env fix the rest of it), so this is iterated, ``g`` taken at the
+    latest steps, until the steps change by less than ``tolerance_steps``; each aim stops on its
+    own (the K aims are a batch of independent fixed points: an aim's steps are those it would
+    get alone), and one that becomes unreachable is NaN.
 
     Parameters
     ----------
@@ -180,23 +181,33 @@ def gp_aim_steps(model: GPCorrection, params: torch.Tensor, spec, sun: torch.Ten
     az, el = sun_angles_from_vector(sun.numpy())
     t = np.broadcast_to(np.asarray(np.nan if time_s is None else time_s, np.float64), (k,))
     env = None if env_values is None else np.asarray(env_values, np.float64).reshape(k, -1)
-    x = model.inputs.encode(az, el, t, env)
-    pred = model.predict(x, _fade_weights(model.fade, az, el, t))
-    g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
+    fade = _fade_weights(model.fade, az, el, t)
     rows = (params, sun[:, None], aim_point[:, None])      # each aim a batch of one
     steps = inverse_kinematics(params, spec, sun[:, None], aim_point[:, None])[:, 0]
+
+    def correction(at_steps):
+        return model.predict(model.inputs.encode(az, el, t, env, at_steps.numpy()), fade)
+
+    pred = correction(steps)
+    g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
     iterations = np.zeros(k, np.int64)
     todo = torch.isfinite(steps).all(-1)
     for it in range(1, max_iterations + 1):
         if not bool(todo.any()):
             break
         idx = torch.nonzero(todo).flatten()
+        if model.inputs.periodic_axis and it > 1:
+            pred = correction(steps)
+            g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
         new = _gp_step(params[idx], spec, sun[idx], aim_point[idx], g[idx], steps[idx])
         delta = (new - steps[idx]).abs().amax(-1)
         steps[idx] = new
         iterations[idx.numpy()] = it
         done = ~torch.isfinite(new).all(-1) | (delta < tolerance_steps)
         todo[idx[done]] = False
+    if model.inputs.periodic_axis:
+        pred = correction(steps)
+        g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
     with torch.no_grad():
         normal, position = forward_kinematics(rows[0], spec, steps[:, None])
     return GPAim(steps, iterations, correct_normals(normal[:, 0], g.numpy()), position[:, 0],

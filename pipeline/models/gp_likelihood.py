@@ -11,7 +11,8 @@ passes over (n, n) arrays:
 * the kernel and its gradient in one walk of the expression that writes each node's gradient
   into its slice of one preallocated array (:func:`kernel_and_gradient`), with a constant
   factor applied as a scalar and the Matérn and RBF terms computed from the inputs' squared
-  differences, which do not depend on the hyperparameters and are computed once per fit;
+  differences, which do not depend on the hyperparameters and are computed once per fit (and
+  a periodic term of fixed period from ``sin^2(pi |x - x'| / period)``, likewise);
 * the gradient of the log marginal likelihood, summed over the outputs ``Y`` (n, m) with
   ``alpha = K^-1 Y``, as one matrix ``W = alpha alpha^T - m K^-1`` (``K^-1`` from the Cholesky
   factor, LAPACK ``potri``) against the gradient read as an (n^2, p) matrix:
@@ -32,8 +33,8 @@ import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
 from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import (RBF, ConstantKernel, Hyperparameter, Kernel, Matern,
-                                              Product, Sum, WhiteKernel)
+from sklearn.gaussian_process.kernels import (RBF, ConstantKernel, ExpSineSquared, Hyperparameter,
+                                              Kernel, Matern, Product, Sum, WhiteKernel)
 
 __all__ = ["OnColumns", "Regressor", "kernel_and_gradient", "walks"]
 
@@ -116,7 +117,32 @@ def _n_params(node) -> int:
         return 1
     if type(node) is RBF or (type(node) is Matern and node.nu in _MATERN_NU):
         return np.size(node.length_scale) if node.anisotropic else 1
+    if _fixed_period(node):
+        return 1
     raise _Unknown(node)
+
+
+def _fixed_period(node) -> bool:
+    """An ``ExpSineSquared`` whose period is held fixed (its length the one hyperparameter)."""
+    return (type(node) is ExpSineSquared and isinstance(node.periodicity_bounds, str)
+            and node.periodicity_bounds == "fixed"
+            and not (isinstance(node.length_scale_bounds, str)
+                     and node.length_scale_bounds == "fixed"))
+
+
+def _periodic(node, columns: tuple, X, G, cache) -> np.ndarray:
+    """``ExpSineSquared`` of fixed period on one column: ``K = exp(-2 S / l^2)`` with ``S =
+    sin^2(pi |x - x'| / period)`` (computed once per ``cache``), its gradient by ``log l``,
+    ``4 K S / l^2``, into ``G[0]``."""
+    key = ("periodic", columns, float(node.periodicity))
+    if key not in cache:
+        d = np.sqrt(_squared_differences(X, columns, cache).sum(0))
+        cache[key] = np.sin(np.pi * d / node.periodicity) ** 2
+    S = cache[key]
+    l2 = float(node.length_scale) ** 2
+    K = np.exp(-2.0 * S / l2)
+    np.multiply(K, 4.0 * S / l2, out=G[0])
+    return K
 
 
 #: The Matérn smoothness values with a closed form (scikit-learn's others need Bessel functions).
@@ -187,17 +213,21 @@ def _walk(node, X, G, cache, columns=None) -> np.ndarray:
     if type(node) in (Matern, RBF):
         return _stationary(node, columns if columns is not None else tuple(range(X.shape[1])),
                            X, G, cache)
+    if _fixed_period(node):
+        return _periodic(node, columns if columns is not None else tuple(range(X.shape[1])),
+                         X, G, cache)
     raise _Unknown(node)
 
 
 def walks(kernel) -> bool:
     """Whether :func:`kernel_and_gradient` evaluates ``kernel`` itself: every node one it
-    knows, no hyperparameter fixed."""
+    knows, no hyperparameter fixed but a periodic term's period."""
     try:
         _n_params(kernel)
     except _Unknown:
         return False
-    return not any(h.fixed for h in kernel.hyperparameters)
+    return not any(h.fixed for h in kernel.hyperparameters
+                   if not h.name.endswith("periodicity"))
 
 
 def _walked(kernel, X: np.ndarray, cache: dict) -> tuple[np.ndarray, np.ndarray]:
