@@ -190,3 +190,31 @@ def test_a_gp_without_time_no_worse_forward_is_kept(sky_pattern_pools):
     assert sel["model"] == "gp" and sel["forward_check"] == "passed"
     assert sel["time_val_error_mrad"] == pytest.approx(0.125, abs=0.04)
     assert sel["coarse_time_val_error_mrad"] > 2 * sel["time_val_error_mrad"]
+
+
+def test_a_regime_aware_model_s_gp_is_refitted_forward_on_its_latest_regime_s_rows():
+    """fit-coarse's time-split parameters of a regime-aware model are its latest regime's, so the
+    GP's forward refit trains on that regime's training rows only. One row a day for 30 days:
+    24 training, 3 validation, 3 test rows; the latest regime starts on day 10 (an episode on
+    day 24 is not a regime): training rows 0-9 are left out, the other 20 rows kept. With fewer
+    than MIN_REGIME_ROWS (10) training rows in the latest regime (from day 16: 8), or a static
+    model, nothing is left out."""
+    from heliocal.pipeline.models.regime_fit import MIN_REGIME_ROWS
+    from heliocal.pipeline.stages.selection import latest_regime_labels
+
+    assert MIN_REGIME_ROWS == 10
+    times = pd.Series(pd.date_range("2024-01-01", periods=30, freq="D", tz="UTC"))
+    labels = np.array(["train"] * 24 + ["validation"] * 3 + ["test"] * 3, dtype=object)
+
+    def regimes(latest):
+        return pd.DataFrame({"kind": ["regime", "regime", "episode"], "regime": [0, 1, 1],
+                             "start": pd.to_datetime(["2024-01-01", latest, "2024-01-25"],
+                                                     utc=True)})
+
+    aware = {"regime_table": pd.DataFrame({"model": ["static-20+drift"]})}
+    out = latest_regime_labels({**aware, "regimes": regimes("2024-01-11")}, times, labels)
+    assert list(out[:10]) == ["unused"] * 10 and list(out[10:]) == list(labels[10:])
+    few = latest_regime_labels({**aware, "regimes": regimes("2024-01-17")}, times, labels)
+    assert list(few) == list(labels)
+    static = {"regime_table": None, "regimes": regimes("2024-01-11")}
+    assert list(latest_regime_labels(static, times, labels)) == list(labels)

@@ -125,16 +125,20 @@ def gp_selected(workdir) -> list[str]:
 def _time_split_gp(workdir, hid: str, spec, time_params, model, cfg: dict):
     """The GP of ``model``'s structure and fade lengths fitted again on the time split's training
     rows on top of fit-coarse's time-split parameters ``time_params`` (28,), as the sweep's
-    forward check fits it (:func:`heliocal.pipeline.stages.selection.gp_time_errors`)."""
+    forward check fits it (:func:`heliocal.pipeline.stages.selection.gp_time_errors`: of a
+    regime-aware model, the training rows of its latest regime)."""
     import dataclasses
 
     from ..models.gp import GPConfig
     from ..models.gp_heliostat import fit_heliostat_gps
+    from .fit_coarse import load_selected_parameters
+    from .selection import latest_regime_labels
 
     keys = ["heliostat_id", "measurement_id"]
     rows = read_artifact(workdir, MEASUREMENTS, heliostats=[hid]).merge(
         read_artifact(workdir, SPLIT, heliostats=[hid], columns=keys + ["time_split"]), on=keys)
-    labels = rows["time_split"].to_numpy(object)
+    labels = latest_regime_labels(load_selected_parameters(workdir, [hid])[hid],
+                                  rows["timestamp"], rows["time_split"].to_numpy(object))
     config = dataclasses.replace(GPConfig.from_dict(cfg["gp_config"]),
                                  structures=(model.structure,))
     fits = fit_heliostat_gps(rows, labels, spec, MeasurementBatch.from_frame(rows), time_params,

@@ -41,6 +41,7 @@ from ..models.fade import FADE_LENGTHS_DEG, NETWORK_TIME_FADE_DAYS, TIME_FADE_DA
 from ..models.gp import GPConfig
 from ..models.gp_heliostat import HeliostatGP, fit_heliostat_gps, with_correction_map
 from ..models.network import layers_to_state
+from ..models.regime_fit import MIN_REGIME_ROWS
 from ..models.selection import (Candidate, Judgement, SelectionRule, choose_fade,
                                 row_validation_weights, select)
 from ..models.training import faded_errors_mrad, predict_ensembles, predictions_frame
@@ -54,6 +55,7 @@ __all__ = [
     "CandidatePool",
     "apply_forward_checks",
     "gp_time_errors",
+    "latest_regime_labels",
     "study_gps",
     "time_labels",
 ]
@@ -334,16 +336,45 @@ class CandidatePool:
 def gp_time_errors(h, labels: np.ndarray, time_params: torch.Tensor, fit: HeliostatGP,
                    gp_config: GPConfig) -> np.ndarray:
     """error_mrad (N,) of every row of ``h`` under the GP of ``fit``'s structure and fade lengths
-    fitted on the time split's training rows (``labels``) on top of fit-coarse's time-split
+    fitted on the time split's training rows (``labels``; of a regime-aware model those of its
+    latest regime, :func:`latest_regime_labels`) on top of fit-coarse's time-split
     parameters."""
     import dataclasses
 
     config = dataclasses.replace(gp_config, structures=(fit.model.structure,))
+    labels = latest_regime_labels(h.selected, h.rows["timestamp"], labels)
     refit = fit_heliostat_gps(h.rows, labels, h.spec, h.data, time_params, config,
                               np.ones(int((labels == "validation").sum())),
                               lengths=(fit.fade_length_deg,),
                               time_length_days=fit.model.fade.length_days)
     return refit[fit.model.structure].errors
+
+
+def latest_regime_labels(selected: dict, timestamps, labels: np.ndarray) -> np.ndarray:
+    """The time split's ``labels`` (N,) of a heliostat's rows at UTC ``timestamps`` (N,) with
+    the training rows before the latest regime of its selected model (``selected``: an entry of
+    :func:`~heliocal.pipeline.stages.fit_coarse.load_selected_parameters`) left out
+    (``unused``), where the model is regime-aware and that regime has at least
+    :data:`~heliocal.pipeline.models.regime_fit.MIN_REGIME_ROWS` of them; else ``labels`` as
+    they are.
+
+    fit-coarse's time-split parameters of a regime-aware model are those of its latest regime
+    (coarse_params.parquet ``time_fitted``). Under them the rows of earlier regimes carry the
+    regimes' offsets and drift as a residual, which a GP refitted on them learns as a pattern
+    of the sky or of the steps and carries into the later rows: on the simulated heliostats of
+    docs/experiments/fine-selection.md it made the GP worse forward in time than the coarse
+    model (SP34 0.55 against 0.47 mrad; 0.37 on the latest regime's rows alone)."""
+    regimes = selected.get("regimes")
+    if selected.get("regime_table") is None or regimes is None or not len(regimes):
+        return labels
+    starts = pd.to_datetime(regimes.loc[regimes["kind"] == "regime", "start"], utc=True)
+    if starts.empty:
+        return labels
+    train = np.asarray(labels == "train", bool)
+    earlier = train & (pd.to_datetime(pd.Series(timestamps), utc=True) < starts.max()).to_numpy()
+    if int((train & ~earlier).sum()) < MIN_REGIME_ROWS:
+        return labels
+    return np.where(earlier, "unused", labels)
 
 
 def study_gps(h, masks: dict, bases: dict, gp_config: GPConfig,
