@@ -60,7 +60,7 @@ def main(argv=None) -> int:
             per = gp.groupby("heliostat_id")["wall_time_s"].sum()
             chosen = sel["model"].value_counts().to_dict()
             checks = sel["forward_check"].value_counts().to_dict() if "forward_check" in sel else {}
-            print(f"  repeat {r + 1} {name:22s} {wall:7.1f} s  peak {peak / 2**30:4.2f} GiB  "
+            print(f"  repeat {r + 1} {name:22s} {wall:7.1f} s  peak {peak.gib()}  "
                   f"selected {chosen}" + (f"  GP {per.mean():.3f} s per heliostat (median "
                                           f"{per.median():.3f})" if len(per) else "")
                   + (f"  forward checks {checks}" if checks else ""), flush=True)

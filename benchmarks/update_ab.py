@@ -6,7 +6,9 @@ heliostat again: timing an update of new code normally costs a full run built by
 at 2,000 heliostats). For a change that keeps every result (a faster read, a cached page), this
 script times both versions on one full run instead: the ``before`` interpreter's heliocal must be
 the code that built ``--full``; the ``after`` one runs with its code identity pinned to the
-before's, so that it computes the same heliostats. That is only valid if the two updates write
+before's, so that it computes the same heliostats (``--identity ID`` pins both arms to the code
+identity ID of the code that built ``--full``, so ``before`` may itself be a later version that
+keeps its results). That is only valid if the two updates write
 the same artifacts, which the script checks after each pair of runs and refuses to report
 otherwise: every Parquet table equal (sweep.parquet's ``wall_time_s`` aside), every other file
 byte for byte, with the git revision each report prints and metrics.json's input hashes (which
@@ -100,8 +102,8 @@ def _differences(a: Path, b: Path, revisions: tuple[str, str]) -> list[str]:
                 differ.append(str(rel))
         else:
             ba, bb = pa_.read_bytes(), pb.read_bytes()
-            for rev in revisions:
-                ba, bb = ba.replace(rev.encode(), b"REV"), bb.replace(rev.encode(), b"REV")
+            for rev in (f"{r}{dirty}".encode() for dirty in ("-dirty", "") for r in revisions):
+                ba, bb = ba.replace(rev, b"REV"), bb.replace(rev, b"REV")
             if ba != bb:
                 differ.append(str(rel))
     return differ
@@ -111,20 +113,25 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--full", type=Path, required=True, help="a full run built by --before's code")
     ap.add_argument("--log", type=Path, required=True, help="the update's new rows")
-    ap.add_argument("--before", required=True, help="python of the code that built --full")
+    ap.add_argument("--before", required=True,
+                    help="python of the code that built --full (or, with --identity, of any "
+                         "code that keeps its results)")
     ap.add_argument("--after", default=sys.executable, help="python of the new code")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("runs/update-ab"))
+    ap.add_argument("--identity", default=None,
+                    help="pin both arms to this code identity: that of the code which built "
+                         "--full, when --before is a later version of it")
     args = ap.parse_args()
     args.before, args.after = (os.path.abspath(p) for p in (args.before, args.after))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "pinned.py").write_text(_PINNED)
     here = Path.cwd()
-    identity = _ask(args.before, _IDENTITY, here)
+    identity = args.identity or _ask(args.before, _IDENTITY, here)
     revisions = tuple(re.sub(r"-dirty$", "", _ask(py, _REVISION, here)) for py in
                       (args.before, args.after))
-    arms = {"before": (args.before, None), "after": (args.after, identity)}
+    arms = {"before": (args.before, args.identity), "after": (args.after, identity)}
     walls: dict[str, list[float]] = {arm: [] for arm in arms}
     for run in range(args.runs):
         order = list(arms) if run % 2 == 0 else list(reversed(arms))
