@@ -20,6 +20,7 @@ from heliocal.pipeline.artifacts.store import read_provenance
 from heliocal.pipeline.artifacts.schemas import COARSE_PARAMS, COARSE_PREDICTIONS
 from heliocal.pipeline.stages.fit_coarse import coarse_fit_options, run_fit_coarse
 from heliocal.pipeline.models.config import FineConfig
+from heliocal.pipeline.models.gp import GPConfig
 from heliocal.pipeline.stages.aim import aim_models, aim_steps
 from heliocal.pipeline.stages.fit_hybrid import run_fit_hybrid
 from heliocal.pipeline.io.staged import IngestOptions
@@ -336,7 +337,9 @@ def test_study_heliostats_is_a_seeded_choice():
 def aim_workdir(tmp_path_factory):
     """The synthetic sample with every source of aim's model: the sweep over SS48 (gear error:
     hybrid) and SQ04 (static: coarse kept), a fit-hybrid hybrid for ST20 (not swept), and SP13
-    with fit-coarse only."""
+    with fit-coarse only. The sweep's GP has no periodic term here: these tests are about the
+    networks' answer to a gear error (their integer bands represent its period); with the
+    term the GP represents it better still (tests/test_periodic.py, SS48)."""
     w = tmp_path_factory.mktemp("aim")
     log = SYNTHETIC.parent / "calibration_log.csv"
     run_ingest([log], w, IngestOptions(properties=SYNTHETIC))
@@ -348,7 +351,8 @@ def aim_workdir(tmp_path_factory):
     # one weight decay of the grid (the one the full sweep selects on SS48), trained from scratch
     # with the full budget of FineConfig, so the fixture runs in seconds
     run_sweep(w, weight_decays=[1e-2], baselines=(), config=config, heliostats=["SS48", "SQ04"],
-              extra_bands=(), study=0, path=PathConfig(warm_start=False), time_split=True)
+              extra_bands=(), study=0, path=PathConfig(warm_start=False), time_split=True,
+              gp_config=GPConfig(env=("temperature",), periodic=False))
     return w
 
 
