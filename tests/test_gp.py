@@ -444,13 +444,20 @@ def test_the_kernel_walk_and_the_likelihood_gradient_are_scikit_learn_s(structur
     ``log_marginal_likelihood(theta, eval_gradient=True)`` at the start and at a moved theta,
     against models/gp_likelihood.py's walk and regressor; equal to rounding (1e-12 relative,
     the gradient's entries to 1e-9 of its largest)."""
-    from sklearn.gaussian_process import GaussianProcessRegressor
-
     from heliocal.pipeline.models.gp import _kernel
-    from heliocal.pipeline.models.gp_likelihood import Regressor, kernel_and_gradient
 
     x, y = _gp_inputs(n_env=n_env)
-    kernel = _kernel(structure, n_env, time_nu)
+    _assert_the_walk_is_scikit_learn_s(_kernel(structure, n_env, time_nu), x, y)
+
+
+def _assert_the_walk_is_scikit_learn_s(kernel, x, y):
+    """The walk's kernel and gradient and the regressor's likelihood gradient against
+    scikit-learn's, at the kernel's theta and at a moved one (1e-12 relative; the gradient's
+    entries to 1e-9 of its largest)."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+
+    from heliocal.pipeline.models.gp_likelihood import Regressor, kernel_and_gradient
+
     thetas = [kernel.theta, kernel.theta + np.random.default_rng(1).normal(
         scale=0.5, size=len(kernel.theta))]
     ours, ref = (cls(kernel, optimizer=None).fit(x, y)
@@ -473,28 +480,14 @@ def test_the_walk_of_a_periodic_term_of_fixed_period_is_scikit_learn_s(structure
     """The same reference with the periodic term (models/periodic.py): its period fixed, so the
     walk evaluates it (not left to scikit-learn) and gives scikit-learn's kernel, gradient and
     likelihood gradient to rounding, at the start and at a moved theta."""
-    from sklearn.gaussian_process import GaussianProcessRegressor
-
     from heliocal.pipeline.models.gp import _kernel
-    from heliocal.pipeline.models.gp_likelihood import Regressor, kernel_and_gradient, walks
+    from heliocal.pipeline.models.gp_likelihood import walks
 
     x, y = _gp_inputs(n_env=n_env)
     x = np.c_[x, np.random.default_rng(2).uniform(0, 50_000, len(x))]     # axis 2's steps
     kernel = _kernel(structure, n_env, 0.5, 3000.0)
     assert walks(kernel)
-    thetas = [kernel.theta, kernel.theta + np.random.default_rng(1).normal(
-        scale=0.5, size=len(kernel.theta))]
-    ours, ref = (cls(kernel, optimizer=None).fit(x, y)
-                 for cls in (Regressor, GaussianProcessRegressor))
-    for theta in thetas:
-        k = kernel.clone_with_theta(theta)
-        (K, G), (K_ref, G_ref) = kernel_and_gradient(k, x), k(x, eval_gradient=True)
-        np.testing.assert_allclose(K, K_ref, rtol=1e-12, atol=1e-14)
-        np.testing.assert_allclose(G, G_ref, rtol=1e-12, atol=1e-12 * np.abs(G_ref).max())
-        (lml, grad), (lml_ref, grad_ref) = (r.log_marginal_likelihood(theta, eval_gradient=True)
-                                            for r in (ours, ref))
-        assert lml == pytest.approx(lml_ref, rel=1e-12)
-        np.testing.assert_allclose(grad, grad_ref, rtol=0, atol=1e-9 * np.abs(grad_ref).max())
+    _assert_the_walk_is_scikit_learn_s(kernel, x, y)
 
 
 def test_a_kernel_the_walk_does_not_know_is_scikit_learn_s():
