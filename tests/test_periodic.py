@@ -175,3 +175,20 @@ def test_the_synthetic_sample_s_gear_error_heliostat_gets_its_period(tmp_path):
     assert inputs["periodic_axis"] == 2
     assert inputs["period_steps"] == pytest.approx(gear["period_steps"], rel=0.01)
     assert h["gp"]["test"] < 0.5 * h["coarse"]["test"]
+
+
+def test_the_correction_map_names_the_period():
+    """The report's map title (gp_map.structure_label, the same from the model and from its
+    stored configuration) names a periodic term's axis and period; a GP without one keeps its
+    structure's name."""
+    from heliocal.pipeline.models.gp_heliostat import correction_grid
+    from heliocal.pipeline.models.gp_map import structure_label
+
+    train, y = _gear_rows(80, 8)
+    model = fit_gp_correction(train, y, GPConfig(structures=("sun",)))
+    period = f"{model.inputs.period_steps:,.0f}"
+    assert correction_grid(model)["structure"] == f"sun, periodic in axis 2: {period} steps"
+    assert structure_label(json.loads(json.dumps(model.to_dict()))) == \
+        f"sun, periodic in axis 2: {period} steps"
+    plain = fit_gp_correction(train, y, GPConfig(structures=("sun",), periodic=False))
+    assert correction_grid(plain)["structure"] == "sun"

@@ -21,7 +21,7 @@ from ..physics.sun import sun_angles_from_vector
 from .fade import FADE_LENGTHS_DEG
 from .gp import (GPConfig, GPCorrection, GPPrediction, best_structure, correct_normals,
                  fit_gp_corrections, pointing_frame, pointing_residuals_mrad)
-from .gp_map import MAP_KEY, MapGrid, map_figure_data, map_grid, map_section
+from .gp_map import MAP_KEY, MapGrid, map_figure_data, map_grid, map_section, structure_label
 from .selection import choose_fade
 
 __all__ = [
@@ -251,7 +251,8 @@ def correction_grid(model: GPCorrection, time_s: float | None = None, *, n_azimu
     :func:`heliocal.pipeline.models.gp_map.map_figure_data`)."""
     grid = map_grid(model.fade, time_s, n_azimuth=n_azimuth, n_elevation=n_elevation,
                     margin_deg=margin_deg)
-    return map_figure_data(grid, model.fade, _grid_mean_mrad(model, grid), model.structure)
+    return map_figure_data(grid, model.fade, _grid_mean_mrad(model, grid),
+                           structure_label(model.to_dict()))
 
 
 def with_correction_map(config: dict, state: dict) -> dict:

@@ -36,7 +36,7 @@ import pandas as pd
 from .fade import Fade
 
 __all__ = ["MAP_KEY", "MapGrid", "map_grid", "map_figure_data", "map_section",
-           "stored_correction_map"]
+           "stored_correction_map", "structure_label"]
 
 #: The configuration's key of the stored map.
 MAP_KEY = "correction_map"
@@ -98,6 +98,16 @@ def map_figure_data(grid: MapGrid, fade: Fade, mean_mrad: np.ndarray, structure:
             "structure": structure, "fade_length_deg": fade.length_deg, "when": when}
 
 
+def structure_label(gp: Mapping) -> str:
+    """The kernel structure of a GP model's configuration (its ``gp`` section) as the map's title
+    names it: with a periodic term (:mod:`.periodic`), its axis and period."""
+    inputs = gp.get("inputs") or {}
+    axis = int(inputs.get("periodic_axis", 0) or 0)
+    if not axis:
+        return str(gp["structure"])
+    return f"{gp['structure']}, periodic in axis {axis}: {float(inputs['period_steps']):,.0f} steps"
+
+
 def map_section(grid: MapGrid, mean_mrad: np.ndarray) -> dict:
     """The configuration's :data:`MAP_KEY` section of a map (the module's docstring)."""
     mean = np.asarray(mean_mrad, "<f8").reshape(-1, 2)
@@ -128,7 +138,7 @@ def stored_correction_map(config: Mapping) -> dict | None:
                     margin_deg=float(section["margin_deg"]))
     n = grid.shape[0] * grid.shape[1]
     mean = np.stack([_decode(section["mean_h_mrad"], n), _decode(section["mean_v_mrad"], n)], -1)
-    return map_figure_data(grid, fade, mean, str(config["gp"]["structure"]))
+    return map_figure_data(grid, fade, mean, structure_label(config["gp"]))
 
 
 def _encode(values: np.ndarray) -> str:
