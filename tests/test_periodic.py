@@ -164,7 +164,8 @@ def test_the_synthetic_sample_s_gear_error_heliostat_gets_its_period(tmp_path):
     sample = Path(__file__).resolve().parents[1] / "sample_data" / "synthetic"
     truth = json.loads((sample / "ground_truth.json").read_text())
     gear = truth["heliostats"]["SS48"]["disturbances"]["gear_error"]
-    run_ingest([sample / "calibration_log.csv"], tmp_path, IngestOptions(properties=sample / "paint"))
+    run_ingest([sample / "calibration_log.csv"], tmp_path,
+               IngestOptions(properties=sample / "paint"))
     run_split(tmp_path)
     run_fit_coarse(tmp_path)
     summary = run_fit_hybrid(tmp_path, mode="gp", heliostats=["SS48"],
