@@ -122,23 +122,23 @@ def gp_selected(workdir) -> list[str]:
     return sorted(h for h, m in aim_models(workdir).items() if m["model"] == "gp")
 
 
-def _time_split_gp(workdir, hid: str, spec, time_params, model, cfg: dict):
+def _time_split_gp(workdir, hid: str, spec, time_params, model, cfg: dict, fitted: dict):
     """The GP of ``model``'s structure and fade lengths fitted again on the time split's training
     rows on top of fit-coarse's time-split parameters ``time_params`` (28,), as the sweep's
     forward check fits it (:func:`heliocal.pipeline.stages.selection.gp_time_errors`: of a
-    regime-aware model, the training rows of its latest regime)."""
+    regime-aware model, the training rows of its latest regime; ``fitted``: the heliostat's
+    entry of :func:`.fit_coarse.load_selected_parameters`)."""
     import dataclasses
 
     from ..models.gp import GPConfig
     from ..models.gp_heliostat import fit_heliostat_gps
-    from .fit_coarse import load_selected_parameters
     from .selection import latest_regime_labels
 
     keys = ["heliostat_id", "measurement_id"]
     rows = read_artifact(workdir, MEASUREMENTS, heliostats=[hid]).merge(
         read_artifact(workdir, SPLIT, heliostats=[hid], columns=keys + ["time_split"]), on=keys)
-    labels = latest_regime_labels(load_selected_parameters(workdir, [hid])[hid],
-                                  rows["timestamp"], rows["time_split"].to_numpy(object))
+    labels = latest_regime_labels(fitted, rows["timestamp"],
+                                  rows["time_split"].to_numpy(object))
     config = dataclasses.replace(GPConfig.from_dict(cfg["gp_config"]),
                                  structures=(model.structure,))
     fits = fit_heliostat_gps(rows, labels, spec, MeasurementBatch.from_frame(rows), time_params,
@@ -157,11 +157,14 @@ def gp_calibration_rows(workdir, setting: str) -> pd.DataFrame:
     from ..artifacts.schemas import SELECTED_PREDICTIONS
     from ..models.gp import GPCorrection
     from .aim import load_model
+    from .fit_coarse import load_selected_parameters
 
     ids = gp_selected(workdir)
     if not ids:
         return pd.DataFrame()
     specs, selected, budgets = _coarse_budgets(workdir, setting, ids)
+    # the regimes of the selected fits (the forward budgets' ``selected`` has none)
+    fitted = load_selected_parameters(workdir, ids) if setting == "forward" else {}
     rows, last_train, actual = _test_rows(workdir, setting, SELECTED_PREDICTIONS, ids)
     out = []
     for hid, g in rows.groupby("heliostat_id"):
@@ -170,7 +173,8 @@ def gp_calibration_rows(workdir, setting: str) -> pd.DataFrame:
         cfg, state = load_model(workdir, "selected", hid)
         model = GPCorrection.from_model(cfg, state)
         if setting == "forward":
-            model = _time_split_gp(workdir, hid, specs[hid], selected[hid]["params"], model, cfg)
+            model = _time_split_gp(workdir, hid, specs[hid], selected[hid]["params"], model, cfg,
+                                   fitted[hid])
         gp = model.predict_rows(g)
         b = MeasurementBatch.from_frame(g)
         args = (budgets[hid], specs[hid], selected[hid]["params"], b.steps, b.sun, b.focal_spot,
