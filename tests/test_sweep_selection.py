@@ -104,6 +104,20 @@ def test_the_pretrained_network_without_date_inputs_is_checked_too():
     assert res["selection"]["forward_check"].startswith("failed (pretrained-nn)")
 
 
+def test_a_network_standing_in_for_a_refused_gp_names_both_checks():
+    res = _result(0.9)
+    res["choice"].refused = "gp"
+    apply_forward_checks([res], {"H1": _Item()})
+    assert res["selection"]["model"] == "hybrid"
+    assert res["selection"]["forward_check"] == "failed (gp), then passed (hybrid)"
+    worse = _result(1.2)
+    worse["choice"].refused = "gp"
+    apply_forward_checks([worse], {"H1": _Item()})
+    assert worse["selection"]["model"] == "coarse"
+    assert worse["selection"]["forward_check"] == ("failed (gp), then failed (hybrid): fell back "
+                                                   "to the static choice")
+
+
 # ------------------------------------------------------------------------------------------------
 # a GP without time input, chosen on the kNN split, refitted on the time split
 # ------------------------------------------------------------------------------------------------
@@ -180,6 +194,44 @@ def test_a_gp_without_time_worse_forward_falls_back_to_the_coarse_model(sky_patt
     # GP refitted on them carries the pattern it learnt into the later rows
     assert sel["coarse_time_val_error_mrad"] == pytest.approx(0.125, abs=0.04)
     assert sel["time_val_error_mrad"] > 2 * sel["coarse_time_val_error_mrad"]
+
+
+class _StandInModel:
+    """The parts of a pre-trained network the selection writes (its state is not used here)."""
+
+    def to_dict(self):
+        return {}
+
+    def to_state(self):
+        return {}
+
+
+@pytest.mark.slow
+def test_a_network_stands_in_for_a_gp_refused_forward(sky_pattern_pools):
+    """The rule's next choice replaces the refused GP, a network included: a stand-in whose
+    validation errors are the GP's x 1.1 (so the rule prefers the GP first; the stand-in still
+    beats the coarse model by the margin, a 21 % gain on the weighted validation rows). The
+    network's forward check is still to come, so it carries the static choice (the coarse model:
+    the GP is refused) and the name of the GP it stands in for."""
+    pool = sky_pattern_pools[False]
+    gp = pool.candidates[0]
+    fit = gp.info["fit"]
+    pool.candidates.append(type(gp)(
+        "pretrained-nn", 1.1 * gp.val_errors, (3, 0, 0, 0),
+        {"kind": "pretrained", "weight_decay": math.nan, "seed": 0,
+         "errors": 1.1 * fit.errors, "model": _StandInModel(), "info": {}, "normal": fit.normal,
+         "position": fit.position, "pretrain_config": _StandInModel(), "date_inputs": False}))
+    try:
+        assert pool._pick(pool.candidates)[0].model == "gp"
+        choice = pool.choose()
+    finally:
+        pool.candidates.pop()
+    assert choice.selection["model"] == "pretrained-nn" and choice.refused == "gp"
+    assert choice.selection["forward_check"] == "failed (gp): pretrained-nn stands in"
+    assert choice.fallback.selection["model"] == "coarse"
+    # the figures are the refused GP's until the network's own check replaces them
+    assert choice.selection["time_val_error_mrad"] > 2 * choice.selection[
+        "coarse_time_val_error_mrad"]
 
 
 @pytest.mark.slow

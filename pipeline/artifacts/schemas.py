@@ -519,7 +519,9 @@ SELECTION = ArtifactSchema(
         C("forward_check", "string", "", "Forward-in-time check of a selected fine model (empty: "
           "the coarse model, or no time split): passed, failed (MODEL) (the static choice is "
           "selected instead), or not checked (a network without its time-split training: a sweep "
-          "without --time-split)."),
+          "without --time-split). The rule's next choice stands in for a refused GP (a network "
+          "always checked): 'failed (GP), then passed (MODEL)', or 'failed (GP), then failed "
+          "(MODEL): fell back to the static choice'."),
         C("time_val_error_mrad", "float64", "mrad", "The forward check's figure: mean error on "
           "the time split's validation rows of the checked model trained on its training rows.",
           nullable=True),

@@ -251,7 +251,8 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
     weight decay (``train_path``, ``path``), heliostats of one variant and type batched as in
     the selection; a heliostat whose selected model is the coarse one takes fit-coarse's
     time-split errors. ``enabled=False`` (the sweep's default): only the coarse model's (free)
-    figures are written, a selected hybrid's are missing.
+    figures are written, a selected hybrid's are missing, except where it stands in for a GP the
+    forward check refused (:attr:`~.selection.HeliostatChoice.refused`).
 
     Parameters
     ----------
@@ -283,8 +284,8 @@ def add_sweep_time_split(workdir, chosen: list[dict], items: dict, variants, wei
         if sel["model"] == "coarse":
             errors[hid] = item.coarse[selected["preset"]]["time_error_mrad"].to_numpy(np.float64)
             continue
-        if not enabled:
-            continue
+        if not enabled and (res.get("choice") is None or res["choice"].refused is None):
+            continue                  # a network standing in for a refused GP is always checked
         free = selected["free"]
         key = (sel["model"], str(hrow["kinematic_type"]), str(hrow["actuator_type"]),
                tuple(bool(x) for x in free.tolist()))

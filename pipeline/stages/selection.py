@@ -25,6 +25,10 @@ hybrid's, the pre-trained network's) time-split training is the sweep's forward 
 :func:`apply_forward_checks` falls back to the static choice where the network is worse. The
 static choice is the rule among the GPs without time input and the coarse model, each such GP
 itself checked forward.
+
+A GP refused forward gives way to the rule's next choice among the other candidates, networks
+included: on a heliostat whose sky correction does not last, a hybrid may still (its forward
+pass then runs without ``--time-split`` too, so that it is checked like the GP it replaces).
 """
 
 from __future__ import annotations
@@ -101,7 +105,9 @@ class HeliostatChoice:
     :func:`apply_forward_checks` fails (None: a GP or the coarse model, checked already);
     time_errors : (N,) error_mrad of the model trained on the time split, where the selection
     knows it (the coarse model's from fit-coarse, a GP's refitted; None: a network's, which the
-    sweep's forward pass trains).
+    sweep's forward pass trains); refused : the GP this choice stands in for, refused by the
+    forward check (None: the rule's first choice). A network standing in must be checked
+    forward: the sweep's forward pass trains it even without ``--time-split``.
     """
 
     selection: dict
@@ -109,6 +115,7 @@ class HeliostatChoice:
     predictions: pd.DataFrame
     fallback: "HeliostatChoice | None" = None
     time_errors: np.ndarray | None = None
+    refused: str | None = None
 
 
 @dataclass
@@ -203,26 +210,42 @@ class CandidatePool:
 
     def choose(self) -> HeliostatChoice:
         """The rule's choice, checked forward in time (module docstring): a GP, with or without
-        time, is refitted on the time split here and gives way to the static choice where it is
-        worse there; a network gets the static choice as its :attr:`HeliostatChoice.fallback`
-        for :func:`apply_forward_checks`."""
-        chosen, judged = self._pick(self.candidates)
+        time, is refitted on the time split here and, where it is worse there, gives way to the
+        rule's next choice among the other candidates; a network gets the static choice as its
+        :attr:`HeliostatChoice.fallback` for :func:`apply_forward_checks`."""
+        chosen, judged, refused = self._first_forward_choice()
         forward = self._gp_forward(chosen)
-        if forward is not None and not _no_worse(*forward):
-            out = self._static_choice(exclude=chosen)
-            out.selection.update(forward_check=f"failed ({chosen.model}): fell back to the "
-                                               "static choice", time_val_error_mrad=forward[0],
-                                 coarse_time_val_error_mrad=forward[1])
-            return out
         out = self._outputs(chosen, judged)
-        if forward is not None:
-            out.selection.update(forward_check="passed", time_val_error_mrad=forward[0],
-                                 coarse_time_val_error_mrad=forward[1])
-        elif chosen is not None and chosen.info["kind"] != "gp":
-            out.fallback = self._static_choice(exclude=chosen)
+        if chosen is not None and chosen.info["kind"] != "gp":
+            out.fallback = self._static_choice(exclude=refused)
+            out.refused = None if refused is None else refused.model
+        # the forward figures of the chosen GP, or behind another stand-in of the refused GP
+        # (a network's own replace them after its forward pass)
+        figures = forward if forward is not None else self._gp_forward(refused)
+        if figures is not None:
+            out.selection.update(time_val_error_mrad=figures[0],
+                                 coarse_time_val_error_mrad=figures[1])
+        if refused is not None:
+            out.selection.update(forward_check=_refusal_label(refused.model, chosen))
+        elif forward is not None:
+            out.selection.update(forward_check="passed")
         return out
 
-    def _static_choice(self, exclude: Candidate) -> HeliostatChoice:
+    def _first_forward_choice(self):
+        """(chosen, judged, refused): the rule's choice with every GP it prefers that the
+        forward check refuses taken out of the running in turn (``refused``: the first such
+        GP, None if none was). A network's check is left to :func:`apply_forward_checks`."""
+        running = list(self.candidates)
+        refused = None
+        while True:
+            chosen, judged = self._pick(running)
+            forward = self._gp_forward(chosen)
+            if forward is None or _no_worse(*forward):
+                return chosen, judged, refused
+            refused = refused or chosen
+            running.remove(chosen)
+
+    def _static_choice(self, exclude: Candidate | None) -> HeliostatChoice:
         """What stands in for ``exclude`` where it is worse forward in time: the rule among the
         GPs without time input (other than ``exclude``) and the coarse model, each GP itself
         refitted on the time split and passed over where it is worse there, down to the coarse
@@ -392,6 +415,17 @@ def study_gps(h, masks: dict, bases: dict, gp_config: GPConfig,
     return out
 
 
+def _refusal_label(gp_model: str, stand_in: Candidate | None) -> str:
+    """selection.parquet's ``forward_check`` of a choice standing in for a refused GP: the
+    coarse model, another GP (checked already) or a network, whose check is still to come
+    (:func:`apply_forward_checks` completes the label)."""
+    if stand_in is None:
+        return f"failed ({gp_model}): fell back to the static choice"
+    if stand_in.info["kind"] == "gp":
+        return f"failed ({gp_model}), then passed ({stand_in.model})"
+    return f"failed ({gp_model}): {stand_in.model} stands in"
+
+
 def _no_worse(time_val: float, static_time_val: float) -> bool:
     """The forward check: a model's mean error on the time split's validation rows is at most
     the static choice's, within :data:`FORWARD_TOLERANCE`."""
@@ -428,7 +462,7 @@ def apply_forward_checks(results: list[dict], inputs: dict) -> None:
     pre-trained network) keeps it when its mean error on the time split's validation rows is at
     most the coarse model's, else takes the fallback. Without its time-split errors (no time
     split, or a sweep without its forward pass) it is kept and ``forward_check`` says it was not
-    checked.
+    checked. The label of a network standing in for a refused GP names both checks.
 
     ``inputs``: heliostat -> its :class:`heliocal.pipeline.stages.sweep_inputs.SweepInputs`.
     """
@@ -445,15 +479,18 @@ def apply_forward_checks(results: list[dict], inputs: dict) -> None:
         val = np.zeros(len(rows), bool) if labels is None else labels == "validation"
         figures = {"time_val_error_mrad": mean_or_nan(own[val]),
                    "coarse_time_val_error_mrad": mean_or_nan(coarse_time[val])}
+        lead = "" if choice.refused is None else f"failed ({choice.refused}), then "
         if not all(map(math.isfinite, figures.values())):
-            res["selection"].update(forward_check="not checked (no time-split training)",
+            res["selection"].update(forward_check=f"{lead}not checked (no time-split training)",
                                     **figures)
             continue
         if _no_worse(figures["time_val_error_mrad"], figures["coarse_time_val_error_mrad"]):
-            res["selection"].update(forward_check="passed", **figures)
+            passed = "passed" if choice.refused is None else \
+                f"{lead}passed ({res['selection']['model']})"
+            res["selection"].update(forward_check=passed, **figures)
             continue
         back = _with_time_errors(choice.fallback, labels, coarse_time)
-        back.selection.update(forward_check=f"failed ({res['selection']['model']}): fell back "
-                                            "to the static choice", **figures)
+        back.selection.update(forward_check=f"{lead}failed ({res['selection']['model']}): fell "
+                                            "back to the static choice", **figures)
         res.update(selection=back.selection, selected_state=back.state,
                    predictions=back.predictions, choice=back)
