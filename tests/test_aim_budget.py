@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 from conftest import fitted_simulation
 
@@ -290,3 +291,45 @@ def test_a_fine_model_s_explained_variance_lowers_the_level_down_to_its_noise():
     got = expected_error_mrad(budget, None, None, np.zeros((2, 2)), None, None, [20.0, 20.0],
                               explained_mrad2=np.array([5.0, 0.0]), fine_noise_mrad2=0.01)
     assert got == pytest.approx([2.0, 3.0])
+
+
+def test_a_fine_model_never_expects_less_than_its_held_out_rows_showed():
+    from heliocal.pipeline.stages.aim_budget import fine_level_mrad
+
+    # closed form, a 2 mrad level with 3 mrad^2 explained (1 mrad without a floor): a floor of
+    # 0.75 x the level holds it at 1.5 mrad; a floor of 0.25 (0.5 mrad) is below it; nothing
+    # explained stays 2 mrad under any floor of at most 1
+    got = fine_level_mrad([2.0, 2.0, 2.0], [3.0, 3.0, 0.0], 0.0, [0.75, 0.25, 1.0])
+    assert got == pytest.approx([1.5, 1.0, 2.0])
+    # in the expected error, through the budget's floor
+    budget = ErrorBudget(None, 2.0, "validation", np.zeros((0, 3)), None, fine_floor_ratio=0.75)
+    got = expected_error_mrad(budget, None, None, np.zeros((1, 2)), None, None,
+                              explained_mrad2=np.array([3.0]))
+    assert got == pytest.approx([1.5])
+
+
+def test_the_floor_is_the_fine_model_s_held_out_error_over_the_coarse_model_s():
+    from heliocal.pipeline.stages.aim_budget import _fine_floor, held_out_ratios
+
+    # heliostat A: the fine model errs half the coarse model's on its 4 kNN validation rows
+    # (RMS ratio 0.5) and 1.5 times it on its 3 time-split validation rows (capped at 1);
+    # heliostat B has only 2 time-split validation rows (fewer than MIN_LEVEL_ROWS): no ratio
+    coarse = np.array([1.0, 2.0, 3.0, 4.0, 2.0, 2.0, 2.0])
+    both = pd.DataFrame({
+        "heliostat_id": ["A"] * 7 + ["B"] * 2,
+        "split": ["validation"] * 4 + ["train"] * 3 + ["train"] * 2,
+        "time_split": ["train"] * 4 + ["validation"] * 3 + ["validation"] * 2,
+        "error_mrad_coarse": np.r_[coarse, 1.0, 1.0],
+        "error_mrad_fine": np.r_[0.5 * coarse, 1.0, 1.0],
+        "time_error_mrad_coarse": np.r_[coarse, 1.0, 1.0],
+        "time_error_mrad_fine": np.r_[1.5 * coarse, 0.5, 0.5]})
+    got = held_out_ratios(both)
+    assert got["A"] == pytest.approx({"validation": 0.5, "time-split validation": 1.0})
+    assert math.isnan(got["B"]["time-split validation"]) and math.isnan(got["B"]["validation"])
+    # a forward level source takes the time split's ratio, the kNN one its own; either falls
+    # back to the other, and without both the variance alone counts (0)
+    assert _fine_floor(got["A"], "next-day") == 1.0
+    assert _fine_floor(got["A"], "validation") == 0.5
+    assert _fine_floor({"validation": 0.5, "time-split validation": math.nan}, "next-day") == 0.5
+    assert _fine_floor(got["B"], "validation") == 0.0
+

@@ -204,7 +204,8 @@ def _copy(workdir, tmp_path):
 
 
 @pytest.mark.slow
-def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_swept_workdir, tmp_path):
+def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_swept_workdir, tmp_path,
+                                                                      monkeypatch):
     # SYN1's monthly tilt: the GP correction wins the selection against the coarse model (the
     # hybrids held at it by a weight decay of 1000); aim --model auto aims with it; the report
     # draws its correction map
@@ -220,17 +221,39 @@ def test_the_sweep_selects_the_gp_aim_uses_it_and_the_report_maps_it(gp_swept_wo
     assert sel["model"] in ("gp", "gp-sun"), sel.to_dict()
     assert sel["weighted_val_error_mrad"] <= 0.9 * sel["coarse_weighted_val_error_mrad"]
     assert sel["test_error_mrad"] < sel["coarse_test_error_mrad"]
-    out = aim_steps(wd, HID, aim_point_enu=[0.5, -3.235754, 36.5], time_utc="2023-05-03T11:00Z")
+    aim = {"aim_point_enu": [0.5, -3.235754, 36.5], "time_utc": "2023-05-03T11:00Z"}
+    out = aim_steps(wd, HID, **aim)
     assert out["model"] == "gp" and out["inverse_residual_mrad"] < 0.01
+    # near its data the GP expects less than the coarse model's aim; held to a floor of the
+    # whole coarse level (its held-out rows no better than the coarse model's) it expects what
+    # the coarse aim does (the parameters' term at the GP's steps, 1e-3 away)
+    import heliocal.pipeline.stages.aim_budget as aim_budget
+
+    coarse = aim_steps(wd, HID, model="coarse", **aim)["expected_error_mrad"]
+    assert out["expected_error_mrad"] < 0.99 * coarse
+    with monkeypatch.context() as m:
+        m.setattr(aim_budget, "_rms_ratio", lambda rows, column: 1.0)
+        held = aim_steps(wd, HID, **aim)["expected_error_mrad"]
+    assert held == pytest.approx(coarse, rel=1e-3)
     # benchmarks/expected_error.py's GP table: the heliostat's 30 kNN test rows (split-knn
     # n_test=30) and its time split's test rows, the expected error through the GP's variance
     # never above the coarse budget alone, and below it somewhere on the kNN rows (near the data)
+    # but never below the GP's held-out rows' share r of it: sqrt(var + level^2) times r is at
+    # most sqrt(var + (r level)^2) for r <= 1 (aim_budget.fine_level_ratios; aim takes the
+    # same floor for a GP the sweep selected)
+    from heliocal.pipeline.stages.aim_budget import _fine_floor, fine_level_ratios
     from heliocal.pipeline.stages.aim_calibration import gp_calibration_rows
+    from heliocal.pipeline.stages.aim_choice import aim_models
 
+    assert aim_models(wd)[HID]["source"] == "sweep"
+    ratios = fine_level_ratios(wd, [HID])[HID]
     for setting, n in (("knn", 30), ("forward", None)):
         rows = gp_calibration_rows(wd, setting)
         assert set(rows["heliostat_id"]) == {HID} and len(rows) == (n or len(rows)) > 0
         assert (rows["expected_mrad"] <= rows["expected_before_mrad"] * (1 + 1e-12)).all()
+        r = _fine_floor(ratios, "validation" if setting == "knn" else "time-split validation")
+        assert 0.0 < r <= 1.0
+        assert (rows["expected_mrad"] >= r * rows["expected_before_mrad"] * (1 - 1e-12)).all()
         if setting == "knn":
             assert (rows["expected_mrad"] < rows["expected_before_mrad"]).any()
     summary = run_report(wd, workers=1)

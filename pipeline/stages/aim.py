@@ -504,14 +504,16 @@ def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu
     return out
 
 
-def _expected_error(wd: CommittedWorkdir, h: _Heliostat, chosen: str, steps, sun, aim,
+def _expected_error(wd: CommittedWorkdir, h: _Heliostat, chosen: str, fitted, steps, sun, aim,
                     time_utc) -> dict:
     """``expected_error_mrad``, ``level_source`` and ``sun_distance_deg`` of one aim (its level
     at the aim's days since the heliostat's last row, when the aim has a time; through a GP's
-    predictive variance at the aim, ``h.gp_prediction``: :func:`.aim_budget.fine_level_mrad`)."""
+    predictive variance at the aim, ``h.gp_prediction``: :func:`.aim_budget.fine_level_mrad`,
+    held to the GP's held-out rows where the sweep selected it, as the batch aim holds it)."""
     from .aim_budget import days_since, error_budgets, expected_error_mrad, sun_distance_deg
 
-    models = {h.id: {"model": "nominal" if chosen == "nominal" else "coarse"}}
+    models = {h.id: {"model": chosen if chosen in ("nominal", "gp") else "coarse",
+                     "source": None if fitted is None else fitted[0].get("selected_by")}}
     budget = error_budgets(wd, {h.id: h.spec}, {h.id: h.selected}, models)[h.id]
     fine = h.gp_prediction if chosen == "gp" else None
     expected = expected_error_mrad(
@@ -575,7 +577,7 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
     days = _time_warnings(wd, h, time_utc)
     steps, iterations, inverse_residual = solve_aim(h, chosen, fitted, sun, aim, time_utc, env,
                                                     max_iterations, tolerance_steps)
-    expected = _expected_error(wd, h, chosen, steps, sun, aim, time_utc)
+    expected = _expected_error(wd, h, chosen, fitted, steps, sun, aim, time_utc)
     if max_expected_error_mrad is not None and not expected["expected_error_mrad"] <= max_expected_error_mrad:
         raise FitError(f"the aim of {h.id} is expected to be off by "
                        f"{expected['expected_error_mrad']:.3g} mrad, more than "

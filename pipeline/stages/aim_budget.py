@@ -47,7 +47,14 @@ sun, time and env (:attr:`heliocal.pipeline.models.gp.GPPrediction.explained_var
 removes, and never more than the coarse level (a correction is not expected to make an aim
 worse). Far from the GP's data (``explained`` 0) this is the coarse model's budget; the
 parameters' term stays (the GP's residuals are about the fitted parameters, whose error grows
-away from the training rows' sun positions where the GP's mean returns to zero). The nominal geometry (the fallback when a fit is worse than it, :mod:`.aim_choice`)
+away from the training rows' sun positions where the GP's mean returns to zero). What the
+variance claims is held to what the GP showed on rows it had not seen: its level never goes
+below ``r`` times the coarse level, ``r`` the root mean square of the GP's errors over the
+coarse model's on the same held-out rows (:func:`fine_level_ratios`: the time split's
+validation rows, each model fitted on its training rows, for a forward level source; the kNN
+validation rows for the ``validation`` one; at most 1). Without that floor a GP whose kernel
+amplitude outgrows the residual it models (a periodic term over a whole axis, a few rows)
+claims to explain more than the level holds, and expects its aims at the noise. The nominal geometry (the fallback when a fit is worse than it, :mod:`.aim_choice`)
 has no covariance; its level comes from its own validation rows.
 
 Flags beside the number: ``sun_distance_deg``, the angle between the aim's sun and the
@@ -81,6 +88,8 @@ __all__ = [
     "error_budgets",
     "expected_error_mrad",
     "fine_level_mrad",
+    "fine_level_ratios",
+    "held_out_ratios",
     "days_since",
     "LevelGrowth",
     "sun_distance_deg",
@@ -123,6 +132,9 @@ class ErrorBudget:
     reference_days : the mean days [d] since the model's last row of the level's rows (0 for
         rows without a time: the kNN validation rows lie among the training rows).
     noise_floor_mrad : the level never goes below it (``sqrt(2)`` times the training noise).
+    fine_floor_ratio : an aim through a fine model with a predictive variance never expects a
+        level below this fraction of the coarse level (module docstring; 0: no held-out
+        evidence of the fine model, its variance alone).
     """
 
     covariance: ParameterCovariance | None
@@ -134,6 +146,7 @@ class ErrorBudget:
     growth_reference: float = 1.0
     noise_floor_mrad: float = 0.0
     reference_days: float = 0.0
+    fine_floor_ratio: float = 0.0
 
     def level_at(self, days_since_last_row) -> np.ndarray:
         """(M,) the level [mrad] of aims ``days_since_last_row`` (M,) after the heliostat's last
@@ -385,6 +398,8 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
             fitted[hid] = _take(batch, train[hid][keep])
     covariances = _covariances(specs, selected, fitted)
     groups = _group_levels(wd, [h for h in ids if not len(train[h])])
+    fine = fine_level_ratios(wd, [h for h in ids if models.get(h, {}).get("model") == "gp"
+                                  and models[h].get("source") == "sweep"], pred)
     out = {}
     for hid in ids:
         nominal = models.get(hid, {}).get("model") == "nominal"
@@ -404,8 +419,67 @@ def error_budgets(workdir, specs: dict[str, HeliostatSpec], selected: dict,
                                None if pd.isna(latest) else latest, growth=grows,
                                growth_reference=reference,
                                noise_floor_mrad=error_level_mrad((), noise),
-                               reference_days=_mean_days(days.get(source, ())))
+                               reference_days=_mean_days(days.get(source, ())),
+                               fine_floor_ratio=_fine_floor(fine.get(hid, {}), source))
     return out
+
+
+def fine_level_ratios(workdir, heliostats, pred: pd.DataFrame | None = None
+                      ) -> dict[str, dict[str, float]]:
+    """heliostat -> {``validation``, ``time-split validation``: the root mean square of the
+    sweep's selected model's errors over the coarse model's on the same held-out rows, at most
+    1 (NaN: fewer than :data:`MIN_LEVEL_ROWS` rows with both)}: on the kNN validation rows, and
+    on the time split's validation rows with both models fitted on its training rows
+    (selected_predictions.parquet ``error_mrad`` / ``time_error_mrad`` against
+    coarse_predictions.parquet's selected preset; ``pred``: the latter with both split labels,
+    as :func:`_held_out` reads them). Module docstring."""
+    from ..artifacts.schemas import SELECTED_PREDICTIONS
+    from .aim_choice import time_labelled_predictions
+
+    wd = CommittedWorkdir.of(workdir)
+    if not heliostats or not artifact_present(wd, SELECTED_PREDICTIONS):
+        return {}
+    keys = ["heliostat_id", "measurement_id"]
+    if pred is None:
+        pred = time_labelled_predictions(wd, heliostats, ["split", "model", "selected",
+                                                          "error_mrad", "time_error_mrad"])
+    coarse = pred[pred["selected"].astype(bool)
+                  & pred["heliostat_id"].astype(str).isin(set(map(str, heliostats)))]
+    fine = read_artifact(wd, SELECTED_PREDICTIONS, heliostats=list(heliostats),
+                         columns=keys + ["error_mrad", "time_error_mrad"])
+    return held_out_ratios(coarse.merge(fine, on=keys, suffixes=("_coarse", "_fine")))
+
+
+def held_out_ratios(both: pd.DataFrame) -> dict[str, dict[str, float]]:
+    """:func:`fine_level_ratios` of the rows ``both``: per heliostat and measurement its
+    ``split`` and ``time_split`` labels and ``error_mrad`` and ``time_error_mrad`` of the coarse
+    model (suffix ``_coarse``) and the fine one (``_fine``)."""
+    return {str(hid): {"validation": _rms_ratio(g[g["split"] == "validation"], "error_mrad"),
+                       "time-split validation": _rms_ratio(g[g["time_split"] == "validation"],
+                                                           "time_error_mrad")}
+            for hid, g in both.groupby("heliostat_id")}
+
+
+def _rms_ratio(rows: pd.DataFrame, column: str) -> float:
+    """min(1, RMS(fine) / RMS(coarse)) of ``column`` on the rows where both are finite."""
+    f, c = rows[f"{column}_fine"].to_numpy(float), rows[f"{column}_coarse"].to_numpy(float)
+    ok = np.isfinite(f) & np.isfinite(c)
+    if ok.sum() < MIN_LEVEL_ROWS or not np.any(c[ok] > 0):
+        return float("nan")
+    return float(min(1.0, np.sqrt(np.mean(f[ok] ** 2) / np.mean(c[ok] ** 2))))
+
+
+def _fine_floor(ratios: dict[str, float], source: str) -> float:
+    """The :attr:`ErrorBudget.fine_floor_ratio` of a level ``source``: the ratio of the rows
+    like it (a forward source's: the time split's validation rows; else the kNN validation
+    rows'), the other where it has none, 0 without either."""
+    order = (("time-split validation", "validation") if source in FORWARD_SOURCES
+             else ("validation", "time-split validation"))
+    for name in order:
+        r = ratios.get(name, float("nan"))
+        if np.isfinite(r):
+            return float(r)
+    return 0.0
 
 
 def _mean_days(days) -> float:
@@ -455,15 +529,17 @@ def _covariances(specs: dict, selected: dict, fitted: dict[str, MeasurementBatch
     return out
 
 
-def fine_level_mrad(level_mrad, explained_mrad2=0.0, noise_mrad2=0.0) -> np.ndarray:
+def fine_level_mrad(level_mrad, explained_mrad2=0.0, noise_mrad2=0.0,
+                    floor_ratio=0.0) -> np.ndarray:
     """(M,) the level [mrad] of aims through a fine model with a predictive variance:
-    ``sqrt(max(level^2 - explained, min(noise, level^2)))`` for the coarse level ``level_mrad``
-    (M,) [mrad], the variance the correction is expected to remove ``explained_mrad2`` (M,)
-    [mrad^2] and its measurement noise ``noise_mrad2`` [mrad^2] (both components; module
-    docstring). ``explained`` 0 (the coarse model, a fine model without a variance) gives the
-    level unchanged."""
+    ``sqrt(max(level^2 - explained, (floor_ratio level)^2, min(noise, level^2)))`` for the
+    coarse level ``level_mrad`` (M,) [mrad], the variance the correction is expected to remove
+    ``explained_mrad2`` (M,) [mrad^2], its measurement noise ``noise_mrad2`` [mrad^2] (both
+    components) and :attr:`ErrorBudget.fine_floor_ratio` (module docstring). ``explained`` 0
+    (the coarse model, a fine model without a variance) gives the level unchanged."""
     level2 = np.asarray(level_mrad, float) ** 2
-    floor = np.minimum(np.asarray(noise_mrad2, float), level2)
+    floor = np.maximum(np.minimum(np.asarray(noise_mrad2, float), level2),
+                       np.asarray(floor_ratio, float) ** 2 * level2)
     return np.sqrt(np.maximum(level2 - np.asarray(explained_mrad2, float), floor))
 
 
@@ -483,7 +559,8 @@ def expected_error_mrad(budget: ErrorBudget, spec: HeliostatSpec, params: torch.
         jac = aim_jacobian(spec, params, budget.covariance.free_idx, steps, sun, aim_point_enu)
         variance = aim_variance_mrad2(jac.reshape(-1, *jac.shape[-2:]), budget.covariance)
     days = np.full(len(steps), np.nan) if days_since_last_row is None else days_since_last_row
-    level = fine_level_mrad(budget.level_at(days), explained_mrad2, fine_noise_mrad2)
+    level = fine_level_mrad(budget.level_at(days), explained_mrad2, fine_noise_mrad2,
+                            budget.fine_floor_ratio)
     return np.sqrt(variance + level ** 2)
 
 

@@ -46,16 +46,18 @@ def _time_selected(workdir, selected: dict) -> dict:
     return out
 
 
-def _coarse_budgets(workdir, setting: str, heliostats=None) -> tuple[dict, dict, dict]:
+def _coarse_budgets(workdir, setting: str, heliostats=None, model: str = "coarse"
+                    ) -> tuple[dict, dict, dict]:
     """(specs, selected parameters, coarse :class:`.aim_budget.ErrorBudget`) of the heliostats
-    (all: None) as ``setting`` takes them (module docstring)."""
+    (all: None) as ``setting`` takes them (module docstring); ``model="gp"``: aimed through the
+    sweep's GP (the budgets' :attr:`~.aim_budget.ErrorBudget.fine_floor_ratio`)."""
     from ..artifacts.schemas import HELIOSTATS
     from .fit_coarse import load_selected_parameters
 
     helio = read_artifact(workdir, HELIOSTATS).set_index("heliostat_id")
     selected = load_selected_parameters(workdir, heliostats)
     specs = {h: HeliostatSpec.from_row(helio.loc[h]) for h in selected}
-    models = {h: {"model": "coarse"} for h in selected}
+    models = {h: {"model": model, "source": "sweep"} for h in selected}
     if setting == "forward":
         # as a plant aims after its calibration: the next-day rows it had seen by then first
         selected = _time_selected(workdir, selected)
@@ -162,7 +164,7 @@ def gp_calibration_rows(workdir, setting: str) -> pd.DataFrame:
     ids = gp_selected(workdir)
     if not ids:
         return pd.DataFrame()
-    specs, selected, budgets = _coarse_budgets(workdir, setting, ids)
+    specs, selected, budgets = _coarse_budgets(workdir, setting, ids, model="gp")
     # the regimes of the selected fits (the forward budgets' ``selected`` has none)
     fitted = load_selected_parameters(workdir, ids) if setting == "forward" else {}
     rows, last_train, actual = _test_rows(workdir, setting, SELECTED_PREDICTIONS, ids)

@@ -411,9 +411,11 @@ def _expected(field: _Field, rows: _Rows, variance: np.ndarray, days: np.ndarray
     predictive variance where ``gp_terms`` (R, 2) has one (:func:`.aim_budget.fine_level_mrad`; 0:
     the level as it is); NaN where the variance is."""
     level = np.full(len(rows.hid), np.nan)
+    floor = np.zeros(len(rows.hid))
     for h, idx in _heliostat_rows(rows.hid, np.isfinite(variance)):
         level[idx] = field.budgets[h].level_at(days[idx])
-    return np.sqrt(variance + fine_level_mrad(level, gp_terms[:, 0], gp_terms[:, 1]) ** 2)
+        floor[idx] = field.budgets[h].fine_floor_ratio
+    return np.sqrt(variance + fine_level_mrad(level, gp_terms[:, 0], gp_terms[:, 1], floor) ** 2)
 
 
 def _aim_rows(field: _Field, schedule: pd.DataFrame,
