@@ -54,8 +54,10 @@ coarse model's on the same held-out rows (:func:`fine_level_ratios`: the time sp
 validation rows, each model fitted on its training rows, for a forward level source; the kNN
 validation rows for the ``validation`` one; at most 1). Without that floor a GP whose kernel
 amplitude outgrows the residual it models (a periodic term over a whole axis, a few rows)
-claims to explain more than the level holds, and expects its aims at the noise. The nominal geometry (the fallback when a fit is worse than it, :mod:`.aim_choice`)
-has no covariance; its level comes from its own validation rows.
+claims to explain more than the level holds, and expects its aims at the noise.
+
+The nominal geometry (the fallback when a fit is worse than it, :mod:`.aim_choice`) has no
+covariance; its level comes from its own validation rows.
 
 Flags beside the number: ``sun_distance_deg``, the angle between the aim's sun and the
 nearest training row's sun, and ``days_since_last_row``.
