@@ -89,7 +89,7 @@ def _finite_vector(value, name: str, what: str) -> np.ndarray:
     return vec
 
 
-def _unreachable(heliostat_id: str) -> FitError:
+def unreachable_error(heliostat_id: str) -> FitError:
     """The one error of an aim point the heliostat's model cannot reach."""
     return FitError(f"the aim point is not reachable by {heliostat_id} within its actuator limits "
                     "for this sun position")
@@ -161,7 +161,7 @@ def latest_regime(workdir, heliostat_id: str) -> dict | None:
 # the steps of an aim
 # ------------------------------------------------------------------------------------------------
 @dataclass
-class _Heliostat:
+class AimHeliostat:
     """What aim reads of one heliostat: its heliostats.parquet row, kinematic spec and selected
     coarse parameters (the latest regime's, for a regime-aware model)."""
 
@@ -174,19 +174,25 @@ class _Heliostat:
     gp_prediction: GPPrediction | None = None   # a GP's at the aim (for the expected error)
 
 
-def _read_heliostat(wd: CommittedWorkdir, heliostat_id: str) -> _Heliostat:
+def read_heliostat(wd: CommittedWorkdir, heliostat_id: str) -> AimHeliostat:
     check_fine_model_inputs(wd)
     helio = read_artifact(wd, HELIOSTATS, heliostats=[heliostat_id])
     if helio.empty:
         raise InputError(f"heliostat {heliostat_id!r} is not in {wd}/heliostats.parquet")
-    row = helio.iloc[0]
     selected = load_selected_parameters(wd, [heliostat_id])
-    if heliostat_id not in selected:
+    return heliostat_of(wd, helio.iloc[0], selected.get(heliostat_id))
+
+
+def heliostat_of(wd: CommittedWorkdir, row: pd.Series, selected: dict | None) -> AimHeliostat:
+    """What aim reads of one heliostat, from its heliostats.parquet ``row`` and its
+    :func:`~.fit_coarse.load_selected_parameters` entry ``selected`` (None: it has no coarse
+    fit, :class:`StageInputError`); the note of a field-prior geometry is logged."""
+    heliostat_id = str(row["heliostat_id"])
+    if selected is None:
         raise StageInputError(f"heliostat {heliostat_id!r} has no coarse fit: run `heliocal "
                               f"fit-coarse --workdir {wd}` first")
-    h = _Heliostat(heliostat_id, row, HeliostatSpec.from_row(row),
-                   selected[heliostat_id]["params"], selected[heliostat_id])
-    note = field_prior_note(wd, row, selected[heliostat_id]["preset"])
+    h = AimHeliostat(heliostat_id, row, HeliostatSpec.from_row(row), selected["params"], selected)
+    note = field_prior_note(wd, row, selected["preset"])
     if note:
         h.warnings.append(note)
         log.warning("%s", note)
@@ -204,7 +210,7 @@ def _target_point(wd: CommittedWorkdir, name: str) -> np.ndarray:
     return rows[["target_e_m", "target_n_m", "target_u_m"]].median().to_numpy(np.float64)
 
 
-def _sun(h: _Heliostat, sun_vector_enu, time_utc: pd.Timestamp | None) -> torch.Tensor:
+def _sun(h: AimHeliostat, sun_vector_enu, time_utc: pd.Timestamp | None) -> torch.Tensor:
     """Unit vector toward the sun (1, 3): the one given, or NREL SPA's at the heliostat."""
     from ..physics.sun import spa_sun_position
     from ..physics.sun import sun_vector_enu as _sunvec
@@ -229,11 +235,14 @@ def _sun(h: _Heliostat, sun_vector_enu, time_utc: pd.Timestamp | None) -> torch.
     return sun
 
 
-def _choose_model(wd: CommittedWorkdir, h: _Heliostat, model: str) -> tuple[str, tuple | None]:
-    """(the model used, its (config, layers) or None for coarse), checked fresh."""
+def choose_model(wd: CommittedWorkdir, h: AimHeliostat, model: str, choice: dict | None = None
+                  ) -> tuple[str, tuple | None]:
+    """(the model used, its (config, layers) or None for coarse), checked fresh; ``choice``:
+    the heliostat's :func:`aim_models` entry (strict) when the caller has it (``auto``)."""
     chosen, fitted, rerun = model, None, None
     if model == "auto":
-        choice = aim_models(wd, [h.id], strict=True).get(h.id, {})
+        if choice is None:
+            choice = aim_models(wd, [h.id], strict=True).get(h.id, {})
         if choice.get("model") == "nominal":
             return use_nominal(h, choice["fallback"]), None
         if choice.get("model") in ("hybrid", "pretrained-nn", "gp"):
@@ -255,7 +264,7 @@ def _choose_model(wd: CommittedWorkdir, h: _Heliostat, model: str) -> tuple[str,
     return chosen, fitted
 
 
-def use_nominal(h: _Heliostat, reason: str) -> str:
+def use_nominal(h: AimHeliostat, reason: str) -> str:
     """Aim ``h`` with its nominal geometry (its fit is worse than that on held-out rows:
     :func:`heliocal.pipeline.stages.aim_choice.nominal_fallback`) and say so in its warnings."""
     h.coarse = nominal_parameters(h.row)
@@ -264,7 +273,7 @@ def use_nominal(h: _Heliostat, reason: str) -> str:
     return "nominal"
 
 
-def _check_env(wd: CommittedWorkdir, env: Mapping[str, float]) -> dict[str, float]:
+def check_env(wd: CommittedWorkdir, env: Mapping[str, float]) -> dict[str, float]:
     """``env`` (name without ``env_`` -> value), every name an env column of the measurements and
     every value finite."""
     env = dict(env or {})
@@ -282,7 +291,7 @@ def _check_env(wd: CommittedWorkdir, env: Mapping[str, float]) -> dict[str, floa
     return env
 
 
-def _time_warnings(wd: CommittedWorkdir, h: _Heliostat, time_utc: pd.Timestamp | None
+def _time_warnings(wd: CommittedWorkdir, h: AimHeliostat, time_utc: pd.Timestamp | None
                    ) -> float | None:
     """Days from the heliostat's last measurement to ``time_utc`` (negative: before it), and a
     warning in ``h.warnings`` (logged) when the time is more than :data:`FAR_FROM_DATA_DAYS`
@@ -306,48 +315,101 @@ def _time_warnings(wd: CommittedWorkdir, h: _Heliostat, time_utc: pd.Timestamp |
     return float(after)
 
 
-def _fixed_point(h: _Heliostat, chosen: str, fitted: tuple, sun, aim, steps, time_utc, env,
+def _fixed_point(h: AimHeliostat, chosen: str, fitted: tuple, sun, aim, steps, time_utc, env,
                  max_iterations: int, tolerance_steps: float):
     """(steps, parameters, iterations, None) of the hybrid: the steps whose parameters (the
     network's deviations at those steps, times its fade) aim at the point, found by fixed-point
     iteration from the coarse steps until the steps change by less than ``tolerance_steps``. A
     loop that does not get there in ``max_iterations`` raises :class:`FitError` with the last
     change."""
-    cfg, layers = fitted
-    problem = _fine_problem_from_config(cfg, h.spec, nominal_parameters(h.row))
-    enc = problem.encoder
-    missing = [e for e in enc.env if e not in env]
+    hybrid = HybridAims.of(h, chosen, fitted, sun, aim, [time_utc], [env])
+    steps, iterations, delta = hybrid.fixed_points(steps, max_iterations, tolerance_steps)
+    if not bool(torch.isfinite(steps).all()):
+        raise unreachable_error(h.id)
+    if iterations[0] == max_iterations and not delta[0] < tolerance_steps:
+        raise not_converged_error(h.id, chosen, max_iterations, float(delta[0]), tolerance_steps)
+    return steps, hybrid.params_at(steps), int(iterations[0]), None
+
+
+def check_network_inputs(h: AimHeliostat, chosen: str, encoder_env, time_utc, env) -> None:
+    """A network's aim needs every env input of its encoder (``encoder_env``) in ``env`` and
+    a time (its inputs include the date): else :class:`ParameterError`."""
+    missing = [e for e in encoder_env if e not in env]
     if missing:
         raise ParameterError(f"the {chosen} model of {h.id} uses env inputs {missing}: give them "
                              "with --env NAME=VALUE")
     if time_utc is None:
         raise ParameterError(f"the {chosen} model of {h.id} uses the date as input: give --time")
-    context = enc.context([time_utc], np.array([[float(env[e]) for e in enc.env]])
-                          if enc.env else None)
-    az, el = sun_angles_from_vector(sun.numpy())
-    fade = fade_weights(cfg, az, el, [time_utc])     # the fine model's fade (models.fade)
 
-    def params_at(s):
+
+def not_converged_error(heliostat_id: str, chosen: str, max_iterations: int, delta: float,
+                   tolerance_steps: float) -> FitError:
+    return FitError(f"the {chosen} model of {heliostat_id} did not converge to the aim steps: "
+                    f"after {max_iterations} fixed-point iterations the steps still changed by "
+                    f"{delta:.3g} steps (tolerance {tolerance_steps:g}); aim with --model "
+                    "coarse, or refit the heliostat")
+
+
+@dataclass
+class HybridAims:
+    """K aims of one heliostat through its hybrid (or fit-hybrid network) ``problem`` and
+    ``layers``: their suns (K, 3) and aim points (K, 3) [m ENU], the network's context (K, C)
+    at each aim's time and env, and its fade (K,) at each aim's sun and time."""
+
+    problem: FineProblem
+    layers: Layers
+    spec: HeliostatSpec
+    sun: torch.Tensor
+    aim: torch.Tensor
+    context: torch.Tensor
+    fade: np.ndarray
+
+    @classmethod
+    def of(cls, h: AimHeliostat, chosen: str, fitted: tuple, sun, aim, times_utc, envs):
+        """The aims of ``h`` at ``sun`` (K, 3) and ``aim`` (K, 3), UTC ``times_utc`` (K,) and
+        ``envs`` (K dicts; every env input the model has, else :class:`ParameterError`)."""
+        cfg, layers = fitted
+        problem = _fine_problem_from_config(cfg, h.spec, nominal_parameters(h.row))
+        enc = problem.encoder
+        for time_utc, env in zip(times_utc, envs):
+            check_network_inputs(h, chosen, enc.env, time_utc, env)
+        env_values = (np.array([[float(env[e]) for e in enc.env] for env in envs])
+                      if enc.env else None)
+        az, el = sun_angles_from_vector(sun.numpy())
+        return cls(problem, layers, h.spec, sun, aim, enc.context(list(times_utc), env_values),
+                   np.asarray(fade_weights(cfg, az, el, list(times_utc)), np.float64))
+
+    def params_at(self, steps: torch.Tensor, idx=slice(None)) -> torch.Tensor:
+        """(n, 28) the parameters of the aims ``idx`` at their ``steps`` (n, 2)."""
         with torch.no_grad():
-            return grouped_components(problem, layers, enc.encode(s, context), None,
-                                      fade).stacked()[0, 0]
+            features = self.problem.encoder.encode(steps, self.context[idx])
+            return grouped_components(self.problem, self.layers, features, None,
+                                      self.fade[idx]).stacked()[0]
 
-    delta = float("inf")
-    for iterations in range(1, max_iterations + 1):
-        new = inverse_kinematics(params_at(steps), h.spec, sun, aim)
-        if not bool(torch.isfinite(new).all()):
-            raise _unreachable(h.id)
-        delta = float((new - steps).abs().max())
-        steps = new
-        if delta < tolerance_steps:
-            return steps, params_at(steps), iterations, None
-    raise FitError(f"the {chosen} model of {h.id} did not converge to the aim steps: after "
-                   f"{max_iterations} fixed-point iterations the steps still changed by "
-                   f"{delta:.3g} steps (tolerance {tolerance_steps:g}); aim with --model coarse, "
-                   "or refit the heliostat")
+    def fixed_points(self, steps: torch.Tensor, max_iterations: int, tolerance_steps: float):
+        """(steps (K, 2), iterations (K,), last change (K,) [steps]): each aim's fixed point
+        ``steps <- IK(params(steps))`` from ``steps`` (the coarse ones), the aims together but
+        each stopping on its own when its change is below ``tolerance_steps`` (its steps are
+        those it would get alone); an aim whose steps become non-finite stops there."""
+        steps = steps.clone()
+        iterations = np.zeros(len(steps), np.int64)
+        delta = np.full(len(steps), np.inf)
+        todo = torch.isfinite(steps).all(-1)
+        for it in range(1, max_iterations + 1):
+            if not bool(todo.any()):
+                break
+            idx = torch.nonzero(todo).flatten()
+            new = inverse_kinematics(self.params_at(steps[idx], idx.numpy()), self.spec,
+                                     self.sun[idx][:, None], self.aim[idx][:, None])[:, 0]
+            change = (new - steps[idx]).abs().amax(-1)
+            steps[idx] = new
+            iterations[idx.numpy()] = it
+            delta[idx.numpy()] = change.numpy()
+            todo[idx[~torch.isfinite(new).all(-1) | (change < tolerance_steps)]] = False
+        return steps, iterations, delta
 
 
-def _gp_env_values(h: _Heliostat, cfg: dict, env: Mapping[str, float], time_utc) -> list[float]:
+def gp_env_values(h: AimHeliostat, cfg: dict, env: Mapping[str, float], time_utc) -> list[float]:
     """The values of the GP model's env inputs (in its order) for one aim, which must give every
     one of them, and a time when the model has the date as input."""
     names = cfg["gp"]["inputs"].get("env", ())
@@ -360,7 +422,7 @@ def _gp_env_values(h: _Heliostat, cfg: dict, env: Mapping[str, float], time_utc)
     return [float(env[e]) for e in names]
 
 
-def _gp_aim_steps(cfg: dict, state, *args, **kwargs):
+def gp_model_aim_steps(cfg: dict, state, *args, **kwargs):
     """:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps` of the GP model ``(cfg,
     state)``; the GP's modules are imported here, so that aiming any other model does not."""
     from ..models.gp import GPCorrection
@@ -369,29 +431,29 @@ def _gp_aim_steps(cfg: dict, state, *args, **kwargs):
     return gp_aim_steps(GPCorrection.from_model(cfg, state), *args, **kwargs)
 
 
-def _gp_solve(h: _Heliostat, fitted, sun, aim, time_utc, env, max_iterations: int,
+def _gp_solve(h: AimHeliostat, fitted, sun, aim, time_utc, env, max_iterations: int,
               tolerance_steps: float):
     """(steps, coarse parameters, iterations, corrected normal) of a GP correction
     (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`)."""
     cfg, state = fitted
-    env_values = _gp_env_values(h, cfg, env, time_utc)
-    fit = _gp_aim_steps(cfg, state, h.coarse, h.spec, sun, aim,
+    env_values = gp_env_values(h, cfg, env, time_utc)
+    fit = gp_model_aim_steps(cfg, state, h.coarse, h.spec, sun, aim,
                         None if time_utc is None else epoch_seconds([time_utc])[0],
                         env_values or None,
                         max_iterations=max_iterations, tolerance_steps=tolerance_steps)
     if not bool(torch.isfinite(fit.steps).all()):
-        raise _unreachable(h.id)
+        raise unreachable_error(h.id)
     h.gp_prediction = fit.prediction
     return fit.steps, h.coarse, int(fit.iterations[0]), fit.normal
 
 
-def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iterations: int,
+def _solve(h: AimHeliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iterations: int,
            tolerance_steps: float):
     """(steps, parameters, iterations, the normal where the parameters do not give it (a GP's
     corrected one; else None)) that aim the chosen model's beam at ``aim``."""
     steps = inverse_kinematics(h.coarse, h.spec, sun, aim)
     if not bool(torch.isfinite(steps).all()):
-        raise _unreachable(h.id)
+        raise unreachable_error(h.id)
     if chosen in ("coarse", "nominal"):
         return steps, h.coarse, 0, None
     if chosen == "gp":
@@ -401,16 +463,16 @@ def _solve(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env, max_iter
         with torch.no_grad():
             steps = PretrainedModel.from_dict(cfg, layers).steps(sun, aim, spec=h.spec)
         if not bool(torch.isfinite(steps).all()):
-            raise _unreachable(h.id)
+            raise unreachable_error(h.id)
         return steps, h.coarse, 0, None
     return _fixed_point(h, chosen, fitted, sun, aim, steps, time_utc, env, max_iterations,
                         tolerance_steps)
 
 
-def solve_aim(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env,
+def solve_aim(h: AimHeliostat, chosen: str, fitted, sun, aim, time_utc, env,
               max_iterations: int = 50, tolerance_steps: float = 1e-6):
     """(steps (1, 2), iterations, inverse residual [mrad]) of one aim of ``h`` with the chosen
-    model (:func:`_choose_model`), :func:`_solve` on the parameters at ``time_utc`` (a
+    model (:func:`choose_model`), :func:`_solve` on the parameters at ``time_utc`` (a
     regime-aware coarse model's regime and drift then; ``h.coarse`` is set to them, for the
     expected error). An aim the forward model cannot reach (non-finite residual) raises."""
     if chosen != "nominal" and time_utc is not None and h.selected.get("regime_table") is not None:
@@ -422,89 +484,11 @@ def solve_aim(h: _Heliostat, chosen: str, fitted, sun, aim, time_utc, env,
         normal = normal if corrected is None else corrected
         inverse_residual = float(error_mrad(reflect(-sun, normal), aim - position)[0])
     if not math.isfinite(inverse_residual):
-        raise _unreachable(h.id)
+        raise unreachable_error(h.id)
     return steps, iterations, inverse_residual
 
 
-@dataclass(frozen=True)
-class FineAim:
-    """One aim through a fine model: its steps (2,) and, through a GP, its predictive variance's
-    part of the expected error (:func:`.aim_budget.fine_level_mrad`'s ``explained_mrad2`` and
-    ``noise_mrad2`` [mrad^2]; 0 for other models)."""
-
-    steps: np.ndarray
-    explained_mrad2: float = 0.0
-    noise_mrad2: float = 0.0
-
-
-def heliostat_aims(workdir, heliostat_id: str, model: str, sun_enu: np.ndarray,
-                   aim_point_enu: np.ndarray, times_utc, envs: list[Mapping[str, float]]
-                   ) -> list[FineAim | HeliocalError]:
-    """The steps (2,) of many aims of one heliostat, as :func:`aim_steps` gives them, with its
-    heliostat and model read once (the batch aim's rows with a fine model: each needs its own
-    fixed point), as :class:`FineAim`. ``sun_enu`` (N, 3) unit vectors toward the sun,
-    ``aim_point_enu`` (N, 3) [m] ENU, ``times_utc`` and ``envs`` per aim. A row's own failure
-    (its env inputs, an unreachable aim) is its entry; one of the heliostat (no fit, a stale
-    model) is every row's."""
-    wd = CommittedWorkdir.of(workdir)
-    try:
-        h = _read_heliostat(wd, heliostat_id)
-        chosen, fitted = _choose_model(wd, h, model)
-    except HeliocalError as exc:
-        return [exc] * len(sun_enu)
-    if chosen == "gp":
-        return _gp_aims(wd, h, fitted, sun_enu, aim_point_enu, times_utc, envs)
-    out: list[np.ndarray | HeliocalError] = []
-    for sun, point, time_utc, env in zip(sun_enu, aim_point_enu, times_utc, envs):
-        try:
-            steps, _, _ = solve_aim(replace(h), chosen, fitted,
-                                    _unit(torch.tensor(sun, dtype=torch.float64).reshape(1, 3)),
-                                    torch.tensor(point, dtype=torch.float64).reshape(1, 3),
-                                    utc_time(time_utc), _check_env(wd, env))
-            out.append(FineAim(steps[0].numpy()))
-        except HeliocalError as exc:
-            out.append(exc)
-    return out
-
-
-def _gp_aims(wd: CommittedWorkdir, h: _Heliostat, fitted, sun_enu, aim_point_enu, times_utc,
-             envs) -> list[FineAim | HeliocalError]:
-    """:func:`heliostat_aims` of a GP correction: its fixed points solved together
-    (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`, each aim on its own), after each
-    aim's inputs are checked as :func:`_gp_solve` checks them."""
-    cfg, state = fitted
-    out: list[FineAim | HeliocalError | None] = [None] * len(sun_enu)
-    times, env_rows = [], []
-    for i, (time_utc, env) in enumerate(zip(times_utc, envs)):
-        try:
-            time_utc = utc_time(time_utc)
-            env_rows.append(_gp_env_values(h, cfg, _check_env(wd, env), time_utc))
-            times.append(time_utc)
-        except HeliocalError as exc:
-            out[i] = exc
-    ok = [i for i, o in enumerate(out) if o is None]
-    if not ok:
-        return out
-    params = h.coarse.expand(len(times), h.coarse.shape[-1]).clone()
-    timed = [k for k, t in enumerate(times) if t is not None]
-    if timed and h.selected.get("regime_table") is not None:   # as solve_aim: per aim's time
-        params[timed] = coarse_row_parameters(h.selected, [times[k] for k in timed])
-    time_s = np.array([np.nan if t is None else epoch_seconds([t])[0] for t in times])
-    sun = _unit(torch.tensor(np.asarray(sun_enu, np.float64)[ok]))
-    aim = torch.tensor(np.asarray(aim_point_enu, np.float64)[ok])
-    fit = _gp_aim_steps(cfg, state, params, h.spec, sun, aim, time_s,
-                        np.array(env_rows) if env_rows[0] else None)
-    with torch.no_grad():
-        residual = error_mrad(reflect(-sun, fit.normal), aim - fit.position)
-    explained = fit.prediction.explained_variance_mrad2
-    for k, i in enumerate(ok):
-        reachable = bool(torch.isfinite(fit.steps[k]).all()) and math.isfinite(residual[k])
-        out[i] = (FineAim(fit.steps[k].numpy(), float(explained[k]), fit.prediction.noise_mrad2)
-                  if reachable else _unreachable(h.id))
-    return out
-
-
-def _expected_error(wd: CommittedWorkdir, h: _Heliostat, chosen: str, fitted, steps, sun, aim,
+def _expected_error(wd: CommittedWorkdir, h: AimHeliostat, chosen: str, fitted, steps, sun, aim,
                     time_utc) -> dict:
     """``expected_error_mrad``, ``level_source`` and ``sun_distance_deg`` of one aim (its level
     at the aim's days since the heliostat's last row, when the aim has a time; through a GP's
@@ -567,13 +551,13 @@ def aim_steps(workdir, heliostat_id: str, *, aim_point_enu=None, target: str | N
         raise ParameterError("aim needs one aim point: give aim_point_enu or target")
     time_utc = utc_time(time_utc)
     wd = CommittedWorkdir.of(workdir)
-    env = _check_env(wd, env)
+    env = check_env(wd, env)
     point = (_target_point(wd, target) if target is not None
              else _finite_vector(aim_point_enu, "aim_point_enu", "a point [m] ENU"))
-    h = _read_heliostat(wd, heliostat_id)
+    h = read_heliostat(wd, heliostat_id)
     sun = _sun(h, sun_vector_enu, time_utc)
     aim = torch.tensor(point, dtype=torch.float64).reshape(1, 3)
-    chosen, fitted = _choose_model(wd, h, model)
+    chosen, fitted = choose_model(wd, h, model)
     days = _time_warnings(wd, h, time_utc)
     steps, iterations, inverse_residual = solve_aim(h, chosen, fitted, sun, aim, time_utc, env,
                                                     max_iterations, tolerance_steps)

@@ -30,10 +30,11 @@ import pandas as pd
 import torch
 
 from ..artifacts.manifests import CommittedWorkdir
+from ..artifacts.modelfiles import check_fine_model_inputs
 from ..artifacts.paths import atomic_path
 from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS
 from ..artifacts.store import read_artifact
-from ..errors import InputError, ParameterError, StageInputError, check_choice
+from ..errors import HeliocalError, InputError, ParameterError, StageInputError, check_choice
 from ..models.network import MODES
 from ..physics.jacobian import residual_and_jacobian
 from ..physics.kinematics import inverse_kinematics
@@ -366,21 +367,33 @@ def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
                 steps: np.ndarray, gp_terms: np.ndarray) -> None:
     """The steps of the ok rows whose heliostat aims with a fine model, in place in ``steps``,
     and a GP's part of their expected error in ``gp_terms`` (R, 2) (``explained_mrad2``,
-    ``noise_mrad2`` of :class:`.aim.FineAim`): :func:`.aim.heliostat_aims` per heliostat (its
-    model read once, a fixed point per aim); a failure is the row's reason."""
+    ``noise_mrad2`` of :class:`.aim_fine.FineAim`): :func:`.aim_fine.heliostat_aims` per
+    heliostat (its model read once, its aims' fixed points solved together); a failure is the
+    row's reason."""
     fine = rows.ok & ~np.isin(chosen.astype(str), ["coarse", "nominal", "None"])
     if not fine.any():
         return
-    from .aim import heliostat_aims
+    from .aim import heliostat_of
+    from .aim_fine import heliostat_aims
 
     env_cols = [c for c in rows.frame.columns if str(c).startswith("env_")]
     times = rows.frame["time_utc"]
+    stale = _stale_fine_inputs(field.wd)
     for hid, idx in _heliostat_rows(rows.hid, fine):
         envs = [{c[4:]: float(rows.frame[c].iat[i]) for c in env_cols
                  if pd.notna(rows.frame[c].iat[i])} for i in idx]
         model = "auto" if field.auto else str(chosen[idx[0]])
-        results = heliostat_aims(field.wd, hid, model, sun[idx], rows.point[idx],
-                                 [times.iat[i] for i in idx], envs)
+        try:
+            if stale is not None:
+                raise stale
+            row = field.helio.loc[hid].copy()
+            row["heliostat_id"] = hid
+            h = heliostat_of(field.wd, row, field.selected.get(hid))
+            results = heliostat_aims(field.wd, hid, model, sun[idx], rows.point[idx],
+                                     [times.iat[i] for i in idx], envs,
+                                     field.models.get(hid) if field.auto else None, h)
+        except HeliocalError as exc:
+            results = [exc] * len(idx)
         for i, result in zip(idx, results):
             if isinstance(result, Exception):
                 steps[i] = np.nan
@@ -388,6 +401,16 @@ def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
             else:
                 steps[i] = result.steps
                 gp_terms[i] = result.explained_mrad2, result.noise_mrad2
+
+
+def _stale_fine_inputs(wd: CommittedWorkdir) -> HeliocalError | None:
+    """Why no fine model can aim (fit-coarse's parameters missing or stale: every fine row's
+    reason), or None."""
+    try:
+        check_fine_model_inputs(wd)
+    except HeliocalError as exc:
+        return exc
+    return None
 
 
 def _flags(field: _Field, rows: _Rows, fitted: np.ndarray, sun: np.ndarray) -> dict:
