@@ -16,6 +16,7 @@ import pandas as pd
 import torch
 
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
+from ..physics.lm import stack_specs, take_spec
 from ..physics.metrics import error_mrad, measured_normal, reflect
 from ..physics.sun import sun_angles_from_vector
 from .fade import FADE_LENGTHS_DEG
@@ -31,6 +32,8 @@ __all__ = [
     "fit_heliostat_gps",
     "fit_heliostat_gp",
     "gp_aim_steps",
+    "gp_aims_steps",
+    "GPAimJob",
     "correction_grid",
     "with_correction_map",
 ]
@@ -163,7 +166,8 @@ def gp_aim_steps(model: GPCorrection, params: torch.Tensor, spec, sun: torch.Ten
     too (the sun, the time and env fix the rest of it), so this is iterated, ``g`` taken at the
     latest steps, until the steps change by less than ``tolerance_steps``; each aim stops on its
     own (the K aims are a batch of independent fixed points: an aim's steps are those it would
-    get alone), and one that becomes unreachable is NaN.
+    get alone), and one that becomes unreachable is NaN. Many heliostats' aims:
+    :func:`gp_aims_steps`.
 
     Parameters
     ----------
@@ -174,44 +178,97 @@ def gp_aim_steps(model: GPCorrection, params: torch.Tensor, spec, sun: torch.Ten
         training time).
     env_values : (K, E) raw env values of the model's env inputs ((E,) for one aim).
     """
-    sun = sun.reshape(-1, 3)
-    k = len(sun)
-    aim_point = aim_point.reshape(-1, 3).expand(k, 3)
-    params = params.reshape(-1, params.shape[-1]).expand(k, params.shape[-1])
-    az, el = sun_angles_from_vector(sun.numpy())
-    t = np.broadcast_to(np.asarray(np.nan if time_s is None else time_s, np.float64), (k,))
-    env = None if env_values is None else np.asarray(env_values, np.float64).reshape(k, -1)
-    fade = _fade_weights(model.fade, az, el, t)
-    rows = (params, sun[:, None], aim_point[:, None])      # each aim a batch of one
-    steps = inverse_kinematics(params, spec, sun[:, None], aim_point[:, None])[:, 0]
+    job = GPAimJob(model, params, spec, sun, aim_point, time_s, env_values)
+    return gp_aims_steps([job], max_iterations=max_iterations,
+                         tolerance_steps=tolerance_steps)[0]
 
-    def correction(at_steps):
-        return model.predict(model.inputs.encode(az, el, t, env, at_steps.numpy()), fade)
 
-    pred = correction(steps)
-    g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
-    iterations = np.zeros(k, np.int64)
-    todo = torch.isfinite(steps).all(-1)
-    for it in range(1, max_iterations + 1):
-        if not bool(todo.any()):
-            break
-        idx = torch.nonzero(todo).flatten()
-        if model.inputs.periodic_axis and it > 1:
-            pred = correction(steps)
-            g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
-        new = _gp_step(params[idx], spec, sun[idx], aim_point[idx], g[idx], steps[idx])
-        delta = (new - steps[idx]).abs().amax(-1)
-        steps[idx] = new
-        iterations[idx.numpy()] = it
-        done = ~torch.isfinite(new).all(-1) | (delta < tolerance_steps)
-        todo[idx[done]] = False
-    if model.inputs.periodic_axis:
-        pred = correction(steps)
-        g = torch.as_tensor(pred.mean_mrad, dtype=torch.float64)
-    with torch.no_grad():
-        normal, position = forward_kinematics(rows[0], spec, steps[:, None])
-    return GPAim(steps, iterations, correct_normals(normal[:, 0], g.numpy()), position[:, 0],
-                 pred)
+@dataclass
+class GPAimJob:
+    """One heliostat's K aims for :func:`gp_aims_steps` (the arguments of
+    :func:`gp_aim_steps`)."""
+
+    model: GPCorrection
+    params: torch.Tensor
+    spec: object
+    sun: torch.Tensor
+    aim_point: torch.Tensor
+    time_s: object = None
+    env_values: object = None
+
+
+class _GPIterate:
+    """A :class:`GPAimJob` being solved: its inputs per aim, steps (K, 2), correction ``g``
+    (K, 2) [mrad] and its prediction, iterations (K,) and the aims still iterating."""
+
+    def __init__(self, job: GPAimJob):
+        self.model = job.model
+        self.sun = job.sun.reshape(-1, 3)
+        k = len(self.sun)
+        self.spec = job.spec
+        self.aim_point = job.aim_point.reshape(-1, 3).expand(k, 3)
+        self.params = job.params.reshape(-1, job.params.shape[-1]).expand(k, job.params.shape[-1])
+        self.az, self.el = sun_angles_from_vector(self.sun.numpy())
+        self.t = np.broadcast_to(np.asarray(np.nan if job.time_s is None else job.time_s,
+                                            np.float64), (k,))
+        self.env = (None if job.env_values is None
+                    else np.asarray(job.env_values, np.float64).reshape(k, -1))
+        self.fade = _fade_weights(job.model.fade, self.az, self.el, self.t)
+        self.steps = inverse_kinematics(self.params, job.spec, self.sun[:, None],
+                                        self.aim_point[:, None])[:, 0]
+        self.iterations = np.zeros(k, np.int64)
+        self.todo = torch.isfinite(self.steps).all(-1)
+        self.predict()
+
+    def predict(self) -> None:
+        """The correction at the current steps (all K aims)."""
+        self.pred = self.model.predict(self.model.inputs.encode(
+            self.az, self.el, self.t, self.env, self.steps.numpy()), self.fade)
+        self.g = torch.as_tensor(self.pred.mean_mrad, dtype=torch.float64)
+
+    def result(self) -> GPAim:
+        if self.model.inputs.periodic_axis:
+            self.predict()
+        with torch.no_grad():
+            normal, position = forward_kinematics(self.params, self.spec, self.steps[:, None])
+        return GPAim(self.steps, self.iterations, correct_normals(normal[:, 0], self.g.numpy()),
+                     position[:, 0], self.pred)
+
+
+def gp_aims_steps(jobs: list[GPAimJob], *, max_iterations: int = 50,
+                  tolerance_steps: float = 1e-6) -> list[GPAim]:
+    """:func:`gp_aim_steps` of many heliostats' aims (one :class:`GPAimJob` each), their fixed
+    points iterating together: each iteration's kinematics one batched call for the aims of one
+    kinematic and actuator type (each aim a batch of one with its heliostat's spec), each aim
+    stopping on its own, so its steps are those it gets alone."""
+    state = [_GPIterate(job) for job in jobs]
+    groups: dict[tuple, list[int]] = {}
+    for j, s in enumerate(state):
+        groups.setdefault((s.spec.kinematic_type, s.spec.actuator_type), []).append(j)
+    for members in groups.values():
+        specs = stack_specs([state[j].spec for j in members]) if len(members) > 1 else None
+        for it in range(1, max_iterations + 1):
+            active = [(k, state[j], torch.nonzero(state[j].todo).flatten())
+                      for k, j in enumerate(members) if bool(state[j].todo.any())]
+            if not active:
+                break
+            for _, s, _ in active:
+                if s.model.inputs.periodic_axis and it > 1:
+                    s.predict()
+            which = torch.cat([torch.full((len(idx),), k, dtype=torch.long)
+                               for k, _, idx in active])
+            new = _gp_step(torch.cat([s.params[idx] for _, s, idx in active]),
+                           active[0][1].spec if specs is None else take_spec(specs, which),
+                           torch.cat([s.sun[idx] for _, s, idx in active]),
+                           torch.cat([s.aim_point[idx] for _, s, idx in active]),
+                           torch.cat([s.g[idx] for _, s, idx in active]),
+                           torch.cat([s.steps[idx] for _, s, idx in active]))
+            for (_, s, idx), rows in zip(active, torch.split(new, [len(a[2]) for a in active])):
+                delta = (rows - s.steps[idx]).abs().amax(-1)
+                s.steps[idx] = rows
+                s.iterations[idx.numpy()] = it
+                s.todo[idx[~torch.isfinite(rows).all(-1) | (delta < tolerance_steps)]] = False
+    return [s.result() for s in state]
 
 
 def _fade_weights(fade, az, el, t: np.ndarray) -> np.ndarray:

@@ -26,16 +26,16 @@ from ..artifacts.schemas import HELIOSTATS, MEASUREMENTS, REGIME_PARAMS, REGIMES
 from ..artifacts.store import artifact_columns, artifact_present, read_artifact
 from ..errors import (FitError, HeliocalError, InputError, ParameterError, StageInputError,
                       check_choice)
-from ..models.fade import epoch_seconds, fade_weights
-from ..models.network import MODES, FeatureEncoder, Layers, state_to_layers
+from ..models.fade import epoch_seconds
+from ..models.network import MODES, Layers, state_to_layers
 from ..models.pretrained import PretrainedModel
-from ..models.training import FineProblem, grouped_components
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
 from ..physics.metrics import error_mrad, reflect
 from ..physics.parameters import HeliostatSpec, nominal_parameters
 from ..physics.sun import sun_angles_from_vector
 from ..physics.vectors import unit_vector as _unit
 from .aim_choice import aim_models  # the model aim --model auto uses (torch-free; re-exported)
+from .aim_network import HybridAims, not_converged_error, solve_fixed_points
 from .coarse_prior import field_prior_note
 from .fit_coarse import coarse_row_parameters, load_selected_parameters
 from ..runtime.process_state import restores_process_state, single_threaded
@@ -113,13 +113,6 @@ def load_model(workdir, mode: str, heliostat_id: str) -> tuple[dict, Layers] | N
         return None
     cfg, state = found
     return cfg, state if cfg.get("mode") == "gp" else state_to_layers(state)
-
-
-def _fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Tensor) -> FineProblem:
-    base = torch.tensor(cfg["base_params"], dtype=torch.float64)
-    free = torch.tensor(cfg["free"], dtype=torch.bool)
-    return FineProblem(spec, base, free, torch.tensor(cfg["scales"], dtype=torch.float64),
-                       FeatureEncoder.from_dict(cfg["encoder"]), None, None)
 
 
 @restores_process_state
@@ -322,91 +315,15 @@ def _fixed_point(h: AimHeliostat, chosen: str, fitted: tuple, sun, aim, steps, t
     iteration from the coarse steps until the steps change by less than ``tolerance_steps``. A
     loop that does not get there in ``max_iterations`` raises :class:`FitError` with the last
     change."""
-    hybrid = HybridAims.of(h, chosen, fitted, sun, aim, [time_utc], [env])
-    steps, iterations, delta = hybrid.fixed_points(steps, max_iterations, tolerance_steps)
+    hybrid = HybridAims.of(fitted, h.spec, nominal_parameters(h.row), h.id, chosen, sun, aim,
+                           [time_utc], [env])
+    [(steps, iterations, delta)] = solve_fixed_points([hybrid], [steps], max_iterations,
+                                                      tolerance_steps)
     if not bool(torch.isfinite(steps).all()):
         raise unreachable_error(h.id)
     if iterations[0] == max_iterations and not delta[0] < tolerance_steps:
         raise not_converged_error(h.id, chosen, max_iterations, float(delta[0]), tolerance_steps)
     return steps, hybrid.params_at(steps), int(iterations[0]), None
-
-
-def check_network_inputs(h: AimHeliostat, chosen: str, encoder_env, time_utc, env) -> None:
-    """A network's aim needs every env input of its encoder (``encoder_env``) in ``env`` and
-    a time (its inputs include the date): else :class:`ParameterError`."""
-    missing = [e for e in encoder_env if e not in env]
-    if missing:
-        raise ParameterError(f"the {chosen} model of {h.id} uses env inputs {missing}: give them "
-                             "with --env NAME=VALUE")
-    if time_utc is None:
-        raise ParameterError(f"the {chosen} model of {h.id} uses the date as input: give --time")
-
-
-def not_converged_error(heliostat_id: str, chosen: str, max_iterations: int, delta: float,
-                   tolerance_steps: float) -> FitError:
-    return FitError(f"the {chosen} model of {heliostat_id} did not converge to the aim steps: "
-                    f"after {max_iterations} fixed-point iterations the steps still changed by "
-                    f"{delta:.3g} steps (tolerance {tolerance_steps:g}); aim with --model "
-                    "coarse, or refit the heliostat")
-
-
-@dataclass
-class HybridAims:
-    """K aims of one heliostat through its hybrid (or fit-hybrid network) ``problem`` and
-    ``layers``: their suns (K, 3) and aim points (K, 3) [m ENU], the network's context (K, C)
-    at each aim's time and env, and its fade (K,) at each aim's sun and time."""
-
-    problem: FineProblem
-    layers: Layers
-    spec: HeliostatSpec
-    sun: torch.Tensor
-    aim: torch.Tensor
-    context: torch.Tensor
-    fade: np.ndarray
-
-    @classmethod
-    def of(cls, h: AimHeliostat, chosen: str, fitted: tuple, sun, aim, times_utc, envs):
-        """The aims of ``h`` at ``sun`` (K, 3) and ``aim`` (K, 3), UTC ``times_utc`` (K,) and
-        ``envs`` (K dicts; every env input the model has, else :class:`ParameterError`)."""
-        cfg, layers = fitted
-        problem = _fine_problem_from_config(cfg, h.spec, nominal_parameters(h.row))
-        enc = problem.encoder
-        for time_utc, env in zip(times_utc, envs):
-            check_network_inputs(h, chosen, enc.env, time_utc, env)
-        env_values = (np.array([[float(env[e]) for e in enc.env] for env in envs])
-                      if enc.env else None)
-        az, el = sun_angles_from_vector(sun.numpy())
-        return cls(problem, layers, h.spec, sun, aim, enc.context(list(times_utc), env_values),
-                   np.asarray(fade_weights(cfg, az, el, list(times_utc)), np.float64))
-
-    def params_at(self, steps: torch.Tensor, idx=slice(None)) -> torch.Tensor:
-        """(n, 28) the parameters of the aims ``idx`` at their ``steps`` (n, 2)."""
-        with torch.no_grad():
-            features = self.problem.encoder.encode(steps, self.context[idx])
-            return grouped_components(self.problem, self.layers, features, None,
-                                      self.fade[idx]).stacked()[0]
-
-    def fixed_points(self, steps: torch.Tensor, max_iterations: int, tolerance_steps: float):
-        """(steps (K, 2), iterations (K,), last change (K,) [steps]): each aim's fixed point
-        ``steps <- IK(params(steps))`` from ``steps`` (the coarse ones), the aims together but
-        each stopping on its own when its change is below ``tolerance_steps`` (its steps are
-        those it would get alone); an aim whose steps become non-finite stops there."""
-        steps = steps.clone()
-        iterations = np.zeros(len(steps), np.int64)
-        delta = np.full(len(steps), np.inf)
-        todo = torch.isfinite(steps).all(-1)
-        for it in range(1, max_iterations + 1):
-            if not bool(todo.any()):
-                break
-            idx = torch.nonzero(todo).flatten()
-            new = inverse_kinematics(self.params_at(steps[idx], idx.numpy()), self.spec,
-                                     self.sun[idx][:, None], self.aim[idx][:, None])[:, 0]
-            change = (new - steps[idx]).abs().amax(-1)
-            steps[idx] = new
-            iterations[idx.numpy()] = it
-            delta[idx.numpy()] = change.numpy()
-            todo[idx[~torch.isfinite(new).all(-1) | (change < tolerance_steps)]] = False
-        return steps, iterations, delta
 
 
 def gp_env_values(h: AimHeliostat, cfg: dict, env: Mapping[str, float], time_utc) -> list[float]:
@@ -422,7 +339,7 @@ def gp_env_values(h: AimHeliostat, cfg: dict, env: Mapping[str, float], time_utc
     return [float(env[e]) for e in names]
 
 
-def gp_model_aim_steps(cfg: dict, state, *args, **kwargs):
+def _gp_aim_steps(cfg: dict, state, *args, **kwargs):
     """:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps` of the GP model ``(cfg,
     state)``; the GP's modules are imported here, so that aiming any other model does not."""
     from ..models.gp import GPCorrection
@@ -437,7 +354,7 @@ def _gp_solve(h: AimHeliostat, fitted, sun, aim, time_utc, env, max_iterations: 
     (:func:`heliocal.pipeline.models.gp_heliostat.gp_aim_steps`)."""
     cfg, state = fitted
     env_values = gp_env_values(h, cfg, env, time_utc)
-    fit = gp_model_aim_steps(cfg, state, h.coarse, h.spec, sun, aim,
+    fit = _gp_aim_steps(cfg, state, h.coarse, h.spec, sun, aim,
                         None if time_utc is None else epoch_seconds([time_utc])[0],
                         env_values or None,
                         max_iterations=max_iterations, tolerance_steps=tolerance_steps)

@@ -367,40 +367,53 @@ def _fine_steps(field: _Field, rows: _Rows, chosen: np.ndarray, sun: np.ndarray,
                 steps: np.ndarray, gp_terms: np.ndarray) -> None:
     """The steps of the ok rows whose heliostat aims with a fine model, in place in ``steps``,
     and a GP's part of their expected error in ``gp_terms`` (R, 2) (``explained_mrad2``,
-    ``noise_mrad2`` of :class:`.aim_fine.FineAim`): :func:`.aim_fine.heliostat_aims` per
-    heliostat (its model read once, its aims' fixed points solved together); a failure is the
+    ``noise_mrad2`` of :class:`.aim_fine.FineAim`): :func:`.aim_fine.fine_aims` (each
+    heliostat's model read once, the aims' fixed points solved together); a failure is the
     row's reason."""
     fine = rows.ok & ~np.isin(chosen.astype(str), ["coarse", "nominal", "None"])
     if not fine.any():
         return
     from .aim import heliostat_of
-    from .aim_fine import heliostat_aims
+    from .aim_fine import AimRequest, fine_aims
 
+    stale = _stale_fine_inputs(field.wd)
+    if stale is not None:                   # fit-coarse's parameters missing or stale
+        steps[fine] = np.nan
+        rows.reject(fine, str(stale))
+        return
     env_cols = [c for c in rows.frame.columns if str(c).startswith("env_")]
     times = rows.frame["time_utc"]
-    stale = _stale_fine_inputs(field.wd)
+    requests, rows_of = [], []
     for hid, idx in _heliostat_rows(rows.hid, fine):
         envs = [{c[4:]: float(rows.frame[c].iat[i]) for c in env_cols
                  if pd.notna(rows.frame[c].iat[i])} for i in idx]
         model = "auto" if field.auto else str(chosen[idx[0]])
         try:
-            if stale is not None:
-                raise stale
             row = field.helio.loc[hid].copy()
             row["heliostat_id"] = hid
             h = heliostat_of(field.wd, row, field.selected.get(hid))
-            results = heliostat_aims(field.wd, hid, model, sun[idx], rows.point[idx],
-                                     [times.iat[i] for i in idx], envs,
-                                     field.models.get(hid) if field.auto else None, h)
         except HeliocalError as exc:
-            results = [exc] * len(idx)
+            _reject_each(rows, steps, idx, [exc] * len(idx))
+            continue
+        requests.append(AimRequest(hid, model, sun[idx], rows.point[idx],
+                                   [times.iat[i] for i in idx], envs,
+                                   field.models.get(hid) if field.auto else None, h))
+        rows_of.append(idx)
+    for idx, results in zip(rows_of, fine_aims(field.wd, requests)):
+        _reject_each(rows, steps, idx, results)
         for i, result in zip(idx, results):
-            if isinstance(result, Exception):
-                steps[i] = np.nan
-                rows.reject(np.arange(len(steps)) == i, str(result))
-            else:
+            if not isinstance(result, Exception):
                 steps[i] = result.steps
                 gp_terms[i] = result.explained_mrad2, result.noise_mrad2
+
+
+def _reject_each(rows: _Rows, steps: np.ndarray, idx: np.ndarray, results: list) -> None:
+    """The rows ``idx`` whose result is an error rejected with it as their reason (their
+    steps NaN)."""
+    for i, result in zip(idx, results):
+        if isinstance(result, Exception):
+            steps[i] = np.nan
+            rows.reject(np.arange(len(steps)) == i, str(result))
 
 
 def _stale_fine_inputs(wd: CommittedWorkdir) -> HeliocalError | None:
