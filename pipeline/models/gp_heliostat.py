@@ -16,7 +16,7 @@ import pandas as pd
 import torch
 
 from ..physics.kinematics import forward_kinematics, inverse_kinematics
-from ..physics.lm import stack_specs, take_spec
+from ..physics.lm import iterate_by_type
 from ..physics.metrics import error_mrad, measured_normal, reflect
 from ..physics.sun import sun_angles_from_vector
 from .fade import FADE_LENGTHS_DEG
@@ -242,32 +242,24 @@ def gp_aims_steps(jobs: list[GPAimJob], *, max_iterations: int = 50,
     kinematic and actuator type (each aim a batch of one with its heliostat's spec), each aim
     stopping on its own, so its steps are those it gets alone."""
     state = [_GPIterate(job) for job in jobs]
-    groups: dict[tuple, list[int]] = {}
-    for j, s in enumerate(state):
-        groups.setdefault((s.spec.kinematic_type, s.spec.actuator_type), []).append(j)
-    for members in groups.values():
-        specs = stack_specs([state[j].spec for j in members]) if len(members) > 1 else None
-        for it in range(1, max_iterations + 1):
-            active = [(k, state[j], torch.nonzero(state[j].todo).flatten())
-                      for k, j in enumerate(members) if bool(state[j].todo.any())]
-            if not active:
-                break
-            for _, s, _ in active:
-                if s.model.inputs.periodic_axis and it > 1:
-                    s.predict()
-            which = torch.cat([torch.full((len(idx),), k, dtype=torch.long)
-                               for k, _, idx in active])
-            new = _gp_step(torch.cat([s.params[idx] for _, s, idx in active]),
-                           active[0][1].spec if specs is None else take_spec(specs, which),
-                           torch.cat([s.sun[idx] for _, s, idx in active]),
-                           torch.cat([s.aim_point[idx] for _, s, idx in active]),
-                           torch.cat([s.g[idx] for _, s, idx in active]),
-                           torch.cat([s.steps[idx] for _, s, idx in active]))
-            for (_, s, idx), rows in zip(active, torch.split(new, [len(a[2]) for a in active])):
-                delta = (rows - s.steps[idx]).abs().amax(-1)
-                s.steps[idx] = rows
-                s.iterations[idx.numpy()] = it
-                s.todo[idx[~torch.isfinite(rows).all(-1) | (delta < tolerance_steps)]] = False
+
+    def step(it: int, active: list, spec) -> None:
+        for j, _ in active:
+            if state[j].model.inputs.periodic_axis and it > 1:
+                state[j].predict()
+        new = _gp_step(torch.cat([state[j].params[idx] for j, idx in active]), spec,
+                       torch.cat([state[j].sun[idx] for j, idx in active]),
+                       torch.cat([state[j].aim_point[idx] for j, idx in active]),
+                       torch.cat([state[j].g[idx] for j, idx in active]),
+                       torch.cat([state[j].steps[idx] for j, idx in active]))
+        for (j, idx), rows in zip(active, torch.split(new, [len(i) for _, i in active])):
+            s = state[j]
+            delta = (rows - s.steps[idx]).abs().amax(-1)
+            s.steps[idx] = rows
+            s.iterations[idx.numpy()] = it
+            s.todo[idx[~torch.isfinite(rows).all(-1) | (delta < tolerance_steps)]] = False
+
+    iterate_by_type([s.spec for s in state], [s.todo for s in state], step, max_iterations)
     return [s.result() for s in state]
 
 

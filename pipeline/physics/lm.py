@@ -48,7 +48,8 @@ from .parameters import HeliostatSpec
 from .metrics import measured_normal
 from ..vocabulary import CoarseLoss
 
-__all__ = ["BatchedProblem", "BatchedSolution", "stack_specs", "take_spec", "solve_batched",
+__all__ = ["BatchedProblem", "BatchedSolution", "stack_specs", "take_spec", "iterate_by_type",
+           "solve_batched",
            "robust_loss", "normal_residuals_mrad", "NAN_RESIDUAL_MRAD",
            "LOSSES", "SPEC_TENSORS"]
 
@@ -77,6 +78,33 @@ def stack_specs(specs: list[HeliostatSpec]) -> HeliostatSpec:
         object.__setattr__(out, name, torch.stack([getattr(s, name) for s in specs]))
     object.__setattr__(out, "heliostat_id", tuple(s.heliostat_id for s in specs))
     return out
+
+
+def iterate_by_type(specs: list[HeliostatSpec], todo: list[torch.Tensor], step,
+                    max_iterations: int) -> None:
+    """Iterations of many heliostats' independent fixed points (an aim's steps through a fine
+    model, say), the rows of one kinematic and actuator type together: heliostat ``j`` (of
+    spec ``specs[j]``) has rows ``todo[j]`` (K_j,) bool still iterating, and each iteration
+    calls ``step(iteration, active, spec)`` once per type with ``active`` [(j, idx)] its
+    heliostats' rows still iterating (in that order) and ``spec`` the rows' spec (each row a
+    batch of one with its heliostat's: :func:`take_spec` of :func:`stack_specs`; one
+    heliostat's own spec when it is the type's only one). ``step`` updates its state and
+    ``todo`` in place; a type stops when none of its rows is left or after
+    ``max_iterations``."""
+    groups: dict[tuple, list[int]] = {}
+    for j, spec in enumerate(specs):
+        groups.setdefault((spec.kinematic_type, spec.actuator_type), []).append(j)
+    for members in groups.values():
+        stacked = stack_specs([specs[j] for j in members]) if len(members) > 1 else None
+        for iteration in range(1, max_iterations + 1):
+            active = [(k, j, torch.nonzero(todo[j]).flatten())
+                      for k, j in enumerate(members) if bool(todo[j].any())]
+            if not active:
+                break
+            which = torch.cat([torch.full((len(idx),), k, dtype=torch.long)
+                               for k, _, idx in active])
+            spec = specs[members[0]] if stacked is None else take_spec(stacked, which)
+            step(iteration, [(j, idx) for _, j, idx in active], spec)
 
 
 def normal_residuals_mrad(params: torch.Tensor, spec: HeliostatSpec, steps: torch.Tensor,

@@ -24,16 +24,12 @@ from ..models.fade import fade_weights
 from ..models.network import FeatureEncoder, Layers
 from ..models.training import FineProblem, grouped_components
 from ..physics.kinematics import inverse_kinematics
-from ..physics.lm import stack_specs, take_spec
+from ..physics.lm import iterate_by_type
 from ..physics.parameters import HeliostatSpec
 from ..physics.sun import sun_angles_from_vector
 
 __all__ = ["HybridAims", "check_network_inputs", "fine_problem_from_config",
            "not_converged_error", "solve_fixed_points"]
-
-#: Aim rows per batched inverse kinematics of the fixed points (as the batch aim's coarse rows).
-FIXED_POINT_CHUNK_ROWS = 20_000
-
 
 def fine_problem_from_config(cfg: dict, spec: HeliostatSpec, nominal: torch.Tensor
                              ) -> FineProblem:
@@ -136,38 +132,19 @@ def solve_fixed_points(hybrids: list[HybridAims], starts: list[torch.Tensor],
                        max_iterations: int, tolerance_steps: float) -> list[tuple]:
     """Per hybrid, (steps (K, 2), iterations (K,), last change (K,) [steps]) of its aims' fixed
     points from ``starts`` (K, 2) (the coarse steps), all aims of one kinematic and actuator
-    type iterating together, each stopping on its own (module docstring); an aim whose steps
-    become non-finite stops there (NaN), one still moving after ``max_iterations`` has its last
-    change in ``delta``."""
+    type iterating together (:func:`heliocal.pipeline.physics.lm.iterate_by_type`), each
+    stopping on its own (module docstring); an aim whose steps become non-finite stops there
+    (NaN), one still moving after ``max_iterations`` has its last change in ``delta``."""
     state = [_Iterate.start(s) for s in starts]
-    groups: dict[tuple, list[int]] = {}
-    for j, hybrid in enumerate(hybrids):
-        groups.setdefault((hybrid.spec.kinematic_type, hybrid.spec.actuator_type), []).append(j)
-    for members in groups.values():
-        specs = stack_specs([hybrids[j].spec for j in members]) if len(members) > 1 else None
-        for iteration in range(1, max_iterations + 1):
-            active = [(k, j, torch.nonzero(state[j].todo).flatten())
-                      for k, j in enumerate(members) if bool(state[j].todo.any())]
-            if not active:
-                break
-            new = _inverse_kinematics(hybrids, state, active, specs)
-            for (_, j, idx), rows in zip(active, torch.split(new, [len(a[2]) for a in active])):
-                state[j].update(idx, rows, iteration, tolerance_steps)
+
+    def step(iteration: int, active: list, spec: HeliostatSpec) -> None:
+        params = torch.cat([hybrids[j].params_at(state[j].steps[idx], idx.numpy())
+                            for j, idx in active])
+        sun = torch.cat([hybrids[j].sun[idx] for j, idx in active])[:, None]
+        aim = torch.cat([hybrids[j].aim[idx] for j, idx in active])[:, None]
+        new = inverse_kinematics(params, spec, sun, aim)[:, 0]
+        for (j, idx), rows in zip(active, torch.split(new, [len(i) for _, i in active])):
+            state[j].update(idx, rows, iteration, tolerance_steps)
+
+    iterate_by_type([h.spec for h in hybrids], [s.todo for s in state], step, max_iterations)
     return [(s.steps, s.iterations, s.delta) for s in state]
-
-
-def _inverse_kinematics(hybrids, state, active, specs: HeliostatSpec | None) -> torch.Tensor:
-    """(n, 2) the steps that aim the ``active`` aims ((k, j, idx): member k of ``specs``,
-    hybrid j, its aims idx) at their points with the parameters at their current steps, in
-    chunks of :data:`FIXED_POINT_CHUNK_ROWS` rows; ``specs`` None: one heliostat, its spec."""
-    params = torch.cat([hybrids[j].params_at(state[j].steps[idx], idx.numpy())
-                        for _, j, idx in active])
-    sun = torch.cat([hybrids[j].sun[idx] for _, j, idx in active])[:, None]
-    aim = torch.cat([hybrids[j].aim[idx] for _, j, idx in active])[:, None]
-    which = torch.cat([torch.full((len(idx),), k, dtype=torch.long) for k, _, idx in active])
-    out = []
-    for a in range(0, len(params), FIXED_POINT_CHUNK_ROWS):
-        part = slice(a, a + FIXED_POINT_CHUNK_ROWS)
-        spec = hybrids[active[0][1]].spec if specs is None else take_spec(specs, which[part])
-        out.append(inverse_kinematics(params[part], spec, sun[part], aim[part])[:, 0])
-    return torch.cat(out)
