@@ -214,8 +214,9 @@ def test_a_fit_worse_than_the_nominal_geometry_never_reaches_aim(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["gp", "hybrid"])
 def test_batch_rows_of_fine_models_equal_single_aims(fitted, tmp_path, mode):
-    """Rows aimed with a fine model (the GP correction, the hybrid's fixed point) are solved per
-    heliostat with its model read once: the same steps and expected error as one aim at a time,
+    """Rows aimed with a fine model (the GP correction, the hybrid's fixed point) are solved
+    with each heliostat's model read once and the fixed points of all three heliostats (one
+    kinematic type) iterating together: the same steps and expected error as one aim at a time,
     a failing row (an unknown target) rejected beside them."""
     import shutil
 

@@ -137,3 +137,42 @@ def test_a_heliostat_in_a_padded_batch_fits_as_alone(sample_split):
         spec, _, data = item
         assert float(normal_errors_mrad(fit.params, spec, data).mean()) == pytest.approx(
             float(normal_errors_mrad(ref.params, spec, data).mean()), abs=1e-6)
+
+
+def test_iterate_by_type_groups_the_rows_of_one_type_with_each_row_s_own_spec():
+    """physics.lm.iterate_by_type (the batch aim's fixed points): heliostats of one kinematic
+    and actuator type iterate together, each row with its own heliostat's spec (its position
+    here), a type's only heliostat with its own spec; a type stops when its rows are done or
+    after max_iterations. Expected values written out from the specs below."""
+    import torch
+
+    from heliocal.pipeline.physics.lm import iterate_by_type
+    from heliocal.pipeline.physics.parameters import HeliostatSpec
+
+    def spec(kind, east):
+        return HeliostatSpec(kind, "ideal", [False, False], [-4e4, -1e3], [4e4, 2e4],
+                             [east, 0.0, 0.0])
+
+    specs = [spec("az-el", 1.0), spec("juelich", 2.0), spec("az-el", 3.0)]
+    todo = [torch.tensor([True, False, True]), torch.tensor([True]), torch.tensor([True, True])]
+    calls = []
+
+    def step(iteration, active, rows_spec):
+        calls.append((iteration, rows_spec.kinematic_type,
+                      [(j, idx.tolist()) for j, idx in active],
+                      rows_spec.position_enu[..., 0].reshape(-1).tolist()))
+        for j, idx in active:
+            todo[j][idx[:1]] = False          # one row of each heliostat done per iteration
+
+    iterate_by_type(specs, todo, step, max_iterations=5)
+    assert calls == [
+        # az-el: heliostats 0 and 2 stacked, each row its own heliostat's east position
+        (1, "az-el", [(0, [0, 2]), (2, [0, 1])], [1.0, 1.0, 3.0, 3.0]),
+        (2, "az-el", [(0, [2]), (2, [1])], [1.0, 3.0]),
+        # juelich: one heliostat, its own (unbatched) spec
+        (1, "juelich", [(1, [0])], [2.0]),
+    ]
+    calls.clear()
+    todo = [torch.tensor([True])]
+    iterate_by_type([specs[0]], todo, lambda it, active, s: calls.append(it), max_iterations=3)
+    assert calls == [1, 2, 3]                 # a row never done: max_iterations
