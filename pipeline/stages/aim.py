@@ -323,7 +323,7 @@ def _fixed_point(h: AimHeliostat, chosen: str, fitted: tuple, sun, aim, steps, t
         raise unreachable_error(h.id)
     if iterations[0] == max_iterations and not delta[0] < tolerance_steps:
         raise not_converged_error(h.id, chosen, max_iterations, float(delta[0]), tolerance_steps)
-    return steps, hybrid.params_at(steps), int(iterations[0]), None
+    return steps, hybrid.params_at(steps)[0], int(iterations[0]), None   # (28,): the one aim's
 
 
 def gp_env_values(h: AimHeliostat, cfg: dict, env: Mapping[str, float], time_utc) -> list[float]:

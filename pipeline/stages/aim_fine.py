@@ -2,9 +2,10 @@
 
 A fine model's steps are a fixed point (:mod:`.aim`: the parameters, or a GP's correction,
 depend on the steps), so each aim needs its own iterations. They are independent: the hybrid
-aims of all heliostats iterate together (:func:`.aim_network.solve_fixed_points`), a GP's aims
-of one heliostat together, each aim stopping on its own, so that an aim's steps are those
-:func:`.aim.aim_steps` gives it alone (within the fixed point's tolerance). A row's own failure
+aims of all heliostats iterate together (:func:`.aim_network.solve_fixed_points`), and so do
+their GP aims (:func:`heliocal.pipeline.models.gp_heliostat.gp_aims_steps`), each aim stopping
+on its own, so that an aim's steps are those :func:`.aim.aim_steps` gives it alone (within the
+fixed point's tolerance). A row's own failure
 (its env inputs, an unreachable aim, a fixed point that does not converge) is its entry; one
 of the heliostat (no fit, a stale model) is every row's of that heliostat.
 """
@@ -70,7 +71,7 @@ class AimRequest:
 def fine_aims(workdir, requests: list[AimRequest]) -> list[list[FineAim | HeliocalError]]:
     """Per request, the steps (2,) of its aims as :func:`.aim.aim_steps` gives them, as
     :class:`FineAim` or the row's error (module docstring); each heliostat and model read once,
-    the hybrid aims of all requests solved together."""
+    the hybrid aims of all requests solved together, and their GP aims."""
     wd = CommittedWorkdir.of(workdir)
     out: list = []
     jobs: list[_HybridJob] = []
