@@ -44,7 +44,9 @@ with ``--incremental`` once more on unchanged inputs; and the same update as one
 ``heliocal update`` (phase ``update-cmd``), on a copy of the work directory the full method left,
 put back at the same path (the stage-by-stage result moves to ``<wd>-stages``): a plant updates
 its work directory where it is, and the report's pages, which name their work directory, are kept
-where their bytes did not change.
+where their bytes did not change. Between the full method and the update, phase ``aim`` times
+``aim --date 2024-03-01 --every 10min`` on what the full method chose (the sweep's fine models
+included; its table beside the work directory, ``<wd>-aims.parquet``).
 
 The simulated field is cached in OUT/field (delete it to simulate again).
 """
@@ -249,9 +251,12 @@ def phase_commands(args, field_dir: Path, wd: Path, base: Path, update: Path,
               "--solver", args.solver]
     later = [c for c in (["sweep", "--workdir", str(wd), "--study", "0", *w, *args.sweep_args.split()],
                          ["report", "--workdir", str(wd), *w]) if c[0] in args.later.split(",")]
+    day = ["aim", "--workdir", str(wd), "--date", "2024-03-01", "--every", "10min",
+           "--out", str(wd.parent / f"{wd.name}-aims.parquet"), "--json"]
     phases = {
         "full": [["ingest", str(base), *props], ["split-knn", "--workdir", str(wd)], coarse,
                  *later],
+        "aim": [day],                 # a day of the field's aims with what the full method chose
         "update": [["ingest", str(update), *props, "--append"],
                    ["split-knn", "--workdir", str(wd), "--incremental"], [*coarse, "--incremental"],
                    *[[*c, "--incremental"] for c in later]],
