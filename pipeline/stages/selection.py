@@ -213,8 +213,7 @@ class CandidatePool:
         time, is refitted on the time split here and, where it is worse there, gives way to the
         rule's next choice among the other candidates; a network gets the static choice as its
         :attr:`HeliostatChoice.fallback` for :func:`apply_forward_checks`."""
-        chosen, judged, refused = self._first_forward_choice()
-        forward = self._gp_forward(chosen)
+        chosen, judged, forward, refused = self._first_forward_choice()
         out = self._outputs(chosen, judged)
         if chosen is not None and chosen.info["kind"] != "gp":
             out.fallback = self._static_choice(exclude=refused)
@@ -232,16 +231,17 @@ class CandidatePool:
         return out
 
     def _first_forward_choice(self):
-        """(chosen, judged, refused): the rule's choice with every GP it prefers that the
-        forward check refuses taken out of the running in turn (``refused``: the first such
-        GP, None if none was). A network's check is left to :func:`apply_forward_checks`."""
+        """(chosen, judged, forward, refused): the rule's choice with every GP it prefers
+        that the forward check refuses taken out of the running in turn, its forward figures
+        (:meth:`_gp_forward`; None but for a GP) and ``refused`` the first GP taken out (None if
+        none was). A network's check is left to :func:`apply_forward_checks`."""
         running = list(self.candidates)
         refused = None
         while True:
             chosen, judged = self._pick(running)
             forward = self._gp_forward(chosen)
             if forward is None or _no_worse(*forward):
-                return chosen, judged, refused
+                return chosen, judged, forward, refused
             refused = refused or chosen
             running.remove(chosen)
 
